@@ -1,0 +1,307 @@
+//! The REST API of a dsrl server: the catalog, versions and manifests, byte-range downloads, admin ingest and
+//! tags. Errors come back as [`ClientError::Server`] with the server's code, message and suggestions.
+
+use std::path::Path;
+use std::time::Duration;
+
+use dsrl_suite::{HostedVersion, Manifest, Task};
+use futures::StreamExt;
+use reqwest::header::{AUTHORIZATION, CONTENT_LENGTH, CONTENT_TYPE, IF_RANGE, RANGE};
+use reqwest::{Response, StatusCode};
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+use tokio::io::AsyncReadExt;
+
+use crate::error::{ClientError, ErrorDocument};
+
+/// Default server when neither `--server` nor `DSRL_SERVER` is set.
+pub const DEFAULT_SERVER: &str = "http://127.0.0.1:7070";
+
+/// A catalog entry: the task and its hosted versions, newest first.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TaskEntry {
+    #[serde(flatten)]
+    pub task: Task,
+    pub versions: Vec<HostedVersion>,
+}
+
+#[derive(Debug, Deserialize)]
+struct TaskList {
+    tasks: Vec<TaskEntry>,
+}
+
+#[derive(Debug, Deserialize)]
+struct VersionList {
+    versions: Vec<HostedVersion>,
+}
+
+/// The server's answer to an ingest.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct IngestResult {
+    /// `false`: identical data was already hosted.
+    pub created: bool,
+    pub task: String,
+    pub version: HostedVersion,
+    pub moved_tags: Vec<String>,
+    pub manifest_url: String,
+    pub download_url: String,
+}
+
+#[derive(Debug, Clone, Default)]
+pub struct IngestOptions {
+    pub tags: Vec<String>,
+    /// `paper` for MetaDrive files in the paper's 261-feature observation space.
+    pub observation_space: Option<String>,
+    pub license: Option<String>,
+    /// Recipe provenance as JSON (`{"kind": "recipe", ...}`), for data the pipeline built.
+    pub provenance_json: Option<String>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Client {
+    base: String,
+    http: reqwest::Client,
+    token: Option<String>,
+}
+
+impl Client {
+    pub fn new(base: &str) -> Result<Client, ClientError> {
+        let base = base.trim_end_matches('/').to_owned();
+        if !(base.starts_with("http://") || base.starts_with("https://")) {
+            return Err(ClientError::Usage(format!(
+                "server URL {base:?} must start with http:// or https://"
+            )));
+        }
+        let http = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(10))
+            // A stalled connection fails instead of hanging; a slow but moving download is fine.
+            .read_timeout(Duration::from_secs(120))
+            .user_agent(concat!("dsrl-client/", env!("CARGO_PKG_VERSION")))
+            .build()
+            .map_err(|e| ClientError::Protocol(format!("building the HTTP client: {e}")))?;
+        Ok(Client {
+            base,
+            http,
+            token: None,
+        })
+    }
+
+    pub fn with_token(mut self, token: Option<String>) -> Self {
+        self.token = token;
+        self
+    }
+
+    pub fn base(&self) -> &str {
+        &self.base
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    async fn send(&self, request: reqwest::RequestBuilder) -> Result<Response, ClientError> {
+        let response = request
+            .send()
+            .await
+            .map_err(|source| ClientError::Unreachable {
+                url: self.base.clone(),
+                source,
+            })?;
+        check(response).await
+    }
+
+    async fn get_json<T: DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
+        let response = self.send(self.http.get(self.url(path))).await?;
+        response
+            .json()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("GET {path}: {e}")))
+    }
+
+    fn admin(
+        &self,
+        request: reqwest::RequestBuilder,
+    ) -> Result<reqwest::RequestBuilder, ClientError> {
+        let token = self.token.as_deref().ok_or_else(|| {
+            ClientError::Usage(
+                "admin operations need a token: pass --token or set DSRL_ADMIN_TOKEN (a local server keeps it in \
+                 ~/.dsrl/server/admin-token)"
+                    .into(),
+            )
+        })?;
+        Ok(request.header(AUTHORIZATION, format!("Bearer {token}")))
+    }
+
+    pub async fn tasks(&self) -> Result<Vec<TaskEntry>, ClientError> {
+        Ok(self.get_json::<TaskList>("/v1/tasks").await?.tasks)
+    }
+
+    pub async fn versions(&self, task: &str) -> Result<Vec<HostedVersion>, ClientError> {
+        Ok(self
+            .get_json::<VersionList>(&format!("/v1/datasets/{}/versions", seg(task)))
+            .await?
+            .versions)
+    }
+
+    /// The manifest of a version (by id or tag) and its JSON text as served.
+    pub async fn manifest(
+        &self,
+        task: &str,
+        reference: &str,
+    ) -> Result<(Manifest, String), ClientError> {
+        let path = format!("/v1/datasets/{}/versions/{}", seg(task), seg(reference));
+        let response = self.send(self.http.get(self.url(&path))).await?;
+        let text = response
+            .text()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("GET {path}: {e}")))?;
+        let manifest = serde_json::from_str(&text)
+            .map_err(|e| ClientError::Protocol(format!("manifest: {e}")))?;
+        Ok((manifest, text))
+    }
+
+    /// Starts downloading `version` from byte `offset`. The `If-Range` condition makes the server send the whole
+    /// file (200) instead of the range (206) if the version's bytes are not the ones the partial file holds.
+    pub async fn download(
+        &self,
+        task: &str,
+        version: &str,
+        offset: u64,
+    ) -> Result<Response, ClientError> {
+        let path = format!(
+            "/v1/datasets/{}/versions/{}/download",
+            seg(task),
+            seg(version)
+        );
+        let mut request = self.http.get(self.url(&path));
+        if offset > 0 {
+            request = request
+                .header(RANGE, format!("bytes={offset}-"))
+                .header(IF_RANGE, format!("\"{version}\""));
+        }
+        self.send(request).await
+    }
+
+    /// Uploads a Parquet or DSRL HDF5 file; `progress` is told how many bytes went out.
+    pub async fn ingest(
+        &self,
+        task: &str,
+        file: &Path,
+        options: &IngestOptions,
+        progress: impl Fn(u64) + Send + Sync + 'static,
+    ) -> Result<IngestResult, ClientError> {
+        let open_error = ClientError::io(format!("opening {}", file.display()));
+        let handle = tokio::fs::File::open(file).await.map_err(open_error)?;
+        let size = handle
+            .metadata()
+            .await
+            .map_err(ClientError::io("reading the file size"))?
+            .len();
+        let file_name = file
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let mut query = vec![("filename", file_name)];
+        if !options.tags.is_empty() {
+            query.push(("tags", options.tags.join(",")));
+        }
+        if let Some(space) = &options.observation_space {
+            query.push(("observation_space", space.clone()));
+        }
+        if let Some(license) = &options.license {
+            query.push(("license", license.clone()));
+        }
+        let body = futures::stream::unfold((handle, 0u64), move |(mut handle, sent)| async move {
+            let mut buf = vec![0u8; 1 << 20];
+            match handle.read(&mut buf).await {
+                Ok(0) => None,
+                Ok(n) => {
+                    buf.truncate(n);
+                    Some((Ok::<_, std::io::Error>(buf), (handle, sent + n as u64)))
+                }
+                Err(e) => Some((Err(e), (handle, sent))),
+            }
+        })
+        .scan(0u64, move |sent, chunk| {
+            if let Ok(c) = &chunk {
+                *sent += c.len() as u64;
+                progress(*sent);
+            }
+            futures::future::ready(Some(chunk))
+        });
+        let path = format!("/v1/datasets/{}/versions", seg(task));
+        let mut request = self
+            .http
+            .post(self.url(&path))
+            .query(&query)
+            .header(CONTENT_TYPE, "application/octet-stream")
+            .header(CONTENT_LENGTH, size)
+            .body(reqwest::Body::wrap_stream(body));
+        if let Some(p) = &options.provenance_json {
+            request = request.header("dsrl-provenance", p.as_str());
+        }
+        let response = self.send(self.admin(request)?).await?;
+        response
+            .json()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("ingest response: {e}")))
+    }
+
+    pub async fn tag(
+        &self,
+        task: &str,
+        tag: &str,
+        version: &str,
+    ) -> Result<HostedVersion, ClientError> {
+        let path = format!("/v1/datasets/{}/tags/{}", seg(task), seg(tag));
+        let request = self
+            .http
+            .put(self.url(&path))
+            .json(&serde_json::json!({ "version": version }));
+        let response = self.send(self.admin(request)?).await?;
+        response
+            .json()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("tag response: {e}")))
+    }
+}
+
+/// Turns an error status into [`ClientError::Server`] using the server's error document.
+async fn check(response: Response) -> Result<Response, ClientError> {
+    let status = response.status();
+    if status.is_success() || status == StatusCode::NOT_MODIFIED {
+        return Ok(response);
+    }
+    let text = response.text().await.unwrap_or_default();
+    Err(match serde_json::from_str::<ErrorDocument>(&text) {
+        Ok(doc) => ClientError::Server {
+            status: status.as_u16(),
+            code: doc.error.code,
+            message: doc.error.message,
+            suggestions: doc.error.suggestions,
+        },
+        Err(_) => ClientError::Server {
+            status: status.as_u16(),
+            code: status
+                .canonical_reason()
+                .unwrap_or("error")
+                .to_lowercase()
+                .replace(' ', "_"),
+            message: format!("HTTP {status}: {}", text.trim()),
+            suggestions: vec![],
+        },
+    })
+}
+
+/// A path segment: ids and tags are plain ASCII by construction, but a user can type anything.
+fn seg(s: &str) -> String {
+    s.bytes()
+        .map(|b| {
+            if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.') {
+                (b as char).to_string()
+            } else {
+                format!("%{b:02X}")
+            }
+        })
+        .collect()
+}

@@ -1,0 +1,489 @@
+//! `dsrl-client`: list the DSRL tasks, fetch verified datasets into the local cache, inspect and verify them.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use dsrl_client::api::{DEFAULT_SERVER, IngestOptions};
+use dsrl_client::error::exit;
+use dsrl_client::{Cache, Client, ClientError, FetchOptions};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// `println!` that ends the process quietly (exit 141, as a shell reports SIGPIPE) when stdout is a closed pipe,
+/// e.g. `dsrl-client list | head`.
+macro_rules! out {
+    ($($arg:tt)*) => {
+        emit(format_args!($($arg)*))
+    };
+}
+
+fn emit(args: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    if let Err(e) = writeln!(std::io::stdout().lock(), "{args}") {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(141);
+        }
+        eprintln!("dsrl-client: writing to stdout: {e}");
+        std::process::exit(exit::FAILURE as i32);
+    }
+}
+
+const EXIT_CODES: &str = "\
+Exit codes:
+  0  success
+  1  other failure (local I/O, unexpected server answer)
+  2  usage error
+  3  integrity: a download did not match its sha256, or verify found (and removed) corrupt files
+  4  not found: unknown task, version or tag
+  5  server unreachable or failing (5xx); an interrupted download is kept and resumes on the next fetch
+  6  rejected by the server as invalid (400, 413, 416)
+  7  missing or wrong admin token (401, 403)
+
+Environment:
+  DSRL_SERVER        server URL (default http://127.0.0.1:7070)
+  DSRL_DATASET_DIR   cache root (default ~/.dsrl/datasets)
+  DSRL_ADMIN_TOKEN   admin token for `admin` commands";
+
+/// Offline safe-RL datasets from a dsrl server: the 38 DSRL tasks, verified and resumable downloads into a
+/// local cache laid out so DSRL/OSRL code finds the files.
+#[derive(Debug, Parser)]
+#[command(version, after_help = EXIT_CODES)]
+struct Cli {
+    /// Server URL.
+    #[arg(long, global = true, env = "DSRL_SERVER", default_value = DEFAULT_SERVER)]
+    server: String,
+    /// Cache root [default: $DSRL_DATASET_DIR or ~/.dsrl/datasets].
+    #[arg(long, global = true)]
+    cache_dir: Option<PathBuf>,
+    /// Print machine-readable JSON on stdout (errors too, as {"error": ...}).
+    #[arg(long, global = true)]
+    json: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// List all tasks with their constants and hosted versions.
+    List,
+    /// Show a version's manifest: counts, return ranges, spaces, provenance.
+    Show {
+        task: String,
+        /// Version id (sha256) or tag.
+        #[arg(long, default_value = "latest")]
+        version: String,
+        /// Also print the episode index (one line per episode).
+        #[arg(long)]
+        episodes: bool,
+    },
+    /// Download a version into the cache (verified by sha256, resumable) and print its path.
+    Fetch {
+        task: String,
+        /// Version id (sha256) or tag. A version id already in the cache needs no server.
+        #[arg(long, default_value = "latest")]
+        version: String,
+        /// parquet, or hdf5 for DSRL's layout (load it with get_dataset(h5path=...)).
+        #[arg(long, value_enum, default_value = "parquet")]
+        format: Format,
+        /// Cap the download speed, e.g. 500K, 20M (bytes per second).
+        #[arg(long, value_parser = parse_rate)]
+        limit_rate: Option<u64>,
+    },
+    /// Re-hash every cached file; report and remove corrupt ones.
+    Verify,
+    /// Operations that need the admin token.
+    Admin(AdminArgs),
+}
+
+#[derive(Debug, Args)]
+struct AdminArgs {
+    /// Admin bearer token [default: $DSRL_ADMIN_TOKEN, else ~/.dsrl/server/admin-token for a loopback server].
+    #[arg(long, global = true, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    #[command(subcommand)]
+    command: AdminCommand,
+}
+
+#[derive(Debug, Subcommand)]
+enum AdminCommand {
+    /// Upload a Parquet or DSRL HDF5 file as a new version of TASK (identical data is a no-op).
+    Ingest {
+        #[arg(long)]
+        task: String,
+        file: PathBuf,
+        /// Named tag to point at the version (repeatable); `latest` moves automatically.
+        #[arg(long = "tag")]
+        tags: Vec<String>,
+        /// `paper` for MetaDrive files in the paper's 261-feature observation space.
+        #[arg(long)]
+        observation_space: Option<String>,
+        #[arg(long)]
+        license: Option<String>,
+        /// Recipe provenance JSON file (`{"kind": "recipe", ...}`) for data built by a recipe.
+        #[arg(long)]
+        provenance: Option<PathBuf>,
+    },
+    /// Point TAG of TASK at VERSION.
+    Tag {
+        #[arg(long)]
+        task: String,
+        #[arg(long)]
+        version: String,
+        tag: String,
+    },
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Format {
+    Parquet,
+    Hdf5,
+}
+
+fn parse_rate(s: &str) -> Result<u64, String> {
+    let s = s.trim();
+    let (digits, unit) = match s
+        .char_indices()
+        .find(|(_, c)| !c.is_ascii_digit() && *c != '.')
+    {
+        Some((i, _)) => s.split_at(i),
+        None => (s, ""),
+    };
+    let value: f64 = digits
+        .parse()
+        .map_err(|_| format!("invalid rate {s:?}: expected e.g. 500K or 20M"))?;
+    let factor = match unit.to_ascii_uppercase().as_str() {
+        "" | "B" => 1.0,
+        "K" | "KB" => 1024.0,
+        "M" | "MB" => 1024.0 * 1024.0,
+        "G" | "GB" => 1024.0 * 1024.0 * 1024.0,
+        _ => return Err(format!("invalid rate unit {unit:?}: use K, M or G")),
+    };
+    let rate = (value * factor) as u64;
+    if rate == 0 {
+        return Err("the rate must be positive".into());
+    }
+    Ok(rate)
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG")
+                .unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let json = cli.json;
+    match run(cli).await {
+        Ok(code) => ExitCode::from(code),
+        Err(e) => {
+            if json {
+                out!("{}", e.to_json());
+            }
+            eprintln!("dsrl-client: {e}");
+            ExitCode::from(e.exit_code())
+        }
+    }
+}
+
+fn print_json(value: &impl serde::Serialize) {
+    out!(
+        "{}",
+        serde_json::to_string_pretty(value).expect("serializable")
+    );
+}
+
+async fn run(cli: Cli) -> Result<u8, ClientError> {
+    let cache = Cache::new(cli.cache_dir.clone().unwrap_or_else(Cache::default_root));
+    let client = Client::new(&cli.server)?;
+    match cli.command {
+        Command::List => {
+            let tasks = client.tasks().await?;
+            if cli.json {
+                print_json(&tasks);
+            } else {
+                out!(
+                    "{:<40} {:<13} {:>5} {:>4} {:>3} {:>21} {:>10} {:<9} latest",
+                    "TASK",
+                    "FAMILY",
+                    "STEPS",
+                    "OBS",
+                    "ACT",
+                    "REWARD RANGE",
+                    "COST MAX",
+                    "THRESH."
+                );
+                for t in &tasks {
+                    let k = &t.task;
+                    let thresholds: Vec<String> =
+                        k.cost_thresholds.iter().map(|c| format!("{c}")).collect();
+                    let latest = t
+                        .versions
+                        .iter()
+                        .find(|v| v.tags.iter().any(|tag| tag == "latest"))
+                        .map(|v| format!("{} ({} episodes)", &v.version[..12], v.episodes))
+                        .unwrap_or_else(|| "-".into());
+                    out!(
+                        "{:<40} {:<13} {:>5} {:>4} {:>3} {:>10.2}..{:<9.2} {:>10.2} {:<9} {latest}",
+                        k.id.as_str(),
+                        k.family.as_str(),
+                        k.max_episode_steps,
+                        k.obs_dim,
+                        k.act_dim,
+                        k.min_episode_reward,
+                        k.max_episode_reward,
+                        k.max_episode_cost,
+                        thresholds.join("/")
+                    );
+                }
+                let hosted = tasks.iter().filter(|t| !t.versions.is_empty()).count();
+                out!("{} tasks, {hosted} with hosted versions", tasks.len());
+            }
+        }
+        Command::Show {
+            task,
+            version,
+            episodes,
+        } => {
+            let (manifest, raw) = client.manifest(&task, &version).await?;
+            if cli.json {
+                out!("{raw}");
+                return Ok(exit::OK);
+            }
+            let m = &manifest;
+            out!("task              {}", m.task);
+            out!("version           {}", m.version);
+            out!(
+                "file              {} ({} bytes, {})",
+                m.file_name,
+                m.byte_size,
+                m.format
+            );
+            out!("episodes          {}", m.episodes);
+            out!("transitions       {}", m.transitions);
+            out!(
+                "observations      {} features ({} space)",
+                m.observation_space.dim,
+                m.observation_space.kind.as_str()
+            );
+            out!("actions           {} features", m.action_space.dim);
+            out!(
+                "reward return     {} .. {}",
+                m.reward_return.min,
+                m.reward_return.max
+            );
+            out!(
+                "cost return       {} .. {}",
+                m.cost_return.min,
+                m.cost_return.max
+            );
+            out!("license           {}", m.license);
+            out!("created           {}", m.created_at);
+            out!(
+                "provenance        {}",
+                serde_json::to_string(&m.provenance).expect("serializable")
+            );
+            if episodes {
+                out!(
+                    "\n{:>8} {:>10} {:>7} {:>14} {:>12}",
+                    "EPISODE",
+                    "START",
+                    "LENGTH",
+                    "REWARD RETURN",
+                    "COST RETURN"
+                );
+                for (i, e) in m.episode_index.iter().enumerate() {
+                    out!(
+                        "{i:>8} {:>10} {:>7} {:>14} {:>12}",
+                        e.start,
+                        e.length,
+                        e.reward_return,
+                        e.cost_return
+                    );
+                }
+            }
+        }
+        Command::Fetch {
+            task,
+            version,
+            format,
+            limit_rate,
+        } => {
+            let options = FetchOptions {
+                hdf5: matches!(format, Format::Hdf5),
+                limit_rate,
+                progress: !cli.json,
+            };
+            let outcome = cache.fetch(&client, &task, &version, &options).await?;
+            if cli.json {
+                print_json(&outcome);
+            } else {
+                let mut how = if outcome.downloaded_bytes == 0 && outcome.resumed_from.is_none() {
+                    "cache hit".to_owned()
+                } else if let Some(offset) = outcome.resumed_from {
+                    format!(
+                        "resumed at byte {offset}, {} bytes downloaded",
+                        outcome.downloaded_bytes
+                    )
+                } else {
+                    format!("{} bytes downloaded", outcome.downloaded_bytes)
+                };
+                if outcome.converted {
+                    how.push_str(", converted to DSRL HDF5");
+                }
+                how.push_str(&format!(", {:.2} s", outcome.seconds));
+                eprintln!(
+                    "{} {} verified ({how})",
+                    outcome.task,
+                    &outcome.version[..12]
+                );
+                out!("{}", outcome.path.display());
+            }
+        }
+        Command::Verify => {
+            let report = tokio::task::spawn_blocking(move || cache.verify(!cli.json))
+                .await
+                .map_err(|e| ClientError::Protocol(format!("verify task: {e}")))??;
+            if cli.json {
+                print_json(&report);
+            } else {
+                for f in &report.files {
+                    if f.status != "ok" {
+                        out!("{} {} (removed)", f.status.to_uppercase(), f.path.display());
+                    }
+                }
+                for p in &report.partial {
+                    out!("PARTIAL {} (kept; the next fetch resumes it)", p.display());
+                }
+                out!(
+                    "{} files checked, {} corrupt or missing, {} partial, {} bytes hashed",
+                    report.files.len(),
+                    report.corrupt(),
+                    report.partial.len(),
+                    report.bytes_hashed
+                );
+            }
+            if report.corrupt() > 0 {
+                return Ok(exit::INTEGRITY);
+            }
+        }
+        Command::Admin(admin) => {
+            let token = admin.token.or_else(|| local_admin_token(&cli.server));
+            let client = client.with_token(token);
+            match admin.command {
+                AdminCommand::Ingest {
+                    task,
+                    file,
+                    tags,
+                    observation_space,
+                    license,
+                    provenance,
+                } => {
+                    let provenance_json = match provenance {
+                        Some(p) => Some(
+                            std::fs::read_to_string(&p)
+                                .map_err(ClientError::io(format!("reading {}", p.display())))?,
+                        ),
+                        None => None,
+                    };
+                    let size = std::fs::metadata(&file).map(|m| m.len()).unwrap_or(0);
+                    let bar = if cli.json {
+                        ProgressBar::hidden()
+                    } else {
+                        ProgressBar::new(size)
+                    };
+                    bar.set_style(
+                        ProgressStyle::with_template(
+                            "uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}",
+                        )
+                        .expect("valid template")
+                        .progress_chars("=> "),
+                    );
+                    let b = bar.clone();
+                    let options = IngestOptions {
+                        tags,
+                        observation_space,
+                        license,
+                        provenance_json: provenance_json.map(|p| p.trim().replace('\n', " ")),
+                    };
+                    let result = client
+                        .ingest(&task, &file, &options, move |n| b.set_position(n))
+                        .await;
+                    bar.finish_and_clear();
+                    let result = result?;
+                    if cli.json {
+                        print_json(&result);
+                    } else {
+                        let what = if result.created {
+                            "created"
+                        } else {
+                            "unchanged (identical data already hosted)"
+                        };
+                        out!(
+                            "{} {} {what}: {} episodes, {} transitions, tags [{}]",
+                            result.task,
+                            result.version.version,
+                            result.version.episodes,
+                            result.version.transitions,
+                            result.version.tags.join(", ")
+                        );
+                    }
+                }
+                AdminCommand::Tag { task, version, tag } => {
+                    let v = client.tag(&task, &tag, &version).await?;
+                    if cli.json {
+                        print_json(&v);
+                    } else {
+                        out!(
+                            "{task} {tag} -> {} (tags [{}])",
+                            v.version,
+                            v.tags.join(", ")
+                        );
+                    }
+                }
+            }
+        }
+    }
+    Ok(exit::OK)
+}
+
+/// For a server on loopback, the token a local `dsrl-server` with default settings generated.
+fn local_admin_token(server: &str) -> Option<String> {
+    let host = server.split("://").nth(1)?.split(['/', ':']).next()?;
+    if !matches!(host, "127.0.0.1" | "localhost" | "[") {
+        return None;
+    }
+    let home = std::env::var_os("HOME")?;
+    let token =
+        std::fs::read_to_string(PathBuf::from(home).join(".dsrl/server/admin-token")).ok()?;
+    Some(token.trim().to_owned()).filter(|t| !t.is_empty())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates() {
+        assert_eq!(parse_rate("500").unwrap(), 500);
+        assert_eq!(parse_rate("2K").unwrap(), 2048);
+        assert_eq!(parse_rate("1.5M").unwrap(), 1_572_864);
+        assert!(parse_rate("0").is_err());
+        assert!(parse_rate("5X").is_err());
+        assert!(parse_rate("fast").is_err());
+    }
+
+    #[test]
+    fn cli_parses() {
+        Cli::command_for_test();
+    }
+
+    impl Cli {
+        fn command_for_test() {
+            use clap::CommandFactory;
+            Cli::command().debug_assert();
+        }
+    }
+}

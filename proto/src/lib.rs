@@ -1,0 +1,9 @@
+//! gRPC contracts of the dsrl service. The `.proto` files under `dsrl/` are the source; the Rust code under
+//! `src/gen/` is generated from them and committed, so building needs no protoc. `tests/codegen.rs` regenerates
+//! it into a temporary directory and fails on any drift (`DSRL_UPDATE_CODEGEN=1` rewrites it instead).
+
+pub mod datasets {
+    pub mod v1 {
+        include!("gen/dsrl.datasets.v1.rs");
+    }
+}

@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config.
+# Idempotent: does nothing when they are present.
+set -euo pipefail
+need=()
+dpkg -s libhdf5-dev >/dev/null 2>&1 || need+=(libhdf5-dev)
+dpkg -s pkg-config >/dev/null 2>&1 || need+=(pkg-config)
+if [ ${#need[@]} -eq 0 ]; then
+  exit 0
+fi
+sudo=""
+[ "$(id -u)" -eq 0 ] || sudo="sudo"
+echo "installing system packages: ${need[*]}" >&2
+$sudo apt-get update -qq
+DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null

@@ -1,0 +1,221 @@
+//! Server configuration, layered: built-in defaults → TOML file → `DSRL__SECTION__KEY` environment variables →
+//! command-line flags. The defaults are the embedded set-up: one SQLite file and a local object store under
+//! `~/.dsrl/server`, the catalog compiled from `data/tasks.csv`, starter datasets from `data/starter`.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use figment::Figment;
+use figment::providers::{Env, Format, Serialized, Toml};
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub server: ServerConfig,
+    pub catalog: CatalogConfig,
+    pub datasets: DatasetsConfig,
+    pub auth: AuthConfig,
+    pub storage: StorageConfig,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Address for REST and gRPC (one port).
+    pub listen: SocketAddr,
+    /// SQLite database, temporary files and (for the local backend) the object store live here.
+    pub data_dir: PathBuf,
+}
+
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CatalogConfig {
+    /// A tasks CSV in the layout of `data/tasks.csv`; unset means the copy compiled into the binary.
+    pub tasks: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetsConfig {
+    /// Folder of starter datasets (`<task>/<file>.parquet|.hdf5`) ingested at start-up when missing.
+    pub starter_dir: Option<PathBuf>,
+    /// Largest accepted upload, in bytes; larger ones get 413.
+    pub max_upload_bytes: u64,
+    /// License recorded in manifests when an ingest names none.
+    pub default_license: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AuthConfig {
+    /// Bearer token for admin operations. Unset: one is generated into `<data_dir>/admin-token` (mode 0600).
+    pub admin_token: Option<String>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StorageConfig {
+    /// `local` (files under `<data_dir>/objects`) or `s3`.
+    pub backend: StorageBackend,
+    pub s3: S3Config,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StorageBackend {
+    Local,
+    S3,
+}
+
+/// S3 settings; credentials come from the standard `AWS_*` environment variables.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct S3Config {
+    pub bucket: String,
+    /// Key prefix inside the bucket.
+    pub prefix: String,
+    pub region: Option<String>,
+    /// For S3-compatible services (MinIO, moto, Ceph): their URL.
+    pub endpoint: Option<String>,
+    /// Allow `http://` endpoints (tests and private networks).
+    pub allow_http: bool,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            server: ServerConfig {
+                listen: SocketAddr::from(([127, 0, 0, 1], 7070)),
+                data_dir: PathBuf::from("~/.dsrl/server"),
+            },
+            catalog: CatalogConfig::default(),
+            datasets: DatasetsConfig {
+                starter_dir: Some(PathBuf::from("data/starter")),
+                max_upload_bytes: 16 << 30,
+                default_license: "CC-BY-4.0".to_owned(),
+            },
+            auth: AuthConfig::default(),
+            storage: StorageConfig {
+                backend: StorageBackend::Local,
+                s3: S3Config::default(),
+            },
+        }
+    }
+}
+
+/// Values given on the command line; `None` leaves the lower layers' value.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Overrides {
+    pub listen: Option<SocketAddr>,
+    pub data_dir: Option<PathBuf>,
+    pub catalog: Option<PathBuf>,
+    pub starter_dir: Option<PathBuf>,
+}
+
+impl Config {
+    /// Defaults → `file` (if given) → `DSRL__…` environment → `overrides`.
+    pub fn load(file: Option<&Path>, overrides: &Overrides) -> Result<Config, Box<figment::Error>> {
+        let mut figment = Figment::from(Serialized::defaults(Config::default()));
+        if let Some(file) = file {
+            figment = figment.merge(Toml::file_exact(file));
+        }
+        figment = figment.merge(Env::prefixed("DSRL__").split("__"));
+        let mut flags = serde_json::Map::new();
+        let mut set = |section: &str, key: &str, value: serde_json::Value| {
+            flags
+                .entry(section.to_owned())
+                .or_insert_with(|| serde_json::Value::Object(Default::default()))
+                .as_object_mut()
+                .expect("section")
+                .insert(key.to_owned(), value);
+        };
+        if let Some(v) = &overrides.listen {
+            set("server", "listen", v.to_string().into());
+        }
+        if let Some(v) = &overrides.data_dir {
+            set("server", "data_dir", v.display().to_string().into());
+        }
+        if let Some(v) = &overrides.catalog {
+            set("catalog", "tasks", v.display().to_string().into());
+        }
+        if let Some(v) = &overrides.starter_dir {
+            set("datasets", "starter_dir", v.display().to_string().into());
+        }
+        figment = figment.merge(Serialized::defaults(serde_json::Value::Object(flags)));
+        let mut config: Config = figment.extract().map_err(Box::new)?;
+        config.server.data_dir = expand_home(&config.server.data_dir);
+        Ok(config)
+    }
+}
+
+/// `~/x` → `$HOME/x`.
+pub fn expand_home(path: &Path) -> PathBuf {
+    match (path.strip_prefix("~"), std::env::var_os("HOME")) {
+        (Ok(rest), Some(home)) => PathBuf::from(home).join(rest),
+        _ => path.to_path_buf(),
+    }
+}
+
+#[cfg(test)]
+// figment's `Jail` API fixes the closure's error type.
+#[allow(clippy::result_large_err)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn layers_apply_in_order() {
+        figment::Jail::expect_with(|jail| {
+            jail.create_file(
+                "dsrl.toml",
+                r#"
+                [server]
+                listen = "127.0.0.1:9000"
+                data_dir = "/srv/a"
+                [datasets]
+                max_upload_bytes = 1000
+                "#,
+            )?;
+            jail.set_env("DSRL__SERVER__DATA_DIR", "/srv/b");
+            jail.set_env("DSRL__STORAGE__BACKEND", "s3");
+            jail.set_env("DSRL__STORAGE__S3__BUCKET", "datasets");
+            let c = Config::load(Some(Path::new("dsrl.toml")), &Overrides::default()).unwrap();
+            assert_eq!(c.server.listen.port(), 9000); // file
+            assert_eq!(c.server.data_dir, PathBuf::from("/srv/b")); // env beats file
+            assert_eq!(c.datasets.max_upload_bytes, 1000);
+            assert_eq!(c.storage.backend, StorageBackend::S3);
+            assert_eq!(c.storage.s3.bucket, "datasets");
+            assert_eq!(c.datasets.default_license, "CC-BY-4.0"); // default
+            let flags = Overrides {
+                data_dir: Some("/srv/c".into()),
+                ..Default::default()
+            };
+            let c = Config::load(Some(Path::new("dsrl.toml")), &flags).unwrap();
+            assert_eq!(c.server.data_dir, PathBuf::from("/srv/c")); // flag beats env
+            Ok(())
+        });
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_errors() {
+        figment::Jail::expect_with(|jail| {
+            jail.create_file("bad.toml", "[server]\nlisten_port = 3\n")?;
+            let err = Config::load(Some(Path::new("bad.toml")), &Overrides::default()).unwrap_err();
+            assert!(err.to_string().contains("listen_port"), "{err}");
+            jail.create_file("bad2.toml", "[storage]\nbackend = \"gcs\"\n")?;
+            assert!(Config::load(Some(Path::new("bad2.toml")), &Overrides::default()).is_err());
+            assert!(Config::load(Some(Path::new("missing.toml")), &Overrides::default()).is_err());
+            Ok(())
+        });
+    }
+
+    #[test]
+    fn home_is_expanded() {
+        let home = std::env::var("HOME").unwrap();
+        assert_eq!(
+            expand_home(Path::new("~/.dsrl/server")),
+            PathBuf::from(home).join(".dsrl/server")
+        );
+        assert_eq!(expand_home(Path::new("/abs")), PathBuf::from("/abs"));
+    }
+}

@@ -1,0 +1,248 @@
+//! The server's one error type and the one table that maps each kind of error to an HTTP status and a gRPC
+//! code. Handlers return `ApiError`; REST renders it as JSON `{"error": {"code", "message", ...}}`, gRPC as a
+//! `Status` with the same message and the code name in the `dsrl-error-code` metadata.
+
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use dsrl_suite::UnknownTask;
+use serde::Serialize;
+
+/// Kinds of failure a client can act on; each has exactly one HTTP status and one gRPC code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    NotFound,
+    InvalidArgument,
+    PayloadTooLarge,
+    RangeNotSatisfiable,
+    Unauthenticated,
+    PermissionDenied,
+    Unavailable,
+    Internal,
+}
+
+impl ErrorCode {
+    pub const ALL: [ErrorCode; 8] = [
+        ErrorCode::NotFound,
+        ErrorCode::InvalidArgument,
+        ErrorCode::PayloadTooLarge,
+        ErrorCode::RangeNotSatisfiable,
+        ErrorCode::Unauthenticated,
+        ErrorCode::PermissionDenied,
+        ErrorCode::Unavailable,
+        ErrorCode::Internal,
+    ];
+
+    /// The table.
+    pub fn statuses(self) -> (StatusCode, tonic::Code) {
+        match self {
+            ErrorCode::NotFound => (StatusCode::NOT_FOUND, tonic::Code::NotFound),
+            ErrorCode::InvalidArgument => (StatusCode::BAD_REQUEST, tonic::Code::InvalidArgument),
+            ErrorCode::PayloadTooLarge => (
+                StatusCode::PAYLOAD_TOO_LARGE,
+                tonic::Code::ResourceExhausted,
+            ),
+            ErrorCode::RangeNotSatisfiable => {
+                (StatusCode::RANGE_NOT_SATISFIABLE, tonic::Code::OutOfRange)
+            }
+            ErrorCode::Unauthenticated => (StatusCode::UNAUTHORIZED, tonic::Code::Unauthenticated),
+            ErrorCode::PermissionDenied => (StatusCode::FORBIDDEN, tonic::Code::PermissionDenied),
+            ErrorCode::Unavailable => (StatusCode::SERVICE_UNAVAILABLE, tonic::Code::Unavailable),
+            ErrorCode::Internal => (StatusCode::INTERNAL_SERVER_ERROR, tonic::Code::Internal),
+        }
+    }
+
+    pub fn http_status(self) -> StatusCode {
+        self.statuses().0
+    }
+
+    pub fn grpc_code(self) -> tonic::Code {
+        self.statuses().1
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ErrorCode::NotFound => "not_found",
+            ErrorCode::InvalidArgument => "invalid_argument",
+            ErrorCode::PayloadTooLarge => "payload_too_large",
+            ErrorCode::RangeNotSatisfiable => "range_not_satisfiable",
+            ErrorCode::Unauthenticated => "unauthenticated",
+            ErrorCode::PermissionDenied => "permission_denied",
+            ErrorCode::Unavailable => "unavailable",
+            ErrorCode::Internal => "internal",
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ApiError {
+    #[error("{0}")]
+    UnknownTask(UnknownTask),
+    #[error("{task} has no version {reference:?}; list them with GET /v1/datasets/{task}/versions")]
+    VersionNotFound { task: String, reference: String },
+    #[error("{0}")]
+    InvalidArgument(String),
+    /// The uploaded file is not a valid dataset for the task; the message names the first problem.
+    #[error("rejected upload: {0}")]
+    InvalidUpload(String),
+    #[error("upload too large: the limit is {limit} bytes")]
+    UploadTooLarge { limit: u64 },
+    #[error("range not satisfiable: the file has {size} bytes")]
+    RangeNotSatisfiable { size: u64 },
+    #[error("this operation needs an admin bearer token (Authorization: Bearer <token>)")]
+    Unauthenticated,
+    #[error("the bearer token is not valid for admin operations")]
+    PermissionDenied,
+    #[error("service unavailable: {0}")]
+    Unavailable(String),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl ApiError {
+    pub fn code(&self) -> ErrorCode {
+        match self {
+            ApiError::UnknownTask(_) | ApiError::VersionNotFound { .. } => ErrorCode::NotFound,
+            ApiError::InvalidArgument(_) | ApiError::InvalidUpload(_) => ErrorCode::InvalidArgument,
+            ApiError::UploadTooLarge { .. } => ErrorCode::PayloadTooLarge,
+            ApiError::RangeNotSatisfiable { .. } => ErrorCode::RangeNotSatisfiable,
+            ApiError::Unauthenticated => ErrorCode::Unauthenticated,
+            ApiError::PermissionDenied => ErrorCode::PermissionDenied,
+            ApiError::Unavailable(_) => ErrorCode::Unavailable,
+            ApiError::Internal(_) => ErrorCode::Internal,
+        }
+    }
+
+    pub fn internal(e: impl std::fmt::Display) -> Self {
+        ApiError::Internal(e.to_string())
+    }
+
+    fn body(&self) -> ErrorBody<'_> {
+        ErrorBody {
+            error: ErrorDetail {
+                code: self.code(),
+                message: self.to_string(),
+                suggestions: match self {
+                    ApiError::UnknownTask(u) => &u.suggestions,
+                    _ => &[],
+                },
+            },
+        }
+    }
+}
+
+#[derive(Serialize)]
+struct ErrorBody<'a> {
+    error: ErrorDetail<'a>,
+}
+
+#[derive(Serialize)]
+struct ErrorDetail<'a> {
+    code: ErrorCode,
+    message: String,
+    #[serde(skip_serializing_if = "<[String]>::is_empty")]
+    suggestions: &'a [String],
+}
+
+impl From<UnknownTask> for ApiError {
+    fn from(e: UnknownTask) -> Self {
+        ApiError::UnknownTask(e)
+    }
+}
+
+impl From<sqlx::Error> for ApiError {
+    fn from(e: sqlx::Error) -> Self {
+        ApiError::Internal(format!("database: {e}"))
+    }
+}
+
+impl From<object_store::Error> for ApiError {
+    fn from(e: object_store::Error) -> Self {
+        ApiError::Unavailable(format!("object store: {e}"))
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let code = self.code();
+        if code == ErrorCode::Internal || code == ErrorCode::Unavailable {
+            tracing::error!(error = %self, "request failed");
+        }
+        let mut response = (code.http_status(), axum::Json(self.body())).into_response();
+        if let ApiError::RangeNotSatisfiable { size } = self {
+            let value = HeaderValue::from_str(&format!("bytes */{size}")).expect("ascii header");
+            response.headers_mut().insert(header::CONTENT_RANGE, value);
+        }
+        if code == ErrorCode::Unauthenticated {
+            response
+                .headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        response
+    }
+}
+
+impl From<ApiError> for tonic::Status {
+    fn from(e: ApiError) -> Self {
+        let code = e.code();
+        if code == ErrorCode::Internal || code == ErrorCode::Unavailable {
+            tracing::error!(error = %e, "gRPC request failed");
+        }
+        let mut status = tonic::Status::new(code.grpc_code(), e.to_string());
+        status.metadata_mut().insert(
+            "dsrl-error-code",
+            code.as_str().parse().expect("ascii metadata"),
+        );
+        status
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_code_maps_to_a_distinct_http_status_and_a_matching_grpc_code() {
+        let mut seen = std::collections::HashSet::new();
+        for code in ErrorCode::ALL {
+            assert!(
+                seen.insert(code.http_status()),
+                "{code:?} shares its HTTP status"
+            );
+            let http = code.http_status().as_u16();
+            let grpc = code.grpc_code();
+            // Client errors are never reported as server faults, and the reverse.
+            assert_eq!(
+                http >= 500,
+                matches!(grpc, tonic::Code::Internal | tonic::Code::Unavailable),
+                "{code:?}"
+            );
+            assert_eq!(serde_json::to_value(code).unwrap(), code.as_str());
+        }
+    }
+
+    #[test]
+    fn unknown_task_renders_suggestions_over_both_protocols() {
+        let err = ApiError::from(UnknownTask {
+            id: "AntRun".into(),
+            suggestions: vec!["OfflineAntRun-v0".into()],
+        });
+        let body = serde_json::to_value(err.body()).unwrap();
+        assert_eq!(body["error"]["code"], "not_found");
+        assert_eq!(body["error"]["suggestions"][0], "OfflineAntRun-v0");
+        let status = tonic::Status::from(err);
+        assert_eq!(status.code(), tonic::Code::NotFound);
+        assert!(status.message().contains("did you mean OfflineAntRun-v0"));
+        assert_eq!(
+            status.metadata().get("dsrl-error-code").unwrap(),
+            "not_found"
+        );
+    }
+
+    #[test]
+    fn range_errors_carry_the_size() {
+        let response = ApiError::RangeNotSatisfiable { size: 42 }.into_response();
+        assert_eq!(response.status(), StatusCode::RANGE_NOT_SATISFIABLE);
+        assert_eq!(response.headers()[header::CONTENT_RANGE], "bytes */42");
+    }
+}

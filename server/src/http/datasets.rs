@@ -1,0 +1,320 @@
+//! REST handlers for the catalog and dataset versions: list tasks, list versions, read a manifest, ingest an
+//! upload (admin), move a tag (admin). Downloads are in `download.rs`.
+
+use std::collections::HashMap;
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::rejection::{JsonRejection, QueryRejection};
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use dsrl_suite::{ObservationSpace, Provenance, TagName, Task};
+use futures::StreamExt;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use tokio::io::AsyncWriteExt;
+
+use crate::AppState;
+use crate::error::ApiError;
+use crate::http::metrics::OutcomeLabels;
+use crate::storage::datasets::{IngestRequest, LatestPolicy};
+use crate::storage::db::VersionRecord;
+
+/// Header carrying the provenance of data built by a recipe (JSON, `{"kind": "recipe", ...}`).
+pub const PROVENANCE_HEADER: &str = "dsrl-provenance";
+
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct TaskEntry {
+    #[serde(flatten)]
+    pub task: Task,
+    /// Hosted versions, newest first.
+    pub versions: Vec<VersionRecord>,
+}
+
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct TaskList {
+    pub tasks: Vec<TaskEntry>,
+}
+
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct VersionList {
+    pub task: String,
+    pub versions: Vec<VersionRecord>,
+}
+
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct IngestResponse {
+    /// `false`: identical data was already hosted, nothing was stored.
+    pub created: bool,
+    pub task: String,
+    pub version: VersionRecord,
+    /// Tags moved to this version by the request.
+    pub moved_tags: Vec<String>,
+    pub manifest_url: String,
+    pub download_url: String,
+}
+
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct IngestParams {
+    /// The uploaded file's name, recorded in the provenance.
+    pub filename: Option<String>,
+    /// Comma-separated tags to point at the version besides `latest`.
+    pub tags: Option<String>,
+    /// `simulator` (default) or `paper` (MetaDrive files with the paper's 261 features; never tagged latest).
+    pub observation_space: Option<String>,
+    /// License to record; the server's default otherwise.
+    pub license: Option<String>,
+}
+
+#[derive(Debug, Deserialize, utoipa::ToSchema)]
+pub struct TagRequest {
+    /// Version id (sha256) the tag should point at.
+    pub version: String,
+}
+
+#[utoipa::path(get, path = "/v1/tasks", tag = "catalog",
+    responses((status = 200, description = "All tasks with constants and hosted versions", body = TaskList)))]
+pub async fn list_tasks(State(state): State<AppState>) -> Result<Json<TaskList>, ApiError> {
+    let mut by_task: HashMap<String, Vec<VersionRecord>> = HashMap::new();
+    for v in state.datasets.all_versions().await? {
+        by_task.entry(v.task.clone()).or_default().push(v);
+    }
+    let tasks = state
+        .datasets
+        .catalog
+        .tasks()
+        .iter()
+        .map(|task| TaskEntry {
+            task: task.clone(),
+            versions: by_task.remove(task.id.as_str()).unwrap_or_default(),
+        })
+        .collect();
+    Ok(Json(TaskList { tasks }))
+}
+
+#[utoipa::path(get, path = "/v1/tasks/{task}", tag = "catalog",
+    params(("task" = String, Path, description = "Offline task id, e.g. OfflineAntRun-v0")),
+    responses((status = 200, body = TaskEntry), (status = 404, description = "Unknown task; nearest ids suggested")))]
+pub async fn get_task(
+    State(state): State<AppState>,
+    Path(task): Path<String>,
+) -> Result<Json<TaskEntry>, ApiError> {
+    let (task, versions) = state.datasets.versions(&task).await?;
+    Ok(Json(TaskEntry {
+        task: task.clone(),
+        versions,
+    }))
+}
+
+#[utoipa::path(get, path = "/v1/datasets/{task}/versions", tag = "datasets",
+    params(("task" = String, Path)),
+    responses((status = 200, body = VersionList), (status = 404)))]
+pub async fn list_versions(
+    State(state): State<AppState>,
+    Path(task): Path<String>,
+) -> Result<Json<VersionList>, ApiError> {
+    let (task, versions) = state.datasets.versions(&task).await?;
+    Ok(Json(VersionList {
+        task: task.id.to_string(),
+        versions,
+    }))
+}
+
+#[utoipa::path(get, path = "/v1/datasets/{task}/versions/{version}", tag = "datasets",
+    params(("task" = String, Path), ("version" = String, Path, description = "Version id (sha256) or tag such as latest")),
+    responses((status = 200, description = "The version's manifest", body = dsrl_suite::Manifest), (status = 404)))]
+pub async fn get_manifest(
+    State(state): State<AppState>,
+    Path((task, reference)): Path<(String, String)>,
+) -> Result<Response, ApiError> {
+    let (_, record) = state.datasets.resolve(&task, &reference).await?;
+    let json = state.datasets.manifest_json(&record).await?;
+    let etag =
+        HeaderValue::from_str(&format!("\"{}\"", record.version)).map_err(ApiError::internal)?;
+    Ok((
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("application/json"),
+            ),
+            (header::ETAG, etag),
+        ],
+        json,
+    )
+        .into_response())
+}
+
+#[utoipa::path(post, path = "/v1/datasets/{task}/versions", tag = "datasets",
+    params(("task" = String, Path), IngestParams),
+    request_body(content = Vec<u8>, description = "A Parquet file or a DSRL HDF5 file", content_type = "application/octet-stream"),
+    security(("admin_token" = [])),
+    responses(
+        (status = 201, description = "A new version was stored", body = IngestResponse),
+        (status = 200, description = "Identical data was already hosted", body = IngestResponse),
+        (status = 400, description = "The file is not a valid dataset for the task; the message names the first problem (row, column)"),
+        (status = 401), (status = 403), (status = 404), (status = 413)))]
+pub async fn ingest(
+    State(state): State<AppState>,
+    Path(task): Path<String>,
+    params: Result<Query<IngestParams>, QueryRejection>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Response, ApiError> {
+    state.auth.check(&headers)?;
+    let Query(params) = params.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    let result = ingest_checked(&state, task, params, &headers, body).await;
+    let outcome = match &result {
+        Ok(r) if r.created => "created",
+        Ok(_) => "unchanged",
+        Err(_) => "rejected",
+    };
+    state
+        .metrics
+        .ingests
+        .get_or_create(&OutcomeLabels { outcome })
+        .inc();
+    let response = result?;
+    if response.created {
+        state.metrics.dataset_versions.inc();
+    }
+    let status = if response.created {
+        StatusCode::CREATED
+    } else {
+        StatusCode::OK
+    };
+    Ok((status, Json(response)).into_response())
+}
+
+async fn ingest_checked(
+    state: &AppState,
+    task: String,
+    params: IngestParams,
+    headers: &HeaderMap,
+    body: Body,
+) -> Result<IngestResponse, ApiError> {
+    let task_id = state.datasets.task(&task)?.id.to_string();
+    let limit = state.max_upload_bytes;
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > limit) {
+        return Err(ApiError::UploadTooLarge { limit });
+    }
+    let observation_space = match params.observation_space.as_deref() {
+        None => ObservationSpace::Simulator,
+        Some(s) => s.parse().map_err(ApiError::InvalidArgument)?,
+    };
+    let tags = params
+        .tags
+        .as_deref()
+        .unwrap_or("")
+        .split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| {
+            t.parse::<TagName>()
+                .map_err(|e| ApiError::InvalidArgument(e.to_string()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let recipe = match headers.get(PROVENANCE_HEADER) {
+        None => None,
+        Some(v) => {
+            let p: Provenance = serde_json::from_slice(v.as_bytes()).map_err(|e| {
+                ApiError::InvalidArgument(format!("{PROVENANCE_HEADER} header: {e}"))
+            })?;
+            if !matches!(p, Provenance::Recipe { .. }) {
+                return Err(ApiError::InvalidArgument(format!(
+                    "{PROVENANCE_HEADER} header: only recipe provenance can be declared; imports are recorded by the \
+                     server"
+                )));
+            }
+            Some(p)
+        }
+    };
+    if let Some(license) = &params.license
+        && (license.is_empty() || license.len() > 128)
+    {
+        return Err(ApiError::InvalidArgument(
+            "license must have 1-128 characters".into(),
+        ));
+    }
+    let file_name = params
+        .filename
+        .clone()
+        .unwrap_or_else(|| "upload".to_owned());
+
+    // Stream the body to a temporary file, hashing it and enforcing the size limit as it arrives.
+    let upload = state.datasets.temp_file("upload");
+    let mut file = tokio::io::BufWriter::with_capacity(
+        1 << 20,
+        tokio::fs::File::create(upload.path())
+            .await
+            .map_err(ApiError::internal)?,
+    );
+    let mut hasher = Sha256::new();
+    let mut received = 0u64;
+    let mut stream = body.into_data_stream();
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk
+            .map_err(|e| ApiError::InvalidUpload(format!("the upload was interrupted: {e}")))?;
+        received += chunk.len() as u64;
+        if received > limit {
+            return Err(ApiError::UploadTooLarge { limit });
+        }
+        hasher.update(&chunk);
+        file.write_all(&chunk).await.map_err(ApiError::internal)?;
+    }
+    file.flush().await.map_err(ApiError::internal)?;
+    drop(file);
+    if received == 0 {
+        return Err(ApiError::InvalidUpload("the upload is empty".into()));
+    }
+    if declared.is_some_and(|n| n != received) {
+        return Err(ApiError::InvalidUpload(format!(
+            "received {received} bytes but Content-Length said {declared:?}"
+        )));
+    }
+    let outcome = state
+        .datasets
+        .ingest(IngestRequest {
+            task: task_id.clone(),
+            upload,
+            upload_sha256: hex::encode(hasher.finalize()),
+            file_name,
+            observation_space,
+            tags,
+            license: params.license,
+            recipe,
+            latest: LatestPolicy::Move,
+        })
+        .await?;
+    let version = outcome.version.version.clone();
+    Ok(IngestResponse {
+        created: outcome.created,
+        manifest_url: format!("/v1/datasets/{task_id}/versions/{version}"),
+        download_url: format!("/v1/datasets/{task_id}/versions/{version}/download"),
+        task: task_id,
+        version: outcome.version,
+        moved_tags: outcome.moved_tags,
+    })
+}
+
+#[utoipa::path(put, path = "/v1/datasets/{task}/tags/{tag}", tag = "datasets",
+    params(("task" = String, Path), ("tag" = String, Path)),
+    request_body = TagRequest,
+    security(("admin_token" = [])),
+    responses((status = 200, body = VersionRecord), (status = 400), (status = 401), (status = 403), (status = 404)))]
+pub async fn put_tag(
+    State(state): State<AppState>,
+    Path((task, tag)): Path<(String, String)>,
+    headers: HeaderMap,
+    request: Result<Json<TagRequest>, JsonRejection>,
+) -> Result<Json<VersionRecord>, ApiError> {
+    state.auth.check(&headers)?;
+    let Json(request) = request.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    Ok(Json(
+        state.datasets.tag(&task, &tag, &request.version).await?,
+    ))
+}

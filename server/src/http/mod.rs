@@ -1,0 +1,66 @@
+//! The REST side of the server: routes, the admin check, downloads, metrics and the OpenAPI document.
+
+pub mod auth;
+pub mod datasets;
+pub mod download;
+pub mod metrics;
+pub mod openapi;
+
+use axum::Router;
+use axum::extract::State;
+use axum::http::{StatusCode, header};
+use axum::response::IntoResponse;
+use axum::routing::{get, put};
+
+use crate::AppState;
+use crate::error::ApiError;
+
+pub fn router(state: AppState) -> Router {
+    Router::new()
+        .route("/healthz", get(healthz))
+        .route("/metrics", get(metrics::metrics))
+        .route("/openapi.json", get(openapi_json))
+        .route("/v1/tasks", get(datasets::list_tasks))
+        .route("/v1/tasks/{task}", get(datasets::get_task))
+        .route(
+            "/v1/datasets/{task}/versions",
+            get(datasets::list_versions).post(datasets::ingest),
+        )
+        .route(
+            "/v1/datasets/{task}/versions/{version}",
+            get(datasets::get_manifest),
+        )
+        .route(
+            "/v1/datasets/{task}/versions/{version}/download",
+            get(download::download),
+        )
+        .route("/v1/datasets/{task}/tags/{tag}", put(datasets::put_tag))
+        .with_state(state)
+}
+
+/// 200 when the database answers, 503 otherwise.
+async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError> {
+    state
+        .datasets
+        .db()
+        .ping()
+        .await
+        .map_err(|e| ApiError::Unavailable(format!("database: {e}")))?;
+    Ok("ok\n")
+}
+
+async fn openapi_json() -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "application/json")],
+        openapi::json(),
+    )
+}
+
+pub async fn not_found() -> impl IntoResponse {
+    (
+        StatusCode::NOT_FOUND,
+        axum::Json(
+            serde_json::json!({"error": {"code": "not_found", "message": "no such route; see /openapi.json"}}),
+        ),
+    )
+}

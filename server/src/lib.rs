@@ -1,0 +1,121 @@
+//! The dsrl service: REST (axum) and gRPC (tonic) on one port over versioned Parquet datasets in an object store,
+//! with metadata in SQLite. `run(listener, config, shutdown)` is the whole server, so tests run it on port 0.
+//!
+//! Layout: `config` (layered settings), `error` (one error type, one status table), `storage` (object store,
+//! SQLite, the dataset service), `http` (REST routes), `grpc` (gRPC service), `starter` (datasets loaded at start).
+
+pub mod config;
+pub mod error;
+pub mod grpc;
+pub mod http;
+pub mod starter;
+pub mod storage;
+
+use std::future::Future;
+use std::sync::Arc;
+
+use anyhow::Context;
+use axum::Router;
+use axum::http::StatusCode;
+use axum::response::IntoResponse;
+use dsrl_proto::datasets::v1::dataset_service_server::DatasetServiceServer;
+use dsrl_suite::Catalog;
+use tonic::server::NamedService;
+use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::trace::TraceLayer;
+
+use crate::config::Config;
+use crate::http::auth::AdminAuth;
+use crate::http::metrics::Metrics;
+use crate::storage::datasets::Datasets;
+use crate::storage::db::Db;
+
+/// What every handler shares.
+#[derive(Clone)]
+pub struct AppState {
+    pub datasets: Arc<Datasets>,
+    pub auth: Arc<AdminAuth>,
+    pub metrics: Arc<Metrics>,
+    pub max_upload_bytes: u64,
+}
+
+/// Opens storage, loads the catalog and the starter datasets: everything the server needs before it listens.
+pub async fn build_state(config: &Config) -> anyhow::Result<AppState> {
+    let data_dir = &config.server.data_dir;
+    std::fs::create_dir_all(data_dir)
+        .with_context(|| format!("creating {}", data_dir.display()))?;
+    let catalog = match &config.catalog.tasks {
+        Some(path) => Catalog::load(path)?,
+        None => Catalog::embedded()?,
+    };
+    tracing::info!(tasks = catalog.tasks().len(), "task catalog loaded");
+    let db = Db::open(&data_dir.join("dsrl.sqlite3"))
+        .await
+        .context("opening the SQLite database")?;
+    let store =
+        storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
+    let datasets = Datasets::new(
+        Arc::new(catalog),
+        db,
+        store,
+        data_dir.join("tmp"),
+        config.datasets.default_license.clone(),
+    )?;
+    let auth = AdminAuth::load_or_create(
+        config.auth.admin_token.as_deref(),
+        &data_dir.join("admin-token"),
+    )?;
+    if let Some(dir) = &config.datasets.starter_dir
+        && dir.is_dir()
+    {
+        let created = starter::load(&datasets, dir).await?;
+        tracing::info!(dir = %dir.display(), created, "starter datasets checked");
+    }
+    let metrics = Metrics::new();
+    metrics
+        .dataset_versions
+        .set(datasets.db().version_count().await?);
+    Ok(AppState {
+        datasets: Arc::new(datasets),
+        auth: Arc::new(auth),
+        metrics: Arc::new(metrics),
+        max_upload_bytes: config.datasets.max_upload_bytes,
+    })
+}
+
+/// REST and gRPC routes with metrics, request tracing, and panics turned into 500s.
+pub fn app(state: AppState) -> Router {
+    let grpc_service = DatasetServiceServer::new(grpc::DatasetGrpc::new(state.clone()));
+    let grpc_path = format!(
+        "/{}/{{*method}}",
+        DatasetServiceServer::<grpc::DatasetGrpc>::NAME
+    );
+    http::router(state.clone())
+        .route_service(&grpc_path, grpc_service)
+        .fallback(http::not_found)
+        .layer(axum::middleware::from_fn_with_state(
+            state,
+            http::metrics::track,
+        ))
+        .layer(TraceLayer::new_for_http())
+        .layer(CatchPanicLayer::custom(|_| {
+            (
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "internal error: the request handler panicked\n",
+            )
+                .into_response()
+        }))
+}
+
+/// Serves until `shutdown` completes, then finishes the requests in flight.
+pub async fn run(
+    listener: tokio::net::TcpListener,
+    config: Config,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    let state = build_state(&config).await?;
+    axum::serve(listener, app(state))
+        .with_graceful_shutdown(shutdown)
+        .await?;
+    Ok(())
+}

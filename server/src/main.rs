@@ -1,0 +1,104 @@
+//! `dsrl-server`: the dsrl service on one port (REST + gRPC).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use clap::Parser;
+use dsrl_server::config::{Config, Overrides};
+
+/// Serve offline safe-RL datasets: the 38-task catalog, versioned Parquet datasets, downloads with resume.
+///
+/// Configuration layers, later ones win: built-in defaults (SQLite and a local object store under
+/// ~/.dsrl/server, starter datasets from ./data/starter) → the TOML file given with --config → environment
+/// variables DSRL__SECTION__KEY (e.g. DSRL__SERVER__LISTEN=0.0.0.0:7070, DSRL__STORAGE__BACKEND=s3,
+/// DSRL__STORAGE__S3__BUCKET=...) → the flags below. See deploy/README.md for every key.
+///
+/// The admin token (for ingest and tags) is auth.admin_token, or else generated into <data_dir>/admin-token.
+/// On start the server prints one line "dsrl-server listening on http://ADDR" to stdout.
+#[derive(Debug, Parser)]
+#[command(version)]
+struct Args {
+    /// TOML configuration file.
+    #[arg(long, env = "DSRL_CONFIG")]
+    config: Option<PathBuf>,
+    /// Address to listen on (REST and gRPC); port 0 picks a free port.
+    #[arg(long)]
+    listen: Option<SocketAddr>,
+    /// Folder for the SQLite database, temporary files and the local object store.
+    #[arg(long)]
+    data_dir: Option<PathBuf>,
+    /// Task catalog CSV (default: the copy of data/tasks.csv compiled in).
+    #[arg(long)]
+    catalog: Option<PathBuf>,
+    /// Folder of starter datasets to ingest at start-up when missing.
+    #[arg(long)]
+    starter_datasets: Option<PathBuf>,
+    /// Log as JSON lines instead of text.
+    #[arg(long)]
+    log_json: bool,
+}
+
+#[tokio::main]
+async fn main() -> std::process::ExitCode {
+    let args = Args::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,tower_http=info,sqlx=warn"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_writer(std::io::stderr);
+    if args.log_json {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
+    match serve(args).await {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e:#}");
+            eprintln!("dsrl-server: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn serve(args: Args) -> anyhow::Result<()> {
+    let overrides = Overrides {
+        listen: args.listen,
+        data_dir: args.data_dir,
+        catalog: args.catalog,
+        starter_dir: args.starter_datasets,
+    };
+    let config = Config::load(args.config.as_deref(), &overrides)?;
+    let listener = tokio::net::TcpListener::bind(config.server.listen).await?;
+    let addr = listener.local_addr()?;
+    let state = dsrl_server::build_state(&config).await?;
+    tracing::info!(%addr, data_dir = %config.server.data_dir.display(), "serving");
+    println!("dsrl-server listening on http://{addr}");
+    axum::serve(listener, dsrl_server::app(state))
+        .with_graceful_shutdown(shutdown_signal())
+        .await?;
+    tracing::info!("stopped");
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = terminate => {},
+    }
+}

@@ -1,0 +1,371 @@
+//! Dataset versions as a service: ingest (convert, validate, store, commit), resolve a tag or id, read the
+//! manifest, stream the bytes, move tags. HTTP and gRPC handlers are thin layers over this.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use bytes::Bytes;
+use dsrl_suite::convert::{ImportError, import_file};
+use dsrl_suite::manifest::ManifestFacts;
+use dsrl_suite::{
+    Catalog, Manifest, ObservationSpace, Provenance, TagName, Task, VersionId, VersionRef,
+};
+use futures::stream::BoxStream;
+use object_store::ObjectStore;
+
+use super::db::{self, Db, VersionRecord};
+use super::objects;
+use crate::error::ApiError;
+
+/// A file under the server's temporary folder, removed when dropped (an ingest that fails or is cancelled
+/// leaves nothing behind; a killed process leaves files that the next start-up clears).
+#[derive(Debug)]
+pub struct TempFile(PathBuf);
+
+impl TempFile {
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempFile {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// What `latest` does on ingest.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LatestPolicy {
+    /// Move `latest` to the new version (admin uploads).
+    Move,
+    /// Set `latest` only if the task has none yet (starter datasets at start-up).
+    IfAbsent,
+}
+
+pub struct IngestRequest {
+    pub task: String,
+    pub upload: TempFile,
+    /// sha256 of the uploaded bytes.
+    pub upload_sha256: String,
+    /// The uploader's name for the file, recorded in the provenance.
+    pub file_name: String,
+    pub observation_space: ObservationSpace,
+    /// Named tags to point at the version, besides `latest`.
+    pub tags: Vec<TagName>,
+    pub license: Option<String>,
+    /// Provenance of data built by a recipe; `None` records the upload itself as the source.
+    pub recipe: Option<Provenance>,
+    pub latest: LatestPolicy,
+}
+
+#[derive(Debug)]
+pub struct IngestOutcome {
+    /// `false` when an identical version already existed and nothing was stored.
+    pub created: bool,
+    pub version: VersionRecord,
+    /// Tags that now point at the version and did not before.
+    pub moved_tags: Vec<String>,
+}
+
+pub struct Datasets {
+    pub catalog: Arc<Catalog>,
+    db: Db,
+    store: Arc<dyn ObjectStore>,
+    tmp_dir: PathBuf,
+    default_license: String,
+    next_temp: AtomicU64,
+}
+
+impl Datasets {
+    /// `tmp_dir` is emptied: whatever is there was left by a process that died mid-ingest.
+    pub fn new(
+        catalog: Arc<Catalog>,
+        db: Db,
+        store: Arc<dyn ObjectStore>,
+        tmp_dir: PathBuf,
+        default_license: String,
+    ) -> std::io::Result<Datasets> {
+        if tmp_dir.exists() {
+            std::fs::remove_dir_all(&tmp_dir)?;
+        }
+        std::fs::create_dir_all(&tmp_dir)?;
+        Ok(Datasets {
+            catalog,
+            db,
+            store,
+            tmp_dir,
+            default_license,
+            next_temp: AtomicU64::new(0),
+        })
+    }
+
+    pub fn db(&self) -> &Db {
+        &self.db
+    }
+
+    pub fn store(&self) -> &Arc<dyn ObjectStore> {
+        &self.store
+    }
+
+    pub fn temp_file(&self, purpose: &str) -> TempFile {
+        let n = self.next_temp.fetch_add(1, Ordering::Relaxed);
+        TempFile(
+            self.tmp_dir
+                .join(format!("{purpose}-{}-{n}", std::process::id())),
+        )
+    }
+
+    pub fn task(&self, id: &str) -> Result<&Task, ApiError> {
+        Ok(self.catalog.get(id)?)
+    }
+
+    /// The version a reference (id, tag, or empty for `latest`) names now.
+    pub async fn resolve(
+        &self,
+        task: &str,
+        reference: &str,
+    ) -> Result<(&Task, VersionRecord), ApiError> {
+        let task = self.task(task)?;
+        let reference = if reference.is_empty() {
+            TagName::LATEST
+        } else {
+            reference
+        };
+        let parsed: VersionRef = reference
+            .parse()
+            .map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
+        let not_found = || ApiError::VersionNotFound {
+            task: task.id.to_string(),
+            reference: reference.to_owned(),
+        };
+        let version = match parsed {
+            VersionRef::Version(v) => v,
+            VersionRef::Tag(tag) => self
+                .db
+                .tagged(&task.id, &tag)
+                .await?
+                .ok_or_else(not_found)?,
+        };
+        let record = self
+            .db
+            .version(&task.id, &version)
+            .await?
+            .ok_or_else(not_found)?;
+        Ok((task, record))
+    }
+
+    pub async fn manifest_json(&self, record: &VersionRecord) -> Result<String, ApiError> {
+        let (task, version) = ids(record)?;
+        self.db.manifest(&task, &version).await?.ok_or_else(|| {
+            ApiError::Internal(format!(
+                "version {} of {} has no manifest row",
+                record.version, record.task
+            ))
+        })
+    }
+
+    /// The Parquet bytes of a version, or a byte range of them.
+    pub async fn read(
+        &self,
+        record: &VersionRecord,
+        range: Option<Range<u64>>,
+    ) -> Result<BoxStream<'static, std::io::Result<Bytes>>, ApiError> {
+        let key = objects::dataset_key(&record.task, &record.version);
+        Ok(objects::read(self.store.as_ref(), &key, range).await?)
+    }
+
+    pub async fn versions(&self, task: &str) -> Result<(&Task, Vec<VersionRecord>), ApiError> {
+        let task = self.task(task)?;
+        Ok((task, self.db.versions(Some(&task.id)).await?))
+    }
+
+    pub async fn all_versions(&self) -> Result<Vec<VersionRecord>, ApiError> {
+        Ok(self.db.versions(None).await?)
+    }
+
+    /// Converts and validates the upload, stores the canonical file and its manifest, then commits the row and
+    /// tags in one transaction. Until that commit nothing is visible; after it everything is.
+    pub async fn ingest(&self, req: IngestRequest) -> Result<IngestOutcome, ApiError> {
+        let task = self.task(&req.task)?.clone();
+        let canonical = self.temp_file("canonical");
+        let (source, out, space) = (
+            req.upload.path().to_owned(),
+            canonical.path().to_owned(),
+            req.observation_space,
+        );
+        let task_for_import = task.clone();
+        let (format, converted) = tokio::task::spawn_blocking(move || {
+            import_file(&source, &task_for_import, space, &out)
+        })
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(|e| match e {
+            ImportError::Io(io) => ApiError::Internal(format!("converting the upload: {io}")),
+            invalid => ApiError::InvalidUpload(invalid.to_string()),
+        })?;
+        drop(req.upload);
+        let version = converted.version.clone();
+        let now = now_rfc3339();
+
+        if self.db.version(&task.id, &version).await?.is_none() {
+            let provenance = req.recipe.unwrap_or(Provenance::Import {
+                file_name: req.file_name,
+                sha256: req.upload_sha256,
+                source_format: format.as_str().to_owned(),
+                dropped_columns: converted.dropped_columns,
+            });
+            let manifest = Manifest::new(
+                &task,
+                version.clone(),
+                converted.byte_size,
+                converted.episode_index,
+                ManifestFacts {
+                    observation_space: space,
+                    provenance,
+                    license: req.license.unwrap_or_else(|| self.default_license.clone()),
+                    created_at: now.clone(),
+                },
+            );
+            let json = serde_json::to_string(&manifest).map_err(ApiError::internal)?;
+            let data_key = objects::dataset_key(task.id.as_str(), version.as_str());
+            let stored =
+                objects::upload_file(self.store.as_ref(), canonical.path(), &data_key).await?;
+            if stored != converted.byte_size {
+                return Err(ApiError::Internal(format!(
+                    "stored {data_key} has {stored} bytes, expected {}",
+                    converted.byte_size
+                )));
+            }
+            let manifest_key = objects::manifest_key(task.id.as_str(), version.as_str());
+            objects::put_bytes(
+                self.store.as_ref(),
+                &manifest_key,
+                json.clone().into_bytes(),
+            )
+            .await?;
+            drop(canonical);
+            let mut tx = self.db.begin().await?;
+            let created = db::insert_version(&mut tx, &manifest, &json).await?;
+            let mut moved = Vec::new();
+            if space == ObservationSpace::Simulator {
+                let only_if_absent = req.latest == LatestPolicy::IfAbsent;
+                if db::set_tag(
+                    &mut tx,
+                    &task.id,
+                    &TagName::latest(),
+                    &version,
+                    &now,
+                    only_if_absent,
+                )
+                .await?
+                {
+                    moved.push(TagName::LATEST.to_owned());
+                }
+            }
+            moved.extend(
+                self.set_tags(&mut tx, &task, &version, space, &req.tags, &now)
+                    .await?,
+            );
+            tx.commit().await?;
+            let record =
+                self.db.version(&task.id, &version).await?.ok_or_else(|| {
+                    ApiError::Internal("version row vanished after commit".into())
+                })?;
+            tracing::info!(task = %task.id, version = %version, created, "ingested dataset version");
+            return Ok(IngestOutcome {
+                created,
+                version: record,
+                moved_tags: moved,
+            });
+        }
+
+        // Identical bytes: nothing to store. Tags the request names explicitly still apply.
+        let existing = self
+            .db
+            .version(&task.id, &version)
+            .await?
+            .expect("checked above");
+        let space = existing
+            .observation_space
+            .parse::<ObservationSpace>()
+            .map_err(ApiError::Internal)?;
+        let mut tx = self.db.begin().await?;
+        let moved = self
+            .set_tags(&mut tx, &task, &version, space, &req.tags, &now)
+            .await?;
+        tx.commit().await?;
+        let record = self.db.version(&task.id, &version).await?.expect("exists");
+        Ok(IngestOutcome {
+            created: false,
+            version: record,
+            moved_tags: moved,
+        })
+    }
+
+    async fn set_tags(
+        &self,
+        tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+        task: &Task,
+        version: &VersionId,
+        space: ObservationSpace,
+        tags: &[TagName],
+        now: &str,
+    ) -> Result<Vec<String>, ApiError> {
+        let mut moved = Vec::new();
+        for tag in tags {
+            if tag.as_str() == TagName::LATEST && space == ObservationSpace::Paper {
+                return Err(ApiError::InvalidArgument(
+                    "latest must name a version in the simulator's observation space; this one is in the \
+                     paper's"
+                        .into(),
+                ));
+            }
+            if db::set_tag(tx, &task.id, tag, version, now, false).await? {
+                moved.push(tag.to_string());
+            }
+        }
+        Ok(moved)
+    }
+
+    /// Points `tag` of `task` at an existing version.
+    pub async fn tag(
+        &self,
+        task: &str,
+        tag: &str,
+        version: &str,
+    ) -> Result<VersionRecord, ApiError> {
+        let tag: TagName = tag
+            .parse()
+            .map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
+        let version_id: VersionId = version
+            .parse()
+            .map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
+        let (task, record) = self.resolve(task, version_id.as_str()).await?;
+        let space = record
+            .observation_space
+            .parse::<ObservationSpace>()
+            .map_err(ApiError::Internal)?;
+        let mut tx = self.db.begin().await?;
+        self.set_tags(&mut tx, task, &version_id, space, &[tag], &now_rfc3339())
+            .await?;
+        tx.commit().await?;
+        Ok(self.resolve(task.id.as_str(), version_id.as_str()).await?.1)
+    }
+}
+
+fn ids(record: &VersionRecord) -> Result<(dsrl_suite::TaskId, VersionId), ApiError> {
+    let task = record.task.parse().map_err(ApiError::internal)?;
+    let version = record.version.parse().map_err(ApiError::internal)?;
+    Ok((task, version))
+}
+
+pub fn now_rfc3339() -> String {
+    let now = time::OffsetDateTime::now_utc()
+        .replace_nanosecond(0)
+        .expect("0 is a valid nanosecond");
+    now.format(&time::format_description::well_known::Rfc3339)
+        .expect("formattable")
+}

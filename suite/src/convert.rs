@@ -1,0 +1,233 @@
+//! Turning a source file (DSRL HDF5, or Parquet from any writer) into the canonical Parquet layout: read in
+//! chunks, validate against the task, number episodes and steps, write, hash. The same path serves uploads,
+//! the starter datasets and the data pipeline, so every hosted version went through the same checks.
+
+use std::fs::File;
+use std::io::{self, BufWriter, Read};
+use std::path::Path;
+
+use crate::catalog::{ObservationSpace, Task};
+use crate::episode::EpisodeSummary;
+use crate::hashing::HashingWriter;
+use crate::hdf5_file::{Hdf5Error, Hdf5Transitions};
+use crate::ids::VersionId;
+use crate::parquet_file::{DatasetWriter, ParquetTransitions, ReadError};
+use crate::transitions::TransitionChunk;
+use crate::validate::{EpisodeTracker, Expectation, ValidationError};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceFormat {
+    Parquet,
+    Hdf5,
+}
+
+impl SourceFormat {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SourceFormat::Parquet => "parquet",
+            SourceFormat::Hdf5 => "hdf5",
+        }
+    }
+
+    /// Recognizes a file by its magic bytes (Parquet `PAR1`, HDF5's 8-byte signature at offset 0).
+    pub fn sniff(path: &Path) -> io::Result<Option<SourceFormat>> {
+        let mut head = [0u8; 8];
+        let mut file = File::open(path)?;
+        let mut filled = 0;
+        while filled < head.len() {
+            match file.read(&mut head[filled..])? {
+                0 => break,
+                n => filled += n,
+            }
+        }
+        Ok(if filled >= 4 && &head[..4] == b"PAR1" {
+            Some(SourceFormat::Parquet)
+        } else if filled == 8 && head == *b"\x89HDF\r\n\x1a\n" {
+            Some(SourceFormat::Hdf5)
+        } else {
+            None
+        })
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    /// The data breaks a rule of the format or the task (names the row and column).
+    #[error("{0}")]
+    Invalid(#[from] ValidationError),
+    /// The file cannot be read as the format it claims to be, or lacks the dataset's keys.
+    #[error("not a usable {format} dataset: {message}")]
+    Malformed {
+        format: &'static str,
+        message: String,
+    },
+    /// Neither Parquet nor HDF5.
+    #[error(
+        "unrecognized file format: expected Parquet (starts with PAR1) or HDF5 (DSRL's layout)"
+    )]
+    UnknownFormat,
+    #[error("I/O error: {0}")]
+    Io(#[from] io::Error),
+}
+
+impl ImportError {
+    fn from_parquet(e: ReadError) -> Self {
+        match e {
+            ReadError::Value(v) => ImportError::Invalid(v),
+            other => ImportError::Malformed {
+                format: "Parquet",
+                message: other.to_string(),
+            },
+        }
+    }
+    fn from_hdf5(e: Hdf5Error) -> Self {
+        match e {
+            Hdf5Error::Value(v) => ImportError::Invalid(v),
+            other => ImportError::Malformed {
+                format: "HDF5",
+                message: other.to_string(),
+            },
+        }
+    }
+}
+
+/// What a canonical file holds, as measured while writing it.
+#[derive(Debug, Clone)]
+pub struct Converted {
+    pub version: VersionId,
+    pub byte_size: u64,
+    pub episode_index: Vec<EpisodeSummary>,
+    /// Source columns or keys that are not part of the format and were not kept.
+    pub dropped_columns: Vec<String>,
+}
+
+/// Converts an uploaded file (Parquet or DSRL HDF5) to the canonical layout at `out`, validating it against
+/// `task` in the given observation space.
+pub fn import_file(
+    source: &Path,
+    task: &Task,
+    space: ObservationSpace,
+    out: &Path,
+) -> Result<(SourceFormat, Converted), ImportError> {
+    let format = SourceFormat::sniff(source)?.ok_or(ImportError::UnknownFormat)?;
+    let converted = match format {
+        SourceFormat::Parquet => {
+            let reader =
+                ParquetTransitions::open(File::open(source)?).map_err(ImportError::from_parquet)?;
+            let dropped = reader.ignored_columns().to_vec();
+            write_canonical(
+                task,
+                space,
+                reader.map(|c| c.map_err(ImportError::from_parquet)),
+                dropped,
+                out,
+            )?
+        }
+        SourceFormat::Hdf5 => {
+            let reader = Hdf5Transitions::open(source).map_err(ImportError::from_hdf5)?;
+            let dropped = reader.ignored_keys().to_vec();
+            write_canonical(
+                task,
+                space,
+                reader.map(|c| c.map_err(ImportError::from_hdf5)),
+                dropped,
+                out,
+            )?
+        }
+    };
+    Ok((format, converted))
+}
+
+/// Validates `chunks` against `task` and writes them in the canonical layout to `out` (flushed and synced).
+/// Deterministic: the same rows give the same bytes and version id.
+pub fn write_canonical(
+    task: &Task,
+    space: ObservationSpace,
+    chunks: impl Iterator<Item = Result<TransitionChunk, ImportError>>,
+    dropped_columns: Vec<String>,
+    out: &Path,
+) -> Result<Converted, ImportError> {
+    let expect = Expectation {
+        obs_dim: task.observation_dim(space) as usize,
+        act_dim: task.act_dim as usize,
+        max_episode_steps: task.max_episode_steps,
+    };
+    if space == ObservationSpace::Paper && task.obs_dim_paper == task.obs_dim {
+        return Err(ValidationError::column(
+            "observations",
+            format!(
+                "{}'s paper and simulator observation spaces are the same ({} features); the paper label is only \
+                 for tasks where they differ (MetaDrive)",
+                task.id, task.obs_dim
+            ),
+        )
+        .into());
+    }
+    let metadata = vec![
+        ("dsrl.format".to_owned(), crate::manifest::FORMAT.to_owned()),
+        ("dsrl.task".to_owned(), task.id.to_string()),
+        (
+            "dsrl.observation_space".to_owned(),
+            space.as_str().to_owned(),
+        ),
+    ];
+    let file = File::create(out)?;
+    let sink = HashingWriter::new(BufWriter::with_capacity(8 << 20, file));
+    let mut writer =
+        DatasetWriter::new(sink, expect.obs_dim, expect.act_dim, metadata).map_err(parquet_io)?;
+    let mut tracker = EpisodeTracker::new(expect);
+    for chunk in chunks {
+        let chunk = chunk?;
+        if tracker.rows_seen() == 0 {
+            check_space(task, space, &chunk)?;
+        }
+        let numbering = tracker.check(&chunk)?;
+        writer.push(&chunk, numbering).map_err(parquet_io)?;
+    }
+    let episode_index = tracker.finish()?;
+    let sink = writer.finish().map_err(parquet_io)?;
+    let (buffered, digest, byte_size) = sink.finish();
+    let file = buffered.into_inner().map_err(|e| e.into_error())?;
+    file.sync_all()?;
+    Ok(Converted {
+        version: VersionId::from_digest(&digest),
+        byte_size,
+        episode_index,
+        dropped_columns,
+    })
+}
+
+/// A clear message for the common mismatch: MetaDrive data in the paper's 261-feature space.
+fn check_space(
+    task: &Task,
+    space: ObservationSpace,
+    chunk: &TransitionChunk,
+) -> Result<(), ValidationError> {
+    let expected = task.observation_dim(space) as usize;
+    if chunk.obs_dim == expected {
+        return Ok(());
+    }
+    let hint = if space == ObservationSpace::Simulator
+        && chunk.obs_dim == task.obs_dim_paper as usize
+    {
+        format!(
+            "; that is the paper's observation space, not the {expected} features the simulator pinned here \
+             produces, so policies trained on it cannot be scored here. To host it anyway, ingest with \
+             observation_space=paper: it is then labelled as such and not tagged latest"
+        )
+    } else {
+        String::new()
+    };
+    Err(ValidationError::column(
+        "observations",
+        format!(
+            "{} features per observation, but {} expects {expected}{hint}",
+            chunk.obs_dim, task.id
+        ),
+    ))
+}
+
+/// The canonical writer writes to a local file: its errors are I/O errors, not problems with the upload.
+fn parquet_io(e: parquet::errors::ParquetError) -> ImportError {
+    ImportError::Io(io::Error::other(e))
+}

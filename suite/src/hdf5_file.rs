@@ -1,0 +1,336 @@
+//! DSRL's HDF5 layout: a flat file with the seven keys `observations, next_observations, actions, rewards, costs,
+//! terminals, timeouts` as N-row arrays, gzip-compressed (spec §1.3). Import reads it in row chunks (a MetaDrive
+//! file is gigabytes); export writes the same layout so DSRL/OSRL code loads it with `get_dataset(h5path=...)`.
+
+use std::path::Path;
+
+use hdf5::types::TypeDescriptor;
+use hdf5::{Dataset, File, Group};
+use ndarray::{ArrayView1, ArrayView2, s};
+
+use crate::parquet_file::{
+    ACTIONS, COSTS, DSRL_KEYS, NEXT_OBSERVATIONS, OBSERVATIONS, ParquetTransitions, REWARDS,
+    ReadError, TERMINALS, TIMEOUTS,
+};
+use crate::transitions::TransitionChunk;
+use crate::validate::ValidationError;
+
+/// Target uncompressed size of one chunk read from HDF5.
+const READ_CHUNK_BYTES: usize = 16 << 20;
+/// Target uncompressed size of one HDF5 storage chunk when writing (h5py's auto-chunking aims near this).
+const WRITE_CHUNK_BYTES: usize = 256 << 10;
+/// gzip level h5py uses for `compression='gzip'`.
+const GZIP_LEVEL: u8 = 4;
+
+#[derive(Debug, thiserror::Error)]
+pub enum Hdf5Error {
+    #[error("{0}")]
+    Library(#[from] hdf5::Error),
+    #[error("{0}")]
+    Layout(String),
+    #[error("{0}")]
+    Value(#[from] ValidationError),
+    #[error("{0}")]
+    Parquet(#[from] ReadError),
+}
+
+/// Reads a DSRL HDF5 file chunk by chunk.
+pub struct Hdf5Transitions {
+    datasets: [Dataset; 7],
+    rows: usize,
+    obs_dim: usize,
+    act_dim: usize,
+    chunk_rows: usize,
+    next_row: usize,
+    ignored_keys: Vec<String>,
+    // Keeps the file open while the datasets are read.
+    _file: File,
+}
+
+impl Hdf5Transitions {
+    pub fn open(path: &Path) -> Result<Self, Hdf5Error> {
+        let file = File::open(path)?;
+        // Like DSRL's `visititems`, every dataset anywhere in the file is a key; nested ones are "group/name".
+        let mut all_keys = Vec::new();
+        collect_dataset_keys(&file, "", &mut all_keys)?;
+        let missing: Vec<&str> = DSRL_KEYS
+            .iter()
+            .copied()
+            .filter(|k| !all_keys.iter().any(|a| a == k))
+            .collect();
+        if !missing.is_empty() {
+            return Err(Hdf5Error::Layout(format!(
+                "missing key(s) {}; a DSRL dataset has the top-level keys {} (found: {})",
+                missing.join(", "),
+                DSRL_KEYS.join(", "),
+                if all_keys.is_empty() {
+                    "none".to_owned()
+                } else {
+                    all_keys.join(", ")
+                }
+            )));
+        }
+        let ignored_keys = all_keys
+            .into_iter()
+            .filter(|k| !DSRL_KEYS.contains(&k.as_str()))
+            .collect();
+        let open = |k: &str| file.dataset(k);
+        let datasets = [
+            open(OBSERVATIONS)?,
+            open(NEXT_OBSERVATIONS)?,
+            open(ACTIONS)?,
+            open(REWARDS)?,
+            open(COSTS)?,
+            open(TERMINALS)?,
+            open(TIMEOUTS)?,
+        ];
+        let (rows, obs_dim) = matrix_shape(OBSERVATIONS, &datasets[0])?;
+        let (next_rows, next_dim) = matrix_shape(NEXT_OBSERVATIONS, &datasets[1])?;
+        let (act_rows, act_dim) = matrix_shape(ACTIONS, &datasets[2])?;
+        if next_dim != obs_dim {
+            return Err(Hdf5Error::Value(ValidationError::column(
+                NEXT_OBSERVATIONS,
+                format!("{next_dim} features per observation but observations has {obs_dim}"),
+            )));
+        }
+        let mut lengths = vec![(NEXT_OBSERVATIONS, next_rows), (ACTIONS, act_rows)];
+        for (i, key) in [REWARDS, COSTS, TERMINALS, TIMEOUTS]
+            .into_iter()
+            .enumerate()
+        {
+            lengths.push((key, vector_len(key, &datasets[3 + i])?));
+        }
+        if let Some((key, n)) = lengths.iter().find(|(_, n)| *n != rows) {
+            return Err(Hdf5Error::Layout(format!(
+                "key {key} has {n} rows but observations has {rows}"
+            )));
+        }
+        for (i, key) in [OBSERVATIONS, NEXT_OBSERVATIONS, ACTIONS, REWARDS, COSTS]
+            .into_iter()
+            .enumerate()
+        {
+            if !matches!(
+                datasets[i].dtype()?.to_descriptor()?,
+                TypeDescriptor::Float(_)
+            ) {
+                return Err(Hdf5Error::Layout(format!("key {key} must hold floats")));
+            }
+        }
+        let row_bytes = 4 * (2 * obs_dim + act_dim + 4);
+        let chunk_rows = (READ_CHUNK_BYTES / row_bytes).max(1);
+        Ok(Hdf5Transitions {
+            datasets,
+            rows,
+            obs_dim,
+            act_dim,
+            chunk_rows,
+            next_row: 0,
+            ignored_keys,
+            _file: file,
+        })
+    }
+
+    pub fn rows(&self) -> u64 {
+        self.rows as u64
+    }
+
+    /// Keys of the file that are not part of the dataset format (e.g. MetaDrive's cost breakdown).
+    pub fn ignored_keys(&self) -> &[String] {
+        &self.ignored_keys
+    }
+
+    fn read_chunk(&self, a: usize, b: usize) -> Result<TransitionChunk, Hdf5Error> {
+        let [obs, next, act, rew, cost, term, timeout] = &self.datasets;
+        Ok(TransitionChunk {
+            obs_dim: self.obs_dim,
+            act_dim: self.act_dim,
+            observations: read_matrix(obs, a, b)?,
+            next_observations: read_matrix(next, a, b)?,
+            actions: read_matrix(act, a, b)?,
+            rewards: read_vector_f32(rew, a, b)?,
+            costs: read_vector_f32(cost, a, b)?,
+            terminals: read_flags(TERMINALS, term, a, b)?,
+            timeouts: read_flags(TIMEOUTS, timeout, a, b)?,
+            episode: None,
+            step: None,
+        })
+    }
+}
+
+impl Iterator for Hdf5Transitions {
+    type Item = Result<TransitionChunk, Hdf5Error>;
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.next_row >= self.rows {
+            return None;
+        }
+        let a = self.next_row;
+        let b = (a + self.chunk_rows).min(self.rows);
+        self.next_row = b;
+        Some(self.read_chunk(a, b))
+    }
+}
+
+fn collect_dataset_keys(
+    group: &Group,
+    prefix: &str,
+    out: &mut Vec<String>,
+) -> Result<(), hdf5::Error> {
+    for name in group.member_names()? {
+        let key = if prefix.is_empty() {
+            name.clone()
+        } else {
+            format!("{prefix}/{name}")
+        };
+        if let Ok(ds) = group.dataset(&name) {
+            drop(ds);
+            out.push(key);
+        } else if let Ok(sub) = group.group(&name) {
+            collect_dataset_keys(&sub, &key, out)?;
+        }
+    }
+    Ok(())
+}
+
+fn matrix_shape(key: &str, ds: &Dataset) -> Result<(usize, usize), Hdf5Error> {
+    match ds.shape()[..] {
+        [n, d] if d > 0 => Ok((n, d)),
+        ref other => Err(Hdf5Error::Layout(format!(
+            "key {key} has shape {other:?}; expected (N, dim)"
+        ))),
+    }
+}
+
+fn vector_len(key: &str, ds: &Dataset) -> Result<usize, Hdf5Error> {
+    match ds.shape()[..] {
+        [n] | [n, 1] => Ok(n),
+        ref other => Err(Hdf5Error::Layout(format!(
+            "key {key} has shape {other:?}; expected (N,) or (N, 1)"
+        ))),
+    }
+}
+
+fn read_matrix(ds: &Dataset, a: usize, b: usize) -> Result<Vec<f32>, Hdf5Error> {
+    // HDF5 converts float64 to float32 on read, as DSRL's `astype(np.float32)` does.
+    let array = ds.read_slice_2d::<f32, _>(s![a..b, ..])?;
+    Ok(array.into_iter().collect())
+}
+
+fn read_vector<T: hdf5::H5Type + Copy>(
+    ds: &Dataset,
+    a: usize,
+    b: usize,
+) -> Result<Vec<T>, Hdf5Error> {
+    Ok(if ds.ndim() == 2 {
+        ds.read_slice_2d::<T, _>(s![a..b, ..])?
+            .into_iter()
+            .collect()
+    } else {
+        ds.read_slice_1d::<T, _>(s![a..b])?.to_vec()
+    })
+}
+
+fn read_vector_f32(ds: &Dataset, a: usize, b: usize) -> Result<Vec<f32>, Hdf5Error> {
+    read_vector::<f32>(ds, a, b)
+}
+
+/// Flags stored as HDF5 bool (h5py's enum), integers or floats; anything but 0/1 is an error.
+fn read_flags(key: &str, ds: &Dataset, a: usize, b: usize) -> Result<Vec<bool>, Hdf5Error> {
+    let numbers: Vec<f64> = match ds.dtype()?.to_descriptor()? {
+        TypeDescriptor::Boolean => return read_vector::<bool>(ds, a, b),
+        TypeDescriptor::Integer(_) => read_vector::<i64>(ds, a, b)?
+            .into_iter()
+            .map(|v| v as f64)
+            .collect(),
+        TypeDescriptor::Unsigned(_) => read_vector::<u64>(ds, a, b)?
+            .into_iter()
+            .map(|v| v as f64)
+            .collect(),
+        TypeDescriptor::Float(_) => read_vector::<f64>(ds, a, b)?,
+        other => {
+            return Err(Hdf5Error::Layout(format!(
+                "key {key} holds {other}; expected bool or 0/1 numbers"
+            )));
+        }
+    };
+    numbers
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| match v {
+            0.0 => Ok(false),
+            1.0 => Ok(true),
+            other => Err(Hdf5Error::Value(ValidationError::at(
+                (a + i) as u64,
+                key,
+                format!("flag value {other}; expected 0 or 1"),
+            ))),
+        })
+        .collect()
+}
+
+fn view2(values: &[f32], rows: usize, dim: usize) -> Result<ArrayView2<'_, f32>, Hdf5Error> {
+    ArrayView2::from_shape((rows, dim), values).map_err(|e| Hdf5Error::Layout(e.to_string()))
+}
+
+/// Writes a dataset in DSRL's HDF5 layout: float32 arrays, bool flags, gzip level 4, keys in DSRL's order.
+pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(), Hdf5Error> {
+    let rows = source.rows() as usize;
+    let first = match source.next() {
+        Some(chunk) => chunk?,
+        None => return Err(Hdf5Error::Layout("the dataset has no transitions".into())),
+    };
+    let (obs_dim, act_dim) = (first.obs_dim, first.act_dim);
+    let file = File::create(out)?;
+    let matrix = |name: &str, dim: usize| -> Result<Dataset, hdf5::Error> {
+        let chunk = (WRITE_CHUNK_BYTES / (4 * dim)).clamp(1, rows);
+        file.new_dataset::<f32>()
+            .chunk((chunk, dim))
+            .deflate(GZIP_LEVEL)
+            .shape((rows, dim))
+            .create(name)
+    };
+    let vector = |name: &str, float: bool| -> Result<Dataset, hdf5::Error> {
+        let chunk = (WRITE_CHUNK_BYTES / 4).clamp(1, rows);
+        let builder = if float {
+            file.new_dataset::<f32>()
+        } else {
+            file.new_dataset::<bool>()
+        };
+        builder
+            .chunk(chunk)
+            .deflate(GZIP_LEVEL)
+            .shape(rows)
+            .create(name)
+    };
+    let obs = matrix(OBSERVATIONS, obs_dim)?;
+    let next = matrix(NEXT_OBSERVATIONS, obs_dim)?;
+    let act = matrix(ACTIONS, act_dim)?;
+    let rew = vector(REWARDS, true)?;
+    let cost = vector(COSTS, true)?;
+    let term = vector(TERMINALS, false)?;
+    let timeout = vector(TIMEOUTS, false)?;
+    let mut at = 0usize;
+    for chunk in std::iter::once(Ok(first)).chain(source) {
+        let c = chunk?;
+        let (a, b) = (at, at + c.len());
+        if b > rows {
+            return Err(Hdf5Error::Layout(
+                "the Parquet file has more rows than its footer says".into(),
+            ));
+        }
+        obs.write_slice(view2(&c.observations, c.len(), obs_dim)?, s![a..b, ..])?;
+        next.write_slice(view2(&c.next_observations, c.len(), obs_dim)?, s![a..b, ..])?;
+        act.write_slice(view2(&c.actions, c.len(), act_dim)?, s![a..b, ..])?;
+        rew.write_slice(ArrayView1::from(&c.rewards), s![a..b])?;
+        cost.write_slice(ArrayView1::from(&c.costs), s![a..b])?;
+        term.write_slice(ArrayView1::from(&c.terminals), s![a..b])?;
+        timeout.write_slice(ArrayView1::from(&c.timeouts), s![a..b])?;
+        at = b;
+    }
+    if at != rows {
+        return Err(Hdf5Error::Layout(format!(
+            "the Parquet file has {at} rows but its footer says {rows}"
+        )));
+    }
+    file.flush()?;
+    Ok(())
+}

@@ -1,0 +1,585 @@
+//! The dataset's Parquet layout and its reader and writer.
+//!
+//! One row per transition with DSRL's key names, so pyarrow/pandas users need no custom code:
+//! `episode` (u32), `step` (u32), `observations`, `next_observations`, `actions` (FixedSizeList<f32, dim>),
+//! `rewards`, `costs` (f32), `terminals`, `timeouts` (bool). Float columns use BYTE_STREAM_SPLIT + zstd, the
+//! counters delta encoding; every row group holds whole episodes, so one episode is one row-group read.
+//! The writer is deterministic: the same rows always give the same bytes, hence the same version id.
+
+use std::io::Write;
+use std::sync::Arc;
+
+use arrow_array::cast::AsArray;
+use arrow_array::types::{Float32Type, Float64Type, Int8Type, Int16Type, Int32Type, Int64Type};
+use arrow_array::types::{UInt8Type, UInt16Type, UInt32Type, UInt64Type};
+use arrow_array::{
+    Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, RecordBatch, UInt32Array,
+};
+use arrow_schema::{DataType, Field, Schema, SchemaRef};
+use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
+use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
+use parquet::basic::{Compression, Encoding, Type as PhysicalType, ZstdLevel};
+use parquet::errors::ParquetError;
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::WriterProperties;
+
+use crate::transitions::TransitionChunk;
+use crate::validate::{Numbering, ValidationError};
+
+pub const EPISODE: &str = "episode";
+pub const STEP: &str = "step";
+pub const OBSERVATIONS: &str = "observations";
+pub const NEXT_OBSERVATIONS: &str = "next_observations";
+pub const ACTIONS: &str = "actions";
+pub const REWARDS: &str = "rewards";
+pub const COSTS: &str = "costs";
+pub const TERMINALS: &str = "terminals";
+pub const TIMEOUTS: &str = "timeouts";
+
+/// The seven keys of a DSRL dataset, in DSRL's order.
+pub const DSRL_KEYS: [&str; 7] = [
+    OBSERVATIONS,
+    NEXT_OBSERVATIONS,
+    ACTIONS,
+    REWARDS,
+    COSTS,
+    TERMINALS,
+    TIMEOUTS,
+];
+
+/// Target uncompressed size of one row group; episodes are never split, so groups can be larger.
+const ROW_GROUP_TARGET_BYTES: usize = 64 << 20;
+/// Target uncompressed size of one batch when reading.
+const READ_BATCH_TARGET_BYTES: usize = 16 << 20;
+
+/// The Arrow schema of a dataset with these widths.
+pub fn dataset_schema(obs_dim: usize, act_dim: usize) -> SchemaRef {
+    let list = |dim: usize| {
+        DataType::FixedSizeList(
+            Arc::new(Field::new_list_field(DataType::Float32, false)),
+            dim as i32,
+        )
+    };
+    Arc::new(Schema::new(vec![
+        Field::new(EPISODE, DataType::UInt32, false),
+        Field::new(STEP, DataType::UInt32, false),
+        Field::new(OBSERVATIONS, list(obs_dim), false),
+        Field::new(NEXT_OBSERVATIONS, list(obs_dim), false),
+        Field::new(ACTIONS, list(act_dim), false),
+        Field::new(REWARDS, DataType::Float32, false),
+        Field::new(COSTS, DataType::Float32, false),
+        Field::new(TERMINALS, DataType::Boolean, false),
+        Field::new(TIMEOUTS, DataType::Boolean, false),
+    ]))
+}
+
+fn row_bytes(obs_dim: usize, act_dim: usize) -> usize {
+    4 * (2 * obs_dim + act_dim) + 4 * 4 + 2
+}
+
+/// Writes validated transitions as the canonical Parquet layout.
+pub struct DatasetWriter<W: Write + Send> {
+    writer: ArrowWriter<W>,
+    schema: SchemaRef,
+    /// Validated rows not yet written; always starts at an episode boundary.
+    pending: TransitionChunk,
+    pending_numbering: Numbering,
+    target_rows: usize,
+}
+
+impl<W: Write + Send> DatasetWriter<W> {
+    /// `metadata` is stored in the Parquet footer's key-value metadata (e.g. the task id).
+    pub fn new(
+        out: W,
+        obs_dim: usize,
+        act_dim: usize,
+        metadata: Vec<(String, String)>,
+    ) -> Result<Self, ParquetError> {
+        let schema = dataset_schema(obs_dim, act_dim);
+        let parquet_schema = ArrowSchemaConverter::new().convert(&schema)?;
+        let mut props = WriterProperties::builder()
+            .set_compression(Compression::ZSTD(ZstdLevel::try_new(3)?))
+            // Row groups are cut by us at episode boundaries, never by the writer.
+            .set_max_row_group_row_count(None)
+            .set_max_row_group_bytes(None)
+            .set_key_value_metadata(Some(
+                metadata
+                    .into_iter()
+                    .map(|(k, v)| KeyValue::new(k, v))
+                    .collect(),
+            ));
+        for column in parquet_schema.columns() {
+            let encoding = match column.physical_type() {
+                PhysicalType::FLOAT | PhysicalType::DOUBLE => Encoding::BYTE_STREAM_SPLIT,
+                PhysicalType::INT32 | PhysicalType::INT64 => Encoding::DELTA_BINARY_PACKED,
+                _ => continue,
+            };
+            props = props
+                .set_column_dictionary_enabled(column.path().clone(), false)
+                .set_column_encoding(column.path().clone(), encoding);
+        }
+        let writer = ArrowWriter::try_new(out, schema.clone(), Some(props.build()))?;
+        let target_rows = (ROW_GROUP_TARGET_BYTES / row_bytes(obs_dim, act_dim)).max(1);
+        Ok(DatasetWriter {
+            writer,
+            schema,
+            pending: TransitionChunk::empty(obs_dim, act_dim),
+            pending_numbering: Numbering::default(),
+            target_rows,
+        })
+    }
+
+    /// Appends rows that the episode tracker has checked and numbered.
+    pub fn push(
+        &mut self,
+        chunk: &TransitionChunk,
+        numbering: Numbering,
+    ) -> Result<(), ParquetError> {
+        self.pending.append(chunk);
+        self.pending_numbering.episode.extend(numbering.episode);
+        self.pending_numbering.step.extend(numbering.step);
+        while let Some(cut) = self.row_group_cut(false) {
+            self.write_front(cut)?;
+        }
+        Ok(())
+    }
+
+    /// Where to end the next row group: the last episode end within the target, or the first episode end if
+    /// a single episode is larger than the target. `None` while fewer closed rows than the target are pending
+    /// (unless `finishing`).
+    fn row_group_cut(&self, finishing: bool) -> Option<usize> {
+        let p = &self.pending;
+        let mut last_end = None;
+        for i in 0..p.len() {
+            if p.is_done(i) {
+                let end = i + 1;
+                if end > self.target_rows {
+                    return Some(last_end.unwrap_or(end));
+                }
+                last_end = Some(end);
+            }
+        }
+        match last_end {
+            Some(end) if finishing || end == self.target_rows => Some(end),
+            _ => None,
+        }
+    }
+
+    fn write_front(&mut self, rows: usize) -> Result<(), ParquetError> {
+        let chunk = self.pending.take_front(rows);
+        let rest_episode = self.pending_numbering.episode.split_off(rows);
+        let rest_step = self.pending_numbering.step.split_off(rows);
+        let episode = std::mem::replace(&mut self.pending_numbering.episode, rest_episode);
+        let step = std::mem::replace(&mut self.pending_numbering.step, rest_step);
+        let batch = record_batch(&self.schema, chunk, episode, step)?;
+        self.writer.write(&batch)?;
+        self.writer.flush()
+    }
+
+    /// Writes the remaining closed episodes and the footer; returns the output.
+    pub fn finish(mut self) -> Result<W, ParquetError> {
+        while let Some(cut) = self.row_group_cut(true) {
+            self.write_front(cut)?;
+        }
+        if !self.pending.is_empty() {
+            return Err(ParquetError::General(
+                "unclosed episode at the end of the dataset".into(),
+            ));
+        }
+        self.writer.into_inner()
+    }
+}
+
+fn record_batch(
+    schema: &SchemaRef,
+    chunk: TransitionChunk,
+    episode: Vec<u32>,
+    step: Vec<u32>,
+) -> Result<RecordBatch, ParquetError> {
+    let list = |values: Vec<f32>, dim: usize| -> Result<ArrayRef, ParquetError> {
+        let field = Arc::new(Field::new_list_field(DataType::Float32, false));
+        let array = FixedSizeListArray::try_new(
+            field,
+            dim as i32,
+            Arc::new(Float32Array::from(values)),
+            None,
+        )?;
+        Ok(Arc::new(array))
+    };
+    let columns: Vec<ArrayRef> = vec![
+        Arc::new(UInt32Array::from(episode)),
+        Arc::new(UInt32Array::from(step)),
+        list(chunk.observations, chunk.obs_dim)?,
+        list(chunk.next_observations, chunk.obs_dim)?,
+        list(chunk.actions, chunk.act_dim)?,
+        Arc::new(Float32Array::from(chunk.rewards)),
+        Arc::new(Float32Array::from(chunk.costs)),
+        Arc::new(BooleanArray::from(chunk.terminals)),
+        Arc::new(BooleanArray::from(chunk.timeouts)),
+    ];
+    Ok(RecordBatch::try_new(schema.clone(), columns)?)
+}
+
+/// Problems reading a Parquet file as a dataset.
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    /// The bytes are not a readable Parquet file.
+    #[error("{0}")]
+    Parquet(#[from] ParquetError),
+    /// The file is Parquet but not in a dataset layout.
+    #[error("{0}")]
+    Layout(String),
+    /// A value is of the right type but not acceptable.
+    #[error("{0}")]
+    Value(#[from] ValidationError),
+}
+
+impl From<arrow_schema::ArrowError> for ReadError {
+    fn from(e: arrow_schema::ArrowError) -> Self {
+        ReadError::Parquet(ParquetError::from(e))
+    }
+}
+
+/// Reads any Parquet file with DSRL's columns as transition chunks: the canonical layout, or a file written by
+/// pandas/pyarrow with float64 values, variable-length lists, or integer flags. Columns outside the format are
+/// reported, not read.
+pub struct ParquetTransitions {
+    reader: ParquetRecordBatchReader,
+    obs_dim: usize,
+    act_dim: usize,
+    has_episode: bool,
+    has_step: bool,
+    ignored_columns: Vec<String>,
+    rows: u64,
+    next_row: u64,
+}
+
+impl ParquetTransitions {
+    pub fn open(file: std::fs::File) -> Result<Self, ReadError> {
+        let builder = ParquetRecordBatchReaderBuilder::try_new(file)?;
+        let schema = builder.schema().clone();
+        let rows = builder.metadata().file_metadata().num_rows() as u64;
+        let mut missing = Vec::new();
+        let mut roots = Vec::new();
+        for key in DSRL_KEYS {
+            match schema.index_of(key) {
+                Ok(i) => roots.push(i),
+                Err(_) => missing.push(key),
+            }
+        }
+        if !missing.is_empty() {
+            return Err(ReadError::Layout(format!(
+                "missing column(s) {}; a dataset needs {}",
+                missing.join(", "),
+                DSRL_KEYS.join(", ")
+            )));
+        }
+        let has_episode = schema.index_of(EPISODE).is_ok();
+        let has_step = schema.index_of(STEP).is_ok();
+        for (name, present) in [(EPISODE, has_episode), (STEP, has_step)] {
+            if present {
+                roots.push(schema.index_of(name)?);
+            }
+        }
+        let known: Vec<&str> = DSRL_KEYS.iter().copied().chain([EPISODE, STEP]).collect();
+        let ignored_columns = schema
+            .fields()
+            .iter()
+            .map(|f| f.name().clone())
+            .filter(|n| !known.contains(&n.as_str()))
+            .collect();
+        let obs_dim = list_width(&schema, OBSERVATIONS)?;
+        let act_dim = list_width(&schema, ACTIONS)?;
+        let next_dim = list_width(&schema, NEXT_OBSERVATIONS)?;
+        if let (Some(o), Some(n)) = (obs_dim, next_dim)
+            && o != n
+        {
+            return Err(ReadError::Value(ValidationError::column(
+                NEXT_OBSERVATIONS,
+                format!("{n} features per observation but observations has {o}"),
+            )));
+        }
+        let batch_rows = match (obs_dim, act_dim) {
+            (Some(o), Some(a)) => (READ_BATCH_TARGET_BYTES / row_bytes(o, a)).clamp(1024, 1 << 20),
+            _ => 8192,
+        };
+        let mask = ProjectionMask::roots(builder.parquet_schema(), roots);
+        let reader = builder
+            .with_projection(mask)
+            .with_batch_size(batch_rows)
+            .build()?;
+        // Variable-length lists get their width from the first row; every later row is checked against it.
+        Ok(ParquetTransitions {
+            reader,
+            obs_dim: obs_dim.unwrap_or(0),
+            act_dim: act_dim.unwrap_or(0),
+            has_episode,
+            has_step,
+            ignored_columns,
+            rows,
+            next_row: 0,
+        })
+    }
+
+    /// Rows in the file, from its footer.
+    pub fn rows(&self) -> u64 {
+        self.rows
+    }
+
+    /// Columns of the file that are not part of the dataset format.
+    pub fn ignored_columns(&self) -> &[String] {
+        &self.ignored_columns
+    }
+
+    fn convert(&mut self, batch: RecordBatch) -> Result<TransitionChunk, ReadError> {
+        let base = self.next_row;
+        let col = |name: &str| {
+            batch
+                .column_by_name(name)
+                .expect("projected column")
+                .clone()
+        };
+        let (observations, obs_dim) =
+            float_matrix(base, OBSERVATIONS, &col(OBSERVATIONS), self.obs_dim)?;
+        let (next_observations, _) =
+            float_matrix(base, NEXT_OBSERVATIONS, &col(NEXT_OBSERVATIONS), obs_dim)?;
+        let (actions, act_dim) = float_matrix(base, ACTIONS, &col(ACTIONS), self.act_dim)?;
+        self.obs_dim = obs_dim;
+        self.act_dim = act_dim;
+        let chunk = TransitionChunk {
+            obs_dim,
+            act_dim,
+            observations,
+            next_observations,
+            actions,
+            rewards: float_vector(base, REWARDS, &col(REWARDS))?,
+            costs: float_vector(base, COSTS, &col(COSTS))?,
+            terminals: flag_vector(base, TERMINALS, &col(TERMINALS))?,
+            timeouts: flag_vector(base, TIMEOUTS, &col(TIMEOUTS))?,
+            episode: if self.has_episode {
+                Some(counter_vector(base, EPISODE, &col(EPISODE))?)
+            } else {
+                None
+            },
+            step: if self.has_step {
+                Some(counter_vector(base, STEP, &col(STEP))?)
+            } else {
+                None
+            },
+        };
+        self.next_row += batch.num_rows() as u64;
+        Ok(chunk)
+    }
+}
+
+impl Iterator for ParquetTransitions {
+    type Item = Result<TransitionChunk, ReadError>;
+    fn next(&mut self) -> Option<Self::Item> {
+        let batch = match self.reader.next()? {
+            Ok(b) => b,
+            Err(e) => return Some(Err(e.into())),
+        };
+        Some(self.convert(batch))
+    }
+}
+
+/// Width of a fixed-size list column, `None` for variable-length lists; an error for other types.
+fn list_width(schema: &Schema, name: &str) -> Result<Option<usize>, ReadError> {
+    let field = schema.field_with_name(name)?;
+    let item = match field.data_type() {
+        DataType::FixedSizeList(item, n) => {
+            check_float(name, item.data_type())?;
+            return Ok(Some(*n as usize));
+        }
+        DataType::List(item) | DataType::LargeList(item) => item,
+        other => {
+            return Err(ReadError::Layout(format!(
+                "column {name} has type {other}; expected a list of float32 (one vector per transition)"
+            )));
+        }
+    };
+    check_float(name, item.data_type())?;
+    Ok(None)
+}
+
+fn check_float(name: &str, t: &DataType) -> Result<(), ReadError> {
+    match t {
+        DataType::Float32 | DataType::Float64 => Ok(()),
+        other => Err(ReadError::Layout(format!(
+            "column {name} holds {other}; expected float32 or float64"
+        ))),
+    }
+}
+
+fn no_nulls(base: u64, name: &str, array: &dyn Array) -> Result<(), ValidationError> {
+    match array
+        .logical_nulls()
+        .and_then(|n| (0..array.len()).find(|&i| n.is_null(i)))
+    {
+        Some(i) => Err(ValidationError::at(base + i as u64, name, "null value")),
+        None => Ok(()),
+    }
+}
+
+fn floats_of(name: &str, values: &ArrayRef) -> Result<Vec<f32>, ReadError> {
+    match values.data_type() {
+        DataType::Float32 => Ok(values.as_primitive::<Float32Type>().values().to_vec()),
+        // DSRL's `get_dataset` casts float64 to float32 the same way.
+        DataType::Float64 => Ok(values
+            .as_primitive::<Float64Type>()
+            .values()
+            .iter()
+            .map(|&v| v as f32)
+            .collect()),
+        other => Err(ReadError::Layout(format!(
+            "column {name} holds {other}; expected float32 or float64"
+        ))),
+    }
+}
+
+/// Row-major values of a list column and its width (`width == 0`: take it from the first row).
+fn float_matrix(
+    base: u64,
+    name: &str,
+    array: &ArrayRef,
+    width: usize,
+) -> Result<(Vec<f32>, usize), ReadError> {
+    no_nulls(base, name, array.as_ref())?;
+    match array.data_type() {
+        DataType::FixedSizeList(_, _) => {
+            let list = array.as_fixed_size_list();
+            no_nulls(base, name, list.values().as_ref())?;
+            Ok((
+                floats_of(name, list.values())?,
+                list.value_length() as usize,
+            ))
+        }
+        DataType::List(_) | DataType::LargeList(_) => {
+            let (offsets, values): (Vec<usize>, &ArrayRef) = match array.data_type() {
+                DataType::List(_) => {
+                    let l = array.as_list::<i32>();
+                    (
+                        l.value_offsets().iter().map(|&o| o as usize).collect(),
+                        l.values(),
+                    )
+                }
+                _ => {
+                    let l = array.as_list::<i64>();
+                    (
+                        l.value_offsets().iter().map(|&o| o as usize).collect(),
+                        l.values(),
+                    )
+                }
+            };
+            let mut width = width;
+            for (i, w) in offsets.windows(2).enumerate() {
+                let len = w[1] - w[0];
+                if width == 0 {
+                    width = len;
+                }
+                if len != width || len == 0 {
+                    return Err(ReadError::Value(ValidationError::at(
+                        base + i as u64,
+                        name,
+                        format!("{len} features, but earlier rows have {width}"),
+                    )));
+                }
+            }
+            let (start, end) = (offsets[0], offsets[offsets.len() - 1]);
+            let values = values.slice(start, end - start);
+            no_nulls(base, name, values.as_ref())?;
+            Ok((floats_of(name, &values)?, width))
+        }
+        other => Err(ReadError::Layout(format!(
+            "column {name} has type {other}; expected a list of floats"
+        ))),
+    }
+}
+
+fn float_vector(base: u64, name: &str, array: &ArrayRef) -> Result<Vec<f32>, ReadError> {
+    no_nulls(base, name, array.as_ref())?;
+    floats_of(name, array)
+}
+
+/// Done flags stored as bool, integers or floats; anything but 0 or 1 is an error (DSRL tests `== 1`).
+fn flag_vector(base: u64, name: &str, array: &ArrayRef) -> Result<Vec<bool>, ReadError> {
+    no_nulls(base, name, array.as_ref())?;
+    if let DataType::Boolean = array.data_type() {
+        return Ok(array.as_boolean().values().iter().collect());
+    }
+    let as_f64: Vec<f64> = numbers(array).ok_or_else(|| {
+        ReadError::Layout(format!(
+            "column {name} has type {}; expected bool or 0/1 numbers",
+            array.data_type()
+        ))
+    })?;
+    as_f64
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| match v {
+            0.0 => Ok(false),
+            1.0 => Ok(true),
+            other => Err(ReadError::Value(ValidationError::at(
+                base + i as u64,
+                name,
+                format!("flag value {other}; expected 0 or 1"),
+            ))),
+        })
+        .collect()
+}
+
+fn counter_vector(base: u64, name: &str, array: &ArrayRef) -> Result<Vec<u32>, ReadError> {
+    no_nulls(base, name, array.as_ref())?;
+    let values = match array.data_type() {
+        DataType::Float32 | DataType::Float64 => None,
+        _ => numbers(array),
+    }
+    .ok_or_else(|| {
+        ReadError::Layout(format!(
+            "column {name} has type {}; expected integers",
+            array.data_type()
+        ))
+    })?;
+    values
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| {
+            if (0.0..=u32::MAX as f64).contains(&v) {
+                Ok(v as u32)
+            } else {
+                Err(ReadError::Value(ValidationError::at(
+                    base + i as u64,
+                    name,
+                    format!("{v} is out of range"),
+                )))
+            }
+        })
+        .collect()
+}
+
+/// Any integer or float column as f64 (exact for every integer a u32 counter or flag can hold).
+fn numbers(array: &ArrayRef) -> Option<Vec<f64>> {
+    macro_rules! conv {
+        ($t:ty) => {
+            array
+                .as_primitive::<$t>()
+                .values()
+                .iter()
+                .map(|&v| v as f64)
+                .collect()
+        };
+    }
+    Some(match array.data_type() {
+        DataType::Int8 => conv!(Int8Type),
+        DataType::Int16 => conv!(Int16Type),
+        DataType::Int32 => conv!(Int32Type),
+        DataType::Int64 => conv!(Int64Type),
+        DataType::UInt8 => conv!(UInt8Type),
+        DataType::UInt16 => conv!(UInt16Type),
+        DataType::UInt32 => conv!(UInt32Type),
+        DataType::UInt64 => conv!(UInt64Type),
+        DataType::Float32 => conv!(Float32Type),
+        DataType::Float64 => conv!(Float64Type),
+        _ => return None,
+    })
+}

@@ -1,0 +1,418 @@
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow_array::{
+    ArrayRef, BooleanArray, Float64Array, Int64Array, ListArray, RecordBatch, types::Float64Type,
+};
+use arrow_schema::{DataType, Field, Schema};
+use dsrl_suite::catalog::{Catalog, ObservationSpace, Task};
+use dsrl_suite::convert::{Converted, ImportError, SourceFormat, import_file, write_canonical};
+use dsrl_suite::hdf5_file::write_dsrl_hdf5;
+use dsrl_suite::parquet_file::ParquetTransitions;
+use dsrl_suite::synthetic::{SyntheticSpec, transitions};
+use dsrl_suite::transitions::TransitionChunk;
+use parquet::arrow::ArrowWriter;
+use parquet::file::reader::{FileReader, SerializedFileReader};
+
+fn task(id: &str) -> Task {
+    Catalog::embedded().unwrap().get(id).unwrap().clone()
+}
+
+fn synthetic(task: &Task, episodes: usize, seed: u64) -> Vec<TransitionChunk> {
+    let mut spec = SyntheticSpec::for_task(task, episodes, seed);
+    spec.chunk_rows = 700; // not a multiple of the horizon: chunks split episodes
+    transitions(spec).collect()
+}
+
+fn write(task: &Task, chunks: &[TransitionChunk], out: &Path) -> Converted {
+    write_canonical(
+        task,
+        ObservationSpace::Simulator,
+        chunks.iter().cloned().map(Ok),
+        vec![],
+        out,
+    )
+    .unwrap()
+}
+
+fn read_all(path: &Path) -> TransitionChunk {
+    let mut all: Option<TransitionChunk> = None;
+    for chunk in ParquetTransitions::open(std::fs::File::open(path).unwrap()).unwrap() {
+        let chunk = chunk.unwrap();
+        match &mut all {
+            None => {
+                let mut c = chunk.clone();
+                c.episode = None;
+                c.step = None;
+                all = Some(c)
+            }
+            Some(a) => a.append(&chunk),
+        }
+    }
+    all.unwrap()
+}
+
+fn concat(chunks: &[TransitionChunk]) -> TransitionChunk {
+    let mut all = TransitionChunk::empty(chunks[0].obs_dim, chunks[0].act_dim);
+    for c in chunks {
+        all.append(c);
+    }
+    all
+}
+
+#[test]
+fn canonical_parquet_round_trips_and_is_deterministic() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = task("OfflineCarCircle-v0");
+    let chunks = synthetic(&t, 23, 1);
+    let a = write(&t, &chunks, &dir.path().join("a.parquet"));
+    let b = write(&t, &chunks, &dir.path().join("b.parquet"));
+    assert_eq!(a.version, b.version, "same rows must give the same bytes");
+    assert_eq!(
+        std::fs::read(dir.path().join("a.parquet")).unwrap().len() as u64,
+        a.byte_size
+    );
+    let (v, _) = dsrl_suite::hashing::file_version_id(&dir.path().join("a.parquet")).unwrap();
+    assert_eq!(v, a.version);
+    assert_eq!(read_all(&dir.path().join("a.parquet")), concat(&chunks));
+    assert_eq!(a.episode_index.len(), 23);
+    assert_eq!(
+        a.episode_index
+            .iter()
+            .map(|e| e.length as usize)
+            .sum::<usize>(),
+        concat(&chunks).len()
+    );
+    let other = write(&t, &synthetic(&t, 23, 2), &dir.path().join("c.parquet"));
+    assert_ne!(other.version, a.version);
+}
+
+#[test]
+fn row_groups_hold_whole_episodes_and_floats_use_byte_stream_split() {
+    let dir = tempfile::tempdir().unwrap();
+    // MetaDrive rows are ~2 KB, so 64 MiB row groups hold ~32 episodes: 70 episodes make several groups.
+    let t = task("OfflineMetadrive-easysparse-v0");
+    let chunks = synthetic(&t, 70, 3);
+    let path = dir.path().join("md.parquet");
+    let converted = write(&t, &chunks, &path);
+    let reader = SerializedFileReader::new(std::fs::File::open(&path).unwrap()).unwrap();
+    let meta = reader.metadata();
+    assert!(
+        meta.num_row_groups() >= 2,
+        "{} row groups",
+        meta.num_row_groups()
+    );
+    let starts: Vec<u64> = converted.episode_index.iter().map(|e| e.start).collect();
+    let mut row = 0u64;
+    for rg in meta.row_groups() {
+        assert!(
+            starts.contains(&row),
+            "row group starts at row {row}, inside an episode"
+        );
+        row += rg.num_rows() as u64;
+        for col in rg.columns() {
+            let path = col.column_path().string();
+            let encodings: Vec<_> = col.encodings().collect();
+            if path.starts_with("observations") || path == "rewards" {
+                assert!(
+                    encodings.contains(&parquet::basic::Encoding::BYTE_STREAM_SPLIT),
+                    "{path}: {encodings:?}"
+                );
+            }
+            assert_eq!(
+                col.compression(),
+                parquet::basic::Compression::ZSTD(Default::default()).codec_only()
+            );
+        }
+    }
+    let kv = meta.file_metadata().key_value_metadata().unwrap();
+    assert!(
+        kv.iter().any(|k| k.key == "dsrl.task"
+            && k.value.as_deref() == Some("OfflineMetadrive-easysparse-v0"))
+    );
+}
+
+trait CodecOnly {
+    fn codec_only(self) -> parquet::basic::Compression;
+}
+impl CodecOnly for parquet::basic::Compression {
+    /// Column chunk metadata records the codec, not the level.
+    fn codec_only(self) -> parquet::basic::Compression {
+        match self {
+            parquet::basic::Compression::ZSTD(_) => {
+                parquet::basic::Compression::ZSTD(Default::default())
+            }
+            other => other,
+        }
+    }
+}
+
+#[test]
+fn hdf5_export_then_import_gives_back_the_same_version() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = task("OfflineBallRun-v0");
+    let chunks = synthetic(&t, 15, 4);
+    let parquet = dir.path().join("a.parquet");
+    let original = write(&t, &chunks, &parquet);
+    let h5 = dir.path().join("a.hdf5");
+    write_dsrl_hdf5(
+        ParquetTransitions::open(std::fs::File::open(&parquet).unwrap()).unwrap(),
+        &h5,
+    )
+    .unwrap();
+    assert_eq!(SourceFormat::sniff(&h5).unwrap(), Some(SourceFormat::Hdf5));
+    let (format, back) = import_file(
+        &h5,
+        &t,
+        ObservationSpace::Simulator,
+        &dir.path().join("b.parquet"),
+    )
+    .unwrap();
+    assert_eq!(format, SourceFormat::Hdf5);
+    assert_eq!(back.version, original.version);
+    assert_eq!(back.episode_index, original.episode_index);
+}
+
+/// Writes a DSRL-layout HDF5 file the way older writers did: float64 arrays, (N, 1) columns, integer flags,
+/// plus an extra key.
+fn write_foreign_hdf5(all: &TransitionChunk, path: &Path, flags_as_int: bool) {
+    let f = hdf5::File::create(path).unwrap();
+    let n = all.len();
+    let m = |v: &[f32], d: usize| {
+        ndarray::Array2::from_shape_vec((n, d), v.iter().map(|&x| x as f64).collect()).unwrap()
+    };
+    f.new_dataset_builder()
+        .deflate(4)
+        .with_data(&m(&all.observations, all.obs_dim))
+        .create("observations")
+        .unwrap();
+    f.new_dataset_builder()
+        .with_data(&m(&all.next_observations, all.obs_dim))
+        .create("next_observations")
+        .unwrap();
+    f.new_dataset_builder()
+        .with_data(&m(&all.actions, all.act_dim))
+        .create("actions")
+        .unwrap();
+    f.new_dataset_builder()
+        .with_data(&m(&all.rewards, 1))
+        .create("rewards")
+        .unwrap();
+    f.new_dataset_builder()
+        .with_data(&ndarray::Array1::from(all.costs.clone()))
+        .create("costs")
+        .unwrap();
+    for (key, flags) in [("terminals", &all.terminals), ("timeouts", &all.timeouts)] {
+        if flags_as_int {
+            let ints: Vec<i64> = flags.iter().map(|&b| b as i64).collect();
+            f.new_dataset_builder()
+                .with_data(&ndarray::Array1::from(ints))
+                .create(key)
+                .unwrap();
+        } else {
+            f.new_dataset_builder()
+                .with_data(&ndarray::Array1::from(flags.clone()))
+                .create(key)
+                .unwrap();
+        }
+    }
+    f.new_dataset_builder()
+        .with_data(&ndarray::Array1::from(all.costs.clone()))
+        .create("crash_costs")
+        .unwrap();
+}
+
+#[test]
+fn hdf5_with_float64_integer_flags_and_column_vectors_imports_like_the_canonical_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = task("OfflineDroneRun-v0");
+    let chunks = synthetic(&t, 9, 5);
+    let canonical = write(&t, &chunks, &dir.path().join("a.parquet"));
+    let h5 = dir.path().join("foreign.h5");
+    write_foreign_hdf5(&concat(&chunks), &h5, true);
+    let (_, back) = import_file(
+        &h5,
+        &t,
+        ObservationSpace::Simulator,
+        &dir.path().join("b.parquet"),
+    )
+    .unwrap();
+    assert_eq!(back.version, canonical.version);
+    assert_eq!(back.dropped_columns, vec!["crash_costs".to_owned()]);
+}
+
+#[test]
+fn hdf5_problems_name_the_key_or_row() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = task("OfflineDroneRun-v0");
+    let all = concat(&synthetic(&t, 3, 6));
+    let out = dir.path().join("out.parquet");
+
+    let h5 = dir.path().join("missing.h5");
+    let f = hdf5::File::create(&h5).unwrap();
+    f.new_dataset_builder()
+        .with_data(&ndarray::Array1::from(all.rewards.clone()))
+        .create("rewards")
+        .unwrap();
+    drop(f);
+    let err = import_file(&h5, &t, ObservationSpace::Simulator, &out).unwrap_err();
+    assert!(matches!(err, ImportError::Malformed { .. }), "{err}");
+    assert!(
+        err.to_string()
+            .contains("missing key(s) observations, next_observations, actions"),
+        "{err}"
+    );
+
+    let h5 = dir.path().join("badflag.h5");
+    write_foreign_hdf5(&all, &h5, true);
+    let f = hdf5::File::open_rw(&h5).unwrap();
+    f.unlink("terminals").unwrap();
+    let mut ints: Vec<i64> = all.terminals.iter().map(|&b| b as i64).collect();
+    ints[17] = 2;
+    f.new_dataset_builder()
+        .with_data(&ndarray::Array1::from(ints))
+        .create("terminals")
+        .unwrap();
+    drop(f);
+    let err = import_file(&h5, &t, ObservationSpace::Simulator, &out).unwrap_err();
+    assert_eq!(
+        err.to_string(),
+        "row 17, column terminals: flag value 2; expected 0 or 1"
+    );
+
+    let garbage = dir.path().join("garbage.bin");
+    std::fs::write(&garbage, b"not a dataset at all").unwrap();
+    assert!(matches!(
+        import_file(&garbage, &t, ObservationSpace::Simulator, &out),
+        Err(ImportError::UnknownFormat)
+    ));
+
+    let truncated = dir.path().join("truncated.h5");
+    let bytes = std::fs::read(&h5).unwrap();
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    let err = import_file(&truncated, &t, ObservationSpace::Simulator, &out).unwrap_err();
+    assert!(matches!(err, ImportError::Malformed { .. }), "{err}");
+}
+
+/// A file like `pandas.DataFrame.to_parquet` writes: float64 lists, int64 flags, no episode/step columns.
+fn write_pandas_like_parquet(all: &TransitionChunk, path: &Path, extra: bool) {
+    let list = |v: &[f32], d: usize| -> ArrayRef {
+        Arc::new(ListArray::from_iter_primitive::<Float64Type, _, _>(
+            v.chunks(d)
+                .map(|row| Some(row.iter().map(|&x| Some(x as f64)).collect::<Vec<_>>())),
+        ))
+    };
+    let f64s = |v: &[f32]| -> ArrayRef {
+        Arc::new(Float64Array::from(
+            v.iter().map(|&x| x as f64).collect::<Vec<_>>(),
+        ))
+    };
+    let ints = |v: &[bool]| -> ArrayRef {
+        Arc::new(Int64Array::from(
+            v.iter().map(|&b| b as i64).collect::<Vec<_>>(),
+        ))
+    };
+    let item = Arc::new(Field::new_list_field(DataType::Float64, true));
+    let mut fields = vec![
+        Field::new("observations", DataType::List(item.clone()), true),
+        Field::new("next_observations", DataType::List(item.clone()), true),
+        Field::new("actions", DataType::List(item), true),
+        Field::new("rewards", DataType::Float64, true),
+        Field::new("costs", DataType::Float64, true),
+        Field::new("terminals", DataType::Int64, true),
+        Field::new("timeouts", DataType::Int64, true),
+    ];
+    let mut columns = vec![
+        list(&all.observations, all.obs_dim),
+        list(&all.next_observations, all.obs_dim),
+        list(&all.actions, all.act_dim),
+        f64s(&all.rewards),
+        f64s(&all.costs),
+        ints(&all.terminals),
+        ints(&all.timeouts),
+    ];
+    if extra {
+        fields.push(Field::new("is_safe", DataType::Boolean, true));
+        columns.push(Arc::new(BooleanArray::from(vec![true; all.len()])));
+    }
+    let batch = RecordBatch::try_new(Arc::new(Schema::new(fields)), columns).unwrap();
+    let mut w =
+        ArrowWriter::try_new(std::fs::File::create(path).unwrap(), batch.schema(), None).unwrap();
+    w.write(&batch).unwrap();
+    w.close().unwrap();
+}
+
+#[test]
+fn foreign_parquet_layouts_import_like_the_canonical_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = task("OfflineAntRun-v0");
+    let chunks = synthetic(&t, 6, 7);
+    let canonical = write(&t, &chunks, &dir.path().join("a.parquet"));
+    let pandas = dir.path().join("pandas.parquet");
+    write_pandas_like_parquet(&concat(&chunks), &pandas, true);
+    let (format, back) = import_file(
+        &pandas,
+        &t,
+        ObservationSpace::Simulator,
+        &dir.path().join("b.parquet"),
+    )
+    .unwrap();
+    assert_eq!(format, SourceFormat::Parquet);
+    assert_eq!(back.version, canonical.version);
+    assert_eq!(back.dropped_columns, vec!["is_safe".to_owned()]);
+    // The canonical file itself imports to itself.
+    let (_, again) = import_file(
+        &dir.path().join("a.parquet"),
+        &t,
+        ObservationSpace::Simulator,
+        &dir.path().join("c.parquet"),
+    )
+    .unwrap();
+    assert_eq!(again.version, canonical.version);
+}
+
+#[test]
+fn wrong_task_dimensions_and_paper_space_metadrive() {
+    let dir = tempfile::tempdir().unwrap();
+    let ant = task("OfflineAntRun-v0");
+    let src = dir.path().join("ant.parquet");
+    write(&ant, &synthetic(&ant, 2, 8), &src);
+    let out = dir.path().join("out.parquet");
+    let err = import_file(
+        &src,
+        &task("OfflineBallRun-v0"),
+        ObservationSpace::Simulator,
+        &out,
+    )
+    .unwrap_err();
+    assert_eq!(
+        err.to_string(),
+        "column observations: 33 features per observation, but OfflineBallRun-v0 expects 7"
+    );
+
+    // A paper-era MetaDrive file: 261 features.
+    let md = task("OfflineMetadrive-hardmean-v0");
+    let mut spec = SyntheticSpec::for_task(&md, 2, 9);
+    spec.obs_dim = 261;
+    let paper: Vec<_> = transitions(spec).collect();
+    let src = dir.path().join("paper.parquet");
+    write_canonical(
+        &md,
+        ObservationSpace::Paper,
+        paper.into_iter().map(Ok),
+        vec![],
+        &src,
+    )
+    .unwrap();
+    let err = import_file(&src, &md, ObservationSpace::Simulator, &out).unwrap_err();
+    assert!(err.to_string().contains("261 features per observation, but OfflineMetadrive-hardmean-v0 expects 259; that is the paper's observation space"), "{err}");
+    import_file(&src, &md, ObservationSpace::Paper, &out).unwrap();
+    let err = import_file(
+        &dir.path().join("ant.parquet"),
+        &ant,
+        ObservationSpace::Paper,
+        &out,
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("the same (33 features)"), "{err}");
+}

@@ -1,0 +1,447 @@
+//! Ingest: formats, idempotence, validation errors, limits, auth, observation spaces, tags, and crashes.
+
+use std::time::Duration;
+
+use dsrl_e2e::{run_python, wait_for};
+use dsrl_suite::catalog::{Catalog, ObservationSpace};
+use dsrl_suite::convert::write_canonical;
+use dsrl_suite::synthetic::{SyntheticSpec, transitions};
+
+use crate::{Env, get_json, s};
+
+fn versions(env: &Env, task: &str) -> Vec<serde_json::Value> {
+    let body = get_json(&format!("{}/v1/datasets/{task}/versions", env.server.url));
+    body["versions"].as_array().unwrap().clone()
+}
+
+#[test]
+fn parquet_and_dsrl_hdf5_of_the_same_data_are_one_version() {
+    let env = Env::new();
+    let task = "OfflineDroneCircle-v0";
+    let parquet = env.path("drone.parquet");
+    let made = dsrl_e2e::make_dataset(task, 6, 3, &parquet);
+    let first = env
+        .cli
+        .run(&["--json", "admin", "ingest", "--task", task, s(&parquet)])
+        .ok()
+        .json();
+    assert_eq!(first["created"], true);
+    assert_eq!(first["version"]["version"], made.version.as_str());
+    assert_eq!(first["moved_tags"], serde_json::json!(["latest"]));
+
+    let again = env
+        .cli
+        .run(&["--json", "admin", "ingest", "--task", task, s(&parquet)])
+        .ok()
+        .json();
+    assert_eq!(again["created"], false, "identical bytes are a no-op");
+
+    // HDF5 written by h5py the way DSRL wrote its files, in three flag/shape conventions: all the same data.
+    for extra in [
+        &[][..],
+        &["--flags", "int8", "--column-vectors"][..],
+        &["--flags", "float64", "--extra-key", "crash_costs"][..],
+    ] {
+        let h5 = env.path("drone.hdf5");
+        let mut args = vec![s(&parquet), s(&h5)];
+        args.extend_from_slice(extra);
+        run_python("make_dsrl_hdf5.py", &args);
+        let out = env
+            .cli
+            .run(&["--json", "admin", "ingest", "--task", task, s(&h5)])
+            .ok()
+            .json();
+        assert_eq!(
+            out["version"]["version"],
+            made.version.as_str(),
+            "HDF5 {extra:?} converts to the same bytes"
+        );
+        assert_eq!(out["created"], false);
+    }
+    assert_eq!(versions(&env, task).len(), 1);
+    let manifest = env.cli.run(&["--json", "show", task]).ok().json();
+    assert_eq!(manifest["provenance"]["kind"], "import");
+    assert_eq!(manifest["provenance"]["file_name"], "drone.parquet");
+    assert_eq!(manifest["provenance"]["source_format"], "parquet");
+    assert_eq!(manifest["provenance"]["sha256"], made.version.as_str());
+    assert_eq!(manifest["episodes"], 6);
+    assert_eq!(manifest["file_name"], "SafetyDroneCircle-v0-100-6.parquet");
+
+    // An HDF5 upload of new data records the HDF5 file as its source.
+    let other = env.path("other.parquet");
+    dsrl_e2e::make_dataset(task, 2, 4, &other);
+    let h5 = env.path("other.hdf5");
+    run_python(
+        "make_dsrl_hdf5.py",
+        &[s(&other), s(&h5), "--extra-key", "proximity_costs"],
+    );
+    let out = env
+        .cli
+        .run(&["--json", "admin", "ingest", "--task", task, s(&h5)])
+        .ok()
+        .json();
+    assert_eq!(out["created"], true);
+    let manifest = env.cli.run(&["--json", "show", task]).ok().json();
+    assert_eq!(manifest["provenance"]["source_format"], "hdf5");
+    assert_eq!(
+        manifest["provenance"]["dropped_columns"],
+        serde_json::json!(["proximity_costs"])
+    );
+}
+
+#[test]
+fn bad_uploads_are_rejected_with_the_first_problem_named() {
+    let env = Env::new();
+    let task = "OfflineCarRun-v0";
+    let good = env.path("car.parquet");
+    dsrl_e2e::make_dataset(task, 3, 5, &good);
+    let h5 = env.path("bad.hdf5");
+    let reject = |file: &std::path::Path| {
+        let out = env
+            .cli
+            .run(&["--json", "admin", "ingest", "--task", task, s(file)]);
+        assert_eq!(out.code, 6, "{out:?}");
+        assert_eq!(out.json()["error"]["code"], "invalid_argument");
+        out.json()["error"]["message"].as_str().unwrap().to_owned()
+    };
+    let cases: &[(&[&str], &str)] = &[
+        (
+            &["--nan-at", "17"],
+            "row 17, column observations[0]: value NaN is not finite",
+        ),
+        (
+            &["--unclosed"],
+            "are not closed by a terminal or timeout flag",
+        ),
+        (&["--drop-key", "costs"], "missing key(s) costs"),
+        (&["--short-key", "rewards"], "key rewards has"),
+    ];
+    for (variant, expected) in cases {
+        let mut args = vec![s(&good), s(&h5)];
+        args.extend_from_slice(variant);
+        run_python("make_dsrl_hdf5.py", &args);
+        let message = reject(&h5);
+        assert!(message.contains(expected), "{variant:?}: {message}");
+    }
+    // Another task's shape.
+    let ant = env.path("ant.parquet");
+    dsrl_e2e::make_dataset("OfflineAntRun-v0", 1, 5, &ant);
+    assert!(reject(&ant).contains("33 features per observation, but OfflineCarRun-v0 expects 7"));
+    // Not a dataset at all, and a truncated Parquet file.
+    let garbage = env.path("garbage.bin");
+    std::fs::write(&garbage, b"GIF89a definitely not a dataset").unwrap();
+    assert!(reject(&garbage).contains("unrecognized file format"));
+    let truncated = env.path("truncated.parquet");
+    let bytes = std::fs::read(&good).unwrap();
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    assert!(reject(&truncated).contains("not a usable Parquet dataset"));
+    let empty = env.path("empty.parquet");
+    std::fs::write(&empty, b"").unwrap();
+    assert!(reject(&empty).contains("empty"));
+
+    // Bad parameters.
+    let out = env.cli.run(&[
+        "admin",
+        "ingest",
+        "--task",
+        task,
+        "--tag",
+        "Not A Tag",
+        s(&good),
+    ]);
+    assert_eq!(out.code, 6, "{out:?}");
+    assert!(out.stderr.contains("invalid tag"), "{}", out.stderr);
+    let out = env.cli.run(&[
+        "admin",
+        "ingest",
+        "--task",
+        task,
+        "--observation-space",
+        "latent",
+        s(&good),
+    ]);
+    assert_eq!(out.code, 6, "{out:?}");
+
+    // Nothing of the above is visible, and nothing is left in the temporary folder.
+    assert!(versions(&env, task).is_empty());
+    assert!(versions(&env, "OfflineAntRun-v0").is_empty());
+    let tmp = env.server.data_dir.join("tmp");
+    assert_eq!(
+        std::fs::read_dir(&tmp).unwrap().count(),
+        0,
+        "leftovers in {}",
+        tmp.display()
+    );
+}
+
+#[tokio::test]
+async fn admin_operations_need_the_token() {
+    let env = Env::new();
+    let file = env.path("ball.parquet");
+    dsrl_e2e::make_dataset("OfflineBallCircle-v0", 2, 6, &file);
+    let url = format!(
+        "{}/v1/datasets/OfflineBallCircle-v0/versions",
+        env.server.url
+    );
+    let body = std::fs::read(&file).unwrap();
+    let response = env
+        .http()
+        .post(&url)
+        .body(body.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 401);
+    assert_eq!(response.headers()["www-authenticate"], "Bearer");
+    let response = env
+        .http()
+        .post(&url)
+        .bearer_auth("not-the-token")
+        .body(body)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 403);
+    let mut cli = env.cli.clone();
+    cli.token = Some("wrong-token-0123456789".into());
+    let out = cli.run(&[
+        "admin",
+        "ingest",
+        "--task",
+        "OfflineBallCircle-v0",
+        crate::s(&file),
+    ]);
+    assert_eq!(out.code, 7, "{out:?}");
+    cli.token = None;
+    let out = cli.run(&[
+        "admin",
+        "ingest",
+        "--task",
+        "OfflineBallCircle-v0",
+        crate::s(&file),
+    ]);
+    assert_eq!(out.code, 2, "no token at all is a usage error: {out:?}");
+    assert!(out.stderr.contains("need a token"), "{}", out.stderr);
+    let response = env
+        .http()
+        .put(format!(
+            "{}/v1/datasets/OfflineBallCircle-v0/tags/x",
+            env.server.url
+        ))
+        .json(&serde_json::json!({"version": "0".repeat(64)}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 401);
+}
+
+#[tokio::test]
+async fn oversized_uploads_get_413_whether_declared_or_streamed() {
+    let env = Env::with(&[], &[("DSRL__DATASETS__MAX_UPLOAD_BYTES", "100000")]);
+    let file = env.path("big.parquet");
+    dsrl_e2e::make_dataset("OfflineAntCircle-v0", 3, 7, &file);
+    assert!(std::fs::metadata(&file).unwrap().len() > 100_000);
+    let out = env.cli.run(&[
+        "--json",
+        "admin",
+        "ingest",
+        "--task",
+        "OfflineAntCircle-v0",
+        s(&file),
+    ]);
+    assert_eq!(out.code, 6, "{out:?}");
+    assert_eq!(out.json()["error"]["code"], "payload_too_large");
+    // Chunked, without Content-Length: cut off once the limit is passed.
+    let bytes = std::fs::read(&file).unwrap();
+    let chunks: Vec<Result<Vec<u8>, std::io::Error>> =
+        bytes.chunks(16 << 10).map(|c| Ok(c.to_vec())).collect();
+    let response = env
+        .http()
+        .post(format!(
+            "{}/v1/datasets/OfflineAntCircle-v0/versions",
+            env.server.url
+        ))
+        .bearer_auth(env.server.token())
+        .body(reqwest::Body::wrap_stream(futures::stream::iter(chunks)))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 413);
+}
+
+#[test]
+fn paper_space_metadrive_data_is_labelled_never_silently_accepted() {
+    let env = Env::new();
+    let task_id = "OfflineMetadrive-easydense-v0";
+    let catalog = Catalog::embedded().unwrap();
+    let task = catalog.get(task_id).unwrap();
+    let mut spec = SyntheticSpec::for_task(task, 2, 8);
+    spec.obs_dim = 261;
+    let file = env.path("paper.parquet");
+    write_canonical(
+        task,
+        ObservationSpace::Paper,
+        transitions(spec).map(Ok),
+        vec![],
+        &file,
+    )
+    .unwrap();
+    let out = env
+        .cli
+        .run(&["admin", "ingest", "--task", task_id, s(&file)]);
+    assert_eq!(out.code, 6, "{out:?}");
+    assert!(
+        out.stderr.contains(
+            "261 features per observation, but OfflineMetadrive-easydense-v0 expects 259"
+        )
+    );
+    assert!(
+        out.stderr.contains("observation_space=paper"),
+        "{}",
+        out.stderr
+    );
+    let out = env
+        .cli
+        .run(&[
+            "--json",
+            "admin",
+            "ingest",
+            "--task",
+            task_id,
+            "--observation-space",
+            "paper",
+            "--tag",
+            "paper-era",
+            s(&file),
+        ])
+        .ok()
+        .json();
+    assert_eq!(out["created"], true);
+    assert_eq!(out["version"]["observation_space"], "paper");
+    assert_eq!(
+        out["version"]["tags"],
+        serde_json::json!(["paper-era"]),
+        "paper data never becomes latest"
+    );
+    let version = out["version"]["version"].as_str().unwrap().to_owned();
+    let out = env.cli.run(&[
+        "admin",
+        "tag",
+        "--task",
+        task_id,
+        "--version",
+        &version,
+        "latest",
+    ]);
+    assert_eq!(out.code, 6, "{out:?}");
+    let manifest = env
+        .cli
+        .run(&["--json", "show", task_id, "--version", "paper-era"])
+        .ok()
+        .json();
+    assert_eq!(
+        manifest["observation_space"],
+        serde_json::json!({"kind": "paper", "dim": 261})
+    );
+    // `fetch` of latest finds nothing: the hosted simulator-space data does not exist yet.
+    assert_eq!(env.cli.run(&["fetch", task_id]).code, 4);
+}
+
+#[test]
+fn tags_move_and_latest_follows_new_versions() {
+    let env = Env::new();
+    let task = "OfflineCarCircle-v0";
+    let v1_file = env.path("v1.parquet");
+    let v1 = dsrl_e2e::make_dataset(task, 2, 10, &v1_file)
+        .version
+        .to_string();
+    env.cli
+        .run(&[
+            "admin",
+            "ingest",
+            "--task",
+            task,
+            "--tag",
+            "release-1",
+            s(&v1_file),
+        ])
+        .ok();
+    let v2 = env.ingest_synthetic(task, 3, 11);
+    let list = versions(&env, task);
+    assert_eq!(list[0]["version"], v2.as_str(), "newest first");
+    assert_eq!(list[0]["tags"], serde_json::json!(["latest"]));
+    assert_eq!(list[1]["tags"], serde_json::json!(["release-1"]));
+    env.cli
+        .run(&["admin", "tag", "--task", task, "--version", &v1, "latest"])
+        .ok();
+    let shown = env.cli.run(&["--json", "show", task]).ok().json();
+    assert_eq!(shown["version"], v1.as_str());
+    let fetched = env
+        .cli
+        .run(&["--json", "fetch", task, "--version", "release-1"])
+        .ok()
+        .json();
+    assert_eq!(fetched["version"], v1.as_str());
+    let out = env.cli.run(&[
+        "admin",
+        "tag",
+        "--task",
+        task,
+        "--version",
+        &"f".repeat(64),
+        "latest",
+    ]);
+    assert_eq!(
+        out.code, 4,
+        "tagging a version that does not exist: {out:?}"
+    );
+}
+
+/// Kills the server at two moments of an ingest (mid-upload, mid-conversion): after a restart no version is
+/// visible, the temporary files are gone, and the same upload then succeeds.
+#[test]
+fn a_killed_ingest_leaves_no_visible_version() {
+    let mut env = Env::new();
+    let task = "OfflineMetadrive-hardmean-v0";
+    let file = env.path("md.parquet");
+    let made = dsrl_e2e::make_dataset(task, 12, 12, &file);
+    let tmp = env.server.data_dir.join("tmp");
+    for stage in ["upload-", "canonical-"] {
+        let mut child = env
+            .cli
+            .command(&["admin", "ingest", "--task", task, s(&file)])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let reached = wait_for(Duration::from_secs(60), || {
+            std::fs::read_dir(&tmp)
+                .map(|d| {
+                    d.flatten().any(|e| {
+                        e.file_name().to_string_lossy().starts_with(stage)
+                            && e.metadata().map(|m| m.len() > 0).unwrap_or(false)
+                    })
+                })
+                .unwrap_or(false)
+        });
+        assert!(reached, "the ingest never reached the {stage} stage");
+        env.restart();
+        let _ = child.wait();
+        assert!(
+            versions(&env, task).is_empty(),
+            "a version became visible after a kill at {stage}"
+        );
+        assert_eq!(
+            std::fs::read_dir(&tmp).unwrap().count(),
+            0,
+            "start-up clears leftovers"
+        );
+    }
+    let out = env
+        .cli
+        .run(&["--json", "admin", "ingest", "--task", task, s(&file)])
+        .ok()
+        .json();
+    assert_eq!(out["version"]["version"], made.version.as_str());
+    assert_eq!(versions(&env, task).len(), 1);
+}
