@@ -17,7 +17,7 @@
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufWriter, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -602,16 +602,40 @@ fn write_and_hash(
     } else {
         File::create(part)?
     };
-    let mut out = BufWriter::with_capacity(4 << 20, file);
+    let mut file = file;
     let mut written = start;
+    let mut flushed = start;
     for chunk in chunks {
         hasher.update(&chunk);
-        out.write_all(&chunk)?;
+        file.write_all(&chunk)?;
         written += chunk.len() as u64;
+        if written - flushed >= WRITEBACK_BYTES {
+            start_writeback(&file, flushed, written - flushed);
+            flushed = written;
+        }
     }
-    let file = out.into_inner().map_err(|e| e.into_error())?;
-    file.sync_all()?;
+    // Most pages are already on their way to disk, so this wait is short.
+    file.sync_data()?;
     Ok((hasher.finalize().into(), written))
+}
+
+/// Amount of downloaded data after which its write-back to disk is started, so that the final sync does not
+/// have to write the whole file at once.
+const WRITEBACK_BYTES: u64 = 32 << 20;
+
+/// Asks the kernel to start writing a range of the file to disk without waiting for it (Linux); elsewhere the
+/// final sync does all the work.
+fn start_writeback(file: &File, offset: u64, len: u64) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        // SAFETY: plain syscall on an open descriptor; failure only means the final sync does more work.
+        unsafe {
+            libc::sync_file_range(file.as_raw_fd(), offset as i64, len as i64, libc::SYNC_FILE_RANGE_WRITE);
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (file, offset, len);
 }
 
 /// Writes DSRL's HDF5 layout next to the Parquet file (via `.part` + rename); returns its checksum.

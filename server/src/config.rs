@@ -210,6 +210,18 @@ mod tests {
     }
 
     #[test]
+    fn the_documented_example_is_valid_and_matches_the_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/dsrl.toml");
+        figment::Jail::expect_with(|_| {
+            let c = Config::load(Some(&path), &Overrides::default()).unwrap();
+            let mut defaults = Config::default();
+            defaults.server.data_dir = expand_home(&defaults.server.data_dir);
+            assert_eq!(c, defaults);
+            Ok(())
+        });
+    }
+
+    #[test]
     fn home_is_expanded() {
         let home = std::env::var("HOME").unwrap();
         assert_eq!(

@@ -145,14 +145,20 @@ fn stream_file(
             return;
         }
         while remaining > 0 {
-            let mut buf = vec![0u8; remaining.min(DOWNLOAD_CHUNK_BYTES as u64) as usize];
-            match file.read_exact(&mut buf) {
-                Ok(()) => {
-                    remaining -= buf.len() as u64;
+            let want = remaining.min(DOWNLOAD_CHUNK_BYTES as u64);
+            // Not `vec![0; n]`: zero-filling a buffer that is overwritten at once costs a pass over every byte.
+            let mut buf = Vec::with_capacity(want as usize);
+            match (&mut file).take(want).read_to_end(&mut buf) {
+                Ok(n) if n as u64 == want => {
+                    remaining -= want;
                     // A closed channel means the client went away: stop reading.
                     if tx.blocking_send(Ok(Bytes::from(buf))).is_err() {
                         return;
                     }
+                }
+                Ok(_) => {
+                    let _ = tx.blocking_send(Err(std::io::ErrorKind::UnexpectedEof.into()));
+                    return;
                 }
                 Err(e) => {
                     let _ = tx.blocking_send(Err(e));

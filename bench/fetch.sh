@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# Benchmark: fetching one >= 200 MB dataset version over loopback, side by side in one run:
+#   cp     of the stored object (warm page cache: the ceiling of the machine's memory/disk path)
+#   curl   of the download URL (-o file)
+#   dsrl-client fetch into an empty cache (download + sha256 verification + fsync + rename)
+# then 32 concurrent dsrl-client fetches (separate caches): errors and aggregate throughput.
+# Usage: bench/fetch.sh [EPISODES=110] [ROUNDS=5]   (release build; prints a Markdown table for BENCHMARKS.md)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+episodes=${1:-110}
+rounds=${2:-5}
+task=OfflineMetadrive-easysparse-v0
+cargo build --release --locked --workspace --bins >&2
+bin=${CARGO_TARGET_DIR:-target}/release
+work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-bench.XXXXXX")
+server_pid=""
+cleanup() { [ -n "$server_pid" ] && kill "$server_pid" 2>/dev/null; rm -rf "$work"; }
+trap cleanup EXIT
+
+"$bin/dsrl-make-dataset" --task "$task" --episodes "$episodes" --seed 7 "$work/data.parquet" >&2
+"$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
+  > "$work/server.out" 2> "$work/server.log" &
+server_pid=$!
+for _ in $(seq 100); do grep -q listening "$work/server.out" 2>/dev/null && break; sleep 0.1; done
+url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
+export DSRL_SERVER=$url DSRL_ADMIN_TOKEN
+DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token")
+version=$("$bin/dsrl-client" --json admin ingest --task "$task" "$work/data.parquet" \
+  | python3 -c 'import json,sys; print(json.load(sys.stdin)["version"]["version"])')
+stored="$work/server/objects/datasets/$task/$version.parquet"
+size=$(stat -c %s "$stored")
+download="$url/v1/datasets/$task/versions/$version/download"
+cat "$stored" > /dev/null   # warm page cache
+
+now() { date +%s.%N; }
+declare -A times
+for round in $(seq "$rounds"); do
+  rm -f "$work/cp.out"; t0=$(now); cp "$stored" "$work/cp.out"; t1=$(now)
+  times[cp]+="$(echo "$t1 - $t0" | bc) "
+  rm -f "$work/curl.out"; t0=$(now); curl -sf -o "$work/curl.out" "$download"; t1=$(now)
+  times[curl]+="$(echo "$t1 - $t0" | bc) "
+  rm -rf "$work/cache"; t0=$(now)
+  DSRL_DATASET_DIR="$work/cache" "$bin/dsrl-client" fetch "$task" --version "$version" > /dev/null 2>&1
+  t1=$(now)
+  times[client]+="$(echo "$t1 - $t0" | bc) "
+done
+[ "$(sha256sum < "$work/curl.out" | cut -d' ' -f1)" = "$version" ] || { echo "curl copy differs" >&2; exit 1; }
+rm -rf "$work/cache" "$work/cp.out" "$work/curl.out"
+
+median() { tr ' ' '\n' | grep -v '^$' | sort -g | awk '{a[NR]=$1} END {print (NR%2 ? a[(NR+1)/2] : (a[NR/2]+a[NR/2+1])/2)}'; }
+mbps() { echo "scale=1; $size / 1048576 / $1" | bc; }
+
+# 32 concurrent fetches, each into its own cache (one shared cache would serialize them on its lock).
+n=32
+t0=$(now)
+pids=()
+for i in $(seq "$n"); do
+  DSRL_DATASET_DIR="$work/c$i" "$bin/dsrl-client" fetch "$task" --version "$version" > /dev/null 2> "$work/c$i.err" &
+  pids+=($!)
+done
+failures=0
+for p in "${pids[@]}"; do wait "$p" || failures=$((failures + 1)); done
+t1=$(now)
+wall=$(echo "$t1 - $t0" | bc)
+aggregate=$(echo "scale=1; $n * $size / 1048576 / $wall" | bc)
+
+cp_t=$(echo "${times[cp]}" | median); curl_t=$(echo "${times[curl]}" | median); client_t=$(echo "${times[client]}" | median)
+echo
+echo "Dataset: $task, $episodes synthetic episodes, $size bytes ($(echo "scale=1; $size/1048576" | bc) MiB); $rounds rounds, median."
+echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(date -u +%F)."
+echo
+echo "| method | median seconds | MiB/s | vs curl |"
+echo "|---|---|---|---|"
+echo "| cp of the stored file (warm cache) | $cp_t | $(mbps "$cp_t") | $(echo "scale=2; $curl_t / $cp_t" | bc)x |"
+echo "| curl -o (loopback) | $curl_t | $(mbps "$curl_t") | 1.00x |"
+echo "| dsrl-client fetch (verify + fsync + rename) | $client_t | $(mbps "$client_t") | $(echo "scale=2; $curl_t / $client_t" | bc)x |"
+echo
+echo "32 concurrent dsrl-client fetches: $failures errors, ${wall} s wall, aggregate ${aggregate} MiB/s."
+echo "All rounds (s): cp ${times[cp]}| curl ${times[curl]}| client ${times[client]}"

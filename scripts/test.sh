@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# The project's tests, as CI runs them: system packages and the pinned Python test environment, formatting,
+# the generated gRPC code's drift check (a test), clippy with warnings as errors, then every test of the
+# workspace (unit, per-crate integration, cross-process end-to-end).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/install-system-deps.sh
+scripts/setup-python.sh
+cargo fmt --all -- --check
+cargo clippy --locked --workspace --all-targets -- -D warnings
+cargo test --locked --workspace
