@@ -631,7 +631,12 @@ fn start_writeback(file: &File, offset: u64, len: u64) {
         use std::os::fd::AsRawFd;
         // SAFETY: plain syscall on an open descriptor; failure only means the final sync does more work.
         unsafe {
-            libc::sync_file_range(file.as_raw_fd(), offset as i64, len as i64, libc::SYNC_FILE_RANGE_WRITE);
+            libc::sync_file_range(
+                file.as_raw_fd(),
+                offset as i64,
+                len as i64,
+                libc::SYNC_FILE_RANGE_WRITE,
+            );
         }
     }
     #[cfg(not(target_os = "linux"))]

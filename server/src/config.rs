@@ -44,6 +44,8 @@ pub struct DatasetsConfig {
     pub max_upload_bytes: u64,
     /// License recorded in manifests when an ingest names none.
     pub default_license: String,
+    /// Address-space limit of the child process that parses an upload.
+    pub converter_memory_limit_bytes: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -94,6 +96,7 @@ impl Default for Config {
                 starter_dir: Some(PathBuf::from("data/starter")),
                 max_upload_bytes: 16 << 30,
                 default_license: "CC-BY-4.0".to_owned(),
+                converter_memory_limit_bytes: 8 << 30,
             },
             auth: AuthConfig::default(),
             storage: StorageConfig {

@@ -69,18 +69,13 @@ impl DatasetService for DatasetGrpc {
         &self,
         _: Request<pb::ListTasksRequest>,
     ) -> Result<Response<pb::ListTasksResponse>, Status> {
-        let datasets = &self.state.datasets;
-        let mut versions = datasets.all_versions().await?;
-        let tasks = datasets
-            .catalog
-            .tasks()
-            .iter()
-            .map(|task| {
-                let mine = versions
-                    .extract_if(.., |v| v.task == task.id.as_str())
-                    .collect();
-                task_message(task, mine)
-            })
+        let tasks = self
+            .state
+            .datasets
+            .catalog_with_versions()
+            .await?
+            .into_iter()
+            .map(|(task, versions)| task_message(task, versions))
             .collect();
         Ok(Response::new(pb::ListTasksResponse { tasks }))
     }

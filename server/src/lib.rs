@@ -27,6 +27,7 @@ use tower_http::trace::TraceLayer;
 use crate::config::Config;
 use crate::http::auth::AdminAuth;
 use crate::http::metrics::Metrics;
+use crate::storage::converter::Converter;
 use crate::storage::datasets::Datasets;
 use crate::storage::db::Db;
 
@@ -40,7 +41,8 @@ pub struct AppState {
 }
 
 /// Opens storage, loads the catalog and the starter datasets: everything the server needs before it listens.
-pub async fn build_state(config: &Config) -> anyhow::Result<AppState> {
+/// `converter` says where uploads are parsed (the `dsrl-server` binary uses a child process).
+pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Result<AppState> {
     let data_dir = &config.server.data_dir;
     std::fs::create_dir_all(data_dir)
         .with_context(|| format!("creating {}", data_dir.display()))?;
@@ -60,6 +62,7 @@ pub async fn build_state(config: &Config) -> anyhow::Result<AppState> {
         store,
         data_dir.join("tmp"),
         config.datasets.default_license.clone(),
+        converter,
     )?;
     let auth = AdminAuth::load_or_create(
         config.auth.admin_token.as_deref(),
@@ -107,13 +110,14 @@ pub fn app(state: AppState) -> Router {
         }))
 }
 
-/// Serves until `shutdown` completes, then finishes the requests in flight.
+/// Serves until `shutdown` completes, then finishes the requests in flight. Uploads are converted in-process
+/// here (the test binary cannot be re-run as a converter); the `dsrl-server` binary isolates them.
 pub async fn run(
     listener: tokio::net::TcpListener,
     config: Config,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
-    let state = build_state(&config).await?;
+    let state = build_state(&config, Converter::InProcess).await?;
     axum::serve(listener, app(state))
         .with_graceful_shutdown(shutdown)
         .await?;

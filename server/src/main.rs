@@ -3,8 +3,9 @@
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
-use clap::Parser;
+use clap::{Parser, Subcommand};
 use dsrl_server::config::{Config, Overrides};
+use dsrl_server::storage::converter::{ConvertReply, Converter, limit_memory};
 
 /// Serve offline safe-RL datasets: the 38-task catalog, versioned Parquet datasets, downloads with resume.
 ///
@@ -36,11 +37,67 @@ struct Args {
     /// Log as JSON lines instead of text.
     #[arg(long)]
     log_json: bool,
+    #[command(subcommand)]
+    command: Option<Internal>,
 }
 
-#[tokio::main]
-async fn main() -> std::process::ExitCode {
+/// Internal commands the server runs itself.
+#[derive(Debug, Subcommand)]
+enum Internal {
+    /// Convert one upload to the canonical layout in this (child) process and answer with one JSON line.
+    #[command(hide = true)]
+    Convert {
+        #[arg(long)]
+        task: String,
+        #[arg(long)]
+        observation_space: dsrl_suite::ObservationSpace,
+        #[arg(long)]
+        memory_limit: u64,
+        source: PathBuf,
+        out: PathBuf,
+    },
+}
+
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
+    if let Some(Internal::Convert {
+        task,
+        observation_space,
+        memory_limit,
+        source,
+        out,
+    }) = &args.command
+    {
+        return convert(task, *observation_space, *memory_limit, source, out);
+    }
+    let runtime = tokio::runtime::Runtime::new().expect("starting the async runtime");
+    runtime.block_on(server_main(args))
+}
+
+/// The child side of upload conversion (see `storage::converter`).
+fn convert(
+    task: &str,
+    space: dsrl_suite::ObservationSpace,
+    memory_limit: u64,
+    source: &std::path::Path,
+    out: &std::path::Path,
+) -> std::process::ExitCode {
+    limit_memory(memory_limit);
+    let reply = match dsrl_suite::Catalog::embedded()
+        .map_err(|e| e.to_string())
+        .and_then(|c| c.get(task).cloned().map_err(|e| e.to_string()))
+    {
+        Ok(task) => ConvertReply::run(source, &task, space, out),
+        Err(message) => ConvertReply::Failed { message },
+    };
+    println!(
+        "{}",
+        serde_json::to_string(&reply).expect("the reply serializes")
+    );
+    std::process::ExitCode::SUCCESS
+}
+
+async fn server_main(args: Args) -> std::process::ExitCode {
     let filter = tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,tower_http=info,sqlx=warn"));
     let builder = tracing_subscriber::fmt()
@@ -72,7 +129,11 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     let config = Config::load(args.config.as_deref(), &overrides)?;
     let listener = tokio::net::TcpListener::bind(config.server.listen).await?;
     let addr = listener.local_addr()?;
-    let state = dsrl_server::build_state(&config).await?;
+    let converter = Converter::Subprocess {
+        program: std::env::current_exe()?,
+        memory_limit_bytes: config.datasets.converter_memory_limit_bytes,
+    };
+    let state = dsrl_server::build_state(&config, converter).await?;
     tracing::info!(%addr, data_dir = %config.server.data_dir.display(), "serving");
     println!("dsrl-server listening on http://{addr}");
     axum::serve(listener, dsrl_server::app(state))

@@ -15,7 +15,8 @@ use crate::parquet_file::{DatasetWriter, ParquetTransitions, ReadError};
 use crate::transitions::TransitionChunk;
 use crate::validate::{EpisodeTracker, Expectation, ValidationError};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum SourceFormat {
     Parquet,
     Hdf5,
@@ -92,7 +93,7 @@ impl ImportError {
 }
 
 /// What a canonical file holds, as measured while writing it.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Converted {
     pub version: VersionId,
     pub byte_size: u64,

@@ -445,3 +445,64 @@ fn a_killed_ingest_leaves_no_visible_version() {
     assert_eq!(out["version"]["version"], made.version.as_str());
     assert_eq!(versions(&env, task).len(), 1);
 }
+
+/// The pid of a `dsrl-server convert` child working under `data_dir`, if one is running (Linux /proc).
+fn converter_pid(data_dir: &std::path::Path) -> Option<u32> {
+    let needle = data_dir.to_string_lossy().into_owned();
+    std::fs::read_dir("/proc")
+        .ok()?
+        .flatten()
+        .find_map(|entry| {
+            let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let args: Vec<String> = cmdline
+                .split(|&b| b == 0)
+                .map(|a| String::from_utf8_lossy(a).into_owned())
+                .collect();
+            (args.iter().any(|a| a == "convert") && args.iter().any(|a| a.contains(&needle)))
+                .then_some(pid)
+        })
+}
+
+/// Uploads are parsed in a child process: when it dies (here SIGKILL, in real life a crash in libhdf5 or the
+/// memory limit), that one request fails with a clear 400 and the server carries on.
+#[test]
+fn a_dying_converter_fails_only_its_own_request() {
+    let env = Env::new();
+    let task = "OfflineMetadrive-hardmean-v0";
+    let file = env.path("md.parquet");
+    dsrl_e2e::make_dataset(task, 12, 13, &file);
+    let child = env
+        .cli
+        .command(&["admin", "ingest", "--task", task, s(&file)])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut pid = None;
+    assert!(
+        wait_for(Duration::from_secs(60), || {
+            pid = converter_pid(&env.server.data_dir);
+            pid.is_some()
+        }),
+        "no converter process appeared"
+    );
+    let killed = std::process::Command::new("kill")
+        .args(["-9", &pid.unwrap().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(6), "{out:?}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("the converter process died"), "{stderr}");
+    assert_eq!(
+        get_json(&format!("{}/v1/tasks/{task}", env.server.url))["versions"],
+        serde_json::json!([])
+    );
+    let tmp = env.server.data_dir.join("tmp");
+    assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0);
+    env.cli
+        .run(&["admin", "ingest", "--task", task, s(&file)])
+        .ok();
+}

@@ -174,11 +174,18 @@ fn spawn_server(data_dir: &Path, args: &[String], envs: &[(String, String)]) -> 
         cmd.arg("--starter-datasets")
             .arg(data_dir.join("no-starter-datasets"));
     }
+    // The server's log goes to a file beside its data folder, for reading when a test fails.
+    std::fs::create_dir_all(data_dir).expect("creating the data folder");
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(data_dir.with_extension("log"))
+        .expect("opening the server log");
     cmd.args(args)
         .envs(envs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .env("DSRL_LOG", "warn,dsrl_server=info")
+        .env("DSRL_LOG", "info")
         .stdout(Stdio::piped())
-        .stderr(Stdio::inherit());
+        .stderr(log);
     let mut child = cmd.spawn().expect("spawning dsrl-server");
     let stdout = child.stdout.take().expect("stdout");
     let mut line = String::new();

@@ -1,8 +1,6 @@
 //! REST handlers for the catalog and dataset versions: list tasks, list versions, read a manifest, ingest an
 //! upload (admin), move a tag (admin). Downloads are in `download.rs`.
 
-use std::collections::HashMap;
-
 use axum::Json;
 use axum::body::Body;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
@@ -77,18 +75,14 @@ pub struct TagRequest {
 #[utoipa::path(get, path = "/v1/tasks", tag = "catalog",
     responses((status = 200, description = "All tasks with constants and hosted versions", body = TaskList)))]
 pub async fn list_tasks(State(state): State<AppState>) -> Result<Json<TaskList>, ApiError> {
-    let mut by_task: HashMap<String, Vec<VersionRecord>> = HashMap::new();
-    for v in state.datasets.all_versions().await? {
-        by_task.entry(v.task.clone()).or_default().push(v);
-    }
     let tasks = state
         .datasets
-        .catalog
-        .tasks()
-        .iter()
-        .map(|task| TaskEntry {
+        .catalog_with_versions()
+        .await?
+        .into_iter()
+        .map(|(task, versions)| TaskEntry {
             task: task.clone(),
-            versions: by_task.remove(task.id.as_str()).unwrap_or_default(),
+            versions,
         })
         .collect();
     Ok(Json(TaskList { tasks }))

@@ -1,13 +1,13 @@
 //! Dataset versions as a service: ingest (convert, validate, store, commit), resolve a tag or id, read the
 //! manifest, stream the bytes, move tags. HTTP and gRPC handlers are thin layers over this.
 
+use std::collections::HashMap;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bytes::Bytes;
-use dsrl_suite::convert::{ImportError, import_file};
 use dsrl_suite::manifest::ManifestFacts;
 use dsrl_suite::{
     Catalog, Manifest, ObservationSpace, Provenance, TagName, Task, VersionId, VersionRef,
@@ -15,6 +15,7 @@ use dsrl_suite::{
 use futures::stream::BoxStream;
 use object_store::ObjectStore;
 
+use super::converter::Converter;
 use super::db::{self, Db, VersionRecord};
 use super::objects;
 use crate::error::ApiError;
@@ -76,6 +77,7 @@ pub struct Datasets {
     store: Arc<dyn ObjectStore>,
     tmp_dir: PathBuf,
     default_license: String,
+    converter: Converter,
     next_temp: AtomicU64,
 }
 
@@ -87,6 +89,7 @@ impl Datasets {
         store: Arc<dyn ObjectStore>,
         tmp_dir: PathBuf,
         default_license: String,
+        converter: Converter,
     ) -> std::io::Result<Datasets> {
         if tmp_dir.exists() {
             std::fs::remove_dir_all(&tmp_dir)?;
@@ -98,6 +101,7 @@ impl Datasets {
             store,
             tmp_dir,
             default_license,
+            converter,
             next_temp: AtomicU64::new(0),
         })
     }
@@ -182,8 +186,20 @@ impl Datasets {
         Ok((task, self.db.versions(Some(&task.id)).await?))
     }
 
-    pub async fn all_versions(&self) -> Result<Vec<VersionRecord>, ApiError> {
-        Ok(self.db.versions(None).await?)
+    /// Every task of the catalog, in catalog order, with its hosted versions (newest first): one query.
+    pub async fn catalog_with_versions(
+        &self,
+    ) -> Result<Vec<(&Task, Vec<VersionRecord>)>, ApiError> {
+        let mut by_task: HashMap<String, Vec<VersionRecord>> = HashMap::new();
+        for v in self.db.versions(None).await? {
+            by_task.entry(v.task.clone()).or_default().push(v);
+        }
+        Ok(self
+            .catalog
+            .tasks()
+            .iter()
+            .map(|task| (task, by_task.remove(task.id.as_str()).unwrap_or_default()))
+            .collect())
     }
 
     /// Converts and validates the upload, stores the canonical file and its manifest, then commits the row and
@@ -191,21 +207,11 @@ impl Datasets {
     pub async fn ingest(&self, req: IngestRequest) -> Result<IngestOutcome, ApiError> {
         let task = self.task(&req.task)?.clone();
         let canonical = self.temp_file("canonical");
-        let (source, out, space) = (
-            req.upload.path().to_owned(),
-            canonical.path().to_owned(),
-            req.observation_space,
-        );
-        let task_for_import = task.clone();
-        let (format, converted) = tokio::task::spawn_blocking(move || {
-            import_file(&source, &task_for_import, space, &out)
-        })
-        .await
-        .map_err(ApiError::internal)?
-        .map_err(|e| match e {
-            ImportError::Io(io) => ApiError::Internal(format!("converting the upload: {io}")),
-            invalid => ApiError::InvalidUpload(invalid.to_string()),
-        })?;
+        let space = req.observation_space;
+        let (format, converted) = self
+            .converter
+            .convert(req.upload.path(), &task, space, canonical.path())
+            .await?;
         drop(req.upload);
         let version = converted.version.clone();
         let now = now_rfc3339();

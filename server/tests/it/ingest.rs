@@ -1,3 +1,4 @@
+use dsrl_server::storage::converter::Converter;
 use dsrl_server::storage::datasets::{IngestRequest, LatestPolicy};
 use dsrl_suite::ObservationSpace;
 
@@ -22,7 +23,7 @@ fn request(state: &dsrl_server::AppState, file: &std::path::Path) -> IngestReque
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_identical_ingests_store_one_version() {
     let dir = tempfile::tempdir().unwrap();
-    let state = dsrl_server::build_state(&config(&dir.path().join("server")))
+    let state = dsrl_server::build_state(&config(&dir.path().join("server")), Converter::InProcess)
         .await
         .unwrap();
     let file = dataset(dir.path(), "OfflineCarCircle-v0", 20, 1);
@@ -62,7 +63,7 @@ async fn an_orphaned_object_from_a_crash_does_not_block_a_later_ingest() {
     let objects = server_dir.join("objects/datasets/OfflineCarCircle-v0");
     std::fs::create_dir_all(&objects).unwrap();
     std::fs::write(objects.join(format!("{version}.parquet")), b"half a file").unwrap();
-    let state = dsrl_server::build_state(&config(&server_dir))
+    let state = dsrl_server::build_state(&config(&server_dir), Converter::InProcess)
         .await
         .unwrap();
     assert!(

@@ -1,5 +1,6 @@
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
+use dsrl_server::storage::converter::Converter;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tower::ServiceExt;
 
@@ -39,7 +40,11 @@ async fn run_serves_on_port_zero_and_stops_on_shutdown() {
 }
 
 async fn app(dir: &std::path::Path) -> axum::Router {
-    dsrl_server::app(dsrl_server::build_state(&config(dir)).await.unwrap())
+    dsrl_server::app(
+        dsrl_server::build_state(&config(dir), Converter::InProcess)
+            .await
+            .unwrap(),
+    )
 }
 
 async fn json(response: axum::response::Response) -> serde_json::Value {
