@@ -2,6 +2,7 @@
 # Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config.
 # Idempotent: does nothing when they are present.
 set -euo pipefail
+"$(dirname "$0")/ensure-dev-null.sh"
 need=()
 dpkg -s libhdf5-dev >/dev/null 2>&1 || need+=(libhdf5-dev)
 dpkg -s pkg-config >/dev/null 2>&1 || need+=(pkg-config)
