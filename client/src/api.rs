@@ -47,6 +47,16 @@ pub struct IngestResult {
     pub download_url: String,
 }
 
+/// `GET /v1/server`: what a client needs to know before uploading.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ServerInfo {
+    pub name: String,
+    pub version: String,
+    pub max_upload_bytes: u64,
+    /// Whether the token this client sent is a valid admin token.
+    pub admin: bool,
+}
+
 #[derive(Debug, Clone, Default)]
 pub struct IngestOptions {
     pub tags: Vec<String>,
@@ -122,14 +132,34 @@ impl Client {
         &self,
         request: reqwest::RequestBuilder,
     ) -> Result<reqwest::RequestBuilder, ClientError> {
-        let token = self.token.as_deref().ok_or_else(|| {
+        Ok(request.header(AUTHORIZATION, format!("Bearer {}", self.require_token()?)))
+    }
+
+    fn require_token(&self) -> Result<&str, ClientError> {
+        self.token.as_deref().ok_or_else(|| {
             ClientError::Usage(
                 "admin operations need a token: pass --token or set DSRL_ADMIN_TOKEN (a local server keeps it in \
                  ~/.dsrl/server/admin-token)"
                     .into(),
             )
-        })?;
-        Ok(request.header(AUTHORIZATION, format!("Bearer {token}")))
+        })
+    }
+
+    /// The server's version and limits; with a token, also checks it (a wrong one is an error).
+    pub async fn server_info(&self) -> Result<ServerInfo, ClientError> {
+        let mut request = self.http.get(self.url("/v1/server"));
+        if let Some(token) = &self.token {
+            request = request.header(AUTHORIZATION, format!("Bearer {token}"));
+        }
+        let response = self.send(request).await?;
+        response
+            .json()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("GET /v1/server: {e}")))
+    }
+
+    pub async fn task(&self, task: &str) -> Result<TaskEntry, ClientError> {
+        self.get_json(&format!("/v1/tasks/{}", seg(task))).await
     }
 
     pub async fn tasks(&self) -> Result<Vec<TaskEntry>, ClientError> {
@@ -182,7 +212,8 @@ impl Client {
         self.send(request).await
     }
 
-    /// Uploads a Parquet or DSRL HDF5 file; `progress` is told how many bytes went out.
+    /// Uploads a Parquet or DSRL HDF5 file; `progress` is told how many bytes went out. Token, task and size
+    /// are checked first with cheap requests, so a doomed upload is refused before a byte of it is sent.
     pub async fn ingest(
         &self,
         task: &str,
@@ -197,6 +228,15 @@ impl Client {
             .await
             .map_err(ClientError::io("reading the file size"))?
             .len();
+        self.require_token()?;
+        let info = self.server_info().await?;
+        self.task(task).await?;
+        if size > info.max_upload_bytes {
+            return Err(ClientError::TooLarge {
+                size,
+                limit: info.max_upload_bytes,
+            });
+        }
         let file_name = file
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())

@@ -42,6 +42,8 @@ pub enum ClientError {
     Protocol(String),
     #[error("{0}")]
     Usage(String),
+    #[error("the file has {size} bytes, more than the server's upload limit of {limit} bytes")]
+    TooLarge { size: u64, limit: u64 },
     #[error("converting to HDF5: {0}")]
     Conversion(String),
 }
@@ -63,6 +65,7 @@ impl ClientError {
             ClientError::Unreachable { .. } => exit::UNAVAILABLE,
             ClientError::Integrity(_) => exit::INTEGRITY,
             ClientError::Usage(_) => exit::USAGE,
+            ClientError::TooLarge { .. } => exit::REJECTED,
             ClientError::Io { .. } | ClientError::Protocol(_) | ClientError::Conversion(_) => {
                 exit::FAILURE
             }
@@ -80,6 +83,7 @@ impl ClientError {
             ClientError::Io { .. } => ("io", vec![]),
             ClientError::Protocol(_) => ("protocol", vec![]),
             ClientError::Usage(_) => ("usage", vec![]),
+            ClientError::TooLarge { .. } => ("payload_too_large", vec![]),
             ClientError::Conversion(_) => ("conversion", vec![]),
         };
         serde_json::json!({"error": {"code": code, "message": self.to_string(), "suggestions": suggestions,

@@ -190,6 +190,7 @@ async fn health_metrics_and_openapi() {
         .unwrap();
     assert!(doc["openapi"].as_str().unwrap().starts_with("3."));
     for path in [
+        "/v1/server",
         "/v1/tasks",
         "/v1/tasks/{task}",
         "/v1/datasets/{task}/versions",

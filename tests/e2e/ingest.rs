@@ -240,7 +240,9 @@ async fn oversized_uploads_get_413_whether_declared_or_streamed() {
     let env = Env::with(&[], &[("DSRL__DATASETS__MAX_UPLOAD_BYTES", "100000")]);
     let file = env.path("big.parquet");
     dsrl_e2e::make_dataset("OfflineAntCircle-v0", 3, 7, &file);
-    assert!(std::fs::metadata(&file).unwrap().len() > 100_000);
+    let size = std::fs::metadata(&file).unwrap().len();
+    assert!(size > 100_000);
+    // The CLI asks for the limit first and sends nothing.
     let out = env.cli.run(&[
         "--json",
         "admin",
@@ -251,7 +253,32 @@ async fn oversized_uploads_get_413_whether_declared_or_streamed() {
     ]);
     assert_eq!(out.code, 6, "{out:?}");
     assert_eq!(out.json()["error"]["code"], "payload_too_large");
-    // Chunked, without Content-Length: cut off once the limit is passed.
+    assert!(
+        out.stderr.contains("upload limit of 100000 bytes"),
+        "{}",
+        out.stderr
+    );
+
+    // A declared Content-Length over the limit: refused without reading the body.
+    let url = env.server.url.trim_start_matches("http://").to_owned();
+    let request = format!(
+        "POST /v1/datasets/OfflineAntCircle-v0/versions HTTP/1.1\r\nHost: {url}\r\n\
+         Authorization: Bearer {}\r\nContent-Length: 1000000000000\r\n\r\nPAR1",
+        env.server.token()
+    );
+    let mut conn = tokio::net::TcpStream::connect(&url).await.unwrap();
+    tokio::io::AsyncWriteExt::write_all(&mut conn, request.as_bytes())
+        .await
+        .unwrap();
+    let mut answer = String::new();
+    tokio::io::AsyncReadExt::read_to_string(&mut conn, &mut answer)
+        .await
+        .unwrap();
+    assert!(answer.starts_with("HTTP/1.1 413"), "{answer}");
+    assert!(answer.contains("payload_too_large"), "{answer}");
+
+    // Chunked, without Content-Length: cut off once the limit is passed, and the client still gets the answer
+    // because the server reads out the rest (within bounds) before replying.
     let bytes = std::fs::read(&file).unwrap();
     let chunks: Vec<Result<Vec<u8>, std::io::Error>> =
         bytes.chunks(16 << 10).map(|c| Ok(c.to_vec())).collect();
@@ -267,6 +294,12 @@ async fn oversized_uploads_get_413_whether_declared_or_streamed() {
         .await
         .unwrap();
     assert_eq!(response.status(), 413);
+    assert!(
+        get_json(&format!("{}/v1/tasks/OfflineAntCircle-v0", env.server.url))["versions"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+    );
 }
 
 #[test]

@@ -66,6 +66,38 @@ pub struct IngestParams {
     pub license: Option<String>,
 }
 
+/// What a client needs to know before uploading.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ServerInfo {
+    pub name: &'static str,
+    pub version: &'static str,
+    /// Largest accepted upload, in bytes.
+    pub max_upload_bytes: u64,
+    /// Whether the request carried a valid admin token (a wrong one gets 403).
+    pub admin: bool,
+}
+
+#[utoipa::path(get, path = "/v1/server", tag = "server",
+    responses((status = 200, body = ServerInfo), (status = 403, description = "The bearer token presented is wrong")))]
+pub async fn server_info(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+) -> Result<Json<ServerInfo>, ApiError> {
+    let admin = match headers.get(header::AUTHORIZATION) {
+        None => false,
+        Some(_) => {
+            state.auth.check(&headers)?;
+            true
+        }
+    };
+    Ok(Json(ServerInfo {
+        name: "dsrl",
+        version: env!("CARGO_PKG_VERSION"),
+        max_upload_bytes: state.max_upload_bytes,
+        admin,
+    }))
+}
+
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
 pub struct TagRequest {
     /// Version id (sha256) the tag should point at.
@@ -156,9 +188,14 @@ pub async fn ingest(
     headers: HeaderMap,
     body: Body,
 ) -> Result<Response, ApiError> {
-    state.auth.check(&headers)?;
-    let Query(params) = params.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-    let result = ingest_checked(&state, task, params, &headers, body).await;
+    let mut stream = body.into_data_stream();
+    let result = match state.auth.check(&headers) {
+        Ok(()) => match params {
+            Ok(Query(params)) => ingest_checked(&state, task, params, &headers, &mut stream).await,
+            Err(e) => Err(ApiError::InvalidArgument(e.body_text())),
+        },
+        Err(e) => Err(e),
+    };
     let outcome = match &result {
         Ok(r) if r.created => "created",
         Ok(_) => "unchanged",
@@ -169,6 +206,9 @@ pub async fn ingest(
         .ingests
         .get_or_create(&OutcomeLabels { outcome })
         .inc();
+    if result.is_err() {
+        linger(&mut stream).await;
+    }
     let response = result?;
     if response.created {
         state.metrics.dataset_versions.inc();
@@ -181,12 +221,32 @@ pub async fn ingest(
     Ok((status, Json(response)).into_response())
 }
 
+/// How long, and how many bytes, a rejected upload is still read (and discarded) before the error is sent.
+const LINGER_TIME: std::time::Duration = std::time::Duration::from_secs(2);
+const LINGER_BYTES: u64 = 64 << 20;
+
+/// Reads and discards what is left of a rejected upload, within bounds, as nginx's lingering close does: an
+/// HTTP/1.1 client that is still sending when the server answers and closes gets a broken pipe instead of the
+/// answer. Bounded, so a client that keeps sending cannot hold the connection.
+async fn linger(stream: &mut axum::body::BodyDataStream) {
+    let mut drained = 0u64;
+    let _ = tokio::time::timeout(LINGER_TIME, async {
+        while let Some(Ok(chunk)) = stream.next().await {
+            drained += chunk.len() as u64;
+            if drained > LINGER_BYTES {
+                break;
+            }
+        }
+    })
+    .await;
+}
+
 async fn ingest_checked(
     state: &AppState,
     task: String,
     params: IngestParams,
     headers: &HeaderMap,
-    body: Body,
+    stream: &mut axum::body::BodyDataStream,
 ) -> Result<IngestResponse, ApiError> {
     let task_id = state.datasets.task(&task)?.id.to_string();
     let limit = state.max_upload_bytes;
@@ -249,7 +309,6 @@ async fn ingest_checked(
     );
     let mut hasher = Sha256::new();
     let mut received = 0u64;
-    let mut stream = body.into_data_stream();
     while let Some(chunk) = stream.next().await {
         let chunk = chunk
             .map_err(|e| ApiError::InvalidUpload(format!("the upload was interrupted: {e}")))?;

@@ -20,6 +20,7 @@ pub fn router(state: AppState) -> Router {
         .route("/healthz", get(healthz))
         .route("/metrics", get(metrics::metrics))
         .route("/openapi.json", get(openapi_json))
+        .route("/v1/server", get(datasets::server_info))
         .route("/v1/tasks", get(datasets::list_tasks))
         .route("/v1/tasks/{task}", get(datasets::get_task))
         .route(

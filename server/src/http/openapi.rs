@@ -14,6 +14,7 @@ use super::datasets;
                        JSON {\"error\": {\"code\", \"message\", \"suggestions\"?}}."
     ),
     paths(
+        datasets::server_info,
         datasets::list_tasks,
         datasets::get_task,
         datasets::list_versions,
