@@ -68,9 +68,19 @@ async fn unknown_ids_are_not_found_with_suggestions_over_cli_rest_and_grpc() {
     );
     let file = env.path("ant.parquet");
     dsrl_e2e::make_dataset("OfflineAntRun-v0", 1, 1, &file);
-    let out = env.cli.run(&["admin", "ingest", "--task", "AntRun", file.to_str().unwrap()]);
+    let out = env.cli.run(&[
+        "admin",
+        "ingest",
+        "--task",
+        "AntRun",
+        file.to_str().unwrap(),
+    ]);
     assert_eq!(out.code, 4, "{out:?}");
-    assert!(out.stderr.contains("did you mean OfflineAntRun-v0"), "{}", out.stderr);
+    assert!(
+        out.stderr.contains("did you mean OfflineAntRun-v0"),
+        "{}",
+        out.stderr
+    );
     let out = env.cli.run(&["--json", "show", "OfflineAntRun-v1"]);
     assert_eq!(out.code, 4);
     assert_eq!(out.json()["error"]["suggestions"][0], "OfflineAntRun-v0");
