@@ -13,7 +13,7 @@ use crate::parquet_file::{
     ReadError, TERMINALS, TIMEOUTS,
 };
 use crate::transitions::TransitionChunk;
-use crate::validate::ValidationError;
+use crate::validate::{ValidationError, flags_from_numbers};
 
 /// Target uncompressed size of one chunk read from HDF5.
 const READ_CHUNK_BYTES: usize = 16 << 20;
@@ -252,19 +252,7 @@ fn read_flags(key: &str, ds: &Dataset, a: usize, b: usize) -> Result<Vec<bool>, 
             )));
         }
     };
-    numbers
-        .into_iter()
-        .enumerate()
-        .map(|(i, v)| match v {
-            0.0 => Ok(false),
-            1.0 => Ok(true),
-            other => Err(Hdf5Error::Value(ValidationError::at(
-                (a + i) as u64,
-                key,
-                format!("flag value {other}; expected 0 or 1"),
-            ))),
-        })
-        .collect()
+    Ok(flags_from_numbers(a as u64, key, numbers)?)
 }
 
 fn view2(values: &[f32], rows: usize, dim: usize) -> Result<ArrayView2<'_, f32>, Hdf5Error> {

@@ -24,7 +24,7 @@ use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
 
 use crate::transitions::TransitionChunk;
-use crate::validate::{Numbering, ValidationError};
+use crate::validate::{Numbering, ValidationError, flags_from_numbers};
 
 pub const EPISODE: &str = "episode";
 pub const STEP: &str = "step";
@@ -513,19 +513,7 @@ fn flag_vector(base: u64, name: &str, array: &ArrayRef) -> Result<Vec<bool>, Rea
             array.data_type()
         ))
     })?;
-    as_f64
-        .into_iter()
-        .enumerate()
-        .map(|(i, v)| match v {
-            0.0 => Ok(false),
-            1.0 => Ok(true),
-            other => Err(ReadError::Value(ValidationError::at(
-                base + i as u64,
-                name,
-                format!("flag value {other}; expected 0 or 1"),
-            ))),
-        })
-        .collect()
+    Ok(flags_from_numbers(base, name, as_f64)?)
 }
 
 fn counter_vector(base: u64, name: &str, array: &ArrayRef) -> Result<Vec<u32>, ReadError> {

@@ -229,6 +229,28 @@ impl EpisodeTracker {
     }
 }
 
+/// Done flags stored as numbers (integers or floats) as booleans; anything but 0 or 1 is an error naming its row
+/// (DSRL tests `== 1`, so a 2 would silently not end an episode there).
+pub fn flags_from_numbers(
+    first_row: u64,
+    column: &str,
+    values: impl IntoIterator<Item = f64>,
+) -> Result<Vec<bool>, ValidationError> {
+    values
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| match v {
+            0.0 => Ok(false),
+            1.0 => Ok(true),
+            other => Err(ValidationError::at(
+                first_row + i as u64,
+                column,
+                format!("flag value {other}; expected 0 or 1"),
+            )),
+        })
+        .collect()
+}
+
 fn check_finite(
     base: u64,
     column: &str,
