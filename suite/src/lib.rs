@@ -7,6 +7,7 @@
 pub mod catalog;
 pub mod convert;
 pub mod episode;
+pub mod filters;
 pub mod hashing;
 pub mod hdf5_file;
 pub mod ids;

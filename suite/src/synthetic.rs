@@ -36,6 +36,11 @@ pub struct SyntheticSpec {
     /// Rows per yielded chunk.
     pub chunk_rows: usize,
     pub seed: u64,
+    /// Cost returns of full-length episodes spread over about `0..max_cost_return`.
+    pub max_cost_return: f32,
+    /// Reward returns of full-length episodes spread over about this range, rising with cost like the paper's
+    /// reward-cost frontier.
+    pub reward_return_range: (f32, f32),
 }
 
 impl SyntheticSpec {
@@ -47,12 +52,18 @@ impl SyntheticSpec {
             episodes,
             chunk_rows: 4096,
             seed,
+            max_cost_return: (task.max_episode_cost * 1.1) as f32,
+            reward_return_range: (
+                task.min_episode_reward as f32,
+                (task.max_episode_reward * 1.1) as f32,
+            ),
         }
     }
 }
 
 /// Yields the dataset in chunks of about `chunk_rows` rows. Every 5th episode terminates early; the others are
-/// truncated at the horizon. Each episode has its own cost rate and reward scale, so returns spread out.
+/// truncated at the horizon. Each episode draws an "aggressiveness" that sets both its cost rate and its reward
+/// level, so returns spread over the task's ranges with a rising frontier.
 pub fn transitions(spec: SyntheticSpec) -> impl Iterator<Item = TransitionChunk> {
     let mut rng = SplitMix64::new(spec.seed);
     let mut episode = 0usize;
@@ -73,8 +84,11 @@ pub fn transitions(spec: SyntheticSpec) -> impl Iterator<Item = TransitionChunk>
                 } else {
                     spec.horizon
                 };
-                cost_rate = rng.next_f32() * 0.5;
-                reward_scale = rng.next_f32() * 2.0;
+                let aggressiveness = rng.next_f32();
+                cost_rate = (aggressiveness * spec.max_cost_return / spec.horizon as f32).min(1.0);
+                let (lo, hi) = spec.reward_return_range;
+                let level = (0.15 + 0.85 * aggressiveness) * (0.7 + 0.3 * rng.next_f32());
+                reward_scale = 2.0 * (lo + (hi - lo) * level) / spec.horizon as f32;
                 obs = (0..spec.obs_dim)
                     .map(|_| rng.next_f32() * 2.0 - 1.0)
                     .collect();
@@ -121,6 +135,8 @@ mod tests {
             episodes: 12,
             chunk_rows: 64,
             seed: 7,
+            max_cost_return: 20.0,
+            reward_return_range: (0.0, 100.0),
         };
         let a: Vec<_> = transitions(spec).collect();
         let b: Vec<_> = transitions(spec).collect();

@@ -85,6 +85,24 @@ impl TransitionChunk {
         }
     }
 
+    /// A copy of rows `start..start + n`.
+    pub fn rows(&self, start: usize, n: usize) -> TransitionChunk {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        TransitionChunk {
+            obs_dim: o,
+            act_dim: a,
+            observations: self.observations[start * o..(start + n) * o].to_vec(),
+            next_observations: self.next_observations[start * o..(start + n) * o].to_vec(),
+            actions: self.actions[start * a..(start + n) * a].to_vec(),
+            rewards: self.rewards[start..start + n].to_vec(),
+            costs: self.costs[start..start + n].to_vec(),
+            terminals: self.terminals[start..start + n].to_vec(),
+            timeouts: self.timeouts[start..start + n].to_vec(),
+            episode: self.episode.as_ref().map(|e| e[start..start + n].to_vec()),
+            step: self.step.as_ref().map(|s| s[start..start + n].to_vec()),
+        }
+    }
+
     /// Whether row `i` ends an episode (terminal or time-limit truncation), DSRL's split rule.
     pub fn is_done(&self, i: usize) -> bool {
         self.terminals[i] || self.timeouts[i]

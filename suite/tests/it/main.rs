@@ -1,2 +1,3 @@
 //! Integration tests of the dataset formats: canonical Parquet, foreign Parquet layouts, DSRL HDF5.
+mod filters;
 mod formats;

@@ -1,0 +1,12 @@
+//! DSRL's post-process filters (`OfflineEnv.pre_process_data`), reproduced bit for bit: the density (grid) filter,
+//! tempting outliers, inpainting (partial discarding), epsilon discarding and observation noise, with the exact
+//! random streams of the reference (CPython's `random` for the density filter, NumPy's `Generator(PCG64(1234))`
+//! for outliers and noise) and NumPy 1.24's float32 arithmetic.
+
+pub mod apply;
+pub mod nprandom;
+pub mod numpy_math;
+pub mod plan;
+pub mod pyrandom;
+pub mod spec;
+mod ziggurat_tables;

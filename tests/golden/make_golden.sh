@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Regenerates suite/tests/it/golden/filters.json: the outputs of DSRL's own pre_process_data (0.1.0 from PyPI,
+# patched to the current reference's bounds; see make_golden.py) on datasets dsrl-make-dataset writes.
+# Needs network access to PyPI the first time (it builds .venv-golden). Not run by CI: the fixtures are committed.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+if [ ! -x .venv-golden/bin/python ]; then
+  python3 -m venv .venv-golden
+fi
+.venv-golden/bin/python -m pip install --quiet --disable-pip-version-check -r tests/golden/requirements.txt
+.venv-golden/bin/python -m pip install --quiet --disable-pip-version-check --no-deps dsrl==0.1.0
+cargo build --release --bin dsrl-make-dataset
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+.venv-golden/bin/python tests/golden/make_golden.py \
+  --make-dataset "${CARGO_TARGET_DIR:-target}/release/dsrl-make-dataset" \
+  --work "$work" --out suite/tests/it/golden/filters.json
