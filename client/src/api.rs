@@ -110,13 +110,10 @@ impl Client {
     }
 
     async fn send(&self, request: reqwest::RequestBuilder) -> Result<Response, ClientError> {
-        let response = request
-            .send()
-            .await
-            .map_err(|source| ClientError::Unreachable {
-                url: self.base.clone(),
-                source,
-            })?;
+        let response = request.send().await.map_err(|source| ClientError::Unreachable {
+            url: self.base.clone(),
+            source,
+        })?;
         check(response).await
     }
 
@@ -128,10 +125,7 @@ impl Client {
             .map_err(|e| ClientError::Protocol(format!("GET {path}: {e}")))
     }
 
-    fn admin(
-        &self,
-        request: reqwest::RequestBuilder,
-    ) -> Result<reqwest::RequestBuilder, ClientError> {
+    fn admin(&self, request: reqwest::RequestBuilder) -> Result<reqwest::RequestBuilder, ClientError> {
         Ok(request.header(AUTHORIZATION, format!("Bearer {}", self.require_token()?)))
     }
 
@@ -174,35 +168,38 @@ impl Client {
     }
 
     /// The manifest of a version (by id or tag) and its JSON text as served.
+    /// The manifest of a version (by id or tag), or with `filter` of the filtered version the server makes from
+    /// it; and its JSON text as served.
     pub async fn manifest(
         &self,
         task: &str,
         reference: &str,
+        filter: Option<&str>,
     ) -> Result<(Manifest, String), ClientError> {
         let path = format!("/v1/datasets/{}/versions/{}", seg(task), seg(reference));
-        let response = self.send(self.http.get(self.url(&path))).await?;
+        let response = self.send(with_filter(self.http.get(self.url(&path)), filter)).await?;
         let text = response
             .text()
             .await
             .map_err(|e| ClientError::Protocol(format!("GET {path}: {e}")))?;
-        let manifest = serde_json::from_str(&text)
-            .map_err(|e| ClientError::Protocol(format!("manifest: {e}")))?;
+        let manifest = serde_json::from_str(&text).map_err(|e| ClientError::Protocol(format!("manifest: {e}")))?;
         Ok((manifest, text))
+    }
+
+    /// The cost-reward plot of a version (or of what `filter` does to it) as SVG.
+    pub async fn plot_svg(&self, task: &str, reference: &str, filter: Option<&str>) -> Result<String, ClientError> {
+        let path = format!("/v1/datasets/{}/versions/{}/plot.svg", seg(task), seg(reference));
+        let response = self.send(with_filter(self.http.get(self.url(&path)), filter)).await?;
+        response
+            .text()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("GET {path}: {e}")))
     }
 
     /// Starts downloading `version` from byte `offset`. The `If-Range` condition makes the server send the whole
     /// file (200) instead of the range (206) if the version's bytes are not the ones the partial file holds.
-    pub async fn download(
-        &self,
-        task: &str,
-        version: &str,
-        offset: u64,
-    ) -> Result<Response, ClientError> {
-        let path = format!(
-            "/v1/datasets/{}/versions/{}/download",
-            seg(task),
-            seg(version)
-        );
+    pub async fn download(&self, task: &str, version: &str, offset: u64) -> Result<Response, ClientError> {
+        let path = format!("/v1/datasets/{}/versions/{}/download", seg(task), seg(version));
         let mut request = self.http.get(self.url(&path));
         if offset > 0 {
             request = request
@@ -287,12 +284,7 @@ impl Client {
             .map_err(|e| ClientError::Protocol(format!("ingest response: {e}")))
     }
 
-    pub async fn tag(
-        &self,
-        task: &str,
-        tag: &str,
-        version: &str,
-    ) -> Result<HostedVersion, ClientError> {
+    pub async fn tag(&self, task: &str, tag: &str, version: &str) -> Result<HostedVersion, ClientError> {
         let path = format!("/v1/datasets/{}/tags/{}", seg(task), seg(tag));
         let request = self
             .http
@@ -303,6 +295,13 @@ impl Client {
             .json()
             .await
             .map_err(|e| ClientError::Protocol(format!("tag response: {e}")))
+    }
+}
+
+fn with_filter(request: reqwest::RequestBuilder, filter: Option<&str>) -> reqwest::RequestBuilder {
+    match filter {
+        Some(f) if !f.is_empty() => request.query(&[("filter", f)]),
+        _ => request,
     }
 }
 

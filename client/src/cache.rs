@@ -45,6 +45,8 @@ pub enum OutputFormat {
 #[derive(Debug, Clone, Default)]
 pub struct FetchOptions {
     pub hdf5: bool,
+    /// A DSRL post-process filter (e.g. `noise=0.05`): fetch the filtered version the server makes.
+    pub filter: Option<String>,
     /// Cap on download speed in bytes per second (like curl's `--limit-rate`).
     pub limit_rate: Option<u64>,
     /// Draw a progress bar (only shown when stderr is a terminal).
@@ -145,18 +147,21 @@ impl Cache {
         options: &FetchOptions,
     ) -> Result<FetchOutcome, ClientError> {
         let started = Instant::now();
-        // A full version id already complete in the cache needs no server at all.
-        let offline = dsrl_suite::VersionId::try_from(reference.to_owned())
-            .ok()
-            .and_then(|v| self.cached_manifest(task, v.as_str()));
+        // A full version id already complete in the cache needs no server at all (without a filter: the filtered
+        // version's id is only known to the server).
+        let offline = match options.filter {
+            Some(_) => None,
+            None => dsrl_suite::VersionId::try_from(reference.to_owned())
+                .ok()
+                .and_then(|v| self.cached_manifest(task, v.as_str())),
+        };
         let manifest = match offline {
             Some(m) => m,
-            None => client.manifest(task, reference).await?.0,
+            None => client.manifest(task, reference, options.filter.as_deref()).await?.0,
         };
         let version = manifest.version.to_string();
         let dir = self.version_dir(manifest.task.as_str(), &version);
-        std::fs::create_dir_all(&dir)
-            .map_err(ClientError::io(format!("creating {}", dir.display())))?;
+        std::fs::create_dir_all(&dir).map_err(ClientError::io(format!("creating {}", dir.display())))?;
         let _lock = lock(&dir).await?;
 
         let parquet = dir.join(&manifest.file_name);
@@ -182,11 +187,7 @@ impl Cache {
             sha256: version.clone(),
             size: manifest.byte_size,
         };
-        if !cheap_check(
-            &parquet,
-            checksums.files.get(&manifest.file_name),
-            &expected,
-        ) {
+        if !cheap_check(&parquet, checksums.files.get(&manifest.file_name), &expected) {
             let (resumed_from, downloaded) = download(client, &manifest, &dir, options).await?;
             outcome.cache_hit = false;
             outcome.resumed_from = resumed_from;
@@ -201,9 +202,7 @@ impl Cache {
             let name = manifest.hdf5_file_name();
             let h5 = dir.join(&name);
             let known = checksums.files.get(&name).cloned();
-            let hit = known
-                .as_ref()
-                .is_some_and(|k| file_size(&h5) == Some(k.size));
+            let hit = known.as_ref().is_some_and(|k| file_size(&h5) == Some(k.size));
             if !hit {
                 let sum = export_hdf5(&parquet, &h5).await?;
                 checksums.files.insert(name, sum);
@@ -220,8 +219,7 @@ impl Cache {
     /// The manifest of a version that is complete in the cache (checked cheaply), if any.
     fn cached_manifest(&self, task: &str, version: &str) -> Option<Manifest> {
         let dir = self.version_dir(task, version);
-        let manifest: Manifest =
-            serde_json::from_slice(&std::fs::read(dir.join(MANIFEST)).ok()?).ok()?;
+        let manifest: Manifest = serde_json::from_slice(&std::fs::read(dir.join(MANIFEST)).ok()?).ok()?;
         let expected = FileSum {
             sha256: version.to_owned(),
             size: manifest.byte_size,
@@ -248,13 +246,7 @@ impl Cache {
         }
         let total: u64 = dirs
             .iter()
-            .map(|d| {
-                read_checksums(d)
-                    .files
-                    .values()
-                    .map(|f| f.size)
-                    .sum::<u64>()
-            })
+            .map(|d| read_checksums(d).files.values().map(|f| f.size).sum::<u64>())
             .sum();
         let bar = progress_bar(progress, total, "verifying");
         for dir in dirs {
@@ -275,11 +267,8 @@ impl Cache {
                 };
                 let actual = match File::open(&path) {
                     Ok(f) => {
-                        let (digest, n) = sha256_reader(ProgressReader {
-                            inner: f,
-                            bar: &bar,
-                        })
-                        .map_err(ClientError::io(format!("reading {}", path.display())))?;
+                        let (digest, n) = sha256_reader(ProgressReader { inner: f, bar: &bar })
+                            .map_err(ClientError::io(format!("reading {}", path.display())))?;
                         report.bytes_hashed += n;
                         Some(hex::encode(digest))
                     }
@@ -391,15 +380,11 @@ async fn lock(dir: &Path) -> Result<File, ClientError> {
 
 fn lock_blocking(dir: &Path) -> Result<File, ClientError> {
     let path = dir.join(LOCK);
-    let file =
-        File::create(&path).map_err(ClientError::io(format!("creating {}", path.display())))?;
+    let file = File::create(&path).map_err(ClientError::io(format!("creating {}", path.display())))?;
     match file.try_lock() {
         Ok(()) => return Ok(file),
         Err(std::fs::TryLockError::WouldBlock) => {
-            eprintln!(
-                "waiting for another dsrl-client working on {}",
-                dir.display()
-            );
+            eprintln!("waiting for another dsrl-client working on {}", dir.display());
         }
         Err(std::fs::TryLockError::Error(e)) => {
             return Err(ClientError::Io {
@@ -420,11 +405,9 @@ fn progress_bar(enabled: bool, total: u64, label: &'static str) -> ProgressBar {
     // Draws only when stderr is a terminal.
     let bar = ProgressBar::new(total);
     bar.set_style(
-        ProgressStyle::with_template(
-            "{msg} [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec} eta {eta}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
+        ProgressStyle::with_template("{msg} [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec} eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
     );
     bar.set_message(label);
     bar
@@ -463,15 +446,10 @@ async fn download(
     let mut resumed_from = None;
     let bar = progress_bar(options.progress, size, "downloading");
     if offset < size {
-        let mut response = client
-            .download(manifest.task.as_str(), &version, offset)
-            .await?;
+        let mut response = client.download(manifest.task.as_str(), &version, offset).await?;
         let append = match response.status().as_u16() {
             206 => {
-                let content_range = response
-                    .headers()
-                    .get("content-range")
-                    .and_then(|v| v.to_str().ok());
+                let content_range = response.headers().get("content-range").and_then(|v| v.to_str().ok());
                 let expected = format!("bytes {offset}-{}/{size}", size - 1);
                 if content_range != Some(expected.as_str()) {
                     return Err(ClientError::Protocol(format!(
@@ -483,9 +461,7 @@ async fn download(
             }
             200 => false,
             other => {
-                return Err(ClientError::Protocol(format!(
-                    "download answered HTTP {other}"
-                )));
+                return Err(ClientError::Protocol(format!("download answered HTTP {other}")));
             }
         };
         let start = if append { offset } else { 0 };
@@ -534,8 +510,7 @@ async fn download(
             });
         }
         if written == size {
-            return finish(&part, &final_path, hex::encode(digest), &version)
-                .map(|()| (resumed_from, downloaded));
+            return finish(&part, &final_path, hex::encode(digest), &version).map(|()| (resumed_from, downloaded));
         }
         if written < size {
             return Err(ClientError::Integrity(format!(
@@ -548,30 +523,20 @@ async fn download(
         )));
     }
     // The partial file is already complete (a previous run died between the last byte and the rename).
-    let (digest, _) = sha256_reader(
-        File::open(&part).map_err(ClientError::io(format!("opening {}", part.display())))?,
-    )
-    .map_err(ClientError::io(format!("reading {}", part.display())))?;
+    let (digest, _) = sha256_reader(File::open(&part).map_err(ClientError::io(format!("opening {}", part.display())))?)
+        .map_err(ClientError::io(format!("reading {}", part.display())))?;
     finish(&part, &final_path, hex::encode(digest), &version).map(|()| (Some(offset), 0))
 }
 
 /// Accepts a complete `.part` file only if it hashes to the version id; a mismatch removes it.
-fn finish(
-    part: &Path,
-    final_path: &Path,
-    actual: String,
-    version: &str,
-) -> Result<(), ClientError> {
+fn finish(part: &Path, final_path: &Path, actual: String, version: &str) -> Result<(), ClientError> {
     if actual != version {
         let _ = std::fs::remove_file(part);
         return Err(ClientError::Integrity(format!(
             "the downloaded file hashes to {actual}, not to the version id {version}; it was removed, fetch again"
         )));
     }
-    std::fs::rename(part, final_path).map_err(ClientError::io(format!(
-        "renaming to {}",
-        final_path.display()
-    )))?;
+    std::fs::rename(part, final_path).map_err(ClientError::io(format!("renaming to {}", final_path.display())))?;
     sync_dir(final_path.parent().unwrap_or(Path::new(".")))
 }
 
@@ -631,12 +596,7 @@ fn start_writeback(file: &File, offset: u64, len: u64) {
         use std::os::fd::AsRawFd;
         // SAFETY: plain syscall on an open descriptor; failure only means the final sync does more work.
         unsafe {
-            libc::sync_file_range(
-                file.as_raw_fd(),
-                offset as i64,
-                len as i64,
-                libc::SYNC_FILE_RANGE_WRITE,
-            );
+            libc::sync_file_range(file.as_raw_fd(), offset as i64, len as i64, libc::SYNC_FILE_RANGE_WRITE);
         }
     }
     #[cfg(not(target_os = "linux"))]
@@ -648,20 +608,15 @@ async fn export_hdf5(parquet: &Path, h5: &Path) -> Result<FileSum, ClientError> 
     let (parquet, h5) = (parquet.to_owned(), h5.to_owned());
     tokio::task::spawn_blocking(move || {
         let part = PathBuf::from(format!("{}.part", h5.display()));
-        let file = File::open(&parquet)
-            .map_err(ClientError::io(format!("opening {}", parquet.display())))?;
-        let reader =
-            ParquetTransitions::open(file).map_err(|e| ClientError::Conversion(e.to_string()))?;
-        dsrl_suite::hdf5_file::write_dsrl_hdf5(reader, &part)
-            .map_err(|e| ClientError::Conversion(e.to_string()))?;
-        let (digest, size) =
-            sha256_reader(File::open(&part).map_err(ClientError::io("reading the HDF5 file"))?)
-                .map_err(ClientError::io("hashing the HDF5 file"))?;
+        let file = File::open(&parquet).map_err(ClientError::io(format!("opening {}", parquet.display())))?;
+        let reader = ParquetTransitions::open(file).map_err(|e| ClientError::Conversion(e.to_string()))?;
+        dsrl_suite::hdf5_file::write_dsrl_hdf5(reader, &part).map_err(|e| ClientError::Conversion(e.to_string()))?;
+        let (digest, size) = sha256_reader(File::open(&part).map_err(ClientError::io("reading the HDF5 file"))?)
+            .map_err(ClientError::io("hashing the HDF5 file"))?;
         File::open(&part)
             .and_then(|f| f.sync_all())
             .map_err(ClientError::io("syncing the HDF5 file"))?;
-        std::fs::rename(&part, &h5)
-            .map_err(ClientError::io(format!("renaming to {}", h5.display())))?;
+        std::fs::rename(&part, &h5).map_err(ClientError::io(format!("renaming to {}", h5.display())))?;
         Ok(FileSum {
             sha256: hex::encode(digest),
             size,

@@ -33,10 +33,7 @@ pub enum ClientError {
     #[error("integrity check failed: {0}")]
     Integrity(String),
     #[error("{context}: {source}")]
-    Io {
-        context: String,
-        source: std::io::Error,
-    },
+    Io { context: String, source: std::io::Error },
     /// The server's answer is not what the protocol says.
     #[error("unexpected answer from the server: {0}")]
     Protocol(String),
@@ -66,18 +63,14 @@ impl ClientError {
             ClientError::Integrity(_) => exit::INTEGRITY,
             ClientError::Usage(_) => exit::USAGE,
             ClientError::TooLarge { .. } => exit::REJECTED,
-            ClientError::Io { .. } | ClientError::Protocol(_) | ClientError::Conversion(_) => {
-                exit::FAILURE
-            }
+            ClientError::Io { .. } | ClientError::Protocol(_) | ClientError::Conversion(_) => exit::FAILURE,
         }
     }
 
     /// Machine-readable form for `--json`.
     pub fn to_json(&self) -> serde_json::Value {
         let (code, suggestions) = match self {
-            ClientError::Server {
-                code, suggestions, ..
-            } => (code.as_str(), suggestions.clone()),
+            ClientError::Server { code, suggestions, .. } => (code.as_str(), suggestions.clone()),
             ClientError::Unreachable { .. } => ("unreachable", vec![]),
             ClientError::Integrity(_) => ("integrity", vec![]),
             ClientError::Io { .. } => ("io", vec![]),

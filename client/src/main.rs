@@ -75,6 +75,12 @@ enum Command {
         /// Also print the episode index (one line per episode).
         #[arg(long)]
         episodes: bool,
+        /// Show the version a DSRL post-process filter makes (repeatable, joined with commas), e.g. noise=0.05.
+        #[arg(long = "filter", value_name = "KEY=VALUE")]
+        filters: Vec<String>,
+        /// Also save the cost-reward return plot (SVG) to this file.
+        #[arg(long, value_name = "FILE")]
+        plot: Option<PathBuf>,
     },
     /// Download a version into the cache (verified by sha256, resumable) and print its path.
     Fetch {
@@ -88,6 +94,11 @@ enum Command {
         /// Cap the download speed, e.g. 500K, 20M (bytes per second).
         #[arg(long, value_parser = parse_rate)]
         limit_rate: Option<u64>,
+        /// Fetch the version a DSRL post-process filter makes from it, computed on the server (repeatable, joined
+        /// with commas): noise=0.05 (the paper's noise level = outliers_percent), density=0.5, seed=1,
+        /// obs_noise=0.1, discard=tempting|low-reward, inpaint=pcmin:pcmax:prmin:prmax, epsilon=E, target_cost=K.
+        #[arg(long = "filter", value_name = "KEY=VALUE")]
+        filters: Vec<String>,
     },
     /// Re-hash every cached file; report and remove corrupt ones.
     Verify,
@@ -141,10 +152,7 @@ enum Format {
 
 fn parse_rate(s: &str) -> Result<u64, String> {
     let s = s.trim();
-    let (digits, unit) = match s
-        .char_indices()
-        .find(|(_, c)| !c.is_ascii_digit() && *c != '.')
-    {
+    let (digits, unit) = match s.char_indices().find(|(_, c)| !c.is_ascii_digit() && *c != '.') {
         Some((i, _)) => s.split_at(i),
         None => (s, ""),
     };
@@ -169,10 +177,7 @@ fn parse_rate(s: &str) -> Result<u64, String> {
 async fn main() -> ExitCode {
     let cli = Cli::parse();
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG")
-                .unwrap_or_else(|_| "warn".into()),
-        )
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG").unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
         .init();
     let json = cli.json;
@@ -189,10 +194,7 @@ async fn main() -> ExitCode {
 }
 
 fn print_json(value: &impl serde::Serialize) {
-    out!(
-        "{}",
-        serde_json::to_string_pretty(value).expect("serializable")
-    );
+    out!("{}", serde_json::to_string_pretty(value).expect("serializable"));
 }
 
 async fn run(cli: Cli) -> Result<u8, ClientError> {
@@ -217,8 +219,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 );
                 for t in &tasks {
                     let k = &t.task;
-                    let thresholds: Vec<String> =
-                        k.cost_thresholds.iter().map(|c| format!("{c}")).collect();
+                    let thresholds: Vec<String> = k.cost_thresholds.iter().map(|c| format!("{c}")).collect();
                     let latest = t
                         .versions
                         .iter()
@@ -246,8 +247,19 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
             task,
             version,
             episodes,
+            filters,
+            plot,
         } => {
-            let (manifest, raw) = client.manifest(&task, &version).await?;
+            let filter = joined(&filters);
+            let (manifest, raw) = client.manifest(&task, &version, filter.as_deref()).await?;
+            if let Some(path) = &plot {
+                // The plot of the version asked for: with a filter, the parent with the filter's decisions marked.
+                let svg = client.plot_svg(&task, &version, filter.as_deref()).await?;
+                std::fs::write(path, svg).map_err(ClientError::io(format!("writing {}", path.display())))?;
+                if !cli.json {
+                    eprintln!("plot saved to {}", path.display());
+                }
+            }
             if cli.json {
                 out!("{raw}");
                 return Ok(exit::OK);
@@ -269,16 +281,8 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 m.observation_space.kind.as_str()
             );
             out!("actions           {} features", m.action_space.dim);
-            out!(
-                "reward return     {} .. {}",
-                m.reward_return.min,
-                m.reward_return.max
-            );
-            out!(
-                "cost return       {} .. {}",
-                m.cost_return.min,
-                m.cost_return.max
-            );
+            out!("reward return     {} .. {}", m.reward_return.min, m.reward_return.max);
+            out!("cost return       {} .. {}", m.cost_return.min, m.cost_return.max);
             out!("license           {}", m.license);
             out!("created           {}", m.created_at);
             out!(
@@ -310,9 +314,11 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
             version,
             format,
             limit_rate,
+            filters,
         } => {
             let options = FetchOptions {
                 hdf5: matches!(format, Format::Hdf5),
+                filter: joined(&filters),
                 limit_rate,
                 progress: !cli.json,
             };
@@ -334,11 +340,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                     how.push_str(", converted to DSRL HDF5");
                 }
                 how.push_str(&format!(", {:.2} s", outcome.seconds));
-                eprintln!(
-                    "{} {} verified ({how})",
-                    outcome.task,
-                    &outcome.version[..12]
-                );
+                eprintln!("{} {} verified ({how})", outcome.task, &outcome.version[..12]);
                 out!("{}", outcome.path.display());
             }
         }
@@ -383,8 +385,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 } => {
                     let provenance_json = match provenance {
                         Some(p) => Some(
-                            std::fs::read_to_string(&p)
-                                .map_err(ClientError::io(format!("reading {}", p.display())))?,
+                            std::fs::read_to_string(&p).map_err(ClientError::io(format!("reading {}", p.display())))?,
                         ),
                         None => None,
                     };
@@ -408,9 +409,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                         license,
                         provenance_json: provenance_json.map(|p| p.trim().replace('\n', " ")),
                     };
-                    let result = client
-                        .ingest(&task, &file, &options, move |n| b.set_position(n))
-                        .await;
+                    let result = client.ingest(&task, &file, &options, move |n| b.set_position(n)).await;
                     bar.finish_and_clear();
                     let result = result?;
                     if cli.json {
@@ -436,17 +435,18 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                     if cli.json {
                         print_json(&v);
                     } else {
-                        out!(
-                            "{task} {tag} -> {} (tags [{}])",
-                            v.version,
-                            v.tags.join(", ")
-                        );
+                        out!("{task} {tag} -> {} (tags [{}])", v.version, v.tags.join(", "));
                     }
                 }
             }
         }
     }
     Ok(exit::OK)
+}
+
+/// Repeated `--filter` values as one filter string.
+fn joined(filters: &[String]) -> Option<String> {
+    (!filters.is_empty()).then(|| filters.join(","))
 }
 
 /// For a server on loopback, the token a local `dsrl-server` with default settings generated.
@@ -456,8 +456,7 @@ fn local_admin_token(server: &str) -> Option<String> {
         return None;
     }
     let home = std::env::var_os("HOME")?;
-    let token =
-        std::fs::read_to_string(PathBuf::from(home).join(".dsrl/server/admin-token")).ok()?;
+    let token = std::fs::read_to_string(PathBuf::from(home).join(".dsrl/server/admin-token")).ok()?;
     Some(token.trim().to_owned()).filter(|t| !t.is_empty())
 }
 

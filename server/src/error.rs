@@ -38,13 +38,8 @@ impl ErrorCode {
         match self {
             ErrorCode::NotFound => (StatusCode::NOT_FOUND, tonic::Code::NotFound),
             ErrorCode::InvalidArgument => (StatusCode::BAD_REQUEST, tonic::Code::InvalidArgument),
-            ErrorCode::PayloadTooLarge => (
-                StatusCode::PAYLOAD_TOO_LARGE,
-                tonic::Code::ResourceExhausted,
-            ),
-            ErrorCode::RangeNotSatisfiable => {
-                (StatusCode::RANGE_NOT_SATISFIABLE, tonic::Code::OutOfRange)
-            }
+            ErrorCode::PayloadTooLarge => (StatusCode::PAYLOAD_TOO_LARGE, tonic::Code::ResourceExhausted),
+            ErrorCode::RangeNotSatisfiable => (StatusCode::RANGE_NOT_SATISFIABLE, tonic::Code::OutOfRange),
             ErrorCode::Unauthenticated => (StatusCode::UNAUTHORIZED, tonic::Code::Unauthenticated),
             ErrorCode::PermissionDenied => (StatusCode::FORBIDDEN, tonic::Code::PermissionDenied),
             ErrorCode::Unavailable => (StatusCode::SERVICE_UNAVAILABLE, tonic::Code::Unavailable),
@@ -189,10 +184,9 @@ impl From<ApiError> for tonic::Status {
             tracing::error!(error = %e, "gRPC request failed");
         }
         let mut status = tonic::Status::new(code.grpc_code(), e.to_string());
-        status.metadata_mut().insert(
-            "dsrl-error-code",
-            code.as_str().parse().expect("ascii metadata"),
-        );
+        status
+            .metadata_mut()
+            .insert("dsrl-error-code", code.as_str().parse().expect("ascii metadata"));
         status
     }
 }
@@ -205,10 +199,7 @@ mod tests {
     fn every_code_maps_to_a_distinct_http_status_and_a_matching_grpc_code() {
         let mut seen = std::collections::HashSet::new();
         for code in ErrorCode::ALL {
-            assert!(
-                seen.insert(code.http_status()),
-                "{code:?} shares its HTTP status"
-            );
+            assert!(seen.insert(code.http_status()), "{code:?} shares its HTTP status");
             let http = code.http_status().as_u16();
             let grpc = code.grpc_code();
             // Client errors are never reported as server faults, and the reverse.
@@ -233,10 +224,7 @@ mod tests {
         let status = tonic::Status::from(err);
         assert_eq!(status.code(), tonic::Code::NotFound);
         assert!(status.message().contains("did you mean OfflineAntRun-v0"));
-        assert_eq!(
-            status.metadata().get("dsrl-error-code").unwrap(),
-            "not_found"
-        );
+        assert_eq!(status.metadata().get("dsrl-error-code").unwrap(), "not_found");
     }
 
     #[test]

@@ -65,10 +65,7 @@ fn task_message(task: &dsrl_suite::Task, versions: Vec<VersionRecord>) -> pb::Ta
 
 #[tonic::async_trait]
 impl DatasetService for DatasetGrpc {
-    async fn list_tasks(
-        &self,
-        _: Request<pb::ListTasksRequest>,
-    ) -> Result<Response<pb::ListTasksResponse>, Status> {
+    async fn list_tasks(&self, _: Request<pb::ListTasksRequest>) -> Result<Response<pb::ListTasksResponse>, Status> {
         let tasks = self
             .state
             .datasets
@@ -84,11 +81,7 @@ impl DatasetService for DatasetGrpc {
         &self,
         request: Request<pb::ListVersionsRequest>,
     ) -> Result<Response<pb::ListVersionsResponse>, Status> {
-        let (_, versions) = self
-            .state
-            .datasets
-            .versions(&request.get_ref().task)
-            .await?;
+        let (_, versions) = self.state.datasets.versions(&request.get_ref().task).await?;
         Ok(Response::new(pb::ListVersionsResponse {
             versions: versions.into_iter().map(hosted).collect(),
         }))
@@ -99,7 +92,11 @@ impl DatasetService for DatasetGrpc {
         request: Request<pb::GetManifestRequest>,
     ) -> Result<Response<pb::GetManifestResponse>, Status> {
         let r = request.get_ref();
-        let (_, record) = self.state.datasets.resolve(&r.task, &r.version).await?;
+        let (_, record) = self
+            .state
+            .datasets
+            .resolve_filtered(&r.task, &r.version, Some(&r.filter))
+            .await?;
         let manifest_json = self.state.datasets.manifest_json(&record).await?;
         Ok(Response::new(pb::GetManifestResponse {
             version: Some(hosted(record)),
@@ -114,7 +111,11 @@ impl DatasetService for DatasetGrpc {
         request: Request<pb::StreamTransitionsRequest>,
     ) -> Result<Response<Self::StreamTransitionsStream>, Status> {
         let r = request.get_ref();
-        let (task, record) = self.state.datasets.resolve(&r.task, &r.version).await?;
+        let (task, record) = self
+            .state
+            .datasets
+            .resolve_filtered(&r.task, &r.version, Some(&r.filter))
+            .await?;
         let obs_dim = if record.observation_space == "paper" {
             task.obs_dim_paper
         } else {
@@ -136,35 +137,28 @@ impl DatasetService for DatasetGrpc {
         let schema = batches.schema().clone();
         let mut writer = StreamWriter::try_new(Vec::new(), &schema).map_err(ApiError::internal)?;
         let header = std::mem::take(writer.get_mut());
-        let tail = futures::stream::unfold(
-            (batches, Some(writer)),
-            |(mut batches, writer)| async move {
-                let mut writer = writer?;
-                let chunk = match batches.next().await {
-                    Some(Ok(batch)) => writer
-                        .write(&batch)
-                        .map(|_| std::mem::take(writer.get_mut())),
-                    Some(Err(e)) => {
-                        return Some((Err(Status::from(ApiError::internal(e))), (batches, None)));
-                    }
-                    None => {
-                        let end = writer.finish().map(|_| std::mem::take(writer.get_mut()));
-                        return Some((
-                            end.map(|arrow_ipc| pb::ArrowIpcChunk { arrow_ipc })
-                                .map_err(|e| ApiError::internal(e).into()),
-                            (batches, None),
-                        ));
-                    }
-                };
-                let item = chunk
-                    .map(|arrow_ipc| pb::ArrowIpcChunk { arrow_ipc })
-                    .map_err(|e| ApiError::internal(e).into());
-                Some((item, (batches, Some(writer))))
-            },
-        );
-        let stream =
-            futures::stream::once(async move { Ok(pb::ArrowIpcChunk { arrow_ipc: header }) })
-                .chain(tail);
+        let tail = futures::stream::unfold((batches, Some(writer)), |(mut batches, writer)| async move {
+            let mut writer = writer?;
+            let chunk = match batches.next().await {
+                Some(Ok(batch)) => writer.write(&batch).map(|_| std::mem::take(writer.get_mut())),
+                Some(Err(e)) => {
+                    return Some((Err(Status::from(ApiError::internal(e))), (batches, None)));
+                }
+                None => {
+                    let end = writer.finish().map(|_| std::mem::take(writer.get_mut()));
+                    return Some((
+                        end.map(|arrow_ipc| pb::ArrowIpcChunk { arrow_ipc })
+                            .map_err(|e| ApiError::internal(e).into()),
+                        (batches, None),
+                    ));
+                }
+            };
+            let item = chunk
+                .map(|arrow_ipc| pb::ArrowIpcChunk { arrow_ipc })
+                .map_err(|e| ApiError::internal(e).into());
+            Some((item, (batches, Some(writer))))
+        });
+        let stream = futures::stream::once(async move { Ok(pb::ArrowIpcChunk { arrow_ipc: header }) }).chain(tail);
         Ok(Response::new(stream.boxed()))
     }
 }

@@ -8,6 +8,7 @@ pub mod config;
 pub mod error;
 pub mod grpc;
 pub mod http;
+pub mod metrics;
 pub mod starter;
 pub mod storage;
 
@@ -26,9 +27,9 @@ use tower_http::trace::TraceLayer;
 
 use crate::config::Config;
 use crate::http::auth::AdminAuth;
-use crate::http::metrics::Metrics;
+use crate::metrics::Metrics;
 use crate::storage::converter::Converter;
-use crate::storage::datasets::Datasets;
+use crate::storage::datasets::{Datasets, DatasetsSetup};
 use crate::storage::db::Db;
 
 /// What every handler shares.
@@ -44,8 +45,7 @@ pub struct AppState {
 /// `converter` says where uploads are parsed (the `dsrl-server` binary uses a child process).
 pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Result<AppState> {
     let data_dir = &config.server.data_dir;
-    std::fs::create_dir_all(data_dir)
-        .with_context(|| format!("creating {}", data_dir.display()))?;
+    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
     let catalog = match &config.catalog.tasks {
         Some(path) => Catalog::load(path)?,
         None => Catalog::embedded()?,
@@ -54,34 +54,31 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     let db = Db::open(&data_dir.join("dsrl.sqlite3"))
         .await
         .context("opening the SQLite database")?;
-    let store =
-        storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
-    let datasets = Datasets::new(
-        Arc::new(catalog),
+    let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
+    let metrics = Arc::new(Metrics::new());
+    let local_objects = (config.storage.backend == config::StorageBackend::Local).then(|| data_dir.join("objects"));
+    let datasets = Datasets::new(DatasetsSetup {
+        catalog: Arc::new(catalog),
         db,
         store,
-        data_dir.join("tmp"),
-        config.datasets.default_license.clone(),
+        local_objects,
+        tmp_dir: data_dir.join("tmp"),
+        default_license: config.datasets.default_license.clone(),
         converter,
-    )?;
-    let auth = AdminAuth::load_or_create(
-        config.auth.admin_token.as_deref(),
-        &data_dir.join("admin-token"),
-    )?;
+        metrics: metrics.clone(),
+    })?;
+    let auth = AdminAuth::load_or_create(config.auth.admin_token.as_deref(), &data_dir.join("admin-token"))?;
     if let Some(dir) = &config.datasets.starter_dir
         && dir.is_dir()
     {
         let created = starter::load(&datasets, dir).await?;
         tracing::info!(dir = %dir.display(), created, "starter datasets checked");
     }
-    let metrics = Metrics::new();
-    metrics
-        .dataset_versions
-        .set(datasets.db().version_count().await?);
+    metrics.dataset_versions.set(datasets.db().version_count().await?);
     Ok(AppState {
         datasets: Arc::new(datasets),
         auth: Arc::new(auth),
-        metrics: Arc::new(metrics),
+        metrics,
         max_upload_bytes: config.datasets.max_upload_bytes,
     })
 }
@@ -89,17 +86,11 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
 /// REST and gRPC routes with metrics, request tracing, and panics turned into 500s.
 pub fn app(state: AppState) -> Router {
     let grpc_service = DatasetServiceServer::new(grpc::DatasetGrpc::new(state.clone()));
-    let grpc_path = format!(
-        "/{}/{{*method}}",
-        DatasetServiceServer::<grpc::DatasetGrpc>::NAME
-    );
+    let grpc_path = format!("/{}/{{*method}}", DatasetServiceServer::<grpc::DatasetGrpc>::NAME);
     http::router(state.clone())
         .route_service(&grpc_path, grpc_service)
         .fallback(http::not_found)
-        .layer(axum::middleware::from_fn_with_state(
-            state,
-            http::metrics::track,
-        ))
+        .layer(axum::middleware::from_fn_with_state(state, http::metrics::track))
         .layer(TraceLayer::new_for_http())
         .layer(CatchPanicLayer::custom(|_| {
             (

@@ -90,10 +90,7 @@ fn convert(
         Ok(task) => ConvertReply::run(source, &task, space, out),
         Err(message) => ConvertReply::Failed { message },
     };
-    println!(
-        "{}",
-        serde_json::to_string(&reply).expect("the reply serializes")
-    );
+    println!("{}", serde_json::to_string(&reply).expect("the reply serializes"));
     std::process::ExitCode::SUCCESS
 }
 

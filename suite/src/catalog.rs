@@ -112,25 +112,13 @@ impl Task {
 
     /// DSRL's file stem for a dataset of this task with `episodes` trajectories: `{prefix}-{cap}-{n}`.
     pub fn dataset_file_stem(&self, episodes: u64) -> String {
-        format!(
-            "{}-{}-{}",
-            self.dataset_file_prefix, self.paper_cost_cap, episodes
-        )
+        format!("{}-{}-{}", self.dataset_file_prefix, self.paper_cost_cap, episodes)
     }
 
     /// The normalized score of an episode (or a mean over episodes) at cost threshold `cost_threshold`.
-    pub fn normalized_score(
-        &self,
-        reward_return: f64,
-        cost_return: f64,
-        cost_threshold: f64,
-    ) -> NormalizedScore {
+    pub fn normalized_score(&self, reward_return: f64, cost_return: f64, cost_threshold: f64) -> NormalizedScore {
         NormalizedScore {
-            reward: normalized_reward(
-                reward_return,
-                self.min_episode_reward,
-                self.max_episode_reward,
-            ),
+            reward: normalized_reward(reward_return, self.min_episode_reward, self.max_episode_reward),
             cost: normalized_cost(cost_return, cost_threshold),
         }
     }
@@ -144,10 +132,7 @@ impl Task {
 #[derive(Debug, thiserror::Error)]
 pub enum CatalogError {
     #[error("cannot read the task catalog {path}: {source}")]
-    Io {
-        path: String,
-        source: std::io::Error,
-    },
+    Io { path: String, source: std::io::Error },
     #[error("task catalog line {line}: {message}")]
     Invalid { line: u64, message: String },
     #[error("task catalog: {0}")]
@@ -220,8 +205,7 @@ impl Catalog {
                 line,
                 message: e.to_string(),
             })?;
-            let task =
-                task_from_row(row).map_err(|message| CatalogError::Invalid { line, message })?;
+            let task = task_from_row(row).map_err(|message| CatalogError::Invalid { line, message })?;
             tasks.push(task);
         }
         Catalog::new(tasks)
@@ -234,10 +218,7 @@ impl Catalog {
         let mut by_id = HashMap::new();
         for (i, task) in tasks.iter().enumerate() {
             if by_id.insert(task.id.as_str().to_owned(), i).is_some() {
-                return Err(CatalogError::Inconsistent(format!(
-                    "task {} appears twice",
-                    task.id
-                )));
+                return Err(CatalogError::Inconsistent(format!("task {} appears twice", task.id)));
             }
         }
         Ok(Catalog { tasks, by_id })
@@ -275,11 +256,7 @@ impl Catalog {
             .filter(|(score, _)| *score >= 0.5)
             .collect();
         scored.sort_by(|a, b| b.0.total_cmp(&a.0).then_with(|| a.1.cmp(b.1)));
-        scored
-            .into_iter()
-            .take(n)
-            .map(|(_, id)| id.to_owned())
-            .collect()
+        scored.into_iter().take(n).map(|(_, id)| id.to_owned()).collect()
     }
 }
 
@@ -312,14 +289,10 @@ fn task_from_row(row: Row) -> Result<Task, String> {
         return Err(format!("{id}: normalization constants must be finite"));
     }
     if row.min_episode_reward >= row.max_episode_reward {
-        return Err(format!(
-            "{id}: min_episode_reward must be below max_episode_reward"
-        ));
+        return Err(format!("{id}: min_episode_reward must be below max_episode_reward"));
     }
     if row.min_episode_cost > row.max_episode_cost || row.min_episode_cost < 0.0 {
-        return Err(format!(
-            "{id}: need 0 <= min_episode_cost <= max_episode_cost"
-        ));
+        return Err(format!("{id}: need 0 <= min_episode_cost <= max_episode_cost"));
     }
     if cost_thresholds.is_empty()
         || cost_thresholds.iter().any(|k| !k.is_finite() || *k < 0.0)
@@ -329,17 +302,11 @@ fn task_from_row(row: Row) -> Result<Task, String> {
             "{id}: cost_thresholds must be non-negative and strictly ascending"
         ));
     }
-    if row.max_episode_steps == 0
-        || row.obs_dim == 0
-        || row.act_dim == 0
-        || row.obs_dim_pinned_simulator == 0
-    {
+    if row.max_episode_steps == 0 || row.obs_dim == 0 || row.act_dim == 0 || row.obs_dim_pinned_simulator == 0 {
         return Err(format!("{id}: horizon and dimensions must be positive"));
     }
     if row.simulator_env_id.is_empty() || row.dataset_file_prefix.is_empty() {
-        return Err(format!(
-            "{id}: simulator_env_id and dataset_file_prefix must be set"
-        ));
+        return Err(format!("{id}: simulator_env_id and dataset_file_prefix must be set"));
     }
     Ok(Task {
         id,
@@ -387,19 +354,13 @@ mod tests {
         let catalog = Catalog::embedded().unwrap();
         let ant = catalog.get("OfflineAntRun-v0").unwrap();
         assert_eq!(ant.simulator_env_id, "SafetyAntRun-v0");
-        assert_eq!(
-            (ant.obs_dim, ant.act_dim, ant.max_episode_steps),
-            (33, 8, 200)
-        );
+        assert_eq!((ant.obs_dim, ant.act_dim, ant.max_episode_steps), (33, 8, 200));
         assert_eq!(ant.max_episode_reward, 955.4818725585938);
         assert_eq!(ant.dataset_file_stem(1816), "SafetyAntRun-v0-150-1816");
         let md = catalog.get("OfflineMetadrive-easysparse-v0").unwrap();
         assert_eq!((md.obs_dim_paper, md.obs_dim), (261, 259));
         assert_eq!(md.observation_dim(ObservationSpace::Paper), 261);
-        assert_eq!(
-            md.dataset_file_stem(1000),
-            "SafeMetaDrive-easysparse-v0-85-1000"
-        );
+        assert_eq!(md.dataset_file_stem(1000), "SafeMetaDrive-easysparse-v0-85-1000");
         let nav = catalog.get("OfflineCarCircle1Gymnasium-v0").unwrap();
         assert_eq!(nav.dataset_file_prefix, "SafetyCarCircle1Gymnasium-v0");
         assert_eq!(nav.simulator_env_id, "SafetyCarCircle1-v0");
@@ -412,10 +373,7 @@ mod tests {
         assert_eq!(err.suggestions[0], "OfflineAntRun-v0");
         let err = catalog.get("AntRun").unwrap_err();
         assert_eq!(err.suggestions[0], "OfflineAntRun-v0");
-        assert!(
-            err.to_string().contains("did you mean OfflineAntRun-v0"),
-            "{err}"
-        );
+        assert!(err.to_string().contains("did you mean OfflineAntRun-v0"), "{err}");
         let err = catalog.get("zzzzzzzzzzzzzzzzzzzzzz").unwrap_err();
         assert!(err.suggestions.is_empty());
     }

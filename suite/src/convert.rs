@@ -58,14 +58,9 @@ pub enum ImportError {
     Invalid(#[from] ValidationError),
     /// The file cannot be read as the format it claims to be, or lacks the dataset's keys.
     #[error("not a usable {format} dataset: {message}")]
-    Malformed {
-        format: &'static str,
-        message: String,
-    },
+    Malformed { format: &'static str, message: String },
     /// Neither Parquet nor HDF5.
-    #[error(
-        "unrecognized file format: expected Parquet (starts with PAR1) or HDF5 (DSRL's layout)"
-    )]
+    #[error("unrecognized file format: expected Parquet (starts with PAR1) or HDF5 (DSRL's layout)")]
     UnknownFormat,
     #[error("I/O error: {0}")]
     Io(#[from] io::Error),
@@ -113,8 +108,7 @@ pub fn import_file(
     let format = SourceFormat::sniff(source)?.ok_or(ImportError::UnknownFormat)?;
     let converted = match format {
         SourceFormat::Parquet => {
-            let reader =
-                ParquetTransitions::open(File::open(source)?).map_err(ImportError::from_parquet)?;
+            let reader = ParquetTransitions::open(File::open(source)?).map_err(ImportError::from_parquet)?;
             let dropped = reader.ignored_columns().to_vec();
             write_canonical(
                 task,
@@ -167,15 +161,11 @@ pub fn write_canonical(
     let metadata = vec![
         ("dsrl.format".to_owned(), crate::manifest::FORMAT.to_owned()),
         ("dsrl.task".to_owned(), task.id.to_string()),
-        (
-            "dsrl.observation_space".to_owned(),
-            space.as_str().to_owned(),
-        ),
+        ("dsrl.observation_space".to_owned(), space.as_str().to_owned()),
     ];
     let file = File::create(out)?;
     let sink = HashingWriter::new(BufWriter::with_capacity(8 << 20, file));
-    let mut writer =
-        DatasetWriter::new(sink, expect.obs_dim, expect.act_dim, metadata).map_err(parquet_io)?;
+    let mut writer = DatasetWriter::new(sink, expect.obs_dim, expect.act_dim, metadata).map_err(parquet_io)?;
     let mut tracker = EpisodeTracker::new(expect);
     for chunk in chunks {
         let chunk = chunk?;
@@ -199,18 +189,12 @@ pub fn write_canonical(
 }
 
 /// A clear message for the common mismatch: MetaDrive data in the paper's 261-feature space.
-fn check_space(
-    task: &Task,
-    space: ObservationSpace,
-    chunk: &TransitionChunk,
-) -> Result<(), ValidationError> {
+fn check_space(task: &Task, space: ObservationSpace, chunk: &TransitionChunk) -> Result<(), ValidationError> {
     let expected = task.observation_dim(space) as usize;
     if chunk.obs_dim == expected {
         return Ok(());
     }
-    let hint = if space == ObservationSpace::Simulator
-        && chunk.obs_dim == task.obs_dim_paper as usize
-    {
+    let hint = if space == ObservationSpace::Simulator && chunk.obs_dim == task.obs_dim_paper as usize {
         format!(
             "; that is the paper's observation space, not the {expected} features the simulator pinned here \
              produces, so policies trained on it cannot be scored here. To host it anyway, ingest with \

@@ -89,10 +89,7 @@ mod tests {
 
     #[test]
     fn ranges() {
-        assert_eq!(
-            return_range([3.0f32, -1.0, 2.0].into_iter()),
-            Some((-1.0, 3.0))
-        );
+        assert_eq!(return_range([3.0f32, -1.0, 2.0].into_iter()), Some((-1.0, 3.0)));
         assert_eq!(return_range(std::iter::empty()), None);
     }
 }

@@ -9,8 +9,8 @@ use hdf5::{Dataset, File, Group};
 use ndarray::{ArrayView1, ArrayView2, s};
 
 use crate::parquet_file::{
-    ACTIONS, COSTS, DSRL_KEYS, NEXT_OBSERVATIONS, OBSERVATIONS, ParquetTransitions, REWARDS,
-    ReadError, TERMINALS, TIMEOUTS,
+    ACTIONS, COSTS, DSRL_KEYS, NEXT_OBSERVATIONS, OBSERVATIONS, ParquetTransitions, REWARDS, ReadError, TERMINALS,
+    TIMEOUTS,
 };
 use crate::transitions::TransitionChunk;
 use crate::validate::{ValidationError, flags_from_numbers};
@@ -94,10 +94,7 @@ impl Hdf5Transitions {
             )));
         }
         let mut lengths = vec![(NEXT_OBSERVATIONS, next_rows), (ACTIONS, act_rows)];
-        for (i, key) in [REWARDS, COSTS, TERMINALS, TIMEOUTS]
-            .into_iter()
-            .enumerate()
-        {
+        for (i, key) in [REWARDS, COSTS, TERMINALS, TIMEOUTS].into_iter().enumerate() {
             lengths.push((key, vector_len(key, &datasets[3 + i])?));
         }
         if let Some((key, n)) = lengths.iter().find(|(_, n)| *n != rows) {
@@ -109,10 +106,7 @@ impl Hdf5Transitions {
             .into_iter()
             .enumerate()
         {
-            if !matches!(
-                datasets[i].dtype()?.to_descriptor()?,
-                TypeDescriptor::Float(_)
-            ) {
+            if !matches!(datasets[i].dtype()?.to_descriptor()?, TypeDescriptor::Float(_)) {
                 return Err(Hdf5Error::Layout(format!("key {key} must hold floats")));
             }
         }
@@ -170,11 +164,7 @@ impl Iterator for Hdf5Transitions {
     }
 }
 
-fn collect_dataset_keys(
-    group: &Group,
-    prefix: &str,
-    out: &mut Vec<String>,
-) -> Result<(), hdf5::Error> {
+fn collect_dataset_keys(group: &Group, prefix: &str, out: &mut Vec<String>) -> Result<(), hdf5::Error> {
     for name in group.member_names()? {
         let key = if prefix.is_empty() {
             name.clone()
@@ -215,15 +205,9 @@ fn read_matrix(ds: &Dataset, a: usize, b: usize) -> Result<Vec<f32>, Hdf5Error> 
     Ok(array.into_iter().collect())
 }
 
-fn read_vector<T: hdf5::H5Type + Copy>(
-    ds: &Dataset,
-    a: usize,
-    b: usize,
-) -> Result<Vec<T>, Hdf5Error> {
+fn read_vector<T: hdf5::H5Type + Copy>(ds: &Dataset, a: usize, b: usize) -> Result<Vec<T>, Hdf5Error> {
     Ok(if ds.ndim() == 2 {
-        ds.read_slice_2d::<T, _>(s![a..b, ..])?
-            .into_iter()
-            .collect()
+        ds.read_slice_2d::<T, _>(s![a..b, ..])?.into_iter().collect()
     } else {
         ds.read_slice_1d::<T, _>(s![a..b])?.to_vec()
     })
@@ -237,14 +221,8 @@ fn read_vector_f32(ds: &Dataset, a: usize, b: usize) -> Result<Vec<f32>, Hdf5Err
 fn read_flags(key: &str, ds: &Dataset, a: usize, b: usize) -> Result<Vec<bool>, Hdf5Error> {
     let numbers: Vec<f64> = match ds.dtype()?.to_descriptor()? {
         TypeDescriptor::Boolean => return read_vector::<bool>(ds, a, b),
-        TypeDescriptor::Integer(_) => read_vector::<i64>(ds, a, b)?
-            .into_iter()
-            .map(|v| v as f64)
-            .collect(),
-        TypeDescriptor::Unsigned(_) => read_vector::<u64>(ds, a, b)?
-            .into_iter()
-            .map(|v| v as f64)
-            .collect(),
+        TypeDescriptor::Integer(_) => read_vector::<i64>(ds, a, b)?.into_iter().map(|v| v as f64).collect(),
+        TypeDescriptor::Unsigned(_) => read_vector::<u64>(ds, a, b)?.into_iter().map(|v| v as f64).collect(),
         TypeDescriptor::Float(_) => read_vector::<f64>(ds, a, b)?,
         other => {
             return Err(Hdf5Error::Layout(format!(
@@ -283,11 +261,7 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
         } else {
             file.new_dataset::<bool>()
         };
-        builder
-            .chunk(chunk)
-            .deflate(GZIP_LEVEL)
-            .shape(rows)
-            .create(name)
+        builder.chunk(chunk).deflate(GZIP_LEVEL).shape(rows).create(name)
     };
     let obs = matrix(OBSERVATIONS, obs_dim)?;
     let next = matrix(NEXT_OBSERVATIONS, obs_dim)?;

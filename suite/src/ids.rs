@@ -8,15 +8,11 @@ use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum IdError {
-    #[error(
-        "invalid task id {0:?}: expected letters, digits, '-', '_' or '.', at most 128 characters"
-    )]
+    #[error("invalid task id {0:?}: expected letters, digits, '-', '_' or '.', at most 128 characters")]
     Task(String),
     #[error("invalid version id {0:?}: expected the 64 hex digits of a sha256")]
     Version(String),
-    #[error(
-        "invalid tag {0:?}: expected 1-64 lowercase letters, digits, '-', '_' or '.', starting with a letter"
-    )]
+    #[error("invalid tag {0:?}: expected 1-64 lowercase letters, digits, '-', '_' or '.', starting with a letter")]
     Tag(String),
 }
 

@@ -13,6 +13,7 @@ pub mod hdf5_file;
 pub mod ids;
 pub mod manifest;
 pub mod parquet_file;
+pub mod plot;
 pub mod score;
 pub mod synthetic;
 pub mod transitions;

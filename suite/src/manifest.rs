@@ -72,6 +72,21 @@ pub enum Provenance {
         #[serde(default, skip_serializing_if = "Vec::is_empty")]
         dropped_columns: Vec<String>,
     },
+    /// Made from another version by DSRL's post-process filters.
+    Filter {
+        /// The version filtered.
+        parent: String,
+        /// The filter in canonical form (only what changes the output, in pipeline order).
+        filter: String,
+        /// The filter as it was requested.
+        request: String,
+        /// The seed of the density filter's random sampling, when that filter ran.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        seed: Option<u64>,
+        counts: crate::filters::plan::FilterCounts,
+        /// What the output reproduces, bit for bit.
+        reference: String,
+    },
     /// Built by one of our data recipes (see `data/`).
     Recipe {
         recipe: String,
@@ -150,10 +165,7 @@ impl Manifest {
 
     /// The DSRL-style HDF5 file name for the same data.
     pub fn hdf5_file_name(&self) -> String {
-        let stem = self
-            .file_name
-            .strip_suffix(".parquet")
-            .unwrap_or(&self.file_name);
+        let stem = self.file_name.strip_suffix(".parquet").unwrap_or(&self.file_name);
         format!("{stem}.hdf5")
     }
 }
@@ -200,20 +212,8 @@ mod tests {
             },
         );
         assert_eq!((m.episodes, m.transitions), (2, 420));
-        assert_eq!(
-            m.reward_return,
-            ValueRange {
-                min: -2.0,
-                max: 12.5
-            }
-        );
-        assert_eq!(
-            m.cost_return,
-            ValueRange {
-                min: 3.0,
-                max: 40.0
-            }
-        );
+        assert_eq!(m.reward_return, ValueRange { min: -2.0, max: 12.5 });
+        assert_eq!(m.cost_return, ValueRange { min: 3.0, max: 40.0 });
         assert_eq!(m.file_name, "SafetyCarCircle-v0-100-2.parquet");
         assert_eq!(m.hdf5_file_name(), "SafetyCarCircle-v0-100-2.hdf5");
         let json = serde_json::to_value(&m).unwrap();

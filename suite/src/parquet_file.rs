@@ -12,9 +12,7 @@ use std::sync::Arc;
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, Int8Type, Int16Type, Int32Type, Int64Type};
 use arrow_array::types::{UInt8Type, UInt16Type, UInt32Type, UInt64Type};
-use arrow_array::{
-    Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, RecordBatch, UInt32Array,
-};
+use arrow_array::{Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, RecordBatch, UInt32Array};
 use arrow_schema::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
 use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
@@ -54,12 +52,8 @@ const READ_BATCH_TARGET_BYTES: usize = 16 << 20;
 
 /// The Arrow schema of a dataset with these widths.
 pub fn dataset_schema(obs_dim: usize, act_dim: usize) -> SchemaRef {
-    let list = |dim: usize| {
-        DataType::FixedSizeList(
-            Arc::new(Field::new_list_field(DataType::Float32, false)),
-            dim as i32,
-        )
-    };
+    let list =
+        |dim: usize| DataType::FixedSizeList(Arc::new(Field::new_list_field(DataType::Float32, false)), dim as i32);
     Arc::new(Schema::new(vec![
         Field::new(EPISODE, DataType::UInt32, false),
         Field::new(STEP, DataType::UInt32, false),
@@ -89,12 +83,7 @@ pub struct DatasetWriter<W: Write + Send> {
 
 impl<W: Write + Send> DatasetWriter<W> {
     /// `metadata` is stored in the Parquet footer's key-value metadata (e.g. the task id).
-    pub fn new(
-        out: W,
-        obs_dim: usize,
-        act_dim: usize,
-        metadata: Vec<(String, String)>,
-    ) -> Result<Self, ParquetError> {
+    pub fn new(out: W, obs_dim: usize, act_dim: usize, metadata: Vec<(String, String)>) -> Result<Self, ParquetError> {
         let schema = dataset_schema(obs_dim, act_dim);
         let parquet_schema = ArrowSchemaConverter::new().convert(&schema)?;
         let mut props = WriterProperties::builder()
@@ -102,12 +91,7 @@ impl<W: Write + Send> DatasetWriter<W> {
             // Row groups are cut by us at episode boundaries, never by the writer.
             .set_max_row_group_row_count(None)
             .set_max_row_group_bytes(None)
-            .set_key_value_metadata(Some(
-                metadata
-                    .into_iter()
-                    .map(|(k, v)| KeyValue::new(k, v))
-                    .collect(),
-            ));
+            .set_key_value_metadata(Some(metadata.into_iter().map(|(k, v)| KeyValue::new(k, v)).collect()));
         for column in parquet_schema.columns() {
             let encoding = match column.physical_type() {
                 PhysicalType::FLOAT | PhysicalType::DOUBLE => Encoding::BYTE_STREAM_SPLIT,
@@ -130,11 +114,7 @@ impl<W: Write + Send> DatasetWriter<W> {
     }
 
     /// Appends rows that the episode tracker has checked and numbered.
-    pub fn push(
-        &mut self,
-        chunk: &TransitionChunk,
-        numbering: Numbering,
-    ) -> Result<(), ParquetError> {
+    pub fn push(&mut self, chunk: &TransitionChunk, numbering: Numbering) -> Result<(), ParquetError> {
         self.pending.append(chunk);
         self.pending_numbering.episode.extend(numbering.episode);
         self.pending_numbering.step.extend(numbering.step);
@@ -198,12 +178,7 @@ fn record_batch(
 ) -> Result<RecordBatch, ParquetError> {
     let list = |values: Vec<f32>, dim: usize| -> Result<ArrayRef, ParquetError> {
         let field = Arc::new(Field::new_list_field(DataType::Float32, false));
-        let array = FixedSizeListArray::try_new(
-            field,
-            dim as i32,
-            Arc::new(Float32Array::from(values)),
-            None,
-        )?;
+        let array = FixedSizeListArray::try_new(field, dim as i32, Arc::new(Float32Array::from(values)), None)?;
         Ok(Arc::new(array))
     };
     let columns: Vec<ArrayRef> = vec![
@@ -304,10 +279,7 @@ impl ParquetTransitions {
             _ => 8192,
         };
         let mask = ProjectionMask::roots(builder.parquet_schema(), roots);
-        let reader = builder
-            .with_projection(mask)
-            .with_batch_size(batch_rows)
-            .build()?;
+        let reader = builder.with_projection(mask).with_batch_size(batch_rows).build()?;
         // Variable-length lists get their width from the first row; every later row is checked against it.
         Ok(ParquetTransitions {
             reader,
@@ -333,16 +305,9 @@ impl ParquetTransitions {
 
     fn convert(&mut self, batch: RecordBatch) -> Result<TransitionChunk, ReadError> {
         let base = self.next_row;
-        let col = |name: &str| {
-            batch
-                .column_by_name(name)
-                .expect("projected column")
-                .clone()
-        };
-        let (observations, obs_dim) =
-            float_matrix(base, OBSERVATIONS, &col(OBSERVATIONS), self.obs_dim)?;
-        let (next_observations, _) =
-            float_matrix(base, NEXT_OBSERVATIONS, &col(NEXT_OBSERVATIONS), obs_dim)?;
+        let col = |name: &str| batch.column_by_name(name).expect("projected column").clone();
+        let (observations, obs_dim) = float_matrix(base, OBSERVATIONS, &col(OBSERVATIONS), self.obs_dim)?;
+        let (next_observations, _) = float_matrix(base, NEXT_OBSERVATIONS, &col(NEXT_OBSERVATIONS), obs_dim)?;
         let (actions, act_dim) = float_matrix(base, ACTIONS, &col(ACTIONS), self.act_dim)?;
         self.obs_dim = obs_dim;
         self.act_dim = act_dim;
@@ -438,37 +403,23 @@ fn floats_of(name: &str, values: &ArrayRef) -> Result<Vec<f32>, ReadError> {
 }
 
 /// Row-major values of a list column and its width (`width == 0`: take it from the first row).
-fn float_matrix(
-    base: u64,
-    name: &str,
-    array: &ArrayRef,
-    width: usize,
-) -> Result<(Vec<f32>, usize), ReadError> {
+fn float_matrix(base: u64, name: &str, array: &ArrayRef, width: usize) -> Result<(Vec<f32>, usize), ReadError> {
     no_nulls(base, name, array.as_ref())?;
     match array.data_type() {
         DataType::FixedSizeList(_, _) => {
             let list = array.as_fixed_size_list();
             no_nulls(base, name, list.values().as_ref())?;
-            Ok((
-                floats_of(name, list.values())?,
-                list.value_length() as usize,
-            ))
+            Ok((floats_of(name, list.values())?, list.value_length() as usize))
         }
         DataType::List(_) | DataType::LargeList(_) => {
             let (offsets, values): (Vec<usize>, &ArrayRef) = match array.data_type() {
                 DataType::List(_) => {
                     let l = array.as_list::<i32>();
-                    (
-                        l.value_offsets().iter().map(|&o| o as usize).collect(),
-                        l.values(),
-                    )
+                    (l.value_offsets().iter().map(|&o| o as usize).collect(), l.values())
                 }
                 _ => {
                     let l = array.as_list::<i64>();
-                    (
-                        l.value_offsets().iter().map(|&o| o as usize).collect(),
-                        l.values(),
-                    )
+                    (l.value_offsets().iter().map(|&o| o as usize).collect(), l.values())
                 }
             };
             let mut width = width;

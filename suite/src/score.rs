@@ -17,11 +17,7 @@ impl NormalizedScore {
 }
 
 /// `R_norm = (R - r_min) / (r_max - r_min)`; can be below 0 or above 1.
-pub fn normalized_reward(
-    reward_return: f64,
-    min_episode_reward: f64,
-    max_episode_reward: f64,
-) -> f64 {
+pub fn normalized_reward(reward_return: f64, min_episode_reward: f64, max_episode_reward: f64) -> f64 {
     (reward_return - min_episode_reward) / (max_episode_reward - min_episode_reward)
 }
 
@@ -52,13 +48,7 @@ mod tests {
         assert_eq!(normalized_cost(3.0, 0.0), 4.0);
         // k = 1 has no epsilon.
         assert_eq!(normalized_cost(0.0, 1.0), 0.0);
-        assert!(
-            NormalizedScore {
-                reward: 0.3,
-                cost: 1.0
-            }
-            .is_safe()
-        );
+        assert!(NormalizedScore { reward: 0.3, cost: 1.0 }.is_safe());
         assert!(
             !NormalizedScore {
                 reward: 0.3,

@@ -53,10 +53,7 @@ impl SyntheticSpec {
             chunk_rows: 4096,
             seed,
             max_cost_return: (task.max_episode_cost * 1.1) as f32,
-            reward_return_range: (
-                task.min_episode_reward as f32,
-                (task.max_episode_reward * 1.1) as f32,
-            ),
+            reward_return_range: (task.min_episode_reward as f32, (task.max_episode_reward * 1.1) as f32),
         }
     }
 }
@@ -89,23 +86,16 @@ pub fn transitions(spec: SyntheticSpec) -> impl Iterator<Item = TransitionChunk>
                 let (lo, hi) = spec.reward_return_range;
                 let level = (0.15 + 0.85 * aggressiveness) * (0.7 + 0.3 * rng.next_f32());
                 reward_scale = 2.0 * (lo + (hi - lo) * level) / spec.horizon as f32;
-                obs = (0..spec.obs_dim)
-                    .map(|_| rng.next_f32() * 2.0 - 1.0)
-                    .collect();
+                obs = (0..spec.obs_dim).map(|_| rng.next_f32() * 2.0 - 1.0).collect();
             }
-            let next: Vec<f32> = obs
-                .iter()
-                .map(|v| v + (rng.next_f32() - 0.5) * 0.1)
-                .collect();
+            let next: Vec<f32> = obs.iter().map(|v| v + (rng.next_f32() - 0.5) * 0.1).collect();
             chunk.observations.extend_from_slice(&obs);
             chunk.next_observations.extend_from_slice(&next);
             chunk
                 .actions
                 .extend((0..spec.act_dim).map(|_| rng.next_f32() * 2.0 - 1.0));
             chunk.rewards.push(rng.next_f32() * reward_scale);
-            chunk
-                .costs
-                .push(if rng.next_f32() < cost_rate { 1.0 } else { 0.0 });
+            chunk.costs.push(if rng.next_f32() < cost_rate { 1.0 } else { 0.0 });
             let last = step + 1 == length;
             let terminal = last && length < spec.horizon;
             chunk.terminals.push(terminal);
@@ -141,10 +131,7 @@ mod tests {
         let a: Vec<_> = transitions(spec).collect();
         let b: Vec<_> = transitions(spec).collect();
         assert_eq!(a, b);
-        let dones: usize = a
-            .iter()
-            .map(|c| (0..c.len()).filter(|&i| c.is_done(i)).count())
-            .sum();
+        let dones: usize = a.iter().map(|c| (0..c.len()).filter(|&i| c.is_done(i)).count()).sum();
         assert_eq!(dones, 12);
         let last = a.last().unwrap();
         assert!(last.is_done(last.len() - 1));

@@ -55,8 +55,7 @@ impl TransitionChunk {
     pub fn append(&mut self, other: &TransitionChunk) {
         debug_assert_eq!((self.obs_dim, self.act_dim), (other.obs_dim, other.act_dim));
         self.observations.extend_from_slice(&other.observations);
-        self.next_observations
-            .extend_from_slice(&other.next_observations);
+        self.next_observations.extend_from_slice(&other.next_observations);
         self.actions.extend_from_slice(&other.actions);
         self.rewards.extend_from_slice(&other.rewards);
         self.costs.extend_from_slice(&other.costs);

@@ -107,19 +107,13 @@ impl EpisodeTracker {
         if chunk.obs_dim != e.obs_dim {
             return Err(ValidationError::column(
                 "observations",
-                format!(
-                    "{} features per observation, expected {}",
-                    chunk.obs_dim, e.obs_dim
-                ),
+                format!("{} features per observation, expected {}", chunk.obs_dim, e.obs_dim),
             ));
         }
         if chunk.act_dim != e.act_dim {
             return Err(ValidationError::column(
                 "actions",
-                format!(
-                    "{} features per action, expected {}",
-                    chunk.act_dim, e.act_dim
-                ),
+                format!("{} features per action, expected {}", chunk.act_dim, e.act_dim),
             ));
         }
         if !chunk.is_consistent() {
@@ -128,12 +122,7 @@ impl EpisodeTracker {
             )));
         }
         check_finite(base, "observations", &chunk.observations, e.obs_dim)?;
-        check_finite(
-            base,
-            "next_observations",
-            &chunk.next_observations,
-            e.obs_dim,
-        )?;
+        check_finite(base, "next_observations", &chunk.next_observations, e.obs_dim)?;
         check_finite(base, "actions", &chunk.actions, e.act_dim)?;
         check_finite(base, "rewards", &chunk.rewards, 1)?;
         check_finite(base, "costs", &chunk.costs, 1)?;
@@ -194,9 +183,10 @@ impl EpisodeTracker {
                 });
                 self.open_rewards.clear();
                 self.open_costs.clear();
-                self.episode = self.episode.checked_add(1).ok_or_else(|| {
-                    ValidationError::at(row, "episode", "more than 2^32 - 1 episodes")
-                })?;
+                self.episode = self
+                    .episode
+                    .checked_add(1)
+                    .ok_or_else(|| ValidationError::at(row, "episode", "more than 2^32 - 1 episodes"))?;
                 self.step = 0;
                 self.open_start = row + 1;
             } else {
@@ -251,12 +241,7 @@ pub fn flags_from_numbers(
         .collect()
 }
 
-fn check_finite(
-    base: u64,
-    column: &str,
-    values: &[f32],
-    width: usize,
-) -> Result<(), ValidationError> {
+fn check_finite(base: u64, column: &str, values: &[f32], width: usize) -> Result<(), ValidationError> {
     match values.iter().position(|v| !v.is_finite()) {
         None => Ok(()),
         Some(i) => {
@@ -370,11 +355,7 @@ mod tests {
         let mut c = chunk();
         c.obs_dim = 3;
         assert_eq!(
-            EpisodeTracker::new(EXPECT)
-                .check(&c)
-                .unwrap_err()
-                .column
-                .as_deref(),
+            EpisodeTracker::new(EXPECT).check(&c).unwrap_err().column.as_deref(),
             Some("observations")
         );
 

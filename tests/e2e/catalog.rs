@@ -11,20 +11,14 @@ fn list_shows_all_38_tasks_with_constants_and_hosted_versions() {
     let tasks = env.cli.run(&["--json", "list"]).ok().json();
     let tasks = tasks.as_array().unwrap();
     assert_eq!(tasks.len(), 38);
-    let ant = tasks
-        .iter()
-        .find(|t| t["id"] == "OfflineAntRun-v0")
-        .unwrap();
+    let ant = tasks.iter().find(|t| t["id"] == "OfflineAntRun-v0").unwrap();
     assert_eq!(ant["family"], "bullet");
     assert_eq!(ant["simulator_env_id"], "SafetyAntRun-v0");
     assert_eq!(ant["max_episode_steps"], 200);
     assert_eq!(ant["obs_dim"], 33);
     assert_eq!(ant["act_dim"], 8);
     assert_eq!(ant["max_episode_reward"], 955.4818725585938);
-    assert_eq!(
-        ant["cost_thresholds"],
-        serde_json::json!([10.0, 20.0, 40.0])
-    );
+    assert_eq!(ant["cost_thresholds"], serde_json::json!([10.0, 20.0, 40.0]));
     assert_eq!(ant["paper_trajectories"], 1816);
     assert_eq!(ant["versions"], serde_json::json!([]));
     let md = tasks
@@ -61,26 +55,14 @@ async fn unknown_ids_are_not_found_with_suggestions_over_cli_rest_and_grpc() {
     let env = Env::new();
     let out = env.cli.run(&["fetch", "AntRun"]);
     assert_eq!(out.code, 4, "{out:?}");
-    assert!(
-        out.stderr.contains("did you mean OfflineAntRun-v0"),
-        "{}",
-        out.stderr
-    );
+    assert!(out.stderr.contains("did you mean OfflineAntRun-v0"), "{}", out.stderr);
     let file = env.path("ant.parquet");
     dsrl_e2e::make_dataset("OfflineAntRun-v0", 1, 1, &file);
-    let out = env.cli.run(&[
-        "admin",
-        "ingest",
-        "--task",
-        "AntRun",
-        file.to_str().unwrap(),
-    ]);
+    let out = env
+        .cli
+        .run(&["admin", "ingest", "--task", "AntRun", file.to_str().unwrap()]);
     assert_eq!(out.code, 4, "{out:?}");
-    assert!(
-        out.stderr.contains("did you mean OfflineAntRun-v0"),
-        "{}",
-        out.stderr
-    );
+    assert!(out.stderr.contains("did you mean OfflineAntRun-v0"), "{}", out.stderr);
     let out = env.cli.run(&["--json", "show", "OfflineAntRun-v1"]);
     assert_eq!(out.code, 4);
     assert_eq!(out.json()["error"]["suggestions"][0], "OfflineAntRun-v0");
@@ -107,9 +89,7 @@ async fn unknown_ids_are_not_found_with_suggestions_over_cli_rest_and_grpc() {
         .await
         .unwrap();
     assert_eq!(response.status(), 404);
-    let out = env
-        .cli
-        .run(&["fetch", "OfflineCarCircle-v0", "--version", "nightly"]);
+    let out = env.cli.run(&["fetch", "OfflineCarCircle-v0", "--version", "nightly"]);
     assert_eq!(out.code, 4, "{out:?}");
     let response = env
         .http()
@@ -119,29 +99,23 @@ async fn unknown_ids_are_not_found_with_suggestions_over_cli_rest_and_grpc() {
         .unwrap();
     assert_eq!(response.status(), 404);
 
-    let mut grpc = DatasetServiceClient::connect(env.server.url.clone())
-        .await
-        .unwrap();
+    let mut grpc = DatasetServiceClient::connect(env.server.url.clone()).await.unwrap();
     let status = grpc
         .get_manifest(GetManifestRequest {
             task: "AntRun".into(),
             version: String::new(),
+            filter: String::new(),
         })
         .await
         .unwrap_err();
     assert_eq!(status.code(), tonic::Code::NotFound);
-    assert!(
-        status.message().contains("did you mean OfflineAntRun-v0"),
-        "{status:?}"
-    );
-    assert_eq!(
-        status.metadata().get("dsrl-error-code").unwrap(),
-        "not_found"
-    );
+    assert!(status.message().contains("did you mean OfflineAntRun-v0"), "{status:?}");
+    assert_eq!(status.metadata().get("dsrl-error-code").unwrap(), "not_found");
     let status = grpc
         .get_manifest(GetManifestRequest {
             task: "OfflineAntRun-v0".into(),
             version: "Not A Tag".into(),
+            filter: String::new(),
         })
         .await
         .unwrap_err();
@@ -152,21 +126,11 @@ async fn unknown_ids_are_not_found_with_suggestions_over_cli_rest_and_grpc() {
 async fn grpc_lists_the_catalog_in_one_response() {
     let env = Env::new();
     let version = env.ingest_synthetic("OfflineBallRun-v0", 3, 2);
-    let mut grpc = DatasetServiceClient::connect(env.server.url.clone())
-        .await
-        .unwrap();
-    let tasks = grpc
-        .list_tasks(ListTasksRequest {})
-        .await
-        .unwrap()
-        .into_inner()
-        .tasks;
+    let mut grpc = DatasetServiceClient::connect(env.server.url.clone()).await.unwrap();
+    let tasks = grpc.list_tasks(ListTasksRequest {}).await.unwrap().into_inner().tasks;
     assert_eq!(tasks.len(), 38);
     let ball = tasks.iter().find(|t| t.id == "OfflineBallRun-v0").unwrap();
-    assert_eq!(
-        (ball.obs_dim, ball.act_dim, ball.max_episode_steps),
-        (7, 2, 100)
-    );
+    assert_eq!((ball.obs_dim, ball.act_dim, ball.max_episode_steps), (7, 2, 100));
     assert_eq!(ball.versions.len(), 1);
     assert_eq!(ball.versions[0].version, version);
     assert_eq!(ball.versions[0].tags, vec!["latest".to_owned()]);
@@ -174,6 +138,7 @@ async fn grpc_lists_the_catalog_in_one_response() {
         .get_manifest(GetManifestRequest {
             task: "OfflineBallRun-v0".into(),
             version: String::new(),
+            filter: String::new(),
         })
         .await
         .unwrap()

@@ -10,11 +10,7 @@ use dsrl_e2e::{run_python, wait_for};
 use crate::{Env, sha256_file};
 
 fn flip_byte(path: &Path, offset: u64) {
-    let mut f = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .open(path)
-        .unwrap();
+    let mut f = std::fs::OpenOptions::new().read(true).write(true).open(path).unwrap();
     f.seek(SeekFrom::Start(offset)).unwrap();
     let mut b = [0u8];
     f.read_exact(&mut b).unwrap();
@@ -40,10 +36,7 @@ fn fetch_is_verified_and_later_fetches_hit_the_cache_even_offline() {
             .join("SafetyAntRun-v0-150-5.parquet")
     );
     assert_eq!(sha256_file(&path), version);
-    assert_eq!(
-        first["downloaded_bytes"],
-        std::fs::metadata(&path).unwrap().len()
-    );
+    assert_eq!(first["downloaded_bytes"], std::fs::metadata(&path).unwrap().len());
     assert!(path.with_file_name("manifest.json").exists());
 
     let second = env.cli.run(&["--json", "fetch", task]).ok().json();
@@ -60,11 +53,7 @@ fn fetch_is_verified_and_later_fetches_hit_the_cache_even_offline() {
     assert_eq!(offline["cache_hit"], true);
     let out = env.cli.run(&["fetch", task]);
     assert_eq!(out.code, 5, "{out:?}");
-    assert!(
-        out.stderr.contains("cannot reach the dsrl server"),
-        "{}",
-        out.stderr
-    );
+    assert!(out.stderr.contains("cannot reach the dsrl server"), "{}", out.stderr);
 }
 
 #[test]
@@ -72,24 +61,14 @@ fn hdf5_export_loads_like_dsrl_and_equals_the_parquet() {
     let env = Env::new();
     let task = "OfflineDroneRun-v0";
     let version = env.ingest_synthetic(task, 7, 21);
-    let out = env
-        .cli
-        .run(&["--json", "fetch", task, "--format", "hdf5"])
-        .ok()
-        .json();
+    let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
     assert_eq!(out["format"], "hdf5");
     assert_eq!(out["converted"], true);
     let h5 = out["path"].as_str().unwrap().to_owned();
-    assert!(
-        h5.ends_with(&format!("{version}/SafetyDroneRun-v0-140-7.hdf5")),
-        "{h5}"
-    );
+    assert!(h5.ends_with(&format!("{version}/SafetyDroneRun-v0-140-7.hdf5")), "{h5}");
     let parquet = out["parquet_path"].as_str().unwrap().to_owned();
-    let loaded: serde_json::Value = serde_json::from_str(&run_python(
-        "dsrl_get_dataset.py",
-        &[&h5, &parquet, "17", "4"],
-    ))
-    .unwrap();
+    let loaded: serde_json::Value =
+        serde_json::from_str(&run_python("dsrl_get_dataset.py", &[&h5, &parquet, "17", "4"])).unwrap();
     let manifest = env.cli.run(&["--json", "show", task]).ok().json();
     assert_eq!(loaded["transitions"], manifest["transitions"]);
     assert_eq!(loaded["episodes"], manifest["episodes"]);
@@ -110,11 +89,7 @@ fn hdf5_export_loads_like_dsrl_and_equals_the_parquet() {
         .collect();
     assert_eq!(ours, numpy);
     // The HDF5 file is now in the cache too.
-    let again = env
-        .cli
-        .run(&["--json", "fetch", task, "--format", "hdf5"])
-        .ok()
-        .json();
+    let again = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
     assert_eq!(
         (again["cache_hit"].as_bool(), again["converted"].as_bool()),
         (Some(true), Some(false))
@@ -174,10 +149,7 @@ fn a_killed_download_resumes_where_it_stopped() {
         resumed_from >= 1 << 20 && resumed_from <= partial,
         "{resumed_from} vs {partial}"
     );
-    assert_eq!(
-        out["downloaded_bytes"].as_u64().unwrap(),
-        size - resumed_from
-    );
+    assert_eq!(out["downloaded_bytes"].as_u64().unwrap(), size - resumed_from);
     assert_eq!(sha256_file(&final_path), version);
     assert!(!part.exists());
     assert_eq!(env.cli.run(&["verify"]).code, 0);
@@ -192,19 +164,12 @@ fn a_corrupted_partial_download_is_caught_and_discarded() {
     flip_byte(&part, 1000);
     let out = env.cli.run(&["fetch", task]);
     assert_eq!(out.code, 3, "{out:?}");
-    assert!(
-        out.stderr.contains("not to the version id"),
-        "{}",
-        out.stderr
-    );
+    assert!(out.stderr.contains("not to the version id"), "{}", out.stderr);
     assert!(!part.exists(), "the corrupt partial file is removed");
     assert!(!part.with_extension("").exists());
     let out = env.cli.run(&["--json", "fetch", task]).ok().json();
     assert_eq!(out["resumed_from"], serde_json::Value::Null);
-    assert_eq!(
-        sha256_file(Path::new(out["path"].as_str().unwrap())),
-        version
-    );
+    assert_eq!(sha256_file(Path::new(out["path"].as_str().unwrap())), version);
 }
 
 #[test]
@@ -212,11 +177,7 @@ fn verify_finds_and_removes_corrupt_files_and_fetch_repairs_them() {
     let env = Env::new();
     let task = "OfflineBallCircle-v0";
     env.ingest_synthetic(task, 6, 23);
-    let out = env
-        .cli
-        .run(&["--json", "fetch", task, "--format", "hdf5"])
-        .ok()
-        .json();
+    let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
     let parquet = PathBuf::from(out["parquet_path"].as_str().unwrap());
     let h5 = PathBuf::from(out["path"].as_str().unwrap());
     let clean = env.cli.run(&["--json", "verify"]).ok().json();
@@ -235,17 +196,10 @@ fn verify_finds_and_removes_corrupt_files_and_fetch_repairs_them() {
         .map(|f| f["path"].as_str().unwrap())
         .collect();
     assert_eq!(corrupt.len(), 2, "{report}");
-    assert!(
-        !parquet.exists() && !h5.exists(),
-        "corrupt files are removed"
-    );
+    assert!(!parquet.exists() && !h5.exists(), "corrupt files are removed");
     assert_eq!(env.cli.run(&["verify"]).code, 0, "nothing corrupt is left");
 
-    let out = env
-        .cli
-        .run(&["--json", "fetch", task, "--format", "hdf5"])
-        .ok()
-        .json();
+    let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
     assert_eq!(out["cache_hit"], false);
     assert!(out["downloaded_bytes"].as_u64().unwrap() > 0);
     assert_eq!(
@@ -276,11 +230,7 @@ fn concurrent_fetches_of_one_version_take_turns() {
         .into_iter()
         .map(|c| {
             let out = c.wait_with_output().unwrap();
-            assert!(
-                out.status.success(),
-                "{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
+            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
             serde_json::from_slice(&out.stdout).unwrap()
         })
         .collect();
@@ -297,9 +247,7 @@ fn concurrent_fetches_of_one_version_take_turns() {
         .map(|e| e.file_name())
         .collect();
     assert!(
-        !entries
-            .iter()
-            .any(|n| n.to_string_lossy().ends_with(".part")),
+        !entries.iter().any(|n| n.to_string_lossy().ends_with(".part")),
         "{entries:?}"
     );
 }

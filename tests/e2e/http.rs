@@ -20,14 +20,9 @@ async fn downloads_follow_http_range_and_cache_semantics() {
     let made = dsrl_e2e::make_dataset(task, 8, 30, &file);
     let bytes = std::fs::read(&file).unwrap();
     let size = bytes.len() as u64;
-    env.cli
-        .run(&["admin", "ingest", "--task", task, crate::s(&file)])
-        .ok();
+    env.cli.run(&["admin", "ingest", "--task", task, crate::s(&file)]).ok();
     let http = env.http();
-    let by_tag = format!(
-        "{}/v1/datasets/{task}/versions/latest/download",
-        env.server.url
-    );
+    let by_tag = format!("{}/v1/datasets/{task}/versions/latest/download", env.server.url);
     let by_id = format!(
         "{}/v1/datasets/{task}/versions/{}/download",
         env.server.url, made.version
@@ -39,11 +34,7 @@ async fn downloads_follow_http_range_and_cache_semantics() {
     assert_eq!(full.headers()["etag"], etag.as_str());
     assert_eq!(full.headers()["content-length"], size.to_string().as_str());
     assert_eq!(full.headers()["accept-ranges"], "bytes");
-    assert_eq!(
-        full.headers()["cache-control"],
-        "no-cache",
-        "a tag can move"
-    );
+    assert_eq!(full.headers()["cache-control"], "no-cache", "a tag can move");
     assert_eq!(
         full.headers()["content-disposition"],
         "attachment; filename=\"SafetyCarRun-v0-40-8.parquet\""
@@ -57,29 +48,16 @@ async fn downloads_follow_http_range_and_cache_semantics() {
             .contains("immutable")
     );
 
-    let part = http
-        .get(&by_id)
-        .header("range", "bytes=100-199")
-        .send()
-        .await
-        .unwrap();
+    let part = http.get(&by_id).header("range", "bytes=100-199").send().await.unwrap();
     assert_eq!(part.status(), 206);
     assert_eq!(
         part.headers()["content-range"],
         format!("bytes 100-199/{size}").as_str()
     );
     assert_eq!(part.bytes().await.unwrap().as_ref(), &bytes[100..200]);
-    let suffix = http
-        .get(&by_id)
-        .header("range", "bytes=-16")
-        .send()
-        .await
-        .unwrap();
+    let suffix = http.get(&by_id).header("range", "bytes=-16").send().await.unwrap();
     assert_eq!(suffix.status(), 206);
-    assert_eq!(
-        suffix.bytes().await.unwrap().as_ref(),
-        &bytes[bytes.len() - 16..]
-    );
+    assert_eq!(suffix.bytes().await.unwrap().as_ref(), &bytes[bytes.len() - 16..]);
     let resumed = http
         .get(&by_id)
         .header("range", "bytes=1000-")
@@ -99,12 +77,7 @@ async fn downloads_follow_http_range_and_cache_semantics() {
         .unwrap();
     assert_eq!(changed.status(), 200);
     assert_eq!(changed.bytes().await.unwrap().len() as u64, size);
-    let multi = http
-        .get(&by_id)
-        .header("range", "bytes=0-1,5-6")
-        .send()
-        .await
-        .unwrap();
+    let multi = http.get(&by_id).header("range", "bytes=0-1,5-6").send().await.unwrap();
     assert_eq!(multi.status(), 200);
     let bad = http
         .get(&by_id)
@@ -113,18 +86,10 @@ async fn downloads_follow_http_range_and_cache_semantics() {
         .await
         .unwrap();
     assert_eq!(bad.status(), 416);
-    assert_eq!(
-        bad.headers()["content-range"],
-        format!("bytes */{size}").as_str()
-    );
+    assert_eq!(bad.headers()["content-range"], format!("bytes */{size}").as_str());
     let body: serde_json::Value = bad.json().await.unwrap();
     assert_eq!(body["error"]["code"], "range_not_satisfiable");
-    let cached = http
-        .get(&by_tag)
-        .header("if-none-match", &etag)
-        .send()
-        .await
-        .unwrap();
+    let cached = http.get(&by_tag).header("if-none-match", &etag).send().await.unwrap();
     assert_eq!(cached.status(), 304);
     let head = http.head(&by_id).send().await.unwrap();
     assert_eq!(head.headers()["content-length"], size.to_string().as_str());
@@ -146,15 +111,13 @@ async fn health_metrics_and_openapi() {
             .unwrap(),
         "ok\n"
     );
-    http.get(format!(
-        "{url}/v1/datasets/OfflineBallRun-v0/versions/latest/download"
-    ))
-    .send()
-    .await
-    .unwrap()
-    .bytes()
-    .await
-    .unwrap();
+    http.get(format!("{url}/v1/datasets/OfflineBallRun-v0/versions/latest/download"))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
     let metrics = http
         .get(format!("{url}/metrics"))
         .send()
@@ -198,10 +161,7 @@ async fn health_metrics_and_openapi() {
         "/v1/datasets/{task}/versions/{version}/download",
         "/v1/datasets/{task}/tags/{tag}",
     ] {
-        assert!(
-            doc["paths"][path].is_object(),
-            "{path} missing from /openapi.json"
-        );
+        assert!(doc["paths"][path].is_object(), "{path} missing from /openapi.json");
     }
     assert!(doc["components"]["schemas"]["Manifest"].is_object());
 }
@@ -212,16 +172,13 @@ async fn grpc_streams_the_same_transitions_as_arrow_ipc() {
     let task = "OfflineMetadrive-mediummean-v0";
     let file = env.path("md.parquet");
     let made = dsrl_e2e::make_dataset(task, 3, 32, &file);
-    env.cli
-        .run(&["admin", "ingest", "--task", task, crate::s(&file)])
-        .ok();
-    let mut grpc = DatasetServiceClient::connect(env.server.url.clone())
-        .await
-        .unwrap();
+    env.cli.run(&["admin", "ingest", "--task", task, crate::s(&file)]).ok();
+    let mut grpc = DatasetServiceClient::connect(env.server.url.clone()).await.unwrap();
     let mut stream = grpc
         .stream_transitions(StreamTransitionsRequest {
             task: task.into(),
             version: made.version.to_string(),
+            filter: String::new(),
         })
         .await
         .unwrap()
@@ -232,10 +189,7 @@ async fn grpc_streams_the_same_transitions_as_arrow_ipc() {
         ipc.extend(chunk.unwrap().arrow_ipc);
         messages += 1;
     }
-    assert!(
-        messages > 3,
-        "batches stream as separate messages ({messages})"
-    );
+    assert!(messages > 3, "batches stream as separate messages ({messages})");
     let reader = arrow_ipc::reader::StreamReader::try_new(Cursor::new(ipc), None).unwrap();
     let mut rewards = Vec::new();
     let mut observations = Vec::new();
@@ -250,17 +204,8 @@ async fn grpc_streams_the_same_transitions_as_arrow_ipc() {
                 .iter()
                 .copied(),
         );
-        let obs = batch
-            .column_by_name("observations")
-            .unwrap()
-            .as_fixed_size_list();
-        observations.extend(
-            obs.values()
-                .as_primitive::<Float32Type>()
-                .values()
-                .iter()
-                .copied(),
-        );
+        let obs = batch.column_by_name("observations").unwrap().as_fixed_size_list();
+        observations.extend(obs.values().as_primitive::<Float32Type>().values().iter().copied());
     }
     let mut expected_rewards = Vec::new();
     let mut expected_obs = Vec::new();
@@ -273,9 +218,6 @@ async fn grpc_streams_the_same_transitions_as_arrow_ipc() {
     assert_eq!(observations, expected_obs);
     assert_eq!(
         rewards.len() as u64,
-        made.episode_index
-            .iter()
-            .map(|e| e.length as u64)
-            .sum::<u64>()
+        made.episode_index.iter().map(|e| e.length as u64).sum::<u64>()
     );
 }

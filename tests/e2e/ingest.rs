@@ -97,9 +97,7 @@ fn bad_uploads_are_rejected_with_the_first_problem_named() {
     dsrl_e2e::make_dataset(task, 3, 5, &good);
     let h5 = env.path("bad.hdf5");
     let reject = |file: &std::path::Path| {
-        let out = env
-            .cli
-            .run(&["--json", "admin", "ingest", "--task", task, s(file)]);
+        let out = env.cli.run(&["--json", "admin", "ingest", "--task", task, s(file)]);
         assert_eq!(out.code, 6, "{out:?}");
         assert_eq!(out.json()["error"]["code"], "invalid_argument");
         out.json()["error"]["message"].as_str().unwrap().to_owned()
@@ -109,10 +107,7 @@ fn bad_uploads_are_rejected_with_the_first_problem_named() {
             &["--nan-at", "17"],
             "row 17, column observations[0]: value NaN is not finite",
         ),
-        (
-            &["--unclosed"],
-            "are not closed by a terminal or timeout flag",
-        ),
+        (&["--unclosed"], "are not closed by a terminal or timeout flag"),
         (&["--drop-key", "costs"], "missing key(s) costs"),
         (&["--short-key", "rewards"], "key rewards has"),
     ];
@@ -140,15 +135,9 @@ fn bad_uploads_are_rejected_with_the_first_problem_named() {
     assert!(reject(&empty).contains("empty"));
 
     // Bad parameters.
-    let out = env.cli.run(&[
-        "admin",
-        "ingest",
-        "--task",
-        task,
-        "--tag",
-        "Not A Tag",
-        s(&good),
-    ]);
+    let out = env
+        .cli
+        .run(&["admin", "ingest", "--task", task, "--tag", "Not A Tag", s(&good)]);
     assert_eq!(out.code, 6, "{out:?}");
     assert!(out.stderr.contains("invalid tag"), "{}", out.stderr);
     let out = env.cli.run(&[
@@ -179,18 +168,9 @@ async fn admin_operations_need_the_token() {
     let env = Env::new();
     let file = env.path("ball.parquet");
     dsrl_e2e::make_dataset("OfflineBallCircle-v0", 2, 6, &file);
-    let url = format!(
-        "{}/v1/datasets/OfflineBallCircle-v0/versions",
-        env.server.url
-    );
+    let url = format!("{}/v1/datasets/OfflineBallCircle-v0/versions", env.server.url);
     let body = std::fs::read(&file).unwrap();
-    let response = env
-        .http()
-        .post(&url)
-        .body(body.clone())
-        .send()
-        .await
-        .unwrap();
+    let response = env.http().post(&url).body(body.clone()).send().await.unwrap();
     assert_eq!(response.status(), 401);
     assert_eq!(response.headers()["www-authenticate"], "Bearer");
     let response = env
@@ -204,30 +184,15 @@ async fn admin_operations_need_the_token() {
     assert_eq!(response.status(), 403);
     let mut cli = env.cli.clone();
     cli.token = Some("wrong-token-0123456789".into());
-    let out = cli.run(&[
-        "admin",
-        "ingest",
-        "--task",
-        "OfflineBallCircle-v0",
-        crate::s(&file),
-    ]);
+    let out = cli.run(&["admin", "ingest", "--task", "OfflineBallCircle-v0", crate::s(&file)]);
     assert_eq!(out.code, 7, "{out:?}");
     cli.token = None;
-    let out = cli.run(&[
-        "admin",
-        "ingest",
-        "--task",
-        "OfflineBallCircle-v0",
-        crate::s(&file),
-    ]);
+    let out = cli.run(&["admin", "ingest", "--task", "OfflineBallCircle-v0", crate::s(&file)]);
     assert_eq!(out.code, 2, "no token at all is a usage error: {out:?}");
     assert!(out.stderr.contains("need a token"), "{}", out.stderr);
     let response = env
         .http()
-        .put(format!(
-            "{}/v1/datasets/OfflineBallCircle-v0/tags/x",
-            env.server.url
-        ))
+        .put(format!("{}/v1/datasets/OfflineBallCircle-v0/tags/x", env.server.url))
         .json(&serde_json::json!({"version": "0".repeat(64)}))
         .send()
         .await
@@ -243,21 +208,12 @@ async fn oversized_uploads_get_413_whether_declared_or_streamed() {
     let size = std::fs::metadata(&file).unwrap().len();
     assert!(size > 100_000);
     // The CLI asks for the limit first and sends nothing.
-    let out = env.cli.run(&[
-        "--json",
-        "admin",
-        "ingest",
-        "--task",
-        "OfflineAntCircle-v0",
-        s(&file),
-    ]);
+    let out = env
+        .cli
+        .run(&["--json", "admin", "ingest", "--task", "OfflineAntCircle-v0", s(&file)]);
     assert_eq!(out.code, 6, "{out:?}");
     assert_eq!(out.json()["error"]["code"], "payload_too_large");
-    assert!(
-        out.stderr.contains("upload limit of 100000 bytes"),
-        "{}",
-        out.stderr
-    );
+    assert!(out.stderr.contains("upload limit of 100000 bytes"), "{}", out.stderr);
 
     // A declared Content-Length over the limit: refused without reading the body.
     let url = env.server.url.trim_start_matches("http://").to_owned();
@@ -280,14 +236,10 @@ async fn oversized_uploads_get_413_whether_declared_or_streamed() {
     // Chunked, without Content-Length: cut off once the limit is passed, and the client still gets the answer
     // because the server reads out the rest (within bounds) before replying.
     let bytes = std::fs::read(&file).unwrap();
-    let chunks: Vec<Result<Vec<u8>, std::io::Error>> =
-        bytes.chunks(16 << 10).map(|c| Ok(c.to_vec())).collect();
+    let chunks: Vec<Result<Vec<u8>, std::io::Error>> = bytes.chunks(16 << 10).map(|c| Ok(c.to_vec())).collect();
     let response = env
         .http()
-        .post(format!(
-            "{}/v1/datasets/OfflineAntCircle-v0/versions",
-            env.server.url
-        ))
+        .post(format!("{}/v1/datasets/OfflineAntCircle-v0/versions", env.server.url))
         .bearer_auth(env.server.token())
         .body(reqwest::Body::wrap_stream(futures::stream::iter(chunks)))
         .send()
@@ -311,28 +263,14 @@ fn paper_space_metadrive_data_is_labelled_never_silently_accepted() {
     let mut spec = SyntheticSpec::for_task(task, 2, 8);
     spec.obs_dim = 261;
     let file = env.path("paper.parquet");
-    write_canonical(
-        task,
-        ObservationSpace::Paper,
-        transitions(spec).map(Ok),
-        vec![],
-        &file,
-    )
-    .unwrap();
-    let out = env
-        .cli
-        .run(&["admin", "ingest", "--task", task_id, s(&file)]);
+    write_canonical(task, ObservationSpace::Paper, transitions(spec).map(Ok), vec![], &file).unwrap();
+    let out = env.cli.run(&["admin", "ingest", "--task", task_id, s(&file)]);
     assert_eq!(out.code, 6, "{out:?}");
     assert!(
-        out.stderr.contains(
-            "261 features per observation, but OfflineMetadrive-easydense-v0 expects 259"
-        )
-    );
-    assert!(
-        out.stderr.contains("observation_space=paper"),
-        "{}",
         out.stderr
+            .contains("261 features per observation, but OfflineMetadrive-easydense-v0 expects 259")
     );
+    assert!(out.stderr.contains("observation_space=paper"), "{}", out.stderr);
     let out = env
         .cli
         .run(&[
@@ -357,15 +295,9 @@ fn paper_space_metadrive_data_is_labelled_never_silently_accepted() {
         "paper data never becomes latest"
     );
     let version = out["version"]["version"].as_str().unwrap().to_owned();
-    let out = env.cli.run(&[
-        "admin",
-        "tag",
-        "--task",
-        task_id,
-        "--version",
-        &version,
-        "latest",
-    ]);
+    let out = env
+        .cli
+        .run(&["admin", "tag", "--task", task_id, "--version", &version, "latest"]);
     assert_eq!(out.code, 6, "{out:?}");
     let manifest = env
         .cli
@@ -385,19 +317,9 @@ fn tags_move_and_latest_follows_new_versions() {
     let env = Env::new();
     let task = "OfflineCarCircle-v0";
     let v1_file = env.path("v1.parquet");
-    let v1 = dsrl_e2e::make_dataset(task, 2, 10, &v1_file)
-        .version
-        .to_string();
+    let v1 = dsrl_e2e::make_dataset(task, 2, 10, &v1_file).version.to_string();
     env.cli
-        .run(&[
-            "admin",
-            "ingest",
-            "--task",
-            task,
-            "--tag",
-            "release-1",
-            s(&v1_file),
-        ])
+        .run(&["admin", "ingest", "--task", task, "--tag", "release-1", s(&v1_file)])
         .ok();
     let v2 = env.ingest_synthetic(task, 3, 11);
     let list = versions(&env, task);
@@ -415,19 +337,10 @@ fn tags_move_and_latest_follows_new_versions() {
         .ok()
         .json();
     assert_eq!(fetched["version"], v1.as_str());
-    let out = env.cli.run(&[
-        "admin",
-        "tag",
-        "--task",
-        task,
-        "--version",
-        &"f".repeat(64),
-        "latest",
-    ]);
-    assert_eq!(
-        out.code, 4,
-        "tagging a version that does not exist: {out:?}"
-    );
+    let out = env
+        .cli
+        .run(&["admin", "tag", "--task", task, "--version", &"f".repeat(64), "latest"]);
+    assert_eq!(out.code, 4, "tagging a version that does not exist: {out:?}");
 }
 
 /// Kills the server at two moments of an ingest (mid-upload, mid-conversion): after a restart no version is
@@ -464,11 +377,7 @@ fn a_killed_ingest_leaves_no_visible_version() {
             versions(&env, task).is_empty(),
             "a version became visible after a kill at {stage}"
         );
-        assert_eq!(
-            std::fs::read_dir(&tmp).unwrap().count(),
-            0,
-            "start-up clears leftovers"
-        );
+        assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0, "start-up clears leftovers");
     }
     let out = env
         .cli
@@ -482,19 +391,15 @@ fn a_killed_ingest_leaves_no_visible_version() {
 /// The pid of a `dsrl-server convert` child working under `data_dir`, if one is running (Linux /proc).
 fn converter_pid(data_dir: &std::path::Path) -> Option<u32> {
     let needle = data_dir.to_string_lossy().into_owned();
-    std::fs::read_dir("/proc")
-        .ok()?
-        .flatten()
-        .find_map(|entry| {
-            let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
-            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
-            let args: Vec<String> = cmdline
-                .split(|&b| b == 0)
-                .map(|a| String::from_utf8_lossy(a).into_owned())
-                .collect();
-            (args.iter().any(|a| a == "convert") && args.iter().any(|a| a.contains(&needle)))
-                .then_some(pid)
-        })
+    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
+        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+        let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+        let args: Vec<String> = cmdline
+            .split(|&b| b == 0)
+            .map(|a| String::from_utf8_lossy(a).into_owned())
+            .collect();
+        (args.iter().any(|a| a == "convert") && args.iter().any(|a| a.contains(&needle))).then_some(pid)
+    })
 }
 
 /// Uploads are parsed in a child process: when it dies (here SIGKILL, in real life a crash in libhdf5 or the
@@ -535,7 +440,5 @@ fn a_dying_converter_fails_only_its_own_request() {
     );
     let tmp = env.server.data_dir.join("tmp");
     assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0);
-    env.cli
-        .run(&["admin", "ingest", "--task", task, s(&file)])
-        .ok();
+    env.cli.run(&["admin", "ingest", "--task", task, s(&file)]).ok();
 }

@@ -4,6 +4,7 @@
 
 mod catalog;
 mod fetch;
+mod filters;
 mod http;
 mod ingest;
 mod s3;
@@ -54,14 +55,7 @@ impl Env {
         let converted = dsrl_e2e::make_dataset(task, episodes, seed, &file);
         let out = self
             .cli
-            .run(&[
-                "--json",
-                "admin",
-                "ingest",
-                "--task",
-                task,
-                file.to_str().unwrap(),
-            ])
+            .run(&["--json", "admin", "ingest", "--task", task, file.to_str().unwrap()])
             .ok();
         assert_eq!(out.json()["version"]["version"], converted.version.as_str());
         converted.version.to_string()
@@ -88,9 +82,7 @@ pub fn get_json(url: &str) -> serde_json::Value {
 
 pub fn sha256_file(path: &Path) -> String {
     use sha2::Digest;
-    hex::encode(sha2::Sha256::digest(
-        std::fs::read(path).expect("reading a file"),
-    ))
+    hex::encode(sha2::Sha256::digest(std::fs::read(path).expect("reading a file")))
 }
 
 pub fn s(p: &Path) -> &str {

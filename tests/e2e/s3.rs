@@ -42,11 +42,7 @@ async fn datasets_live_in_s3_when_configured() {
         std::net::TcpStream::connect(("127.0.0.1", port)).is_ok()
     });
     assert!(up, "moto did not start");
-    let created = http
-        .put(format!("{endpoint}/dsrl-datasets"))
-        .send()
-        .await
-        .unwrap();
+    let created = http.put(format!("{endpoint}/dsrl-datasets")).send().await.unwrap();
     assert!(created.status().is_success(), "{created:?}");
 
     let envs = [
@@ -70,23 +66,15 @@ async fn datasets_live_in_s3_when_configured() {
         .await
         .unwrap();
     assert!(
-        listing.contains(&format!(
-            "prod/datasets/OfflineAntCircle-v0/{version}.parquet"
-        )),
+        listing.contains(&format!("prod/datasets/OfflineAntCircle-v0/{version}.parquet")),
         "{listing}"
     );
-    assert!(listing.contains(&format!(
-        "prod/datasets/OfflineAntCircle-v0/{version}.manifest.json"
-    )));
+    assert!(listing.contains(&format!("prod/datasets/OfflineAntCircle-v0/{version}.manifest.json")));
     assert!(
         !env.server.data_dir.join("objects").exists(),
         "nothing goes to the local object folder"
     );
-    let out = env
-        .cli
-        .run(&["--json", "fetch", "OfflineAntCircle-v0"])
-        .ok()
-        .json();
+    let out = env.cli.run(&["--json", "fetch", "OfflineAntCircle-v0"]).ok().json();
     assert_eq!(
         sha256_file(std::path::Path::new(out["path"].as_str().unwrap())),
         version

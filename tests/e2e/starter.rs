@@ -14,11 +14,7 @@ fn starter_datasets_load_once_and_never_move_latest_back() {
         "kind": "recipe", "recipe": "data/recipes/test.toml", "seeds": [50], "code_version": "test",
         "details": {"budget_steps": 1000}
     });
-    std::fs::write(
-        format!("{}.provenance.json", file.display()),
-        provenance.to_string(),
-    )
-    .unwrap();
+    std::fs::write(format!("{}.provenance.json", file.display()), provenance.to_string()).unwrap();
 
     let mut env = Env::with(&["--starter-datasets", s(&starter)], &[]);
     let manifest = env.cli.run(&["--json", "show", task]).ok().json();

@@ -43,11 +43,7 @@ pub fn bin(name: &str) -> PathBuf {
         assert!(status.success(), "cargo build --workspace --bins failed");
     });
     let path = profile_dir().join(name);
-    assert!(
-        path.exists(),
-        "{} is missing after cargo build",
-        path.display()
-    );
+    assert!(path.exists(), "{} is missing after cargo build", path.display());
     path
 }
 
@@ -85,14 +81,7 @@ pub fn make_dataset(task: &str, episodes: usize, seed: u64, out: &Path) -> Conve
     let catalog = Catalog::embedded().expect("catalog");
     let task = catalog.get(task).expect("task");
     let chunks = transitions(SyntheticSpec::for_task(task, episodes, seed));
-    write_canonical(
-        task,
-        ObservationSpace::Simulator,
-        chunks.map(Ok),
-        vec![],
-        out,
-    )
-    .expect("writing a dataset")
+    write_canonical(task, ObservationSpace::Simulator, chunks.map(Ok), vec![], out).expect("writing a dataset")
 }
 
 /// A `dsrl-server` process on a free loopback port, killed when dropped.
@@ -108,10 +97,7 @@ impl Server {
     /// Starts a server with its data under `data_dir`; `args` and `envs` are extra flags and environment.
     pub fn start(data_dir: &Path, args: &[&str], envs: &[(&str, &str)]) -> Server {
         let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
-        let envs: Vec<(String, String)> = envs
-            .iter()
-            .map(|(k, v)| (k.to_string(), v.to_string()))
-            .collect();
+        let envs: Vec<(String, String)> = envs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
         let (child, url) = spawn_server(data_dir, &args, &envs);
         Server {
             child,
@@ -165,14 +151,10 @@ impl Drop for Server {
 
 fn spawn_server(data_dir: &Path, args: &[String], envs: &[(String, String)]) -> (Child, String) {
     let mut cmd = Command::new(bin("dsrl-server"));
-    cmd.arg("--listen")
-        .arg("127.0.0.1:0")
-        .arg("--data-dir")
-        .arg(data_dir);
+    cmd.arg("--listen").arg("127.0.0.1:0").arg("--data-dir").arg(data_dir);
     // Starter datasets are opt-in per test, never picked up from the working directory.
     if !args.iter().any(|a| a == "--starter-datasets") {
-        cmd.arg("--starter-datasets")
-            .arg(data_dir.join("no-starter-datasets"));
+        cmd.arg("--starter-datasets").arg(data_dir.join("no-starter-datasets"));
     }
     // The server's log goes to a file beside its data folder, for reading when a test fails.
     std::fs::create_dir_all(data_dir).expect("creating the data folder");
@@ -218,8 +200,7 @@ pub struct Run {
 
 impl Run {
     pub fn json(&self) -> serde_json::Value {
-        serde_json::from_str(&self.stdout)
-            .unwrap_or_else(|e| panic!("stdout is not JSON ({e}): {self:?}"))
+        serde_json::from_str(&self.stdout).unwrap_or_else(|e| panic!("stdout is not JSON ({e}): {self:?}"))
     }
     pub fn ok(self) -> Run {
         assert_eq!(self.code, 0, "dsrl-client failed: {self:?}");

@@ -91,6 +91,10 @@ pub struct GetManifestRequest {
     /// A version id or a tag; empty means "latest".
     #[prost(string, tag = "2")]
     pub version: ::prost::alloc::string::String,
+    /// A DSRL post-process filter, e.g. "noise=0.05"; empty means none. With a filter, the answer is about the
+    /// filtered version (computed once, then cached).
+    #[prost(string, tag = "3")]
+    pub filter: ::prost::alloc::string::String,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
@@ -109,6 +113,9 @@ pub struct StreamTransitionsRequest {
     /// A version id or a tag; empty means "latest".
     #[prost(string, tag = "2")]
     pub version: ::prost::alloc::string::String,
+    /// A DSRL post-process filter; empty means none.
+    #[prost(string, tag = "3")]
+    pub filter: ::prost::alloc::string::String,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]

@@ -18,15 +18,9 @@ impl AdminAuth {
     }
 
     /// The configured token, or the one stored in (or newly generated into) `token_file`.
-    pub fn load_or_create(
-        configured: Option<&str>,
-        token_file: &Path,
-    ) -> anyhow::Result<AdminAuth> {
+    pub fn load_or_create(configured: Option<&str>, token_file: &Path) -> anyhow::Result<AdminAuth> {
         if let Some(token) = configured {
-            anyhow::ensure!(
-                token.len() >= 16,
-                "auth.admin_token must have at least 16 characters"
-            );
+            anyhow::ensure!(token.len() >= 16, "auth.admin_token must have at least 16 characters");
             return Ok(AdminAuth::new(token.to_owned()));
         }
         match std::fs::read_to_string(token_file) {
@@ -38,8 +32,7 @@ impl AdminAuth {
             Err(e) => return Err(e.into()),
         }
         let mut bytes = [0u8; 32];
-        getrandom::fill(&mut bytes)
-            .map_err(|e| anyhow::anyhow!("no randomness for the admin token: {e}"))?;
+        getrandom::fill(&mut bytes).map_err(|e| anyhow::anyhow!("no randomness for the admin token: {e}"))?;
         let token = hex::encode(bytes);
         let mut options = std::fs::OpenOptions::new();
         options.write(true).create_new(true);
@@ -53,9 +46,7 @@ impl AdminAuth {
     }
 
     pub fn check(&self, headers: &HeaderMap) -> Result<(), ApiError> {
-        let value = headers
-            .get(header::AUTHORIZATION)
-            .ok_or(ApiError::Unauthenticated)?;
+        let value = headers.get(header::AUTHORIZATION).ok_or(ApiError::Unauthenticated)?;
         let presented = value
             .to_str()
             .ok()
@@ -88,10 +79,7 @@ mod tests {
     fn bearer_tokens_are_checked() {
         let auth = AdminAuth::new("s3cret-token-0123".into());
         assert!(auth.check(&headers("Bearer s3cret-token-0123")).is_ok());
-        assert!(matches!(
-            auth.check(&HeaderMap::new()),
-            Err(ApiError::Unauthenticated)
-        ));
+        assert!(matches!(auth.check(&HeaderMap::new()), Err(ApiError::Unauthenticated)));
         assert!(matches!(
             auth.check(&headers("Basic abc")),
             Err(ApiError::Unauthenticated)
@@ -113,10 +101,7 @@ mod tests {
         #[cfg(unix)]
         {
             use std::os::unix::fs::PermissionsExt;
-            assert_eq!(
-                std::fs::metadata(&path).unwrap().permissions().mode() & 0o777,
-                0o600
-            );
+            assert_eq!(std::fs::metadata(&path).unwrap().permissions().mode() & 0o777, 0o600);
         }
         assert!(AdminAuth::load_or_create(Some("short"), &path).is_err());
     }

@@ -15,7 +15,7 @@ use tokio::io::AsyncWriteExt;
 
 use crate::AppState;
 use crate::error::ApiError;
-use crate::http::metrics::OutcomeLabels;
+use crate::metrics::OutcomeLabels;
 use crate::storage::datasets::{IngestRequest, LatestPolicy};
 use crate::storage::db::VersionRecord;
 
@@ -79,10 +79,7 @@ pub struct ServerInfo {
 
 #[utoipa::path(get, path = "/v1/server", tag = "server",
     responses((status = 200, body = ServerInfo), (status = 403, description = "The bearer token presented is wrong")))]
-pub async fn server_info(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-) -> Result<Json<ServerInfo>, ApiError> {
+pub async fn server_info(State(state): State<AppState>, headers: HeaderMap) -> Result<Json<ServerInfo>, ApiError> {
     let admin = match headers.get(header::AUTHORIZATION) {
         None => false,
         Some(_) => {
@@ -96,6 +93,24 @@ pub async fn server_info(
         max_upload_bytes: state.max_upload_bytes,
         admin,
     }))
+}
+
+/// Query of the version endpoints.
+#[derive(Debug, Default, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct VersionQuery {
+    /// A DSRL post-process filter, e.g. `noise=0.05` (outliers_percent), `density=0.5,seed=1`, `obs_noise=0.1`,
+    /// `discard=tempting`, `epsilon=-20,target_cost=10`. The answer is about the filtered version, computed once
+    /// and cached; an invalid filter is a 400 that lists the valid keys and ranges.
+    pub filter: Option<String>,
+}
+
+impl VersionQuery {
+    pub fn from(query: Result<Query<VersionQuery>, QueryRejection>) -> Result<VersionQuery, ApiError> {
+        query
+            .map(|Query(q)| q)
+            .map_err(|e| ApiError::InvalidArgument(e.body_text()))
+    }
 }
 
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
@@ -123,10 +138,7 @@ pub async fn list_tasks(State(state): State<AppState>) -> Result<Json<TaskList>,
 #[utoipa::path(get, path = "/v1/tasks/{task}", tag = "catalog",
     params(("task" = String, Path, description = "Offline task id, e.g. OfflineAntRun-v0")),
     responses((status = 200, body = TaskEntry), (status = 404, description = "Unknown task; nearest ids suggested")))]
-pub async fn get_task(
-    State(state): State<AppState>,
-    Path(task): Path<String>,
-) -> Result<Json<TaskEntry>, ApiError> {
+pub async fn get_task(State(state): State<AppState>, Path(task): Path<String>) -> Result<Json<TaskEntry>, ApiError> {
     let (task, versions) = state.datasets.versions(&task).await?;
     Ok(Json(TaskEntry {
         task: task.clone(),
@@ -149,27 +161,47 @@ pub async fn list_versions(
 }
 
 #[utoipa::path(get, path = "/v1/datasets/{task}/versions/{version}", tag = "datasets",
-    params(("task" = String, Path), ("version" = String, Path, description = "Version id (sha256) or tag such as latest")),
-    responses((status = 200, description = "The version's manifest", body = dsrl_suite::Manifest), (status = 404)))]
+    params(("task" = String, Path), ("version" = String, Path, description = "Version id (sha256) or tag such as latest"), VersionQuery),
+    responses((status = 200, description = "The version's manifest (of the filtered version with ?filter=)", body = dsrl_suite::Manifest),
+        (status = 400, description = "Invalid filter, or one this dataset cannot satisfy"), (status = 404)))]
 pub async fn get_manifest(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
+    query: Result<Query<VersionQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
-    let (_, record) = state.datasets.resolve(&task, &reference).await?;
+    let query = VersionQuery::from(query)?;
+    let (_, record) = state
+        .datasets
+        .resolve_filtered(&task, &reference, query.filter.as_deref())
+        .await?;
     let json = state.datasets.manifest_json(&record).await?;
-    let etag =
-        HeaderValue::from_str(&format!("\"{}\"", record.version)).map_err(ApiError::internal)?;
+    let etag = HeaderValue::from_str(&format!("\"{}\"", record.version)).map_err(ApiError::internal)?;
     Ok((
         [
-            (
-                header::CONTENT_TYPE,
-                HeaderValue::from_static("application/json"),
-            ),
+            (header::CONTENT_TYPE, HeaderValue::from_static("application/json")),
             (header::ETAG, etag),
         ],
         json,
     )
         .into_response())
+}
+
+#[utoipa::path(get, path = "/v1/datasets/{task}/versions/{version}/plot.svg", tag = "datasets",
+    params(("task" = String, Path), ("version" = String, Path), VersionQuery),
+    responses((status = 200, description = "Cost-reward return scatter with the task's cost thresholds; with ?filter=, \
+        removed trajectories in gray and relabelled outliers in red", content_type = "image/svg+xml"),
+        (status = 400), (status = 404)))]
+pub async fn get_plot(
+    State(state): State<AppState>,
+    Path((task, reference)): Path<(String, String)>,
+    query: Result<Query<VersionQuery>, QueryRejection>,
+) -> Result<Response, ApiError> {
+    let query = VersionQuery::from(query)?;
+    let svg = state
+        .datasets
+        .plot_svg(&task, &reference, query.filter.as_deref())
+        .await?;
+    Ok(([(header::CONTENT_TYPE, HeaderValue::from_static("image/svg+xml"))], svg).into_response())
 }
 
 #[utoipa::path(post, path = "/v1/datasets/{task}/versions", tag = "datasets",
@@ -201,11 +233,7 @@ pub async fn ingest(
         Ok(_) => "unchanged",
         Err(_) => "rejected",
     };
-    state
-        .metrics
-        .ingests
-        .get_or_create(&OutcomeLabels { outcome })
-        .inc();
+    state.metrics.ingests.get_or_create(&OutcomeLabels { outcome }).inc();
     if result.is_err() {
         linger(&mut stream).await;
     }
@@ -275,9 +303,8 @@ async fn ingest_checked(
     let recipe = match headers.get(PROVENANCE_HEADER) {
         None => None,
         Some(v) => {
-            let p: Provenance = serde_json::from_slice(v.as_bytes()).map_err(|e| {
-                ApiError::InvalidArgument(format!("{PROVENANCE_HEADER} header: {e}"))
-            })?;
+            let p: Provenance = serde_json::from_slice(v.as_bytes())
+                .map_err(|e| ApiError::InvalidArgument(format!("{PROVENANCE_HEADER} header: {e}")))?;
             if !matches!(p, Provenance::Recipe { .. }) {
                 return Err(ApiError::InvalidArgument(format!(
                     "{PROVENANCE_HEADER} header: only recipe provenance can be declared; imports are recorded by the \
@@ -290,14 +317,9 @@ async fn ingest_checked(
     if let Some(license) = &params.license
         && (license.is_empty() || license.len() > 128)
     {
-        return Err(ApiError::InvalidArgument(
-            "license must have 1-128 characters".into(),
-        ));
+        return Err(ApiError::InvalidArgument("license must have 1-128 characters".into()));
     }
-    let file_name = params
-        .filename
-        .clone()
-        .unwrap_or_else(|| "upload".to_owned());
+    let file_name = params.filename.clone().unwrap_or_else(|| "upload".to_owned());
 
     // Stream the body to a temporary file, hashing it and enforcing the size limit as it arrives.
     let upload = state.datasets.temp_file("upload");
@@ -310,8 +332,7 @@ async fn ingest_checked(
     let mut hasher = Sha256::new();
     let mut received = 0u64;
     while let Some(chunk) = stream.next().await {
-        let chunk = chunk
-            .map_err(|e| ApiError::InvalidUpload(format!("the upload was interrupted: {e}")))?;
+        let chunk = chunk.map_err(|e| ApiError::InvalidUpload(format!("the upload was interrupted: {e}")))?;
         received += chunk.len() as u64;
         if received > limit {
             return Err(ApiError::UploadTooLarge { limit });
@@ -367,7 +388,5 @@ pub async fn put_tag(
 ) -> Result<Json<VersionRecord>, ApiError> {
     state.auth.check(&headers)?;
     let Json(request) = request.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-    Ok(Json(
-        state.datasets.tag(&task, &tag, &request.version).await?,
-    ))
+    Ok(Json(state.datasets.tag(&task, &tag, &request.version).await?))
 }

@@ -4,13 +4,15 @@
 use std::ops::Range;
 
 use axum::body::Body;
-use axum::extract::{Path, State};
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use futures::StreamExt;
 
 use crate::AppState;
 use crate::error::ApiError;
+use crate::http::datasets::VersionQuery;
 
 /// What a `Range` header asks of a file of `size` bytes.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -71,17 +73,20 @@ fn none_match(value: &HeaderValue, etag: &str) -> bool {
 pub async fn download(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
+    query: Result<Query<VersionQuery>, QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let (task, record) = state.datasets.resolve(&task, &reference).await?;
+    let query = VersionQuery::from(query)?;
+    let (task, record) = state
+        .datasets
+        .resolve_filtered(&task, &reference, query.filter.as_deref())
+        .await?;
     let etag = format!("\"{}\"", record.version);
     let size = record.byte_size;
-    let named_by_id = reference.eq_ignore_ascii_case(&record.version);
+    // A version id (with or without a filter) names immutable bytes; a tag can move.
+    let named_by_id = reference.parse::<dsrl_suite::VersionId>().is_ok();
     let mut response_headers = HeaderMap::new();
-    response_headers.insert(
-        header::ETAG,
-        HeaderValue::from_str(&etag).map_err(ApiError::internal)?,
-    );
+    response_headers.insert(header::ETAG, HeaderValue::from_str(&etag).map_err(ApiError::internal)?);
     response_headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
     // A version id names immutable bytes; a tag can move, so caches must revalidate.
     response_headers.insert(
@@ -92,10 +97,7 @@ pub async fn download(
             "no-cache"
         }),
     );
-    if headers
-        .get(header::IF_NONE_MATCH)
-        .is_some_and(|v| none_match(v, &etag))
-    {
+    if headers.get(header::IF_NONE_MATCH).is_some_and(|v| none_match(v, &etag)) {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     }
     // If-Range: resume only if the file is still the one the client has part of; otherwise send it whole.
@@ -130,15 +132,11 @@ pub async fn download(
         response_headers.insert(header::CONTENT_DISPOSITION, v);
     }
     let metrics = state.metrics.clone();
-    let stream = state
-        .datasets
-        .read(&record, byte_range)
-        .await?
-        .inspect(move |chunk| {
-            if let Ok(bytes) = chunk {
-                metrics.download_bytes.inc_by(bytes.len() as u64);
-            }
-        });
+    let stream = state.datasets.read(&record, byte_range).await?.inspect(move |chunk| {
+        if let Ok(bytes) = chunk {
+            metrics.download_bytes.inc_by(bytes.len() as u64);
+        }
+    });
     Ok((status, response_headers, Body::from_stream(stream)).into_response())
 }
 
@@ -170,10 +168,7 @@ mod tests {
         let etag = "\"abc\"";
         assert!(none_match(&HeaderValue::from_static("\"abc\""), etag));
         assert!(none_match(&HeaderValue::from_static("W/\"abc\""), etag));
-        assert!(none_match(
-            &HeaderValue::from_static("\"x\", \"abc\""),
-            etag
-        ));
+        assert!(none_match(&HeaderValue::from_static("\"x\", \"abc\""), etag));
         assert!(none_match(&HeaderValue::from_static("*"), etag));
         assert!(!none_match(&HeaderValue::from_static("\"abd\""), etag));
     }

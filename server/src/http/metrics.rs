@@ -1,106 +1,13 @@
-//! Prometheus metrics in the text exposition format at `/metrics`: requests by route and status (REST) or method
-//! and code (gRPC), request latency, bytes served, ingests by outcome, hosted versions.
+//! The HTTP side of metrics: a middleware that counts every request, and `/metrics` in the Prometheus text format.
 
 use std::time::Instant;
 
+use crate::AppState;
+use crate::metrics::{RequestLabels, RouteLabels};
 use axum::extract::{MatchedPath, Request, State};
 use axum::http::header;
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
-use prometheus_client::encoding::EncodeLabelSet;
-use prometheus_client::metrics::counter::Counter;
-use prometheus_client::metrics::family::Family;
-use prometheus_client::metrics::gauge::Gauge;
-use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
-use prometheus_client::registry::Registry;
-
-use crate::AppState;
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-pub struct RequestLabels {
-    pub method: String,
-    pub route: String,
-    /// HTTP status for REST; the `grpc-status` code for gRPC (0 when it only arrives in trailers, i.e. OK).
-    pub status: String,
-}
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-pub struct RouteLabels {
-    pub route: String,
-}
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-pub struct OutcomeLabels {
-    pub outcome: &'static str,
-}
-
-pub struct Metrics {
-    registry: Registry,
-    pub requests: Family<RequestLabels, Counter>,
-    pub latency: Family<RouteLabels, Histogram>,
-    pub download_bytes: Counter,
-    pub ingests: Family<OutcomeLabels, Counter>,
-    pub dataset_versions: Gauge,
-}
-
-impl Metrics {
-    pub fn new() -> Metrics {
-        let mut registry = Registry::with_prefix("dsrl");
-        let requests = Family::<RequestLabels, Counter>::default();
-        registry.register(
-            "requests",
-            "Requests by method (HTTP verb or gRPC method), route and status",
-            requests.clone(),
-        );
-        let latency = Family::<RouteLabels, Histogram>::new_with_constructor(|| {
-            Histogram::new(exponential_buckets(0.0005, 4.0, 10))
-        });
-        registry.register(
-            "request_duration_seconds",
-            "Time to the response head, by route",
-            latency.clone(),
-        );
-        let download_bytes = Counter::default();
-        registry.register(
-            "download_bytes",
-            "Dataset bytes sent to clients",
-            download_bytes.clone(),
-        );
-        let ingests = Family::<OutcomeLabels, Counter>::default();
-        registry.register(
-            "ingests",
-            "Ingest requests by outcome (created, unchanged, rejected)",
-            ingests.clone(),
-        );
-        let dataset_versions = Gauge::default();
-        registry.register(
-            "dataset_versions",
-            "Hosted dataset versions",
-            dataset_versions.clone(),
-        );
-        Metrics {
-            registry,
-            requests,
-            latency,
-            download_bytes,
-            ingests,
-            dataset_versions,
-        }
-    }
-
-    pub fn render(&self) -> String {
-        let mut out = String::new();
-        prometheus_client::encoding::text::encode(&mut out, &self.registry)
-            .expect("writing to a String");
-        out
-    }
-}
-
-impl Default for Metrics {
-    fn default() -> Self {
-        Metrics::new()
-    }
-}
 
 /// Counts every request by its route template (not the raw path, which would explode label cardinality).
 pub async fn track(State(state): State<AppState>, request: Request, next: Next) -> Response {

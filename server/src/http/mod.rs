@@ -27,13 +27,14 @@ pub fn router(state: AppState) -> Router {
             "/v1/datasets/{task}/versions",
             get(datasets::list_versions).post(datasets::ingest),
         )
-        .route(
-            "/v1/datasets/{task}/versions/{version}",
-            get(datasets::get_manifest),
-        )
+        .route("/v1/datasets/{task}/versions/{version}", get(datasets::get_manifest))
         .route(
             "/v1/datasets/{task}/versions/{version}/download",
             get(download::download),
+        )
+        .route(
+            "/v1/datasets/{task}/versions/{version}/plot.svg",
+            get(datasets::get_plot),
         )
         .route("/v1/datasets/{task}/tags/{tag}", put(datasets::put_tag))
         .with_state(state)
@@ -51,17 +52,12 @@ async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError
 }
 
 async fn openapi_json() -> impl IntoResponse {
-    (
-        [(header::CONTENT_TYPE, "application/json")],
-        openapi::json(),
-    )
+    ([(header::CONTENT_TYPE, "application/json")], openapi::json())
 }
 
 pub async fn not_found() -> impl IntoResponse {
     (
         StatusCode::NOT_FOUND,
-        axum::Json(
-            serde_json::json!({"error": {"code": "not_found", "message": "no such route; see /openapi.json"}}),
-        ),
+        axum::Json(serde_json::json!({"error": {"code": "not_found", "message": "no such route; see /openapi.json"}})),
     )
 }

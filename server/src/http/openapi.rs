@@ -19,6 +19,7 @@ use super::datasets;
         datasets::get_task,
         datasets::list_versions,
         datasets::get_manifest,
+        datasets::get_plot,
         datasets::ingest,
         datasets::put_tag,
         download_doc,
@@ -48,6 +49,7 @@ impl Modify for AdminToken {
         ("Range" = Option<String>, Header, description = "bytes=A-B, bytes=A- or bytes=-N"),
         ("If-Range" = Option<String>, Header, description = "The ETag the client has part of"),
         ("If-None-Match" = Option<String>, Header),
+        ("filter" = Option<String>, Query, description = "A DSRL post-process filter: the download is the filtered version"),
     ),
     responses(
         (status = 200, description = "The Parquet file; ETag is its sha256", content_type = "application/vnd.apache.parquet"),

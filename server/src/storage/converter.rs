@@ -30,9 +30,13 @@ pub enum ConvertReply {
         converted: Converted,
     },
     /// The upload is not a valid dataset: the message names the problem.
-    Rejected { message: String },
+    Rejected {
+        message: String,
+    },
     /// A local I/O failure: not the uploader's fault.
-    Failed { message: String },
+    Failed {
+        message: String,
+    },
 }
 
 impl ConvertReply {
@@ -40,9 +44,7 @@ impl ConvertReply {
     pub fn run(source: &Path, task: &Task, space: ObservationSpace, out: &Path) -> ConvertReply {
         match import_file(source, task, space, out) {
             Ok((format, converted)) => ConvertReply::Converted { format, converted },
-            Err(ImportError::Io(e)) => ConvertReply::Failed {
-                message: e.to_string(),
-            },
+            Err(ImportError::Io(e)) => ConvertReply::Failed { message: e.to_string() },
             Err(invalid) => ConvertReply::Rejected {
                 message: invalid.to_string(),
             },
@@ -53,9 +55,7 @@ impl ConvertReply {
         match self {
             ConvertReply::Converted { format, converted } => Ok((format, converted)),
             ConvertReply::Rejected { message } => Err(ApiError::InvalidUpload(message)),
-            ConvertReply::Failed { message } => Err(ApiError::Internal(format!(
-                "converting the upload: {message}"
-            ))),
+            ConvertReply::Failed { message } => Err(ApiError::Internal(format!("converting the upload: {message}"))),
         }
     }
 }
@@ -82,12 +82,7 @@ impl Converter {
             } => {
                 let output = tokio::process::Command::new(program)
                     .arg("convert")
-                    .args([
-                        "--task",
-                        task.id.as_str(),
-                        "--observation-space",
-                        space.as_str(),
-                    ])
+                    .args(["--task", task.id.as_str(), "--observation-space", space.as_str()])
                     .args(["--memory-limit", &memory_limit_bytes.to_string()])
                     .arg(source)
                     .arg(out)
@@ -95,12 +90,7 @@ impl Converter {
                     .kill_on_drop(true)
                     .output()
                     .await
-                    .map_err(|e| {
-                        ApiError::Internal(format!(
-                            "starting the converter {}: {e}",
-                            program.display()
-                        ))
-                    })?;
+                    .map_err(|e| ApiError::Internal(format!("starting the converter {}: {e}", program.display())))?;
                 if !output.status.success() {
                     let stderr = String::from_utf8_lossy(&output.stderr);
                     tracing::warn!(status = %output.status, stderr = %stderr.trim(), "converter process died");
@@ -129,10 +119,7 @@ pub fn limit_memory(bytes: u64) {
         // SAFETY: setrlimit with a valid pointer to an initialized struct.
         let rc = unsafe { libc::setrlimit(libc::RLIMIT_AS, &limit) };
         if rc != 0 {
-            eprintln!(
-                "converter: setrlimit failed: {}",
-                std::io::Error::last_os_error()
-            );
+            eprintln!("converter: setrlimit failed: {}", std::io::Error::last_os_error());
         }
     }
     #[cfg(not(target_os = "linux"))]

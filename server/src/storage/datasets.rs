@@ -8,17 +8,23 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bytes::Bytes;
+use dsrl_suite::filters;
+use dsrl_suite::filters::apply::gather;
+use dsrl_suite::filters::plan::{Fate, plan};
+use dsrl_suite::filters::spec::{FilterError, FilterSpec};
 use dsrl_suite::manifest::ManifestFacts;
-use dsrl_suite::{
-    Catalog, Manifest, ObservationSpace, Provenance, TagName, Task, VersionId, VersionRef,
-};
+use dsrl_suite::plot::{Point, cost_reward_svg};
+use dsrl_suite::{Catalog, Manifest, ObservationSpace, Provenance, TagName, Task, VersionId, VersionRef};
+use futures::StreamExt;
 use futures::stream::BoxStream;
 use object_store::ObjectStore;
+use tokio::io::AsyncWriteExt;
 
 use super::converter::Converter;
 use super::db::{self, Db, VersionRecord};
 use super::objects;
 use crate::error::ApiError;
+use crate::metrics::{Metrics, OutcomeLabels};
 
 /// A file under the server's temporary folder, removed when dropped (an ingest that fails or is cancelled
 /// leaves nothing behind; a killed process leaves files that the next start-up clears).
@@ -79,18 +85,39 @@ pub struct Datasets {
     default_license: String,
     converter: Converter,
     next_temp: AtomicU64,
+    metrics: Arc<Metrics>,
+    /// For the local backend, the folder that holds the objects: filters read parents there without a copy.
+    local_objects: Option<PathBuf>,
+    /// One gate per filtered version being computed, so concurrent identical requests compute it once.
+    in_flight: std::sync::Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
+}
+
+/// What the dataset service is made of.
+pub struct DatasetsSetup {
+    pub catalog: Arc<Catalog>,
+    pub db: Db,
+    pub store: Arc<dyn ObjectStore>,
+    /// For the local backend, the folder holding the objects.
+    pub local_objects: Option<PathBuf>,
+    /// Emptied on start: whatever is there was left by a process that died mid-ingest.
+    pub tmp_dir: PathBuf,
+    pub default_license: String,
+    pub converter: Converter,
+    pub metrics: Arc<Metrics>,
 }
 
 impl Datasets {
-    /// `tmp_dir` is emptied: whatever is there was left by a process that died mid-ingest.
-    pub fn new(
-        catalog: Arc<Catalog>,
-        db: Db,
-        store: Arc<dyn ObjectStore>,
-        tmp_dir: PathBuf,
-        default_license: String,
-        converter: Converter,
-    ) -> std::io::Result<Datasets> {
+    pub fn new(setup: DatasetsSetup) -> std::io::Result<Datasets> {
+        let DatasetsSetup {
+            catalog,
+            db,
+            store,
+            local_objects,
+            tmp_dir,
+            default_license,
+            converter,
+            metrics,
+        } = setup;
         if tmp_dir.exists() {
             std::fs::remove_dir_all(&tmp_dir)?;
         }
@@ -103,6 +130,9 @@ impl Datasets {
             default_license,
             converter,
             next_temp: AtomicU64::new(0),
+            metrics,
+            local_objects,
+            in_flight: Default::default(),
         })
     }
 
@@ -116,10 +146,7 @@ impl Datasets {
 
     pub fn temp_file(&self, purpose: &str) -> TempFile {
         let n = self.next_temp.fetch_add(1, Ordering::Relaxed);
-        TempFile(
-            self.tmp_dir
-                .join(format!("{purpose}-{}-{n}", std::process::id())),
-        )
+        TempFile(self.tmp_dir.join(format!("{purpose}-{}-{n}", std::process::id())))
     }
 
     pub fn task(&self, id: &str) -> Result<&Task, ApiError> {
@@ -127,11 +154,7 @@ impl Datasets {
     }
 
     /// The version a reference (id, tag, or empty for `latest`) names now.
-    pub async fn resolve(
-        &self,
-        task: &str,
-        reference: &str,
-    ) -> Result<(&Task, VersionRecord), ApiError> {
+    pub async fn resolve(&self, task: &str, reference: &str) -> Result<(&Task, VersionRecord), ApiError> {
         let task = self.task(task)?;
         let reference = if reference.is_empty() {
             TagName::LATEST
@@ -147,17 +170,9 @@ impl Datasets {
         };
         let version = match parsed {
             VersionRef::Version(v) => v,
-            VersionRef::Tag(tag) => self
-                .db
-                .tagged(&task.id, &tag)
-                .await?
-                .ok_or_else(not_found)?,
+            VersionRef::Tag(tag) => self.db.tagged(&task.id, &tag).await?.ok_or_else(not_found)?,
         };
-        let record = self
-            .db
-            .version(&task.id, &version)
-            .await?
-            .ok_or_else(not_found)?;
+        let record = self.db.version(&task.id, &version).await?.ok_or_else(not_found)?;
         Ok((task, record))
     }
 
@@ -181,15 +196,251 @@ impl Datasets {
         Ok(objects::read(self.store.as_ref(), &key, range).await?)
     }
 
+    /// Stores a version's Parquet file and manifest under their keys (each write atomic) and checks the stored size.
+    async fn store_objects(&self, manifest: &Manifest, json: &str, file: &Path) -> Result<(), ApiError> {
+        let (task, version) = (manifest.task.as_str(), manifest.version.as_str());
+        let data_key = objects::dataset_key(task, version);
+        let stored = objects::upload_file(self.store.as_ref(), file, &data_key).await?;
+        if stored != manifest.byte_size {
+            return Err(ApiError::Internal(format!(
+                "stored {data_key} has {stored} bytes, expected {}",
+                manifest.byte_size
+            )));
+        }
+        let manifest_key = objects::manifest_key(task, version);
+        objects::put_bytes(self.store.as_ref(), &manifest_key, json.as_bytes().to_vec()).await?;
+        Ok(())
+    }
+
+    pub async fn manifest(&self, record: &VersionRecord) -> Result<Manifest, ApiError> {
+        serde_json::from_str(&self.manifest_json(record).await?).map_err(ApiError::internal)
+    }
+
+    /// The version a request names: `reference` itself, or, with a filter, the version the filter makes from it
+    /// (computed once, then looked up).
+    pub async fn resolve_filtered(
+        &self,
+        task: &str,
+        reference: &str,
+        filter: Option<&str>,
+    ) -> Result<(&Task, VersionRecord), ApiError> {
+        let (task, parent) = self.resolve(task, reference).await?;
+        let Some(spec) = self.parse_filter(task, filter)? else {
+            return Ok((task, parent));
+        };
+        let record = self.derive(task, &parent, &spec, filter.unwrap_or_default()).await?;
+        Ok((task, record))
+    }
+
+    fn parse_filter(&self, task: &Task, filter: Option<&str>) -> Result<Option<FilterSpec>, ApiError> {
+        FilterSpec::parse(filter.unwrap_or_default(), task).map_err(|e| self.rejected(e))
+    }
+
+    fn rejected(&self, e: FilterError) -> ApiError {
+        self.metrics
+            .filters
+            .get_or_create(&OutcomeLabels { outcome: "rejected" })
+            .inc();
+        ApiError::InvalidArgument(e.to_string())
+    }
+
+    async fn derive(
+        &self,
+        task: &Task,
+        parent: &VersionRecord,
+        spec: &FilterSpec,
+        request: &str,
+    ) -> Result<VersionRecord, ApiError> {
+        let canonical = spec.canonical();
+        if let Some(found) = self.derivation(task, parent, &canonical).await? {
+            self.metrics
+                .filters
+                .get_or_create(&OutcomeLabels { outcome: "cached" })
+                .inc();
+            return Ok(found);
+        }
+        let key = format!("{}/{}/{canonical}", task.id, parent.version);
+        let gate = self
+            .in_flight
+            .lock()
+            .expect("in-flight map")
+            .entry(key.clone())
+            .or_default()
+            .clone();
+        let turn = gate.lock().await;
+        let result = async {
+            // Whoever held the gate before us has committed its result.
+            if let Some(found) = self.derivation(task, parent, &canonical).await? {
+                self.metrics
+                    .filters
+                    .get_or_create(&OutcomeLabels { outcome: "cached" })
+                    .inc();
+                return Ok(found);
+            }
+            let started = std::time::Instant::now();
+            let record = self.compute_derivation(task, parent, spec, &canonical, request).await?;
+            self.metrics
+                .filters
+                .get_or_create(&OutcomeLabels { outcome: "computed" })
+                .inc();
+            self.metrics.filter_seconds.observe(started.elapsed().as_secs_f64());
+            Ok(record)
+        }
+        .await;
+        self.in_flight.lock().expect("in-flight map").remove(&key);
+        drop(turn);
+        result
+    }
+
+    async fn derivation(
+        &self,
+        task: &Task,
+        parent: &VersionRecord,
+        canonical: &str,
+    ) -> Result<Option<VersionRecord>, ApiError> {
+        match self.db.derivation(&task.id, &parent.version, canonical).await? {
+            Some(v) => Ok(self.db.version(&task.id, &v).await?),
+            None => Ok(None),
+        }
+    }
+
+    /// Plans the filter from the parent's episode index, gathers and writes the output on a blocking thread,
+    /// stores it, and commits the version and the derivation together.
+    async fn compute_derivation(
+        &self,
+        task: &Task,
+        parent: &VersionRecord,
+        spec: &FilterSpec,
+        canonical: &str,
+        request: &str,
+    ) -> Result<VersionRecord, ApiError> {
+        let parent_manifest = self.manifest(parent).await?;
+        let planned = plan(spec, task, &parent_manifest.episode_index).map_err(|e| self.rejected(e))?;
+        let counts = planned.counts.clone();
+        let (source, _download) = self.readable_copy(parent).await?;
+        let out = self.temp_file("filtered");
+        let space = parent_manifest.observation_space.kind;
+        let (obs_dim, act_dim) = (parent_manifest.observation_space.dim as usize, task.act_dim as usize);
+        let (task_owned, out_path) = (task.clone(), out.path().to_owned());
+        let episodes = parent_manifest.episode_index;
+        let converted = tokio::task::spawn_blocking(move || {
+            let data = gather(&source, &episodes, &planned, obs_dim, act_dim)?;
+            filters::apply::write(&task_owned, space, &data, &out_path)
+        })
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(|e| ApiError::Internal(format!("filtering {}: {e}", parent.version)))?;
+        let now = now_rfc3339();
+        let manifest = Manifest::new(
+            task,
+            converted.version.clone(),
+            converted.byte_size,
+            converted.episode_index,
+            ManifestFacts {
+                observation_space: space,
+                provenance: Provenance::Filter {
+                    parent: parent.version.clone(),
+                    filter: canonical.to_owned(),
+                    request: request.to_owned(),
+                    seed: spec.grid.map(|_| spec.seed),
+                    counts,
+                    reference: filters::REFERENCE.to_owned(),
+                },
+                license: parent_manifest.license,
+                created_at: now.clone(),
+            },
+        );
+        let json = serde_json::to_string(&manifest).map_err(ApiError::internal)?;
+        if self.db.version(&task.id, &manifest.version).await?.is_none() {
+            self.store_objects(&manifest, &json, out.path()).await?;
+        }
+        let mut tx = self.db.begin().await?;
+        db::insert_version(&mut tx, &manifest, &json).await?;
+        db::insert_derivation(&mut tx, &task.id, &parent.version, canonical, &manifest.version, &now).await?;
+        tx.commit().await?;
+        tracing::info!(task = %task.id, parent = %parent.version, filter = canonical, version = %manifest.version,
+            "computed a filtered version");
+        self.db
+            .version(&task.id, &manifest.version)
+            .await?
+            .ok_or_else(|| ApiError::Internal("filtered version row vanished after commit".into()))
+    }
+
+    /// A local file with the version's bytes: the object itself for the local backend, else a downloaded copy
+    /// (returned too, so it lives as long as the caller needs it).
+    async fn readable_copy(&self, record: &VersionRecord) -> Result<(PathBuf, Option<TempFile>), ApiError> {
+        if let Some(root) = &self.local_objects {
+            let path = root.join(objects::dataset_key(&record.task, &record.version).as_ref());
+            return Ok((path, None));
+        }
+        let copy = self.temp_file("parent");
+        let mut file = tokio::fs::File::create(copy.path()).await.map_err(ApiError::internal)?;
+        let mut stream = self.read(record, None).await?;
+        while let Some(chunk) = stream.next().await {
+            let chunk = chunk.map_err(|e| ApiError::Unavailable(format!("reading {}: {e}", record.version)))?;
+            file.write_all(&chunk).await.map_err(ApiError::internal)?;
+        }
+        file.flush().await.map_err(ApiError::internal)?;
+        Ok((copy.path().to_owned(), Some(copy)))
+    }
+
+    /// The cost–reward scatter of a version, or of what a filter would do to it (decisions only, no data read).
+    pub async fn plot_svg(&self, task: &str, reference: &str, filter: Option<&str>) -> Result<String, ApiError> {
+        let (task, record) = self.resolve(task, reference).await?;
+        let manifest = self.manifest(&record).await?;
+        let spec = self.parse_filter(task, filter)?;
+        let short = &record.version[..12];
+        let (title, subtitle, points): (String, Option<String>, Vec<Point>) = match &spec {
+            None => (
+                format!("{} {short}: {} trajectories", task.id, manifest.episodes),
+                None,
+                manifest
+                    .episode_index
+                    .iter()
+                    .map(|e| Point {
+                        cost_return: e.cost_return,
+                        reward_return: e.reward_return,
+                        fate: Fate::Kept,
+                    })
+                    .collect(),
+            ),
+            Some(spec) => {
+                let planned = plan(spec, task, &manifest.episode_index).map_err(|e| self.rejected(e))?;
+                let points = planned
+                    .fates
+                    .iter()
+                    .zip(&planned.returns)
+                    .map(|(&fate, &(c, r))| Point {
+                        cost_return: c,
+                        reward_return: r,
+                        fate,
+                    })
+                    .collect();
+                let c = &planned.counts;
+                (
+                    format!(
+                        "{} {short}: {} of {} trajectories kept",
+                        task.id, c.output_episodes, c.input_episodes
+                    ),
+                    Some(format!("filter: {}", spec.canonical())),
+                    points,
+                )
+            }
+        };
+        let task = task.clone();
+        tokio::task::spawn_blocking(move || cost_reward_svg(&task, &title, subtitle.as_deref(), &points))
+            .await
+            .map_err(ApiError::internal)?
+            .map_err(ApiError::Internal)
+    }
+
     pub async fn versions(&self, task: &str) -> Result<(&Task, Vec<VersionRecord>), ApiError> {
         let task = self.task(task)?;
         Ok((task, self.db.versions(Some(&task.id)).await?))
     }
 
     /// Every task of the catalog, in catalog order, with its hosted versions (newest first): one query.
-    pub async fn catalog_with_versions(
-        &self,
-    ) -> Result<Vec<(&Task, Vec<VersionRecord>)>, ApiError> {
+    pub async fn catalog_with_versions(&self) -> Result<Vec<(&Task, Vec<VersionRecord>)>, ApiError> {
         let mut by_task: HashMap<String, Vec<VersionRecord>> = HashMap::new();
         for v in self.db.versions(None).await? {
             by_task.entry(v.task.clone()).or_default().push(v);
@@ -236,50 +487,24 @@ impl Datasets {
                 },
             );
             let json = serde_json::to_string(&manifest).map_err(ApiError::internal)?;
-            let data_key = objects::dataset_key(task.id.as_str(), version.as_str());
-            let stored =
-                objects::upload_file(self.store.as_ref(), canonical.path(), &data_key).await?;
-            if stored != converted.byte_size {
-                return Err(ApiError::Internal(format!(
-                    "stored {data_key} has {stored} bytes, expected {}",
-                    converted.byte_size
-                )));
-            }
-            let manifest_key = objects::manifest_key(task.id.as_str(), version.as_str());
-            objects::put_bytes(
-                self.store.as_ref(),
-                &manifest_key,
-                json.clone().into_bytes(),
-            )
-            .await?;
+            self.store_objects(&manifest, &json, canonical.path()).await?;
             drop(canonical);
             let mut tx = self.db.begin().await?;
             let created = db::insert_version(&mut tx, &manifest, &json).await?;
             let mut moved = Vec::new();
             if space == ObservationSpace::Simulator {
                 let only_if_absent = req.latest == LatestPolicy::IfAbsent;
-                if db::set_tag(
-                    &mut tx,
-                    &task.id,
-                    &TagName::latest(),
-                    &version,
-                    &now,
-                    only_if_absent,
-                )
-                .await?
-                {
+                if db::set_tag(&mut tx, &task.id, &TagName::latest(), &version, &now, only_if_absent).await? {
                     moved.push(TagName::LATEST.to_owned());
                 }
             }
-            moved.extend(
-                self.set_tags(&mut tx, &task, &version, space, &req.tags, &now)
-                    .await?,
-            );
+            moved.extend(self.set_tags(&mut tx, &task, &version, space, &req.tags, &now).await?);
             tx.commit().await?;
-            let record =
-                self.db.version(&task.id, &version).await?.ok_or_else(|| {
-                    ApiError::Internal("version row vanished after commit".into())
-                })?;
+            let record = self
+                .db
+                .version(&task.id, &version)
+                .await?
+                .ok_or_else(|| ApiError::Internal("version row vanished after commit".into()))?;
             tracing::info!(task = %task.id, version = %version, created, "ingested dataset version");
             return Ok(IngestOutcome {
                 created,
@@ -289,19 +514,13 @@ impl Datasets {
         }
 
         // Identical bytes: nothing to store. Tags the request names explicitly still apply.
-        let existing = self
-            .db
-            .version(&task.id, &version)
-            .await?
-            .expect("checked above");
+        let existing = self.db.version(&task.id, &version).await?.expect("checked above");
         let space = existing
             .observation_space
             .parse::<ObservationSpace>()
             .map_err(ApiError::Internal)?;
         let mut tx = self.db.begin().await?;
-        let moved = self
-            .set_tags(&mut tx, &task, &version, space, &req.tags, &now)
-            .await?;
+        let moved = self.set_tags(&mut tx, &task, &version, space, &req.tags, &now).await?;
         tx.commit().await?;
         let record = self.db.version(&task.id, &version).await?.expect("exists");
         Ok(IngestOutcome {
@@ -337,18 +556,9 @@ impl Datasets {
     }
 
     /// Points `tag` of `task` at an existing version.
-    pub async fn tag(
-        &self,
-        task: &str,
-        tag: &str,
-        version: &str,
-    ) -> Result<VersionRecord, ApiError> {
-        let tag: TagName = tag
-            .parse()
-            .map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
-        let version_id: VersionId = version
-            .parse()
-            .map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
+    pub async fn tag(&self, task: &str, tag: &str, version: &str) -> Result<VersionRecord, ApiError> {
+        let tag: TagName = tag.parse().map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
+        let version_id: VersionId = version.parse().map_err(|e| ApiError::InvalidArgument(format!("{e}")))?;
         let (task, record) = self.resolve(task, version_id.as_str()).await?;
         let space = record
             .observation_space

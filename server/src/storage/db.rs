@@ -6,9 +6,7 @@ use std::str::FromStr;
 
 use dsrl_suite::{TagName, TaskId, VersionId};
 use sqlx::migrate::{Migration, MigrationType, Migrator};
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
-};
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous};
 use sqlx::{Row, SqlSafeStr, Sqlite, Transaction};
 
 /// The server's name for a hosted version row.
@@ -36,10 +34,7 @@ impl Db {
     }
 
     pub async fn ping(&self) -> Result<(), sqlx::Error> {
-        sqlx::query("SELECT 1")
-            .execute(&self.pool)
-            .await
-            .map(|_| ())
+        sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
     }
 
     pub async fn begin(&self) -> Result<Transaction<'static, Sqlite>, sqlx::Error> {
@@ -53,16 +48,34 @@ impl Db {
             .try_get(0)
     }
 
-    /// Versions of `task` (or of every task), newest first, with their tags.
+    /// Versions of `task` (or of every task), newest first, with their tags; filtered versions are not listed.
     pub async fn versions(&self, task: Option<&TaskId>) -> Result<Vec<VersionRecord>, sqlx::Error> {
         self.select_versions(task, None).await
     }
 
-    pub async fn version(
+    /// The version a filter made from `parent`, if it was made before.
+    pub async fn derivation(
         &self,
         task: &TaskId,
-        version: &VersionId,
-    ) -> Result<Option<VersionRecord>, sqlx::Error> {
+        parent: &str,
+        filter: &str,
+    ) -> Result<Option<VersionId>, sqlx::Error> {
+        let row =
+            sqlx::query("SELECT version FROM dataset_derivations WHERE task = ?1 AND parent = ?2 AND filter = ?3")
+                .bind(task.as_str())
+                .bind(parent)
+                .bind(filter)
+                .fetch_optional(&self.pool)
+                .await?;
+        row.map(|r| {
+            let v: String = r.try_get(0)?;
+            v.parse()
+                .map_err(|e: dsrl_suite::IdError| sqlx::Error::Decode(e.into()))
+        })
+        .transpose()
+    }
+
+    pub async fn version(&self, task: &TaskId, version: &VersionId) -> Result<Option<VersionRecord>, sqlx::Error> {
         Ok(self.select_versions(Some(task), Some(version)).await?.pop())
     }
 
@@ -77,6 +90,7 @@ impl Db {
                         WHERE t.task = v.task AND t.version = v.version ORDER BY tag) t) AS tags
              FROM dataset_versions v
              WHERE (?1 IS NULL OR v.task = ?1) AND (?2 IS NULL OR v.version = ?2)
+               AND (?2 IS NOT NULL OR v.derived = 0)
              ORDER BY v.rowid DESC",
         )
         .bind(task.map(|t| t.as_str()))
@@ -86,11 +100,7 @@ impl Db {
         rows.iter().map(record).collect()
     }
 
-    pub async fn tagged(
-        &self,
-        task: &TaskId,
-        tag: &TagName,
-    ) -> Result<Option<VersionId>, sqlx::Error> {
+    pub async fn tagged(&self, task: &TaskId, tag: &TagName) -> Result<Option<VersionId>, sqlx::Error> {
         let row = sqlx::query("SELECT version FROM dataset_tags WHERE task = ?1 AND tag = ?2")
             .bind(task.as_str())
             .bind(tag.as_str())
@@ -104,27 +114,29 @@ impl Db {
         .transpose()
     }
 
-    pub async fn manifest(
-        &self,
-        task: &TaskId,
-        version: &VersionId,
-    ) -> Result<Option<String>, sqlx::Error> {
-        let row =
-            sqlx::query("SELECT manifest FROM dataset_versions WHERE task = ?1 AND version = ?2")
-                .bind(task.as_str())
-                .bind(version.as_str())
-                .fetch_optional(&self.pool)
-                .await?;
+    pub async fn manifest(&self, task: &TaskId, version: &VersionId) -> Result<Option<String>, sqlx::Error> {
+        let row = sqlx::query("SELECT manifest FROM dataset_versions WHERE task = ?1 AND version = ?2")
+            .bind(task.as_str())
+            .bind(version.as_str())
+            .fetch_optional(&self.pool)
+            .await?;
         row.map(|r| r.try_get(0)).transpose()
     }
 }
 
 /// The SQL files of `migrations/`, compiled in (listed by hand; a test checks the list against the folder).
-const MIGRATIONS: &[(i64, &str, &str)] = &[(
-    20261122000001,
-    "datasets",
-    include_str!("../../../migrations/20261122000001_datasets.sql"),
-)];
+const MIGRATIONS: &[(i64, &str, &str)] = &[
+    (
+        20261122000001,
+        "datasets",
+        include_str!("../../../migrations/20261122000001_datasets.sql"),
+    ),
+    (
+        20261122000002,
+        "derivations",
+        include_str!("../../../migrations/20261122000002_derivations.sql"),
+    ),
+];
 
 fn migrator() -> Migrator {
     Migrator::with_migrations(
@@ -151,8 +163,8 @@ pub async fn insert_version(
 ) -> Result<bool, sqlx::Error> {
     let done = sqlx::query(
         "INSERT INTO dataset_versions
-            (task, version, byte_size, episodes, transitions, observation_space, created_at, manifest)
-         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)
+            (task, version, byte_size, episodes, transitions, observation_space, created_at, manifest, derived)
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)
          ON CONFLICT (task, version) DO NOTHING",
     )
     .bind(manifest.task.as_str())
@@ -163,9 +175,33 @@ pub async fn insert_version(
     .bind(manifest.observation_space.kind.as_str())
     .bind(&manifest.created_at)
     .bind(manifest_json)
+    .bind(matches!(manifest.provenance, dsrl_suite::Provenance::Filter { .. }))
     .execute(&mut **tx)
     .await?;
     Ok(done.rows_affected() == 1)
+}
+
+/// Records that `filter` made `version` from `parent`.
+pub async fn insert_derivation(
+    tx: &mut Transaction<'static, Sqlite>,
+    task: &TaskId,
+    parent: &str,
+    filter: &str,
+    version: &VersionId,
+    now: &str,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "INSERT INTO dataset_derivations (task, parent, filter, version, created_at) VALUES (?1, ?2, ?3, ?4, ?5)
+         ON CONFLICT (task, parent, filter) DO NOTHING",
+    )
+    .bind(task.as_str())
+    .bind(parent)
+    .bind(filter)
+    .bind(version.as_str())
+    .bind(now)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
 }
 
 /// Points `tag` at `version`; with `only_if_absent`, leaves an existing tag alone. Returns whether it moved.
@@ -224,10 +260,7 @@ mod tests {
             .filter(|n| n.ends_with(".sql"))
             .collect();
         files.sort();
-        let listed: Vec<String> = MIGRATIONS
-            .iter()
-            .map(|(v, d, _)| format!("{v}_{d}.sql"))
-            .collect();
+        let listed: Vec<String> = MIGRATIONS.iter().map(|(v, d, _)| format!("{v}_{d}.sql")).collect();
         assert_eq!(files, listed);
     }
 

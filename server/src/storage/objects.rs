@@ -15,9 +15,7 @@ use object_store::aws::AmazonS3Builder;
 use object_store::local::LocalFileSystem;
 use object_store::path::Path;
 use object_store::prefix::PrefixStore;
-use object_store::{
-    GetOptions, GetRange, GetResultPayload, ObjectStore, ObjectStoreExt, PutPayload, WriteMultipart,
-};
+use object_store::{GetOptions, GetRange, GetResultPayload, ObjectStore, ObjectStoreExt, PutPayload, WriteMultipart};
 use parquet::arrow::arrow_reader::ArrowReaderOptions;
 use parquet::arrow::async_reader::AsyncFileReader;
 use parquet::errors::ParquetError;
@@ -72,20 +70,15 @@ pub fn manifest_key(task: &str, version: &str) -> Path {
 }
 
 /// Copies a local file to `dest` as one atomic object; returns the stored size.
-pub async fn upload_file(
-    store: &dyn ObjectStore,
-    local: &FsPath,
-    dest: &Path,
-) -> object_store::Result<u64> {
+pub async fn upload_file(store: &dyn ObjectStore, local: &FsPath, dest: &Path) -> object_store::Result<u64> {
     let upload = store.put_multipart(dest).await?;
     let mut writer = WriteMultipart::new_with_chunk_size(upload, UPLOAD_PART_BYTES);
-    let mut file =
-        tokio::fs::File::open(local)
-            .await
-            .map_err(|source| object_store::Error::Generic {
-                store: "upload",
-                source: Box::new(source),
-            })?;
+    let mut file = tokio::fs::File::open(local)
+        .await
+        .map_err(|source| object_store::Error::Generic {
+            store: "upload",
+            source: Box::new(source),
+        })?;
     let mut buf = vec![0u8; UPLOAD_PART_BYTES];
     loop {
         let n = match file.read(&mut buf).await {
@@ -106,11 +99,7 @@ pub async fn upload_file(
     Ok(store.head(dest).await?.size)
 }
 
-pub async fn put_bytes(
-    store: &dyn ObjectStore,
-    dest: &Path,
-    bytes: Vec<u8>,
-) -> object_store::Result<()> {
+pub async fn put_bytes(store: &dyn ObjectStore, dest: &Path, bytes: Vec<u8>) -> object_store::Result<()> {
     store.put(dest, PutPayload::from(bytes)).await.map(|_| ())
 }
 
@@ -133,10 +122,7 @@ pub async fn read(
     }
 }
 
-fn stream_file(
-    mut file: std::fs::File,
-    range: Range<u64>,
-) -> BoxStream<'static, std::io::Result<Bytes>> {
+fn stream_file(mut file: std::fs::File, range: Range<u64>) -> BoxStream<'static, std::io::Result<Bytes>> {
     let (tx, rx) = tokio::sync::mpsc::channel::<std::io::Result<Bytes>>(4);
     tokio::task::spawn_blocking(move || {
         let mut remaining = range.end - range.start;

@@ -43,11 +43,7 @@ async fn concurrent_identical_ingests_store_one_version() {
     }
     assert_eq!(created, 1, "exactly one ingest creates the version");
     assert_eq!(versions.len(), 1);
-    let (_, listed) = state
-        .datasets
-        .versions("OfflineCarCircle-v0")
-        .await
-        .unwrap();
+    let (_, listed) = state.datasets.versions("OfflineCarCircle-v0").await.unwrap();
     assert_eq!(listed.len(), 1);
     assert_eq!(listed[0].tags, vec!["latest".to_owned()]);
 }

@@ -26,7 +26,6 @@ pub fn dataset(dir: &Path, task: &str, episodes: usize, seed: u64) -> std::path:
     let spec = dsrl_suite::synthetic::SyntheticSpec::for_task(t, episodes, seed);
     let path = dir.join(format!("{task}-{seed}.parquet"));
     let chunks = dsrl_suite::synthetic::transitions(spec).map(Ok);
-    dsrl_suite::convert::write_canonical(t, ObservationSpace::Simulator, chunks, vec![], &path)
-        .unwrap();
+    dsrl_suite::convert::write_canonical(t, ObservationSpace::Simulator, chunks, vec![], &path).unwrap();
     path
 }

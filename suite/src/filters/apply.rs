@@ -97,10 +97,8 @@ pub fn gather(
 
 fn copy_rows(src: &TransitionChunk, from: usize, dst: &mut TransitionChunk, to: usize, n: usize) {
     let (o, a) = (src.obs_dim, src.act_dim);
-    dst.observations[to * o..(to + n) * o]
-        .copy_from_slice(&src.observations[from * o..(from + n) * o]);
-    dst.next_observations[to * o..(to + n) * o]
-        .copy_from_slice(&src.next_observations[from * o..(from + n) * o]);
+    dst.observations[to * o..(to + n) * o].copy_from_slice(&src.observations[from * o..(from + n) * o]);
+    dst.next_observations[to * o..(to + n) * o].copy_from_slice(&src.next_observations[from * o..(from + n) * o]);
     dst.actions[to * a..(to + n) * a].copy_from_slice(&src.actions[from * a..(from + n) * a]);
     dst.rewards[to..to + n].copy_from_slice(&src.rewards[from..from + n]);
     dst.costs[to..to + n].copy_from_slice(&src.costs[from..from + n]);

@@ -10,3 +10,7 @@ pub mod plan;
 pub mod pyrandom;
 pub mod spec;
 mod ziggurat_tables;
+
+/// What filtered datasets reproduce.
+pub const REFERENCE: &str = "DSRL OfflineEnv.pre_process_data with the current reference's bounds (GitHub HEAD), \
+NumPy 1.24 and CPython random semantics";

@@ -27,9 +27,7 @@ pub fn seed_sequence_u64(entropy: u64, n_words: usize) -> Vec<u64> {
         v ^ (v >> 16)
     };
     let mix = |x: u32, y: u32| {
-        let r = MIX_MULT_L
-            .wrapping_mul(x)
-            .wrapping_sub(MIX_MULT_R.wrapping_mul(y));
+        let r = MIX_MULT_L.wrapping_mul(x).wrapping_sub(MIX_MULT_R.wrapping_mul(y));
         r ^ (r >> 16)
     };
     let mut pool = [0u32; POOL_SIZE];
@@ -54,10 +52,7 @@ pub fn seed_sequence_u64(entropy: u64, n_words: usize) -> Vec<u64> {
             v ^ (v >> 16)
         })
         .collect();
-    words
-        .chunks(2)
-        .map(|p| p[0] as u64 | (p[1] as u64) << 32)
-        .collect()
+    words.chunks(2).map(|p| p[0] as u64 | (p[1] as u64) << 32).collect()
 }
 
 const PCG_MULT: u128 = 0x2360_ED05_1FC6_5DA4_4385_DF64_9FCC_F645;
@@ -122,9 +117,7 @@ pub struct NumpyGenerator {
 impl NumpyGenerator {
     /// `Generator(PCG64(seed))`.
     pub fn new(seed: u64) -> NumpyGenerator {
-        NumpyGenerator {
-            bits: Pcg64::new(seed),
-        }
+        NumpyGenerator { bits: Pcg64::new(seed) }
     }
 
     /// A uniform integer in `0..=rng` (NumPy's `random_bounded_uint64` without masking).
@@ -169,9 +162,7 @@ impl NumpyGenerator {
     pub fn integers(&mut self, low: i64, high: i64, n: usize) -> Vec<i64> {
         assert!(high > low, "integers: empty range");
         let rng = (high - 1 - low) as u64;
-        (0..n)
-            .map(|_| low.wrapping_add(self.bounded(rng) as i64))
-            .collect()
+        (0..n).map(|_| low.wrapping_add(self.bounded(rng) as i64)).collect()
     }
 
     /// Positions drawn by `choice(a, size=n)` (with replacement) for a population of `pop` items.

@@ -16,11 +16,7 @@ pub fn floor_divide(a: f64, b: f64) -> f64 {
     }
     if div != 0.0 {
         let floordiv = div.floor();
-        if div - floordiv > 0.5 {
-            floordiv + 1.0
-        } else {
-            floordiv
-        }
+        if div - floordiv > 0.5 { floordiv + 1.0 } else { floordiv }
     } else {
         (0.0f64).copysign(a / b)
     }

@@ -59,9 +59,7 @@ pub struct Plan {
 }
 
 fn reject(message: impl Into<String>) -> FilterError {
-    FilterError {
-        message: message.into(),
-    }
+    FilterError::data(message)
 }
 
 /// A float32 array element compared with a float scalar, as NumPy 1.x does it: the scalar is rounded to float32
@@ -196,20 +194,13 @@ fn grid_filter(
 }
 
 /// Computes the whole plan.
-pub fn plan(
-    spec: &FilterSpec,
-    task: &Task,
-    episodes: &[EpisodeSummary],
-) -> Result<Plan, FilterError> {
+pub fn plan(spec: &FilterSpec, task: &Task, episodes: &[EpisodeSummary]) -> Result<Plan, FilterError> {
     let mut counts = FilterCounts {
         input_episodes: episodes.len() as u64,
         ..Default::default()
     };
     let mut fates = vec![Fate::Kept; episodes.len()];
-    let mut returns: Vec<(f32, f32)> = episodes
-        .iter()
-        .map(|e| (e.cost_return, e.reward_return))
-        .collect();
+    let mut returns: Vec<(f32, f32)> = episodes.iter().map(|e| (e.cost_return, e.reward_return)).collect();
     // Position in DSRL's `trajs` list -> input episode index.
     let mut current: Vec<usize> = (0..episodes.len()).collect();
 
@@ -307,10 +298,7 @@ pub fn plan(
                 spec.target_cost
             )));
         }
-        let best = group
-            .iter()
-            .map(|&p| reward[p])
-            .fold(f32::NEG_INFINITY, f32::max);
+        let best = group.iter().map(|&p| reward[p]).fold(f32::NEG_INFINITY, f32::max);
         // `ret - epsilon` is a float32 scalar minus a Python float: float64.
         let floor = Threshold(best as f64 - eps.abs());
         let removed: Vec<usize> = group
@@ -350,14 +338,8 @@ fn inpaint(
     order: &[usize],
 ) -> Result<Vec<usize>, FilterError> {
     let (c0, c1) = (task.min_episode_cost, task.max_episode_cost);
-    let (lo_c, hi_c) = (
-        Threshold((c1 - c0) * r.pcmin + c0),
-        Threshold((c1 - c0) * r.pcmax + c0),
-    );
-    let in_band: Vec<bool> = order
-        .iter()
-        .map(|&p| lo_c.le(cost[p]) && hi_c.ge(cost[p]))
-        .collect();
+    let (lo_c, hi_c) = (Threshold((c1 - c0) * r.pcmin + c0), Threshold((c1 - c0) * r.pcmax + c0));
+    let in_band: Vec<bool> = order.iter().map(|&p| lo_c.le(cost[p]) && hi_c.ge(cost[p])).collect();
     let band: Vec<f32> = order
         .iter()
         .zip(&in_band)

@@ -76,15 +76,37 @@ density (0 < d < 1; the task's preset grid) with optional cbins|rbins (1..=1000)
 inpaint|inpaint_ranges (pcmin:pcmax:prmin:prmax, each in [0, 1], min <= max; one range), \
 discard (tempting|low-reward), epsilon (finite, not 0), target_cost (>= 0; >= 1 with outliers), seed (0..2^64)";
 
+/// A filter that cannot be applied: a malformed request (the message lists the valid keys), or a request that
+/// this dataset cannot satisfy (for example too few outlier candidates), where DSRL's reference would fail.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("invalid filter: {message}; {VALID_KEYS}")]
+#[error("{}", self.render())]
 pub struct FilterError {
     pub message: String,
+    pub about_data: bool,
+}
+
+impl FilterError {
+    /// A request this dataset cannot satisfy.
+    pub fn data(message: impl Into<String>) -> Self {
+        FilterError {
+            message: message.into(),
+            about_data: true,
+        }
+    }
+
+    fn render(&self) -> String {
+        if self.about_data {
+            format!("filter not applicable to this dataset: {}", self.message)
+        } else {
+            format!("invalid filter: {}; {VALID_KEYS}", self.message)
+        }
+    }
 }
 
 fn err(message: impl Into<String>) -> FilterError {
     FilterError {
         message: message.into(),
+        about_data: false,
     }
 }
 
@@ -103,10 +125,7 @@ pub fn density_presets() -> BTreeMap<(String, String), Grid> {
                 .expect("density_presets.csv is validated by a test")
         };
         presets.insert(
-            (
-                f[0].to_owned(),
-                canonical_number(f[1].parse::<f64>().expect("density")),
-            ),
+            (f[0].to_owned(), canonical_number(f[1].parse::<f64>().expect("density"))),
             Grid {
                 cbins: num(2),
                 rbins: num(3),
@@ -150,14 +169,11 @@ impl FilterSpec {
                 "noise" | "outliers" | "outliers_percent" => "outliers_percent",
                 "obs_noise" | "noise_scale" => "noise_scale",
                 "inpaint" | "inpaint_ranges" => "inpaint",
-                k @ ("discard" | "epsilon" | "density" | "cbins" | "rbins" | "max_npb"
-                | "min_npb" | "target_cost" | "seed") => k,
+                k @ ("discard" | "epsilon" | "density" | "cbins" | "rbins" | "max_npb" | "min_npb" | "target_cost"
+                | "seed") => k,
                 other => return Err(err(format!("unknown key {other:?}"))),
             };
-            if pairs
-                .insert(key.to_owned(), value.trim().to_owned())
-                .is_some()
-            {
+            if pairs.insert(key.to_owned(), value.trim().to_owned()).is_some() {
                 return Err(err(format!("{key} is given twice (counting its aliases)")));
             }
         }
@@ -185,9 +201,7 @@ impl FilterSpec {
             Some(v) => match number("epsilon", v)? {
                 // The reference crashes on epsilon = 0 (its plot references an undefined variable).
                 0.0 => {
-                    return Err(err(
-                        "epsilon=0 removes nothing and crashes DSRL's reference; omit it",
-                    ));
+                    return Err(err("epsilon=0 removes nothing and crashes DSRL's reference; omit it"));
                 }
                 e => Some(e),
             },
@@ -195,11 +209,10 @@ impl FilterSpec {
         let inpaint = match (get("inpaint"), get("discard")) {
             (Some(_), Some(_)) => return Err(err("give either inpaint or discard, not both")),
             (None, None) => None,
-            (None, Some(name)) => Some(discard_preset(name).ok_or_else(|| {
-                err(format!(
-                    "discard={name:?} is not a preset (tempting, low-reward)"
-                ))
-            })?),
+            (None, Some(name)) => Some(
+                discard_preset(name)
+                    .ok_or_else(|| err(format!("discard={name:?} is not a preset (tempting, low-reward)")))?,
+            ),
             (Some(v), None) => {
                 if v.contains(';') {
                     return Err(err(
@@ -210,9 +223,7 @@ impl FilterSpec {
                 }
                 let parts: Vec<&str> = v.split(':').collect();
                 if parts.len() != 4 {
-                    return Err(err(format!(
-                        "inpaint={v:?} needs four numbers pcmin:pcmax:prmin:prmax"
-                    )));
+                    return Err(err(format!("inpaint={v:?} needs four numbers pcmin:pcmax:prmin:prmax")));
                 }
                 let n = parts
                     .iter()
@@ -224,10 +235,7 @@ impl FilterSpec {
                     prmin: n[2],
                     prmax: n[3],
                 };
-                if n.iter().any(|x| !(0.0..=1.0).contains(x))
-                    || r.pcmin > r.pcmax
-                    || r.prmin > r.prmax
-                {
+                if n.iter().any(|x| !(0.0..=1.0).contains(x)) || r.pcmin > r.pcmax || r.prmin > r.prmax {
                     return Err(err(format!(
                         "inpaint={v:?}: each value in [0, 1] with pcmin <= pcmax, prmin <= prmax"
                     )));
@@ -247,9 +255,7 @@ impl FilterSpec {
                 Some(v) => {
                     let d = number("density", v)?;
                     if !(d > 0.0 && d < 1.0) {
-                        return Err(err(format!(
-                            "density={d} is outside (0, 1); 1 means no density filter"
-                        )));
+                        return Err(err(format!("density={d} is outside (0, 1); 1 means no density filter")));
                     }
                     density_presets()
                         .get(&(task.id.to_string(), canonical_number(d)))
@@ -286,9 +292,7 @@ impl FilterSpec {
                 return Err(err("cbins and rbins must be in 1..=1000"));
             }
             if max_npb == 0 || max_npb > 1_000_000 || min_npb > 1_000_000 {
-                return Err(err(
-                    "max_npb must be >= 1 and the bin counts at most 1000000",
-                ));
+                return Err(err("max_npb must be >= 1 and the bin counts at most 1000000"));
             }
             Some(Grid {
                 cbins: cbins as u32,
@@ -346,9 +350,7 @@ impl FilterSpec {
             add("outliers_percent", canonical_number(p));
         }
         if let Some(r) = &self.inpaint {
-            let v = [r.pcmin, r.pcmax, r.prmin, r.prmax]
-                .map(canonical_number)
-                .join(":");
+            let v = [r.pcmin, r.pcmax, r.prmin, r.prmax].map(canonical_number).join(":");
             add("inpaint", v);
         }
         if let Some(e) = self.epsilon {
@@ -370,11 +372,7 @@ mod tests {
     use crate::catalog::Catalog;
 
     fn ant() -> Task {
-        Catalog::embedded()
-            .unwrap()
-            .get("OfflineAntRun-v0")
-            .unwrap()
-            .clone()
+        Catalog::embedded().unwrap().get("OfflineAntRun-v0").unwrap().clone()
     }
 
     #[test]
@@ -405,13 +403,8 @@ mod tests {
         let c = FilterSpec::parse("obs_noise=0.1", &t).unwrap().unwrap();
         assert_eq!(c.canonical(), "noise_scale=0.1");
         // Density comes from the task's preset; the density number itself is not part of the computation.
-        let d = FilterSpec::parse("density=0.5, seed=3", &t)
-            .unwrap()
-            .unwrap();
-        assert_eq!(
-            d.canonical(),
-            "cbins=10,rbins=50,max_npb=6,min_npb=2,seed=3"
-        );
+        let d = FilterSpec::parse("density=0.5, seed=3", &t).unwrap().unwrap();
+        assert_eq!(d.canonical(), "cbins=10,rbins=50,max_npb=6,min_npb=2,seed=3");
         let e = FilterSpec::parse("cbins=10,rbins=50,max_npb=6,min_npb=2,seed=3", &t)
             .unwrap()
             .unwrap();
@@ -420,9 +413,7 @@ mod tests {
         assert_eq!(f.canonical(), "inpaint=0.5:1:0.5:1");
         assert_eq!(FilterSpec::parse("", &t).unwrap(), None);
         // The seed only matters with the density filter.
-        let g = FilterSpec::parse("obs_noise=0.1,seed=9", &t)
-            .unwrap()
-            .unwrap();
+        let g = FilterSpec::parse("obs_noise=0.1,seed=9", &t).unwrap().unwrap();
         assert_eq!(g.canonical(), "noise_scale=0.1");
     }
 
@@ -436,10 +427,7 @@ mod tests {
             ("inpaint=0:0.5:0.5:1;0.5:1:0:1", "several inpaint ranges"),
             ("inpaint=0:0.5:0.5:1,epsilon=3", "epsilon with inpaint"),
             ("noise=0.1,target_cost=0.5", "target_cost >= 1"),
-            (
-                "density=0.3",
-                "no density preset for 0.3; presets: 0.5, 0.75",
-            ),
+            ("density=0.3", "no density preset for 0.3; presets: 0.5, 0.75"),
             ("density=1", "outside (0, 1)"),
             ("cbins=0,rbins=5,max_npb=3,min_npb=1", "1..=1000"),
             ("inpaint=0.6:0.5:0:1", "pcmin <= pcmax"),

@@ -22,9 +22,7 @@ fn digest_f32(values: &[f32]) -> String {
 }
 
 fn digest_bool(values: &[bool]) -> String {
-    hex::encode(Sha256::digest(
-        values.iter().map(|&b| b as u8).collect::<Vec<u8>>(),
-    ))
+    hex::encode(Sha256::digest(values.iter().map(|&b| b as u8).collect::<Vec<u8>>()))
 }
 
 #[test]
@@ -65,29 +63,18 @@ fn every_filter_matches_dsrls_reference_bit_for_bit() {
         let planned = plan(&spec, task, episodes);
         if let Some(error) = expected.get("error") {
             if planned.is_ok() {
-                failures.push(format!(
-                    "{label}: the reference fails ({error}) but we accepted it"
-                ));
+                failures.push(format!("{label}: the reference fails ({error}) but we accepted it"));
             }
             continue;
         }
         let planned = match planned {
             Ok(p) => p,
             Err(e) => {
-                failures.push(format!(
-                    "{label}: rejected ({e}) but the reference succeeds"
-                ));
+                failures.push(format!("{label}: rejected ({e}) but the reference succeeds"));
                 continue;
             }
         };
-        let out = gather(
-            path,
-            episodes,
-            &planned,
-            task.obs_dim as usize,
-            task.act_dim as usize,
-        )
-        .unwrap();
+        let out = gather(path, episodes, &planned, task.obs_dim as usize, task.act_dim as usize).unwrap();
         let rows = expected["rows"].as_u64().unwrap() as usize;
         if out.len() != rows {
             failures.push(format!("{label}: {} rows, expected {rows}", out.len()));

@@ -1,9 +1,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow_array::{
-    ArrayRef, BooleanArray, Float64Array, Int64Array, ListArray, RecordBatch, types::Float64Type,
-};
+use arrow_array::{ArrayRef, BooleanArray, Float64Array, Int64Array, ListArray, RecordBatch, types::Float64Type};
 use arrow_schema::{DataType, Field, Schema};
 use dsrl_suite::catalog::{Catalog, ObservationSpace, Task};
 use dsrl_suite::convert::{Converted, ImportError, SourceFormat, import_file, write_canonical};
@@ -77,10 +75,7 @@ fn canonical_parquet_round_trips_and_is_deterministic() {
     assert_eq!(read_all(&dir.path().join("a.parquet")), concat(&chunks));
     assert_eq!(a.episode_index.len(), 23);
     assert_eq!(
-        a.episode_index
-            .iter()
-            .map(|e| e.length as usize)
-            .sum::<usize>(),
+        a.episode_index.iter().map(|e| e.length as usize).sum::<usize>(),
         concat(&chunks).len()
     );
     let other = write(&t, &synthetic(&t, 23, 2), &dir.path().join("c.parquet"));
@@ -97,11 +92,7 @@ fn row_groups_hold_whole_episodes_and_floats_use_byte_stream_split() {
     let converted = write(&t, &chunks, &path);
     let reader = SerializedFileReader::new(std::fs::File::open(&path).unwrap()).unwrap();
     let meta = reader.metadata();
-    assert!(
-        meta.num_row_groups() >= 2,
-        "{} row groups",
-        meta.num_row_groups()
-    );
+    assert!(meta.num_row_groups() >= 2, "{} row groups", meta.num_row_groups());
     let starts: Vec<u64> = converted.episode_index.iter().map(|e| e.start).collect();
     let mut row = 0u64;
     for rg in meta.row_groups() {
@@ -127,8 +118,8 @@ fn row_groups_hold_whole_episodes_and_floats_use_byte_stream_split() {
     }
     let kv = meta.file_metadata().key_value_metadata().unwrap();
     assert!(
-        kv.iter().any(|k| k.key == "dsrl.task"
-            && k.value.as_deref() == Some("OfflineMetadrive-easysparse-v0"))
+        kv.iter()
+            .any(|k| k.key == "dsrl.task" && k.value.as_deref() == Some("OfflineMetadrive-easysparse-v0"))
     );
 }
 
@@ -139,9 +130,7 @@ impl CodecOnly for parquet::basic::Compression {
     /// Column chunk metadata records the codec, not the level.
     fn codec_only(self) -> parquet::basic::Compression {
         match self {
-            parquet::basic::Compression::ZSTD(_) => {
-                parquet::basic::Compression::ZSTD(Default::default())
-            }
+            parquet::basic::Compression::ZSTD(_) => parquet::basic::Compression::ZSTD(Default::default()),
             other => other,
         }
     }
@@ -161,13 +150,7 @@ fn hdf5_export_then_import_gives_back_the_same_version() {
     )
     .unwrap();
     assert_eq!(SourceFormat::sniff(&h5).unwrap(), Some(SourceFormat::Hdf5));
-    let (format, back) = import_file(
-        &h5,
-        &t,
-        ObservationSpace::Simulator,
-        &dir.path().join("b.parquet"),
-    )
-    .unwrap();
+    let (format, back) = import_file(&h5, &t, ObservationSpace::Simulator, &dir.path().join("b.parquet")).unwrap();
     assert_eq!(format, SourceFormat::Hdf5);
     assert_eq!(back.version, original.version);
     assert_eq!(back.episode_index, original.episode_index);
@@ -178,9 +161,8 @@ fn hdf5_export_then_import_gives_back_the_same_version() {
 fn write_foreign_hdf5(all: &TransitionChunk, path: &Path, flags_as_int: bool) {
     let f = hdf5::File::create(path).unwrap();
     let n = all.len();
-    let m = |v: &[f32], d: usize| {
-        ndarray::Array2::from_shape_vec((n, d), v.iter().map(|&x| x as f64).collect()).unwrap()
-    };
+    let m =
+        |v: &[f32], d: usize| ndarray::Array2::from_shape_vec((n, d), v.iter().map(|&x| x as f64).collect()).unwrap();
     f.new_dataset_builder()
         .deflate(4)
         .with_data(&m(&all.observations, all.obs_dim))
@@ -230,13 +212,7 @@ fn hdf5_with_float64_integer_flags_and_column_vectors_imports_like_the_canonical
     let canonical = write(&t, &chunks, &dir.path().join("a.parquet"));
     let h5 = dir.path().join("foreign.h5");
     write_foreign_hdf5(&concat(&chunks), &h5, true);
-    let (_, back) = import_file(
-        &h5,
-        &t,
-        ObservationSpace::Simulator,
-        &dir.path().join("b.parquet"),
-    )
-    .unwrap();
+    let (_, back) = import_file(&h5, &t, ObservationSpace::Simulator, &dir.path().join("b.parquet")).unwrap();
     assert_eq!(back.version, canonical.version);
     assert_eq!(back.dropped_columns, vec!["crash_costs".to_owned()]);
 }
@@ -302,16 +278,9 @@ fn write_pandas_like_parquet(all: &TransitionChunk, path: &Path, extra: bool) {
                 .map(|row| Some(row.iter().map(|&x| Some(x as f64)).collect::<Vec<_>>())),
         ))
     };
-    let f64s = |v: &[f32]| -> ArrayRef {
-        Arc::new(Float64Array::from(
-            v.iter().map(|&x| x as f64).collect::<Vec<_>>(),
-        ))
-    };
-    let ints = |v: &[bool]| -> ArrayRef {
-        Arc::new(Int64Array::from(
-            v.iter().map(|&b| b as i64).collect::<Vec<_>>(),
-        ))
-    };
+    let f64s =
+        |v: &[f32]| -> ArrayRef { Arc::new(Float64Array::from(v.iter().map(|&x| x as f64).collect::<Vec<_>>())) };
+    let ints = |v: &[bool]| -> ArrayRef { Arc::new(Int64Array::from(v.iter().map(|&b| b as i64).collect::<Vec<_>>())) };
     let item = Arc::new(Field::new_list_field(DataType::Float64, true));
     let mut fields = vec![
         Field::new("observations", DataType::List(item.clone()), true),
@@ -336,8 +305,7 @@ fn write_pandas_like_parquet(all: &TransitionChunk, path: &Path, extra: bool) {
         columns.push(Arc::new(BooleanArray::from(vec![true; all.len()])));
     }
     let batch = RecordBatch::try_new(Arc::new(Schema::new(fields)), columns).unwrap();
-    let mut w =
-        ArrowWriter::try_new(std::fs::File::create(path).unwrap(), batch.schema(), None).unwrap();
+    let mut w = ArrowWriter::try_new(std::fs::File::create(path).unwrap(), batch.schema(), None).unwrap();
     w.write(&batch).unwrap();
     w.close().unwrap();
 }
@@ -350,13 +318,7 @@ fn foreign_parquet_layouts_import_like_the_canonical_data() {
     let canonical = write(&t, &chunks, &dir.path().join("a.parquet"));
     let pandas = dir.path().join("pandas.parquet");
     write_pandas_like_parquet(&concat(&chunks), &pandas, true);
-    let (format, back) = import_file(
-        &pandas,
-        &t,
-        ObservationSpace::Simulator,
-        &dir.path().join("b.parquet"),
-    )
-    .unwrap();
+    let (format, back) = import_file(&pandas, &t, ObservationSpace::Simulator, &dir.path().join("b.parquet")).unwrap();
     assert_eq!(format, SourceFormat::Parquet);
     assert_eq!(back.version, canonical.version);
     assert_eq!(back.dropped_columns, vec!["is_safe".to_owned()]);
@@ -378,13 +340,7 @@ fn wrong_task_dimensions_and_paper_space_metadrive() {
     let src = dir.path().join("ant.parquet");
     write(&ant, &synthetic(&ant, 2, 8), &src);
     let out = dir.path().join("out.parquet");
-    let err = import_file(
-        &src,
-        &task("OfflineBallRun-v0"),
-        ObservationSpace::Simulator,
-        &out,
-    )
-    .unwrap_err();
+    let err = import_file(&src, &task("OfflineBallRun-v0"), ObservationSpace::Simulator, &out).unwrap_err();
     assert_eq!(
         err.to_string(),
         "column observations: 33 features per observation, but OfflineBallRun-v0 expects 7"
@@ -396,23 +352,10 @@ fn wrong_task_dimensions_and_paper_space_metadrive() {
     spec.obs_dim = 261;
     let paper: Vec<_> = transitions(spec).collect();
     let src = dir.path().join("paper.parquet");
-    write_canonical(
-        &md,
-        ObservationSpace::Paper,
-        paper.into_iter().map(Ok),
-        vec![],
-        &src,
-    )
-    .unwrap();
+    write_canonical(&md, ObservationSpace::Paper, paper.into_iter().map(Ok), vec![], &src).unwrap();
     let err = import_file(&src, &md, ObservationSpace::Simulator, &out).unwrap_err();
     assert!(err.to_string().contains("261 features per observation, but OfflineMetadrive-hardmean-v0 expects 259; that is the paper's observation space"), "{err}");
     import_file(&src, &md, ObservationSpace::Paper, &out).unwrap();
-    let err = import_file(
-        &dir.path().join("ant.parquet"),
-        &ant,
-        ObservationSpace::Paper,
-        &out,
-    )
-    .unwrap_err();
+    let err = import_file(&dir.path().join("ant.parquet"), &ant, ObservationSpace::Paper, &out).unwrap_err();
     assert!(err.to_string().contains("the same (33 features)"), "{err}");
 }

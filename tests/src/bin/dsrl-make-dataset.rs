@@ -41,25 +41,12 @@ fn main() -> anyhow::Result<()> {
         Format::Parquet => args.out.clone(),
         Format::Hdf5 => args.out.with_extension("tmp.parquet"),
     };
-    let converted = write_canonical(
-        task,
-        ObservationSpace::Simulator,
-        chunks.map(Ok),
-        vec![],
-        &parquet,
-    )?;
+    let converted = write_canonical(task, ObservationSpace::Simulator, chunks.map(Ok), vec![], &parquet)?;
     if let Format::Hdf5 = args.format {
-        write_dsrl_hdf5(
-            ParquetTransitions::open(std::fs::File::open(&parquet)?)?,
-            &args.out,
-        )?;
+        write_dsrl_hdf5(ParquetTransitions::open(std::fs::File::open(&parquet)?)?, &args.out)?;
         std::fs::remove_file(&parquet)?;
     }
-    let transitions: u64 = converted
-        .episode_index
-        .iter()
-        .map(|e| e.length as u64)
-        .sum();
+    let transitions: u64 = converted.episode_index.iter().map(|e| e.length as u64).sum();
     println!(
         "{} episodes, {transitions} transitions, {} bytes of Parquet (version {}) -> {}",
         converted.episode_index.len(),

@@ -1,0 +1,107 @@
+//! Prometheus metrics: requests by route and status (REST) or method and code (gRPC), request latency, bytes
+//! served, ingests by outcome, filter requests by outcome and computation time, hosted versions.
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct RequestLabels {
+    pub method: String,
+    pub route: String,
+    /// HTTP status for REST; the `grpc-status` code for gRPC (0 when it only arrives in trailers, i.e. OK).
+    pub status: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct RouteLabels {
+    pub route: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct OutcomeLabels {
+    pub outcome: &'static str,
+}
+
+pub struct Metrics {
+    registry: Registry,
+    pub requests: Family<RequestLabels, Counter>,
+    pub latency: Family<RouteLabels, Histogram>,
+    pub download_bytes: Counter,
+    pub ingests: Family<OutcomeLabels, Counter>,
+    /// Filter requests: `computed` (a filtered version was made), `cached` (it existed), `rejected`.
+    pub filters: Family<OutcomeLabels, Counter>,
+    pub filter_seconds: Histogram,
+    pub dataset_versions: Gauge,
+}
+
+impl Metrics {
+    pub fn new() -> Metrics {
+        let mut registry = Registry::with_prefix("dsrl");
+        let requests = Family::<RequestLabels, Counter>::default();
+        registry.register(
+            "requests",
+            "Requests by method (HTTP verb or gRPC method), route and status",
+            requests.clone(),
+        );
+        let latency = Family::<RouteLabels, Histogram>::new_with_constructor(|| {
+            Histogram::new(exponential_buckets(0.0005, 4.0, 10))
+        });
+        registry.register(
+            "request_duration_seconds",
+            "Time to the response head, by route",
+            latency.clone(),
+        );
+        let download_bytes = Counter::default();
+        registry.register(
+            "download_bytes",
+            "Dataset bytes sent to clients",
+            download_bytes.clone(),
+        );
+        let ingests = Family::<OutcomeLabels, Counter>::default();
+        registry.register(
+            "ingests",
+            "Ingest requests by outcome (created, unchanged, rejected)",
+            ingests.clone(),
+        );
+        let filters = Family::<OutcomeLabels, Counter>::default();
+        registry.register(
+            "filters",
+            "Filter requests by outcome (computed, cached, rejected)",
+            filters.clone(),
+        );
+        let filter_seconds = Histogram::new(exponential_buckets(0.01, 2.0, 12));
+        registry.register(
+            "filter_seconds",
+            "Time to compute a filtered version",
+            filter_seconds.clone(),
+        );
+        let dataset_versions = Gauge::default();
+        registry.register("dataset_versions", "Hosted dataset versions", dataset_versions.clone());
+        Metrics {
+            registry,
+            requests,
+            latency,
+            download_bytes,
+            ingests,
+            filters,
+            filter_seconds,
+            dataset_versions,
+        }
+    }
+
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        prometheus_client::encoding::text::encode(&mut out, &self.registry).expect("writing to a String");
+        out
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics::new()
+    }
+}
