@@ -159,6 +159,7 @@ async fn health_metrics_and_openapi() {
         "/v1/datasets/{task}/versions",
         "/v1/datasets/{task}/versions/{version}",
         "/v1/datasets/{task}/versions/{version}/download",
+        "/v1/datasets/{task}/versions/{version}/plot.svg",
         "/v1/datasets/{task}/tags/{tag}",
     ] {
         assert!(doc["paths"][path].is_object(), "{path} missing from /openapi.json");

@@ -4,11 +4,7 @@
 # Needs network access to PyPI the first time (it builds .venv-golden). Not run by CI: the fixtures are committed.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-if [ ! -x .venv-golden/bin/python ]; then
-  python3 -m venv .venv-golden
-fi
-.venv-golden/bin/python -m pip install --quiet --disable-pip-version-check -r tests/golden/requirements.txt
-.venv-golden/bin/python -m pip install --quiet --disable-pip-version-check --no-deps dsrl==0.1.0
+tests/golden/reference-venv.sh
 cargo build --release --bin dsrl-make-dataset
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT

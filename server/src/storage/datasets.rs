@@ -197,10 +197,21 @@ impl Datasets {
     }
 
     /// Stores a version's Parquet file and manifest under their keys (each write atomic) and checks the stored size.
+    /// `file` is a synced temporary file: with the local backend it is renamed into place (same filesystem, no
+    /// copy), otherwise uploaded.
     async fn store_objects(&self, manifest: &Manifest, json: &str, file: &Path) -> Result<(), ApiError> {
         let (task, version) = (manifest.task.as_str(), manifest.version.as_str());
         let data_key = objects::dataset_key(task, version);
-        let stored = objects::upload_file(self.store.as_ref(), file, &data_key).await?;
+        let renamed = match &self.local_objects {
+            Some(root) => objects::rename_into(root, file, &data_key)
+                .await
+                .map_err(ApiError::internal)?,
+            None => None,
+        };
+        let stored = match renamed {
+            Some(size) => size,
+            None => objects::upload_file(self.store.as_ref(), file, &data_key).await?,
+        };
         if stored != manifest.byte_size {
             return Err(ApiError::Internal(format!(
                 "stored {data_key} has {stored} bytes, expected {}",

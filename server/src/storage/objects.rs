@@ -99,6 +99,24 @@ pub async fn upload_file(store: &dyn ObjectStore, local: &FsPath, dest: &Path) -
     Ok(store.head(dest).await?.size)
 }
 
+/// Moves a local file to `key` under a local object store's `root` with one atomic rename; `None` when the two are
+/// on different filesystems (then the caller copies).
+pub async fn rename_into(root: &FsPath, file: &FsPath, key: &Path) -> std::io::Result<Option<u64>> {
+    let dest = root.join(key.as_ref());
+    let parent = dest.parent().expect("object keys have a folder").to_owned();
+    tokio::fs::create_dir_all(&parent).await?;
+    match tokio::fs::rename(file, &dest).await {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::CrossesDevices => return Ok(None),
+        Err(e) => return Err(e),
+    }
+    // Make the rename itself durable.
+    tokio::task::spawn_blocking(move || std::fs::File::open(&parent)?.sync_all())
+        .await
+        .map_err(std::io::Error::other)??;
+    Ok(Some(tokio::fs::metadata(&dest).await?.len()))
+}
+
 pub async fn put_bytes(store: &dyn ObjectStore, dest: &Path, bytes: Vec<u8>) -> object_store::Result<()> {
     store.put(dest, PutPayload::from(bytes)).await.map(|_| ())
 }
