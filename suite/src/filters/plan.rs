@@ -367,3 +367,76 @@ fn inpaint(
         .map(|(&p, _)| p)
         .collect())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::catalog::Catalog;
+
+    fn task() -> Task {
+        Catalog::embedded().unwrap().get("OfflineCarCircle-v0").unwrap().clone()
+    }
+
+    fn episodes(returns: &[(f32, f32, u32)]) -> Vec<EpisodeSummary> {
+        let mut start = 0;
+        returns
+            .iter()
+            .map(|&(c, r, length)| {
+                let e = EpisodeSummary {
+                    start,
+                    length,
+                    reward_return: r,
+                    cost_return: c,
+                };
+                start += length as u64;
+                e
+            })
+            .collect()
+    }
+
+    fn spec(text: &str) -> FilterSpec {
+        FilterSpec::parse(text, &task()).unwrap().unwrap()
+    }
+
+    #[test]
+    fn equal_cost_returns_give_a_zero_width_grid_and_a_refusal() {
+        let eps = episodes(&[(0.0, 10.0, 300), (0.0, 20.0, 300), (0.0, 30.0, 300)]);
+        let err = plan(&spec("density=0.5"), &task(), &eps).unwrap_err();
+        assert!(err.about_data);
+        assert!(err.to_string().contains("zero width"), "{err}");
+    }
+
+    #[test]
+    fn outliers_with_more_unit_costs_than_steps_are_refused() {
+        // Every trajectory is a candidate (cost >= 50, reward >= 267.2) but only 3 steps long; target_cost 100
+        // draws outlier cost returns up to 99.
+        let eps = episodes(&[(60.0, 400.0, 3); 40]);
+        let err = plan(&spec("noise=0.5,target_cost=100"), &task(), &eps).unwrap_err();
+        assert!(err.to_string().contains("more unit costs than steps"), "{err}");
+    }
+
+    #[test]
+    fn counts_and_fates_add_up() {
+        let eps = episodes(&[
+            (5.0, 100.0, 300),
+            (60.0, 450.0, 300),
+            (80.0, 500.0, 300),
+            (15.0, 200.0, 300),
+        ]);
+        let p = plan(&spec("noise=0.25,epsilon=150,target_cost=20"), &task(), &eps).unwrap();
+        // Candidates for the one outlier (int(4 * 0.25)): episodes 1 and 2 (cost >= 50, reward >= 267.2). The
+        // outlier gets a cost return below 20 and 1.5x its reward (675 or 750), so it becomes the best safe
+        // trajectory, and epsilon=150 removes exactly it (episode 3's 200 is far below).
+        assert_eq!(p.counts.relabelled_outliers, 1);
+        assert_eq!(p.counts.removed_by_epsilon, 1);
+        let removed: Vec<usize> = (0..4).filter(|&e| p.fates[e] == Fate::RemovedByEpsilon).collect();
+        assert!(removed == [1] || removed == [2], "{removed:?}");
+        assert!(p.relabels.contains_key(&removed[0]));
+        assert_eq!(p.counts.output_episodes, 3);
+        assert_eq!(p.order.len(), 3);
+        assert!(
+            p.order.windows(2).all(|w| w[0] < w[1]),
+            "epsilon sorts like np.setdiff1d"
+        );
+    }
+}
