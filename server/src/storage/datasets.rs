@@ -247,11 +247,12 @@ impl Datasets {
         FilterSpec::parse(filter.unwrap_or_default(), task).map_err(|e| self.rejected(e))
     }
 
+    fn count_filter(&self, outcome: &'static str) {
+        self.metrics.filters.get_or_create(&OutcomeLabels { outcome }).inc();
+    }
+
     fn rejected(&self, e: FilterError) -> ApiError {
-        self.metrics
-            .filters
-            .get_or_create(&OutcomeLabels { outcome: "rejected" })
-            .inc();
+        self.count_filter("rejected");
         ApiError::InvalidArgument(e.to_string())
     }
 
@@ -264,10 +265,7 @@ impl Datasets {
     ) -> Result<VersionRecord, ApiError> {
         let canonical = spec.canonical();
         if let Some(found) = self.derivation(task, parent, &canonical).await? {
-            self.metrics
-                .filters
-                .get_or_create(&OutcomeLabels { outcome: "cached" })
-                .inc();
+            self.count_filter("cached");
             return Ok(found);
         }
         let key = format!("{}/{}/{canonical}", task.id, parent.version);
@@ -282,18 +280,12 @@ impl Datasets {
         let result = async {
             // Whoever held the gate before us has committed its result.
             if let Some(found) = self.derivation(task, parent, &canonical).await? {
-                self.metrics
-                    .filters
-                    .get_or_create(&OutcomeLabels { outcome: "cached" })
-                    .inc();
+                self.count_filter("cached");
                 return Ok(found);
             }
             let started = std::time::Instant::now();
             let record = self.compute_derivation(task, parent, spec, &canonical, request).await?;
-            self.metrics
-                .filters
-                .get_or_create(&OutcomeLabels { outcome: "computed" })
-                .inc();
+            self.count_filter("computed");
             self.metrics.filter_seconds.observe(started.elapsed().as_secs_f64());
             Ok(record)
         }

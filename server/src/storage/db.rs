@@ -67,12 +67,7 @@ impl Db {
                 .bind(filter)
                 .fetch_optional(&self.pool)
                 .await?;
-        row.map(|r| {
-            let v: String = r.try_get(0)?;
-            v.parse()
-                .map_err(|e: dsrl_suite::IdError| sqlx::Error::Decode(e.into()))
-        })
-        .transpose()
+        version_id(row)
     }
 
     pub async fn version(&self, task: &TaskId, version: &VersionId) -> Result<Option<VersionRecord>, sqlx::Error> {
@@ -106,12 +101,7 @@ impl Db {
             .bind(tag.as_str())
             .fetch_optional(&self.pool)
             .await?;
-        row.map(|r| {
-            let v: String = r.try_get(0)?;
-            v.parse()
-                .map_err(|e: dsrl_suite::IdError| sqlx::Error::Decode(e.into()))
-        })
-        .transpose()
+        version_id(row)
     }
 
     pub async fn manifest(&self, task: &TaskId, version: &VersionId) -> Result<Option<String>, sqlx::Error> {
@@ -229,6 +219,16 @@ pub async fn set_tag(
         .execute(&mut **tx)
         .await?;
     Ok(done.rows_affected() == 1)
+}
+
+/// The version id in the first column of an optional row.
+fn version_id(row: Option<sqlx::sqlite::SqliteRow>) -> Result<Option<VersionId>, sqlx::Error> {
+    row.map(|r| {
+        let v: String = r.try_get(0)?;
+        v.parse()
+            .map_err(|e: dsrl_suite::IdError| sqlx::Error::Decode(e.into()))
+    })
+    .transpose()
 }
 
 fn record(row: &sqlx::sqlite::SqliteRow) -> Result<VersionRecord, sqlx::Error> {
