@@ -7,3 +7,11 @@ pub mod datasets {
         include!("gen/dsrl.datasets.v1.rs");
     }
 }
+
+pub mod simulator {
+    pub mod v1 {
+        include!("gen/dsrl.simulator.v1.rs");
+    }
+}
+
+pub mod simulator_session;

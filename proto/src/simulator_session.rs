@@ -1,0 +1,285 @@
+//! A typed client for one simulator session (see `dsrl/simulator/v1/simulator.proto`): open K environments, reset
+//! and step them with plain slices, and get decoded arrays back. Used by the server's worker pool, the benchmark
+//! and the tests; requests can be pipelined with [`SimulatorSession::send_step`] + [`SimulatorSession::receive`].
+
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+use tonic::{Status, Streaming};
+
+use crate::simulator::v1::{
+    self as pb, DType, SessionRequest, SessionResponse, TaskSpec, Tensor, session_request, session_response,
+    simulator_client::SimulatorClient,
+};
+
+impl Tensor {
+    pub fn from_f32(shape: &[usize], values: &[f32]) -> Tensor {
+        let mut data = Vec::with_capacity(values.len() * 4);
+        for v in values {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+        Tensor {
+            dtype: DType::Float32 as i32,
+            shape: shape.iter().map(|&d| d as u64).collect(),
+            data,
+        }
+    }
+
+    pub fn from_f64(shape: &[usize], values: &[f64]) -> Tensor {
+        let mut data = Vec::with_capacity(values.len() * 8);
+        for v in values {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+        Tensor {
+            dtype: DType::Float64 as i32,
+            shape: shape.iter().map(|&d| d as u64).collect(),
+            data,
+        }
+    }
+
+    pub fn from_bool(shape: &[usize], values: &[bool]) -> Tensor {
+        let data = values.iter().map(|&b| b as u8).collect();
+        Tensor {
+            dtype: DType::Bool as i32,
+            shape: shape.iter().map(|&d| d as u64).collect(),
+            data,
+        }
+    }
+
+    /// The number of elements the shape declares, or `None` when it overflows.
+    pub fn element_count(&self) -> Option<usize> {
+        self.shape
+            .iter()
+            .try_fold(1usize, |n, &d| n.checked_mul(usize::try_from(d).ok()?))
+    }
+
+    fn check(&self, name: &str, want: DType, width: usize) -> Result<usize, Status> {
+        if self.dtype != want as i32 {
+            let got = DType::try_from(self.dtype)
+                .map(|d| d.as_str_name().to_owned())
+                .unwrap_or(self.dtype.to_string());
+            return Err(Status::invalid_argument(format!(
+                "{name}: dtype {got}, expected {}",
+                want.as_str_name()
+            )));
+        }
+        let count = self
+            .element_count()
+            .filter(|n| n.checked_mul(width) == Some(self.data.len()));
+        count.ok_or_else(|| {
+            Status::invalid_argument(format!(
+                "{name}: {} bytes do not hold shape {:?} of {}",
+                self.data.len(),
+                self.shape,
+                want.as_str_name()
+            ))
+        })
+    }
+
+    pub fn to_f32(&self, name: &str) -> Result<Vec<f32>, Status> {
+        self.check(name, DType::Float32, 4)?;
+        Ok(self
+            .data
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect())
+    }
+
+    pub fn to_f64(&self, name: &str) -> Result<Vec<f64>, Status> {
+        self.check(name, DType::Float64, 8)?;
+        Ok(self
+            .data
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect())
+    }
+
+    pub fn to_bool(&self, name: &str) -> Result<Vec<bool>, Status> {
+        self.check(name, DType::Bool, 1)?;
+        Ok(self.data.iter().map(|&b| b != 0).collect())
+    }
+}
+
+/// What one step of n environments returned, decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepResult {
+    pub envs: Vec<u32>,
+    /// `[n * obs_dim]`, row-major.
+    pub observations: Vec<f32>,
+    pub rewards: Vec<f64>,
+    pub costs: Vec<f64>,
+    pub terminated: Vec<bool>,
+    pub truncated: Vec<bool>,
+    /// With `AUTO_RESET_SAME_STEP`: the finished episodes' last observations (zeros for the others).
+    pub final_observations: Option<Vec<f32>>,
+}
+
+/// A decoded response to one pipelined request.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Reply {
+    Reset { envs: Vec<u32>, observations: Vec<f32> },
+    Step(StepResult),
+    Closed,
+}
+
+pub struct SimulatorSession {
+    requests: mpsc::Sender<SessionRequest>,
+    responses: Streaming<SessionResponse>,
+    next_id: u64,
+    spec: TaskSpec,
+    num_envs: usize,
+}
+
+impl SimulatorSession {
+    /// Opens a session; returns it with the K initial observations (`[K * obs_dim]`).
+    pub async fn open(channel: Channel, open: pb::Open) -> Result<(SimulatorSession, Vec<f32>), Status> {
+        let (requests, receiver) = mpsc::channel(64);
+        let num_envs = open.num_envs as usize;
+        requests
+            .send(SessionRequest {
+                id: 0,
+                kind: Some(session_request::Kind::Open(open)),
+            })
+            .await
+            .map_err(|_| Status::internal("session request channel closed"))?;
+        let mut client = SimulatorClient::new(channel)
+            .max_decoding_message_size(256 << 20)
+            .max_encoding_message_size(256 << 20);
+        let mut responses = client.session(ReceiverStream::new(receiver)).await?.into_inner();
+        let first = next_response(&mut responses).await?;
+        let Some(session_response::Kind::Opened(opened)) = first.kind else {
+            return Err(Status::internal("the worker did not answer Open with Opened"));
+        };
+        let spec = opened
+            .spec
+            .ok_or_else(|| Status::internal("Opened without a task spec"))?;
+        let observations = opened
+            .observations
+            .ok_or_else(|| Status::internal("Opened without observations"))?
+            .to_f32("observations")?;
+        Ok((
+            SimulatorSession {
+                requests,
+                responses,
+                next_id: 1,
+                spec,
+                num_envs,
+            },
+            observations,
+        ))
+    }
+
+    pub fn spec(&self) -> &TaskSpec {
+        &self.spec
+    }
+
+    pub fn num_envs(&self) -> usize {
+        self.num_envs
+    }
+
+    async fn send(&mut self, kind: session_request::Kind) -> Result<u64, Status> {
+        let id = self.next_id;
+        self.next_id += 1;
+        if self
+            .requests
+            .send(SessionRequest { id, kind: Some(kind) })
+            .await
+            .is_err()
+        {
+            // The request stream only closes when the worker ended the session; its status says why.
+            return Err(match self.responses.message().await {
+                Err(status) => status,
+                Ok(_) => Status::unavailable("the simulator session ended"),
+            });
+        }
+        Ok(id)
+    }
+
+    /// Queues a step without waiting for its result (pipelining); [`Self::receive`] returns results in order.
+    pub async fn send_step(&mut self, envs: &[u32], actions: &[f32]) -> Result<u64, Status> {
+        let rows = if envs.is_empty() { self.num_envs } else { envs.len() };
+        let act_dim = actions.len().checked_div(rows).unwrap_or(0);
+        let actions = Tensor::from_f32(&[rows, act_dim], actions);
+        self.send(session_request::Kind::Step(pb::Step {
+            envs: envs.to_vec(),
+            actions: Some(actions),
+        }))
+        .await
+    }
+
+    pub async fn send_reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<u64, Status> {
+        self.send(session_request::Kind::Reset(pb::Reset {
+            envs: envs.to_vec(),
+            seeds: seeds.to_vec(),
+        }))
+        .await
+    }
+
+    /// Sends a raw request (tests use it to send what a typed call never would).
+    pub async fn send_raw(&mut self, kind: session_request::Kind) -> Result<u64, Status> {
+        self.send(kind).await
+    }
+
+    pub async fn receive(&mut self) -> Result<Reply, Status> {
+        let response = next_response(&mut self.responses).await?;
+        match response.kind {
+            Some(session_response::Kind::Reset(reset)) => Ok(Reply::Reset {
+                envs: reset.envs,
+                observations: required(reset.observations, "observations")?.to_f32("observations")?,
+            }),
+            Some(session_response::Kind::Step(step)) => Ok(Reply::Step(StepResult {
+                envs: step.envs,
+                observations: required(step.observations, "observations")?.to_f32("observations")?,
+                rewards: required(step.rewards, "rewards")?.to_f64("rewards")?,
+                costs: required(step.costs, "costs")?.to_f64("costs")?,
+                terminated: required(step.terminated, "terminated")?.to_bool("terminated")?,
+                truncated: required(step.truncated, "truncated")?.to_bool("truncated")?,
+                final_observations: step
+                    .final_observations
+                    .map(|t| t.to_f32("final_observations"))
+                    .transpose()?,
+            })),
+            Some(session_response::Kind::Closed(_)) => Ok(Reply::Closed),
+            _ => Err(Status::internal("unexpected response in a simulator session")),
+        }
+    }
+
+    /// Steps the given environments (empty: all) with row-major actions `[n * act_dim]`.
+    pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, Status> {
+        self.send_step(envs, actions).await?;
+        match self.receive().await? {
+            Reply::Step(result) => Ok(result),
+            _ => Err(Status::internal("a step was not answered with a transition")),
+        }
+    }
+
+    /// Resets the given environments (empty: all) with one seed each; returns their observations.
+    pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, Status> {
+        self.send_reset(envs, seeds).await?;
+        match self.receive().await? {
+            Reply::Reset { observations, .. } => Ok(observations),
+            _ => Err(Status::internal("a reset was not answered with observations")),
+        }
+    }
+
+    /// Closes the session and waits for the worker to confirm that its environments are freed.
+    pub async fn close(mut self) -> Result<(), Status> {
+        self.send(session_request::Kind::Close(pb::Close {})).await?;
+        loop {
+            if let Reply::Closed = self.receive().await? {
+                return Ok(());
+            }
+        }
+    }
+}
+
+fn required(tensor: Option<Tensor>, name: &str) -> Result<Tensor, Status> {
+    tensor.ok_or_else(|| Status::internal(format!("response without {name}")))
+}
+
+async fn next_response(responses: &mut Streaming<SessionResponse>) -> Result<SessionResponse, Status> {
+    responses
+        .message()
+        .await?
+        .ok_or_else(|| Status::unavailable("the simulator worker ended the session"))
+}

@@ -1,0 +1,145 @@
+"""The benchmark tasks' simulators behind one interface.
+
+    env = make_env("SafetyBallRun-v0")
+    obs = env.reset(seed)                       # float32 observation
+    obs, reward, cost, terminated, truncated = env.step(action)
+
+Bullet-Safety-Gym tasks come from gymnasium's registry (cost in info["cost"]); Safety-Gymnasium tasks from
+safety_gymnasium.make (cost is the third return value); SafeMetaDrive from metadrive_tasks (cost in info["cost"]).
+Actions are clipped to the action space before stepping: the worker's documented policy for out-of-range actions.
+"""
+import importlib.metadata
+import os
+import random
+
+import numpy as np
+
+BULLET = "bullet-safety-gym"
+SAFETY_GYMNASIUM = "safety-gymnasium"
+METADRIVE = "metadrive"
+
+
+def family(sim_id):
+    if sim_id.startswith("SafeMetaDrive-"):
+        return METADRIVE
+    agent_task = sim_id[len("Safety"):-len("-v0")] if sim_id.endswith("-v0") else ""
+    if any(agent_task == a + t for a in ("Ant", "Ball", "Car", "Drone") for t in ("Run", "Circle")):
+        return BULLET
+    return SAFETY_GYMNASIUM
+
+
+def simulator_version(fam):
+    package = {BULLET: "bullet-safety-gym", SAFETY_GYMNASIUM: "safety-gymnasium", METADRIVE: "metadrive-simulator"}[fam]
+    return f"{package} {importlib.metadata.version(package)}"
+
+
+_skybox_patched = False
+
+
+def _patch_safety_gymnasium_skybox():
+    """Safety-Gymnasium rebuilds its MuJoCo model at every reset and decodes 24 MB of skybox PNGs each time; a
+    builtin gradient skybox gives bit-identical observations, rewards and costs (only rendered images differ) and
+    cuts a reset from ~1.4 s to ~15 ms."""
+    global _skybox_patched
+    if _skybox_patched:
+        return
+    import safety_gymnasium.world as world
+
+    load = world.yaml.load
+
+    def patched(stream, Loader=None):
+        data = load(stream, Loader=Loader)
+        if isinstance(data, dict) and "skybox" in data.get("textures", {}):
+            data["textures"]["skybox"] = {"@type": "skybox", "@builtin": "gradient", "@rgb1": "0.4 0.6 0.8",
+                                          "@rgb2": "0 0 0", "@width": "32", "@height": "32"}
+        return data
+
+    world.yaml.load = patched
+    _skybox_patched = True
+
+
+class _GlobalRandomState:
+    """Bullet-Safety-Gym ignores `reset(seed=...)` and draws from the process-global `np.random` and `random`
+    (start positions, orientations, joint noise). Each env keeps its own copy of both global states and swaps it in
+    around its calls, so an env's episodes depend only on its own seed, whatever other envs in the process do."""
+
+    def __init__(self, seed):
+        self.numpy = np.random.RandomState(seed).get_state()
+        self.python = random.Random(seed).getstate()
+
+    def __enter__(self):
+        self.saved = np.random.get_state(), random.getstate()
+        np.random.set_state(self.numpy)
+        random.setstate(self.python)
+
+    def __exit__(self, *exc):
+        self.numpy, self.python = np.random.get_state(), random.getstate()
+        np.random.set_state(self.saved[0])
+        random.setstate(self.saved[1])
+        return False
+
+
+class Env:
+    def __init__(self, sim_id):
+        self.sim_id = sim_id
+        self.family = family(sim_id)
+        if self.family == BULLET:
+            import gymnasium
+            import bullet_safety_gym  # noqa: F401  (registers the tasks)
+
+            self._env = gymnasium.make(sim_id)
+            self.max_episode_steps = self._env.spec.max_episode_steps
+        elif self.family == SAFETY_GYMNASIUM:
+            import safety_gymnasium
+
+            _patch_safety_gymnasium_skybox()
+            self._env = safety_gymnasium.make(sim_id)
+            self.max_episode_steps = self._env.spec.max_episode_steps
+        else:
+            from . import metadrive_tasks
+
+            self._env = metadrive_tasks.make(sim_id)
+            self.max_episode_steps = metadrive_tasks.HORIZON
+        space = self._env.action_space
+        self.low = np.asarray(space.low, dtype=np.float64)
+        self.high = np.asarray(space.high, dtype=np.float64)
+        self.act_dim = int(np.prod(space.shape))
+        self.obs_dim = int(np.prod(self._env.observation_space.shape))
+
+    def reset(self, seed):
+        if self.family == BULLET:
+            self._random = _GlobalRandomState(int(seed) % 2**32)
+            with self._random:
+                obs, _ = self._env.reset(seed=int(seed))
+        else:
+            obs, _ = self._env.reset(seed=int(seed))
+        return np.asarray(obs, dtype=np.float32).reshape(-1)
+
+    def step(self, action):
+        action = np.clip(np.asarray(action, dtype=np.float64), self.low, self.high)
+        if self.family == SAFETY_GYMNASIUM:
+            obs, reward, cost, terminated, truncated, _ = self._env.step(action)
+        elif self.family == BULLET:
+            with self._random:
+                obs, reward, terminated, truncated, info = self._env.step(action)
+            cost = info["cost"]
+        else:
+            obs, reward, terminated, truncated, info = self._env.step(action)
+            cost = info["cost"]
+        return (np.asarray(obs, dtype=np.float32).reshape(-1), float(reward), float(cost), bool(terminated),
+                bool(truncated))
+
+    def close(self):
+        self._env.close()
+
+
+def make_env(sim_id):
+    return Env(sim_id)
+
+
+def quiet():
+    """Silences the simulators' import-time chatter (gymnasium-robotics' notice, pybullet's build banner)."""
+    os.environ.setdefault("PYTHONWARNINGS", "ignore")
+    import warnings
+
+    warnings.filterwarnings("ignore")

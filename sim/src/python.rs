@@ -1,0 +1,190 @@
+//! The embedded CPython: start-up (the simulator venv's site-packages and `sim/python` on `sys.path`) and the
+//! calls into `dsrl_sim.batch.Batch`, with raw little-endian bytes crossing the boundary both ways.
+//!
+//! Every call takes the GIL for its duration; the service runs them on blocking threads so the async executor
+//! keeps serving other sessions (which then wait for the GIL, as they would in any single Python process).
+
+use std::path::{Path, PathBuf};
+
+use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyTuple};
+
+use crate::error::SimError;
+
+/// Where the worker finds its Python code and packages.
+#[derive(Debug, Clone)]
+pub struct PythonPaths {
+    /// The folder holding the `dsrl_sim` package (`sim/python` in the repository).
+    pub source: PathBuf,
+    /// The simulator virtual environment made by `sim/setup.sh` (`.venv-sim`).
+    pub venv: PathBuf,
+}
+
+/// The shape of a task as the simulator reports it.
+#[derive(Debug, Clone)]
+pub struct BatchShape {
+    pub obs_dim: u32,
+    pub act_dim: u32,
+    pub action_low: Vec<f64>,
+    pub action_high: Vec<f64>,
+    pub max_episode_steps: u32,
+    pub family: String,
+    pub simulator: String,
+}
+
+/// Raw outputs of one batched step; see `dsrl_sim/batch.py`.
+pub struct StepBytes {
+    pub observations: Vec<u8>,
+    pub rewards: Vec<u8>,
+    pub costs: Vec<u8>,
+    pub terminated: Vec<u8>,
+    pub truncated: Vec<u8>,
+    pub final_observations: Vec<u8>,
+}
+
+pub struct PythonHost {
+    batch_class: Py<PyAny>,
+    tasks: Py<PyModule>,
+}
+
+/// K environments of one task living in the embedded interpreter (or, for MetaDrive, in its child processes).
+pub struct PyBatch {
+    batch: Py<PyAny>,
+}
+
+fn simulator_error(py: Python<'_>, context: &str, err: PyErr) -> SimError {
+    let traceback = err.traceback(py).and_then(|t| t.format().ok()).unwrap_or_default();
+    tracing::warn!(%context, error = %err, %traceback, "simulator raised");
+    SimError::Simulator(format!("{context}: {err}"))
+}
+
+impl PythonHost {
+    /// Starts the interpreter and imports `dsrl_sim`. Fails with a message naming the missing piece (usually: run
+    /// `sim/setup.sh`).
+    pub fn start(paths: &PythonPaths) -> Result<PythonHost, SimError> {
+        let python = paths.venv.join("bin").join("python");
+        if !python.exists() {
+            return Err(SimError::Setup(format!(
+                "no simulator environment at {} (run sim/setup.sh)",
+                paths.venv.display()
+            )));
+        }
+        if !paths.source.join("dsrl_sim").is_dir() {
+            return Err(SimError::Setup(format!(
+                "no dsrl_sim package under {}",
+                paths.source.display()
+            )));
+        }
+        Python::initialize();
+        Python::attach(|py| {
+            Self::bootstrap(py, paths, &python).map_err(|err| {
+                let message = err.to_string();
+                SimError::Setup(format!("starting the embedded Python failed: {message}"))
+            })
+        })
+    }
+
+    fn bootstrap(py: Python<'_>, paths: &PythonPaths, python: &Path) -> PyResult<PythonHost> {
+        let sys = py.import("sys")?;
+        let version = sys.getattr("version_info")?;
+        let (major, minor): (u32, u32) = (version.get_item(0)?.extract()?, version.get_item(1)?.extract()?);
+        let site_packages = paths
+            .venv
+            .join("lib")
+            .join(format!("python{major}.{minor}"))
+            .join("site-packages");
+        if !site_packages.is_dir() {
+            return Err(pyo3::exceptions::PyRuntimeError::new_err(format!(
+                "{} is missing: the simulator environment was made with another Python than {major}.{minor}",
+                site_packages.display()
+            )));
+        }
+        py.import("site")?
+            .call_method1("addsitedir", (site_packages.to_string_lossy(),))?;
+        sys.getattr("path")?
+            .call_method1("insert", (0, paths.source.to_string_lossy()))?;
+        // multiprocessing (MetaDrive's one-process-per-env) reads argv and must start children with a real Python.
+        sys.setattr("argv", vec!["dsrl-sim-worker"])?;
+        let environ = py.import("os")?.getattr("environ")?;
+        environ.set_item("DSRL_SIM_PYTHON", python.to_string_lossy())?;
+        environ.set_item("PYTHONWARNINGS", "ignore")?;
+        let tasks = py.import("dsrl_sim.tasks")?;
+        tasks.call_method0("quiet")?;
+        let batch_class = py.import("dsrl_sim.batch")?.getattr("Batch")?.unbind();
+        Ok(PythonHost {
+            batch_class,
+            tasks: tasks.unbind(),
+        })
+    }
+
+    /// Builds K environments of `sim_id` (a simulator id) without resetting them.
+    pub fn open(&self, sim_id: &str, seeds: &[u64], auto_reset: bool) -> Result<(PyBatch, BatchShape), SimError> {
+        Python::attach(|py| {
+            let built = self.batch_class.bind(py).call1((sim_id, seeds.to_vec(), auto_reset));
+            let batch = built.map_err(|e| simulator_error(py, &format!("building {sim_id}"), e))?;
+            let shape = self
+                .shape(py, sim_id, &batch)
+                .map_err(|e| simulator_error(py, "reading the task's spaces", e))?;
+            Ok((PyBatch { batch: batch.unbind() }, shape))
+        })
+    }
+
+    fn shape(&self, py: Python<'_>, sim_id: &str, batch: &Bound<'_, PyAny>) -> PyResult<BatchShape> {
+        let tasks = self.tasks.bind(py);
+        let family: String = tasks.call_method1("family", (sim_id,))?.extract()?;
+        let simulator: String = tasks.call_method1("simulator_version", (&family,))?.extract()?;
+        let bounds = |name: &str| -> PyResult<Vec<f64>> { batch.getattr(name)?.call_method0("tolist")?.extract() };
+        Ok(BatchShape {
+            obs_dim: batch.getattr("obs_dim")?.extract()?,
+            act_dim: batch.getattr("act_dim")?.extract()?,
+            action_low: bounds("low")?,
+            action_high: bounds("high")?,
+            max_episode_steps: batch.getattr("max_episode_steps")?.extract()?,
+            family,
+            simulator,
+        })
+    }
+}
+
+fn bytes_of(item: Bound<'_, PyAny>) -> PyResult<Vec<u8>> {
+    Ok(item.cast_into::<PyBytes>()?.as_bytes().to_vec())
+}
+
+impl PyBatch {
+    pub fn reset(&self, envs: &[u32], seeds: &[u64]) -> Result<Vec<u8>, SimError> {
+        Python::attach(|py| {
+            let result = self
+                .batch
+                .bind(py)
+                .call_method1("reset", (envs.to_vec(), seeds.to_vec()));
+            result.and_then(bytes_of).map_err(|e| simulator_error(py, "reset", e))
+        })
+    }
+
+    pub fn step(&self, envs: &[u32], actions: &[u8]) -> Result<StepBytes, SimError> {
+        Python::attach(|py| {
+            let call = || -> PyResult<StepBytes> {
+                let actions = PyBytes::new(py, actions);
+                let result = self.batch.bind(py).call_method1("step", (envs.to_vec(), actions))?;
+                let parts = result.cast_into::<PyTuple>()?;
+                Ok(StepBytes {
+                    observations: bytes_of(parts.get_item(0)?)?,
+                    rewards: bytes_of(parts.get_item(1)?)?,
+                    costs: bytes_of(parts.get_item(2)?)?,
+                    terminated: bytes_of(parts.get_item(3)?)?,
+                    truncated: bytes_of(parts.get_item(4)?)?,
+                    final_observations: bytes_of(parts.get_item(5)?)?,
+                })
+            };
+            call().map_err(|e| simulator_error(py, "step", e))
+        })
+    }
+
+    pub fn close(&self) {
+        Python::attach(|py| {
+            if let Err(err) = self.batch.bind(py).call_method0("close") {
+                tracing::warn!(error = %err, "closing a batch failed");
+            }
+        })
+    }
+}
