@@ -76,6 +76,8 @@ pub enum ApiError {
     #[error("{task} has no version {reference:?}; list them with GET /v1/datasets/{task}/versions")]
     VersionNotFound { task: String, reference: String },
     #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
     InvalidArgument(String),
     /// The uploaded file is not a valid dataset for the task; the message names the first problem.
     #[error("rejected upload: {0}")]
@@ -97,7 +99,7 @@ pub enum ApiError {
 impl ApiError {
     pub fn code(&self) -> ErrorCode {
         match self {
-            ApiError::UnknownTask(_) | ApiError::VersionNotFound { .. } => ErrorCode::NotFound,
+            ApiError::UnknownTask(_) | ApiError::VersionNotFound { .. } | ApiError::NotFound(_) => ErrorCode::NotFound,
             ApiError::InvalidArgument(_) | ApiError::InvalidUpload(_) => ErrorCode::InvalidArgument,
             ApiError::UploadTooLarge { .. } => ErrorCode::PayloadTooLarge,
             ApiError::RangeNotSatisfiable { .. } => ErrorCode::RangeNotSatisfiable,

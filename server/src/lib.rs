@@ -9,6 +9,7 @@ pub mod error;
 pub mod grpc;
 pub mod http;
 pub mod metrics;
+pub mod simulators;
 pub mod starter;
 pub mod storage;
 
@@ -28,6 +29,7 @@ use tower_http::trace::TraceLayer;
 use crate::config::Config;
 use crate::http::auth::AdminAuth;
 use crate::metrics::Metrics;
+use crate::simulators::SimulatorPool;
 use crate::storage::converter::Converter;
 use crate::storage::datasets::{Datasets, DatasetsSetup};
 use crate::storage::db::Db;
@@ -39,6 +41,7 @@ pub struct AppState {
     pub auth: Arc<AdminAuth>,
     pub metrics: Arc<Metrics>,
     pub max_upload_bytes: u64,
+    pub simulators: Arc<SimulatorPool>,
 }
 
 /// Opens storage, loads the catalog and the starter datasets: everything the server needs before it listens.
@@ -75,7 +78,9 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         tracing::info!(dir = %dir.display(), created, "starter datasets checked");
     }
     metrics.dataset_versions.set(datasets.db().version_count().await?);
+    let simulators = Arc::new(SimulatorPool::start(&config.simulators));
     Ok(AppState {
+        simulators,
         datasets: Arc::new(datasets),
         auth: Arc::new(auth),
         metrics,

@@ -8,6 +8,7 @@ mod filters;
 mod http;
 mod ingest;
 mod s3;
+mod simulators;
 mod starter;
 
 use std::path::{Path, PathBuf};

@@ -163,6 +163,8 @@ fn spawn_server(data_dir: &Path, args: &[String], envs: &[(String, String)]) -> 
         .append(true)
         .open(data_dir.with_extension("log"))
         .expect("opening the server log");
+    // No simulator workers unless a test asks for them (tests/e2e/simulators.rs does); `envs` may override.
+    cmd.env("DSRL__SIMULATORS__LOCAL_WORKERS", "0");
     cmd.args(args)
         .envs(envs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
         .env("DSRL_LOG", "info")

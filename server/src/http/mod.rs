@@ -5,6 +5,7 @@ pub mod datasets;
 pub mod download;
 pub mod metrics;
 pub mod openapi;
+pub mod simulators;
 
 use axum::Router;
 use axum::extract::State;
@@ -21,6 +22,7 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(metrics::metrics))
         .route("/openapi.json", get(openapi_json))
         .route("/v1/server", get(datasets::server_info))
+        .route("/v1/simulators", get(simulators::list_simulators))
         .route("/v1/tasks", get(datasets::list_tasks))
         .route("/v1/tasks/{task}", get(datasets::get_task))
         .route(

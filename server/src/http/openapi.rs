@@ -3,7 +3,7 @@
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
-use super::datasets;
+use super::{datasets, simulators};
 
 #[derive(OpenApi)]
 #[openapi(
@@ -22,6 +22,7 @@ use super::datasets;
         datasets::get_plot,
         datasets::ingest,
         datasets::put_tag,
+        simulators::list_simulators,
         download_doc,
     ),
     components(schemas(dsrl_suite::EpisodeSummary)),

@@ -15,6 +15,8 @@ pub fn config(dir: &Path) -> Config {
     config.server.listen = "127.0.0.1:0".parse().unwrap();
     config.datasets.starter_dir = None;
     config.auth.admin_token = Some("integration-test-token".into());
+    // The worker pool is tested end to end in tests/e2e/simulators.rs, where the worker binary is built.
+    config.simulators.local_workers = 0;
     config
 }
 

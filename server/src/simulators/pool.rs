@@ -1,0 +1,365 @@
+use std::path::PathBuf;
+use std::process::Stdio;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use dsrl_proto::simulator::v1::simulator_client::SimulatorClient;
+use dsrl_proto::simulator::v1::{HealthRequest, Open};
+use dsrl_proto::simulator_session::SimulatorSession;
+use serde::Serialize;
+use tokio::io::{AsyncBufReadExt, BufReader};
+use tokio::process::{Child, Command};
+use tokio::sync::watch;
+use tonic::transport::{Channel, Endpoint};
+
+use super::session::PooledSession;
+use crate::config::SimulatorsConfig;
+use crate::error::ApiError;
+
+/// A worker as `GET /v1/simulators` shows it.
+#[derive(Debug, Clone, Serialize, PartialEq, utoipa::ToSchema)]
+pub struct WorkerStatus {
+    pub name: String,
+    /// "local" (started and supervised by this server) or "remote".
+    pub kind: String,
+    pub address: Option<String>,
+    pub pid: Option<u32>,
+    pub healthy: bool,
+    pub sessions: u32,
+    pub envs: u32,
+    pub max_envs: u32,
+    pub version: Option<String>,
+    /// Times a local worker was replaced after dying or failing its health checks.
+    pub restarts: u32,
+    pub last_error: Option<String>,
+}
+
+enum Source {
+    Local { binary: PathBuf, args: Vec<String> },
+    Remote { address: String },
+}
+
+struct Slot {
+    source: Source,
+    state: Mutex<SlotState>,
+}
+
+#[derive(Default)]
+struct SlotState {
+    status: Option<WorkerStatus>,
+    channel: Option<Channel>,
+    child: Option<Child>,
+    failed_checks: u32,
+}
+
+pub struct SimulatorPool {
+    slots: Vec<Arc<Slot>>,
+    request_timeout: Duration,
+    stop: watch::Sender<bool>,
+}
+
+impl Slot {
+    fn status(&self) -> WorkerStatus {
+        self.state.lock().expect("slot state").status.clone().expect("status set at creation")
+    }
+
+    fn update(&self, f: impl FnOnce(&mut SlotState)) {
+        f(&mut self.state.lock().expect("slot state"))
+    }
+}
+
+/// Starts a local worker and waits for its "listening on" line.
+async fn spawn_worker(binary: &PathBuf, args: &[String], name: &str) -> Result<(Child, String), String> {
+    let mut child = Command::new(binary)
+        .args(["--listen", "127.0.0.1:0", "--exit-with-stdin"])
+        .args(args)
+        // The worker exits when this pipe closes, so even a SIGKILLed server leaves no workers behind.
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .kill_on_drop(true)
+        .spawn()
+        .map_err(|e| format!("starting {}: {e}", binary.display()))?;
+    let mut lines = BufReader::new(child.stdout.take().expect("piped stdout")).lines();
+    let address = tokio::time::timeout(Duration::from_secs(120), async {
+        while let Ok(Some(line)) = lines.next_line().await {
+            if let Some(address) = line.strip_prefix("dsrl-sim-worker listening on ") {
+                return Ok(address.to_owned());
+            }
+        }
+        Err(format!("{} exited before listening (is the simulator environment set up? run sim/setup.sh)", binary.display()))
+    })
+    .await
+    .map_err(|_| "the worker did not start listening within 120 s".to_owned())??;
+    // The simulators print to stdout; drain it into the log so a full pipe never blocks the worker.
+    let worker = name.to_owned();
+    tokio::spawn(async move {
+        while let Ok(Some(line)) = lines.next_line().await {
+            tracing::debug!(%worker, "{line}");
+        }
+    });
+    Ok((child, address))
+}
+
+fn channel_to(address: &str) -> Result<Channel, String> {
+    let endpoint = Endpoint::from_shared(format!("http://{address}")).map_err(|e| format!("bad address {address}: {e}"))?;
+    Ok(endpoint.connect_timeout(Duration::from_secs(5)).tcp_nodelay(true).connect_lazy())
+}
+
+impl SimulatorPool {
+    /// Creates the pool and starts supervising its workers (local ones are spawned in the background).
+    pub fn start(config: &SimulatorsConfig) -> SimulatorPool {
+        let binary = config.worker_binary.clone().unwrap_or_else(default_worker_binary);
+        let mut slots = Vec::new();
+        for i in 0..config.local_workers {
+            let status = WorkerStatus {
+                name: format!("local-{i}"),
+                kind: "local".into(),
+                address: None,
+                pid: None,
+                healthy: false,
+                sessions: 0,
+                envs: 0,
+                max_envs: 0,
+                version: None,
+                restarts: 0,
+                last_error: None,
+            };
+            let source = Source::Local { binary: binary.clone(), args: config.worker_args.clone() };
+            slots.push(Arc::new(Slot { source, state: Mutex::new(SlotState { status: Some(status), ..Default::default() }) }));
+        }
+        for (i, address) in config.remote_workers.iter().enumerate() {
+            let status = WorkerStatus {
+                name: format!("remote-{i}"),
+                kind: "remote".into(),
+                address: Some(address.clone()),
+                pid: None,
+                healthy: false,
+                sessions: 0,
+                envs: 0,
+                max_envs: 0,
+                version: None,
+                restarts: 0,
+                last_error: None,
+            };
+            let source = Source::Remote { address: address.clone() };
+            slots.push(Arc::new(Slot { source, state: Mutex::new(SlotState { status: Some(status), ..Default::default() }) }));
+        }
+        let (stop, stopped) = watch::channel(false);
+        let interval = Duration::from_millis(config.health_interval_ms.max(50));
+        for slot in &slots {
+            tokio::spawn(supervise(slot.clone(), interval, stopped.clone()));
+        }
+        SimulatorPool { slots, request_timeout: Duration::from_secs(config.request_timeout_s.max(1)), stop }
+    }
+
+    pub fn workers(&self) -> Vec<WorkerStatus> {
+        self.slots.iter().map(|s| s.status()).collect()
+    }
+
+    /// Waits until at least `n` workers are healthy, or `timeout` passes.
+    pub async fn wait_healthy(&self, n: usize, timeout: Duration) -> bool {
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            if self.workers().iter().filter(|w| w.healthy).count() >= n {
+                return true;
+            }
+            if tokio::time::Instant::now() >= deadline {
+                return false;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// Opens a session on the healthy worker with the most free capacity.
+    pub async fn open(&self, open: Open) -> Result<PooledSession, ApiError> {
+        let (slot, channel, name) = self.place(open.num_envs)?;
+        let opened = tokio::time::timeout(self.request_timeout, SimulatorSession::open(channel, open.clone())).await;
+        let result = match opened {
+            Ok(result) => result.map_err(|status| PooledSession::error(&name, status)),
+            Err(_) => Err(ApiError::Unavailable(format!(
+                "simulator worker {name} did not open a session within {:?}",
+                self.request_timeout
+            ))),
+        };
+        let (session, observations) = result?;
+        // Count the envs at once so the next placement sees them before the next health check does.
+        slot.update(|s| {
+            if let Some(status) = &mut s.status {
+                status.envs += open.num_envs;
+                status.sessions += 1;
+            }
+        });
+        Ok(PooledSession::new(session, observations, name, self.request_timeout))
+    }
+
+    fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), ApiError> {
+        let mut best: Option<(f64, Arc<Slot>, Channel, String)> = None;
+        for slot in &self.slots {
+            let state = slot.state.lock().expect("slot state");
+            let (Some(status), Some(channel)) = (&state.status, &state.channel) else { continue };
+            if !status.healthy || status.envs + num_envs > status.max_envs {
+                continue;
+            }
+            let load = f64::from(status.envs) / f64::from(status.max_envs.max(1));
+            if best.as_ref().is_none_or(|(b, ..)| load < *b) {
+                best = Some((load, slot.clone(), channel.clone(), status.name.clone()));
+            }
+        }
+        match best {
+            Some((_, slot, channel, name)) => Ok((slot, channel, name)),
+            None => {
+                let workers = self.workers();
+                let detail: Vec<String> = workers
+                    .iter()
+                    .map(|w| match (&w.last_error, w.healthy) {
+                        (_, true) => format!("{} full ({}/{} envs)", w.name, w.envs, w.max_envs),
+                        (Some(e), false) => format!("{} down: {e}", w.name),
+                        (None, false) => format!("{} starting", w.name),
+                    })
+                    .collect();
+                Err(ApiError::Unavailable(if workers.is_empty() {
+                    "no simulator workers are configured (simulators.local_workers / remote_workers)".to_owned()
+                } else {
+                    format!("no simulator worker can take {num_envs} more environments: {}", detail.join("; "))
+                }))
+            }
+        }
+    }
+}
+
+impl Drop for SimulatorPool {
+    fn drop(&mut self) {
+        let _ = self.stop.send(true);
+        for slot in &self.slots {
+            if let Some(child) = &mut slot.state.lock().expect("slot state").child {
+                let _ = child.start_kill();
+            }
+        }
+    }
+}
+
+fn default_worker_binary() -> PathBuf {
+    std::env::current_exe()
+        .ok()
+        .map(|exe| exe.with_file_name("dsrl-sim-worker"))
+        .filter(|p| p.exists())
+        .unwrap_or_else(|| PathBuf::from("dsrl-sim-worker"))
+}
+
+/// One worker's life: start (local), health-check every `interval`, replace a local worker that exits or fails
+/// three checks in a row.
+async fn supervise(slot: Arc<Slot>, interval: Duration, mut stopped: watch::Receiver<bool>) {
+    let mut backoff = interval;
+    loop {
+        if *stopped.borrow() {
+            return;
+        }
+        let needs_start = match &slot.source {
+            Source::Local { .. } => {
+                let mut state = slot.state.lock().expect("slot state");
+                let exited = match state.child.as_mut().map(|c| c.try_wait()) {
+                    None => true,
+                    Some(Ok(Some(code))) => {
+                        let status = state.status.as_mut().expect("status");
+                        tracing::warn!(worker = %status.name, %code, "simulator worker exited; replacing it");
+                        status.last_error = Some(format!("exited with {code}"));
+                        true
+                    }
+                    Some(_) => false,
+                };
+                if exited {
+                    state.child = None;
+                    state.channel = None;
+                    let status = state.status.as_mut().expect("status");
+                    status.healthy = false;
+                    status.pid = None;
+                }
+                exited
+            }
+            Source::Remote { address } => {
+                let mut state = slot.state.lock().expect("slot state");
+                if state.channel.is_none() {
+                    match channel_to(address) {
+                        Ok(channel) => state.channel = Some(channel),
+                        Err(e) => state.status.as_mut().expect("status").last_error = Some(e),
+                    }
+                }
+                false
+            }
+        };
+        if let (true, Source::Local { binary, args }) = (needs_start, &slot.source) {
+            let name = slot.status().name;
+            match spawn_worker(binary, args, &name).await {
+                Ok((child, address)) => {
+                    let pid = child.id();
+                    let channel = channel_to(&address).ok();
+                    tracing::info!(worker = %name, %address, ?pid, "simulator worker started");
+                    slot.update(|s| {
+                        let status = s.status.as_mut().expect("status");
+                        if status.address.is_some() {
+                            status.restarts += 1;
+                        }
+                        status.address = Some(address);
+                        status.pid = pid;
+                        s.child = Some(child);
+                        s.channel = channel;
+                        s.failed_checks = 0;
+                    });
+                    backoff = interval;
+                }
+                Err(e) => {
+                    tracing::error!(worker = %name, error = %e, "simulator worker failed to start");
+                    slot.update(|s| s.status.as_mut().expect("status").last_error = Some(e));
+                    backoff = (backoff * 2).min(Duration::from_secs(30));
+                    tokio::select! {
+                        _ = tokio::time::sleep(backoff) => {}
+                        _ = stopped.changed() => return,
+                    }
+                    continue;
+                }
+            }
+        }
+        check_health(&slot).await;
+        tokio::select! {
+            _ = tokio::time::sleep(interval) => {}
+            _ = stopped.changed() => return,
+        }
+    }
+}
+
+async fn check_health(slot: &Slot) {
+    let Some(channel) = slot.state.lock().expect("slot state").channel.clone() else { return };
+    let answer = tokio::time::timeout(Duration::from_secs(5), SimulatorClient::new(channel).health(HealthRequest {})).await;
+    let mut state = slot.state.lock().expect("slot state");
+    match answer {
+        Ok(Ok(health)) => {
+            let health = health.into_inner();
+            state.failed_checks = 0;
+            let status = state.status.as_mut().expect("status");
+            status.healthy = true;
+            status.sessions = health.sessions;
+            status.envs = health.envs;
+            status.max_envs = health.max_envs;
+            status.version = Some(health.version);
+            status.last_error = None;
+        }
+        failure => {
+            let error = match failure {
+                Ok(Err(status)) => status.message().to_owned(),
+                _ => "health check timed out".to_owned(),
+            };
+            state.failed_checks += 1;
+            let failed = state.failed_checks;
+            let status = state.status.as_mut().expect("status");
+            status.healthy = false;
+            status.last_error = Some(error);
+            if failed >= 3
+                && let Some(child) = &mut state.child
+            {
+                tracing::warn!("simulator worker failed {failed} health checks; replacing it");
+                let _ = child.start_kill();
+            }
+        }
+    }
+}

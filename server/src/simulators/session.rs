@@ -1,0 +1,79 @@
+use std::time::Duration;
+
+use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
+use dsrl_proto::simulator::v1::TaskSpec;
+use tonic::{Code, Status};
+
+use crate::error::ApiError;
+
+/// A session on one pool worker. Every call has a deadline, and errors name the worker, so a worker that dies or
+/// hangs fails its sessions quickly and clearly instead of stalling an evaluation.
+pub struct PooledSession {
+    session: SimulatorSession,
+    initial_observations: Vec<f32>,
+    worker: String,
+    timeout: Duration,
+}
+
+impl PooledSession {
+    pub(super) fn new(session: SimulatorSession, observations: Vec<f32>, worker: String, timeout: Duration) -> Self {
+        PooledSession { session, initial_observations: observations, worker, timeout }
+    }
+
+    /// A worker's status as this server's error: the worker's own verdicts keep their meaning; a broken stream
+    /// means the worker died.
+    pub(super) fn error(worker: &str, status: Status) -> ApiError {
+        let message = format!("simulator worker {worker}: {}", status.message());
+        match status.code() {
+            Code::NotFound => ApiError::NotFound(message),
+            Code::InvalidArgument | Code::FailedPrecondition | Code::OutOfRange => ApiError::InvalidArgument(message),
+            Code::ResourceExhausted | Code::Unavailable => ApiError::Unavailable(message),
+            Code::Internal => ApiError::Internal(message),
+            _ => ApiError::Unavailable(format!("simulator worker {worker} failed during the session: {}", status.message())),
+        }
+    }
+
+    pub fn worker(&self) -> &str {
+        &self.worker
+    }
+
+    pub fn spec(&self) -> &TaskSpec {
+        self.session.spec()
+    }
+
+    /// The observations of the K environments as the session opened (`[K * obs_dim]`).
+    pub fn initial_observations(&self) -> &[f32] {
+        &self.initial_observations
+    }
+
+    pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, ApiError> {
+        let timeout = self.timeout;
+        let worker = self.worker.clone();
+        let call = self.session.step(envs, actions);
+        deadline(&worker, timeout, "step", call).await
+    }
+
+    pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, ApiError> {
+        let timeout = self.timeout;
+        let worker = self.worker.clone();
+        let call = self.session.reset(envs, seeds);
+        deadline(&worker, timeout, "reset", call).await
+    }
+
+    pub async fn close(self) -> Result<(), ApiError> {
+        let (timeout, worker) = (self.timeout, self.worker.clone());
+        deadline(&worker, timeout, "close", self.session.close()).await
+    }
+}
+
+async fn deadline<T>(
+    worker: &str,
+    timeout: Duration,
+    what: &str,
+    call: impl Future<Output = Result<T, Status>>,
+) -> Result<T, ApiError> {
+    match tokio::time::timeout(timeout, call).await {
+        Ok(result) => result.map_err(|status| PooledSession::error(worker, status)),
+        Err(_) => Err(ApiError::Unavailable(format!("simulator worker {worker} did not answer a {what} within {timeout:?}"))),
+    }
+}

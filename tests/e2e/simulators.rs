@@ -1,0 +1,139 @@
+//! The server's simulator worker pool with real `dsrl-sim-worker` processes: start-up and status, replacement of a
+//! killed worker, fast failure of its sessions, placement by load, remote workers, and no orphans.
+
+use std::time::Duration;
+
+use dsrl_proto::simulator::v1::{AutoReset, Open};
+use dsrl_server::config::SimulatorsConfig;
+use dsrl_server::simulators::SimulatorPool;
+
+use crate::{Env, get_json};
+
+fn worker_binary() -> String {
+    dsrl_e2e::bin("dsrl-sim-worker").display().to_string()
+}
+
+fn kill(pid: u32) {
+    let status = std::process::Command::new("kill").args(["-9", &pid.to_string()]).status().unwrap();
+    assert!(status.success());
+}
+
+fn alive(pid: u32) -> bool {
+    // A killed child stays a zombie until reaped; count those as gone.
+    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|stat| !stat.contains(") Z "))
+}
+
+fn pool_config(local: u32, remote: Vec<String>) -> SimulatorsConfig {
+    SimulatorsConfig {
+        local_workers: local,
+        worker_binary: Some(worker_binary().into()),
+        remote_workers: remote,
+        health_interval_ms: 200,
+        request_timeout_s: 60,
+        ..SimulatorsConfig::default()
+    }
+}
+
+fn open(task: &str, k: u32) -> Open {
+    Open { task: task.into(), num_envs: k, seeds: vec![], auto_reset: AutoReset::SameStep as i32 }
+}
+
+#[test]
+fn the_server_supervises_its_workers_and_takes_them_down_with_it() {
+    let binary = worker_binary();
+    let mut env = Env::with(
+        &[],
+        &[("DSRL__SIMULATORS__LOCAL_WORKERS", "1"), ("DSRL__SIMULATORS__WORKER_BINARY", &binary)],
+    );
+    let status = |env: &Env| get_json(&format!("{}/v1/simulators", env.server.url))["workers"][0].clone();
+    assert!(dsrl_e2e::wait_for(Duration::from_secs(120), || status(&env)["healthy"] == true), "{}", status(&env));
+    let first = status(&env);
+    assert_eq!(first["kind"], "local");
+    assert_eq!(first["restarts"], 0);
+    assert!(first["max_envs"].as_u64().unwrap() > 0);
+    let pid = first["pid"].as_u64().unwrap() as u32;
+
+    kill(pid);
+    let replaced = dsrl_e2e::wait_for(Duration::from_secs(120), || {
+        let s = status(&env);
+        s["healthy"] == true && s["restarts"] == 1 && s["pid"].as_u64() != Some(u64::from(pid))
+    });
+    assert!(replaced, "the killed worker was not replaced: {}", status(&env));
+
+    // A server killed outright leaves no worker behind (they exit when their stdin closes).
+    let worker = status(&env)["pid"].as_u64().unwrap() as u32;
+    env.server.kill();
+    assert!(dsrl_e2e::wait_for(Duration::from_secs(20), || !alive(worker)), "worker {worker} outlived its server");
+}
+
+#[tokio::test]
+async fn sessions_fail_fast_when_their_worker_dies_and_the_pool_recovers() {
+    let pool = SimulatorPool::start(&pool_config(1, vec![]));
+    assert!(pool.wait_healthy(1, Duration::from_secs(120)).await, "{:?}", pool.workers());
+    let mut session = pool.open(open("OfflineBallRun-v0", 2)).await.unwrap();
+    assert_eq!(session.worker(), "local-0");
+    assert_eq!(session.initial_observations().len(), 2 * session.spec().obs_dim as usize);
+    session.step(&[], &[0.0; 4]).await.unwrap();
+
+    kill(pool.workers()[0].pid.unwrap());
+    let started = std::time::Instant::now();
+    let err = session.step(&[], &[0.0; 4]).await.expect_err("a step on a dead worker succeeded");
+    assert!(started.elapsed() < Duration::from_secs(5), "failing took {:?}", started.elapsed());
+    let message = err.to_string();
+    assert!(message.contains("simulator worker local-0"), "{message}");
+
+    let recovered = tokio::time::timeout(Duration::from_secs(120), async {
+        loop {
+            let w = &pool.workers()[0];
+            if w.healthy && w.restarts == 1 {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    })
+    .await;
+    assert!(recovered.is_ok(), "no replacement: {:?}", pool.workers());
+    let mut again = pool.open(open("SafetyBallRun-v0", 1)).await.unwrap();
+    again.step(&[], &[0.1, 0.1]).await.unwrap();
+    again.close().await.unwrap();
+}
+
+#[tokio::test]
+async fn sessions_spread_over_local_and_remote_workers_by_load() {
+    // A worker started by hand stands in for one on another machine.
+    let mut remote = tokio::process::Command::new(worker_binary())
+        .args(["--listen", "127.0.0.1:0", "--exit-with-stdin", "--max-envs", "8"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let mut lines = tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(remote.stdout.take().unwrap()));
+    let address = loop {
+        let line = lines.next_line().await.unwrap().expect("remote worker exited");
+        if let Some(a) = line.strip_prefix("dsrl-sim-worker listening on ") {
+            break a.to_owned();
+        }
+    };
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+
+    let pool = SimulatorPool::start(&pool_config(1, vec![address.clone()]));
+    assert!(pool.wait_healthy(2, Duration::from_secs(120)).await, "{:?}", pool.workers());
+    let remote_status = pool.workers().into_iter().find(|w| w.kind == "remote").unwrap();
+    assert_eq!(remote_status.address.as_deref(), Some(address.as_str()));
+    assert_eq!(remote_status.max_envs, 8);
+
+    let a = pool.open(open("SafetyCarRun-v0", 4)).await.unwrap();
+    let b = pool.open(open("SafetyCarRun-v0", 4)).await.unwrap();
+    assert_ne!(a.worker(), b.worker(), "two sessions went to one worker while the other was idle");
+    // The remote worker (8 envs) is now half full; more than it has left must go elsewhere or fail clearly.
+    let c = pool.open(open("SafetyCarRun-v0", 6)).await.unwrap();
+    assert_eq!(c.worker(), "local-0");
+    for s in [a, b, c] {
+        s.close().await.unwrap();
+    }
+
+    let empty = SimulatorPool::start(&pool_config(0, vec![]));
+    let err = empty.open(open("SafetyCarRun-v0", 1)).await.err().expect("opened without workers");
+    assert!(err.to_string().contains("no simulator workers are configured"), "{err}");
+}
