@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use clap::Parser;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
-use dsrl_proto::simulator_session::SimulatorSession;
+use dsrl_proto::simulator_session::{Reply, SimulatorSession};
 
 /// Measures env-steps/s of one task through a running dsrl-sim-worker; prints one JSON line.
 #[derive(Parser, Debug)]
@@ -26,6 +26,10 @@ struct Args {
     /// Untimed batched steps first.
     #[arg(long, default_value_t = 20)]
     warmup: u64,
+    /// Split the K environments into this many groups and keep every group's next step in flight while the
+    /// others are answered (EnvPool-style asynchronous stepping through the protocol's pipelining); 1: lockstep.
+    #[arg(long, default_value_t = 1)]
+    groups: u32,
     /// Seed of the environments (env i gets seed + i) and of the random actions.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -44,7 +48,8 @@ impl SplitMix {
     }
 }
 
-#[tokio::main]
+// One thread: the client's own task handoffs would otherwise add to the protocol cost being measured.
+#[tokio::main(flavor = "current_thread")]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", args.worker))?
@@ -59,31 +64,53 @@ async fn main() -> anyhow::Result<()> {
     let (mut session, _) = SimulatorSession::open(channel, open).await?;
     let spec = session.spec().clone();
     let mut rng = SplitMix(args.seed);
-    let mut actions = vec![0f32; args.envs as usize * spec.act_dim as usize];
+    let mut random_actions = |n: usize| -> Vec<f32> {
+        let dim = spec.act_dim as usize;
+        (0..n * dim)
+            .map(|j| {
+                let (low, high) = (spec.action_low[j % dim], spec.action_high[j % dim]);
+                (low + (high - low) * rng.next_unit()) as f32
+            })
+            .collect()
+    };
+    // Group g holds envs g, g + G, g + 2G, ...; each group steps `warmup + steps` times.
+    let groups = args.groups.clamp(1, args.envs) as usize;
+    let members: Vec<Vec<u32>> = (0..groups)
+        .map(|g| (g as u32..args.envs).step_by(groups).collect())
+        .collect();
+    let envs_of = |g: usize| if groups == 1 { Vec::new() } else { members[g].clone() };
     let mut episodes = 0u64;
     let mut started = Instant::now();
-    for i in 0..args.warmup + args.steps {
-        if i == args.warmup {
+    for (g, group) in members.iter().enumerate() {
+        session.send_step(&envs_of(g), &random_actions(group.len())).await?;
+    }
+    let total = (args.warmup + args.steps) * groups as u64;
+    for i in 0..total {
+        if i == args.warmup * groups as u64 {
             started = Instant::now();
         }
-        for (j, a) in actions.iter_mut().enumerate() {
-            let d = j % spec.act_dim as usize;
-            let (low, high) = (spec.action_low[d], spec.action_high[d]);
-            *a = (low + (high - low) * rng.next_unit()) as f32;
-        }
-        let result = session.step(&[], &actions).await?;
+        let Reply::Step(result) = session.receive().await? else {
+            anyhow::bail!("unexpected reply to a step")
+        };
         episodes += result
             .terminated
             .iter()
             .zip(&result.truncated)
             .filter(|(a, b)| **a || **b)
             .count() as u64;
+        // Answers come in request order, so this was group i mod G; queue its next step.
+        let g = (i % groups as u64) as usize;
+        if i + (groups as u64) < total {
+            session
+                .send_step(&envs_of(g), &random_actions(members[g].len()))
+                .await?;
+        }
     }
     let seconds = started.elapsed().as_secs_f64();
     session.close().await?;
     let env_steps = args.steps * u64::from(args.envs);
     println!(
-        "{{\"task\": \"{}\", \"envs\": {}, \"env_steps\": {env_steps}, \"seconds\": {seconds:.3}, \"env_steps_per_s\": \
+        "{{\"task\": \"{}\", \"envs\": {}, \"groups\": {groups}, \"env_steps\": {env_steps}, \"seconds\": {seconds:.3}, \"env_steps_per_s\": \
          {:.1}, \"episodes_ended\": {episodes}, \"simulator\": \"{}\"}}",
         spec.task,
         args.envs,

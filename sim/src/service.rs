@@ -10,6 +10,7 @@ use dsrl_proto::simulator::v1::{
     SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response, simulator_server::Simulator,
 };
 use dsrl_suite::catalog::Catalog;
+use pyo3::Python;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
@@ -197,20 +198,17 @@ async fn run_session(
     let auto_reset = open.auto_reset == AutoReset::SameStep as i32;
     let k = seeds.len();
     let host = inner.host.clone();
+    // This runs on the session's own thread (see `session`), so Python is called directly.
     let (batch, shape, observations) = {
-        let sim_id = sim_id.clone();
-        blocking(move || {
-            let (batch, shape) = host.open(&sim_id, &seeds, auto_reset)?;
-            let all: Vec<u32> = (0..k as u32).collect();
-            match batch.reset(&all, &seeds) {
-                Ok(observations) => Ok((batch, shape, observations)),
-                Err(err) => {
-                    batch.close();
-                    Err(err)
-                }
+        let (batch, shape) = host.open(&sim_id, &seeds, auto_reset)?;
+        let all: Vec<u32> = (0..k as u32).collect();
+        match batch.reset(&all, &seeds) {
+            Ok(observations) => (batch, shape, observations),
+            Err(err) => {
+                batch.close();
+                return Err(err);
             }
-        })
-        .await?
+        }
     };
     let batch = Arc::new(batch);
     let _open = OpenBatch {
@@ -248,8 +246,7 @@ async fn run_session(
             }
             Some(session_request::Kind::Reset(reset)) => {
                 let (envs, seeds) = state.check_reset(&reset)?;
-                let (batch, indices) = (batch.clone(), envs.clone());
-                let observations = blocking(move || batch.reset(&indices, &seeds)).await?;
+                let observations = batch.reset(&envs, &seeds)?;
                 state.after_reset(&envs);
                 let observations = tensor(DType::Float32, &[envs.len(), obs_dim], observations, 4, "observations")?;
                 session_response::Kind::Reset(Observations {
@@ -259,8 +256,7 @@ async fn run_session(
             }
             Some(session_request::Kind::Step(step)) => {
                 let (envs, actions) = state.check_step(&step)?;
-                let (batch, indices, actions) = (batch.clone(), envs.clone(), actions.to_vec());
-                let out = blocking(move || batch.step(&indices, &actions)).await?;
+                let out = batch.step(&envs, actions)?;
                 state.after_step(&envs, &out.terminated, &out.truncated);
                 let n = envs.len();
                 let final_observations = if auto_reset {
@@ -332,7 +328,11 @@ impl Simulator for SimulatorService {
         let mut inbound = request.into_inner();
         let (outbox, responses) = mpsc::channel(16);
         let inner = self.inner.clone();
-        tokio::spawn(async move {
+        // A session lives on its own blocking thread and calls Python directly: a step then costs one thread
+        // wake-up each way (connection task -> session thread -> connection task) instead of also hopping through
+        // an executor task and the blocking pool, which measurably slowed small batches (BENCHMARKS.md).
+        let runtime = tokio::runtime::Handle::current();
+        let session = async move {
             inner.sessions.fetch_add(1, Ordering::SeqCst);
             let result = run_session(inner.clone(), &mut inbound, &outbox).await;
             inner.sessions.fetch_sub(1, Ordering::SeqCst);
@@ -340,7 +340,10 @@ impl Simulator for SimulatorService {
                 tracing::info!(error = %err, "session ended with an error");
                 let _ = outbox.send(Err(err.into())).await;
             }
-        });
+        };
+        // The thread keeps one Python thread state for the whole session (attached once, then detached while it
+        // waits): re-attaching it for each call is cheap, where a fresh state per call cost ~25 us.
+        tokio::task::spawn_blocking(move || Python::attach(|py| py.detach(|| runtime.block_on(session))));
         Ok(Response::new(Box::pin(ReceiverStream::new(responses))))
     }
 

@@ -14,7 +14,10 @@ fn worker_binary() -> String {
 }
 
 fn kill(pid: u32) {
-    let status = std::process::Command::new("kill").args(["-9", &pid.to_string()]).status().unwrap();
+    let status = std::process::Command::new("kill")
+        .args(["-9", &pid.to_string()])
+        .status()
+        .unwrap();
     assert!(status.success());
 }
 
@@ -35,7 +38,12 @@ fn pool_config(local: u32, remote: Vec<String>) -> SimulatorsConfig {
 }
 
 fn open(task: &str, k: u32) -> Open {
-    Open { task: task.into(), num_envs: k, seeds: vec![], auto_reset: AutoReset::SameStep as i32 }
+    Open {
+        task: task.into(),
+        num_envs: k,
+        seeds: vec![],
+        auto_reset: AutoReset::SameStep as i32,
+    }
 }
 
 #[test]
@@ -43,10 +51,17 @@ fn the_server_supervises_its_workers_and_takes_them_down_with_it() {
     let binary = worker_binary();
     let mut env = Env::with(
         &[],
-        &[("DSRL__SIMULATORS__LOCAL_WORKERS", "1"), ("DSRL__SIMULATORS__WORKER_BINARY", &binary)],
+        &[
+            ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
+            ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
+        ],
     );
     let status = |env: &Env| get_json(&format!("{}/v1/simulators", env.server.url))["workers"][0].clone();
-    assert!(dsrl_e2e::wait_for(Duration::from_secs(120), || status(&env)["healthy"] == true), "{}", status(&env));
+    assert!(
+        dsrl_e2e::wait_for(Duration::from_secs(120), || status(&env)["healthy"] == true),
+        "{}",
+        status(&env)
+    );
     let first = status(&env);
     assert_eq!(first["kind"], "local");
     assert_eq!(first["restarts"], 0);
@@ -63,22 +78,39 @@ fn the_server_supervises_its_workers_and_takes_them_down_with_it() {
     // A server killed outright leaves no worker behind (they exit when their stdin closes).
     let worker = status(&env)["pid"].as_u64().unwrap() as u32;
     env.server.kill();
-    assert!(dsrl_e2e::wait_for(Duration::from_secs(20), || !alive(worker)), "worker {worker} outlived its server");
+    assert!(
+        dsrl_e2e::wait_for(Duration::from_secs(20), || !alive(worker)),
+        "worker {worker} outlived its server"
+    );
 }
 
 #[tokio::test]
 async fn sessions_fail_fast_when_their_worker_dies_and_the_pool_recovers() {
     let pool = SimulatorPool::start(&pool_config(1, vec![]));
-    assert!(pool.wait_healthy(1, Duration::from_secs(120)).await, "{:?}", pool.workers());
+    assert!(
+        pool.wait_healthy(1, Duration::from_secs(120)).await,
+        "{:?}",
+        pool.workers()
+    );
     let mut session = pool.open(open("OfflineBallRun-v0", 2)).await.unwrap();
     assert_eq!(session.worker(), "local-0");
-    assert_eq!(session.initial_observations().len(), 2 * session.spec().obs_dim as usize);
+    assert_eq!(
+        session.initial_observations().len(),
+        2 * session.spec().obs_dim as usize
+    );
     session.step(&[], &[0.0; 4]).await.unwrap();
 
     kill(pool.workers()[0].pid.unwrap());
     let started = std::time::Instant::now();
-    let err = session.step(&[], &[0.0; 4]).await.expect_err("a step on a dead worker succeeded");
-    assert!(started.elapsed() < Duration::from_secs(5), "failing took {:?}", started.elapsed());
+    let err = session
+        .step(&[], &[0.0; 4])
+        .await
+        .expect_err("a step on a dead worker succeeded");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "failing took {:?}",
+        started.elapsed()
+    );
     let message = err.to_string();
     assert!(message.contains("simulator worker local-0"), "{message}");
 
@@ -118,14 +150,22 @@ async fn sessions_spread_over_local_and_remote_workers_by_load() {
     tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
 
     let pool = SimulatorPool::start(&pool_config(1, vec![address.clone()]));
-    assert!(pool.wait_healthy(2, Duration::from_secs(120)).await, "{:?}", pool.workers());
+    assert!(
+        pool.wait_healthy(2, Duration::from_secs(120)).await,
+        "{:?}",
+        pool.workers()
+    );
     let remote_status = pool.workers().into_iter().find(|w| w.kind == "remote").unwrap();
     assert_eq!(remote_status.address.as_deref(), Some(address.as_str()));
     assert_eq!(remote_status.max_envs, 8);
 
     let a = pool.open(open("SafetyCarRun-v0", 4)).await.unwrap();
     let b = pool.open(open("SafetyCarRun-v0", 4)).await.unwrap();
-    assert_ne!(a.worker(), b.worker(), "two sessions went to one worker while the other was idle");
+    assert_ne!(
+        a.worker(),
+        b.worker(),
+        "two sessions went to one worker while the other was idle"
+    );
     // The remote worker (8 envs) is now half full; more than it has left must go elsewhere or fail clearly.
     let c = pool.open(open("SafetyCarRun-v0", 6)).await.unwrap();
     assert_eq!(c.worker(), "local-0");
@@ -134,6 +174,10 @@ async fn sessions_spread_over_local_and_remote_workers_by_load() {
     }
 
     let empty = SimulatorPool::start(&pool_config(0, vec![]));
-    let err = empty.open(open("SafetyCarRun-v0", 1)).await.err().expect("opened without workers");
+    let err = empty
+        .open(open("SafetyCarRun-v0", 1))
+        .await
+        .err()
+        .expect("opened without workers");
     assert!(err.to_string().contains("no simulator workers are configured"), "{err}");
 }

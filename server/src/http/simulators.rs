@@ -15,5 +15,7 @@ pub struct SimulatorPoolStatus {
 #[utoipa::path(get, path = "/v1/simulators", tag = "simulators",
     responses((status = 200, body = SimulatorPoolStatus, description = "Every configured worker: health, load, restarts")))]
 pub async fn list_simulators(State(state): State<AppState>) -> Json<SimulatorPoolStatus> {
-    Json(SimulatorPoolStatus { workers: state.simulators.workers() })
+    Json(SimulatorPoolStatus {
+        workers: state.simulators.workers(),
+    })
 }

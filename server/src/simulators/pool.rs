@@ -60,7 +60,12 @@ pub struct SimulatorPool {
 
 impl Slot {
     fn status(&self) -> WorkerStatus {
-        self.state.lock().expect("slot state").status.clone().expect("status set at creation")
+        self.state
+            .lock()
+            .expect("slot state")
+            .status
+            .clone()
+            .expect("status set at creation")
     }
 
     fn update(&self, f: impl FnOnce(&mut SlotState)) {
@@ -87,7 +92,10 @@ async fn spawn_worker(binary: &PathBuf, args: &[String], name: &str) -> Result<(
                 return Ok(address.to_owned());
             }
         }
-        Err(format!("{} exited before listening (is the simulator environment set up? run sim/setup.sh)", binary.display()))
+        Err(format!(
+            "{} exited before listening (is the simulator environment set up? run sim/setup.sh)",
+            binary.display()
+        ))
     })
     .await
     .map_err(|_| "the worker did not start listening within 120 s".to_owned())??;
@@ -102,8 +110,12 @@ async fn spawn_worker(binary: &PathBuf, args: &[String], name: &str) -> Result<(
 }
 
 fn channel_to(address: &str) -> Result<Channel, String> {
-    let endpoint = Endpoint::from_shared(format!("http://{address}")).map_err(|e| format!("bad address {address}: {e}"))?;
-    Ok(endpoint.connect_timeout(Duration::from_secs(5)).tcp_nodelay(true).connect_lazy())
+    let endpoint =
+        Endpoint::from_shared(format!("http://{address}")).map_err(|e| format!("bad address {address}: {e}"))?;
+    Ok(endpoint
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true)
+        .connect_lazy())
 }
 
 impl SimulatorPool {
@@ -125,8 +137,17 @@ impl SimulatorPool {
                 restarts: 0,
                 last_error: None,
             };
-            let source = Source::Local { binary: binary.clone(), args: config.worker_args.clone() };
-            slots.push(Arc::new(Slot { source, state: Mutex::new(SlotState { status: Some(status), ..Default::default() }) }));
+            let source = Source::Local {
+                binary: binary.clone(),
+                args: config.worker_args.clone(),
+            };
+            slots.push(Arc::new(Slot {
+                source,
+                state: Mutex::new(SlotState {
+                    status: Some(status),
+                    ..Default::default()
+                }),
+            }));
         }
         for (i, address) in config.remote_workers.iter().enumerate() {
             let status = WorkerStatus {
@@ -142,15 +163,27 @@ impl SimulatorPool {
                 restarts: 0,
                 last_error: None,
             };
-            let source = Source::Remote { address: address.clone() };
-            slots.push(Arc::new(Slot { source, state: Mutex::new(SlotState { status: Some(status), ..Default::default() }) }));
+            let source = Source::Remote {
+                address: address.clone(),
+            };
+            slots.push(Arc::new(Slot {
+                source,
+                state: Mutex::new(SlotState {
+                    status: Some(status),
+                    ..Default::default()
+                }),
+            }));
         }
         let (stop, stopped) = watch::channel(false);
         let interval = Duration::from_millis(config.health_interval_ms.max(50));
         for slot in &slots {
             tokio::spawn(supervise(slot.clone(), interval, stopped.clone()));
         }
-        SimulatorPool { slots, request_timeout: Duration::from_secs(config.request_timeout_s.max(1)), stop }
+        SimulatorPool {
+            slots,
+            request_timeout: Duration::from_secs(config.request_timeout_s.max(1)),
+            stop,
+        }
     }
 
     pub fn workers(&self) -> Vec<WorkerStatus> {
@@ -197,7 +230,9 @@ impl SimulatorPool {
         let mut best: Option<(f64, Arc<Slot>, Channel, String)> = None;
         for slot in &self.slots {
             let state = slot.state.lock().expect("slot state");
-            let (Some(status), Some(channel)) = (&state.status, &state.channel) else { continue };
+            let (Some(status), Some(channel)) = (&state.status, &state.channel) else {
+                continue;
+            };
             if !status.healthy || status.envs + num_envs > status.max_envs {
                 continue;
             }
@@ -221,7 +256,10 @@ impl SimulatorPool {
                 Err(ApiError::Unavailable(if workers.is_empty() {
                     "no simulator workers are configured (simulators.local_workers / remote_workers)".to_owned()
                 } else {
-                    format!("no simulator worker can take {num_envs} more environments: {}", detail.join("; "))
+                    format!(
+                        "no simulator worker can take {num_envs} more environments: {}",
+                        detail.join("; ")
+                    )
                 }))
             }
         }
@@ -329,8 +367,14 @@ async fn supervise(slot: Arc<Slot>, interval: Duration, mut stopped: watch::Rece
 }
 
 async fn check_health(slot: &Slot) {
-    let Some(channel) = slot.state.lock().expect("slot state").channel.clone() else { return };
-    let answer = tokio::time::timeout(Duration::from_secs(5), SimulatorClient::new(channel).health(HealthRequest {})).await;
+    let Some(channel) = slot.state.lock().expect("slot state").channel.clone() else {
+        return;
+    };
+    let answer = tokio::time::timeout(
+        Duration::from_secs(5),
+        SimulatorClient::new(channel).health(HealthRequest {}),
+    )
+    .await;
     let mut state = slot.state.lock().expect("slot state");
     match answer {
         Ok(Ok(health)) => {

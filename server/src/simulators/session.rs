@@ -1,7 +1,7 @@
 use std::time::Duration;
 
-use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
 use dsrl_proto::simulator::v1::TaskSpec;
+use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
 use tonic::{Code, Status};
 
 use crate::error::ApiError;
@@ -17,7 +17,12 @@ pub struct PooledSession {
 
 impl PooledSession {
     pub(super) fn new(session: SimulatorSession, observations: Vec<f32>, worker: String, timeout: Duration) -> Self {
-        PooledSession { session, initial_observations: observations, worker, timeout }
+        PooledSession {
+            session,
+            initial_observations: observations,
+            worker,
+            timeout,
+        }
     }
 
     /// A worker's status as this server's error: the worker's own verdicts keep their meaning; a broken stream
@@ -29,7 +34,10 @@ impl PooledSession {
             Code::InvalidArgument | Code::FailedPrecondition | Code::OutOfRange => ApiError::InvalidArgument(message),
             Code::ResourceExhausted | Code::Unavailable => ApiError::Unavailable(message),
             Code::Internal => ApiError::Internal(message),
-            _ => ApiError::Unavailable(format!("simulator worker {worker} failed during the session: {}", status.message())),
+            _ => ApiError::Unavailable(format!(
+                "simulator worker {worker} failed during the session: {}",
+                status.message()
+            )),
         }
     }
 
@@ -74,6 +82,8 @@ async fn deadline<T>(
 ) -> Result<T, ApiError> {
     match tokio::time::timeout(timeout, call).await {
         Ok(result) => result.map_err(|status| PooledSession::error(worker, status)),
-        Err(_) => Err(ApiError::Unavailable(format!("simulator worker {worker} did not answer a {what} within {timeout:?}"))),
+        Err(_) => Err(ApiError::Unavailable(format!(
+            "simulator worker {worker} did not answer a {what} within {timeout:?}"
+        ))),
     }
 }

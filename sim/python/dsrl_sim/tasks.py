@@ -58,24 +58,32 @@ def _patch_safety_gymnasium_skybox():
     _skybox_patched = True
 
 
+_NUMPY_DRAWS = ("uniform", "randint", "rand", "randn", "random", "random_sample", "normal", "choice", "shuffle",
+                "permutation")
+_PYTHON_DRAWS = ("uniform", "random", "randint", "randrange", "choice", "shuffle", "gauss", "sample")
+_GLOBAL_DRAWS = [(np.random, name, getattr(np.random, name)) for name in _NUMPY_DRAWS] + [
+    (random, name, getattr(random, name)) for name in _PYTHON_DRAWS]
+
+
 class _GlobalRandomState:
     """Bullet-Safety-Gym ignores `reset(seed=...)` and draws from the process-global `np.random` and `random`
-    (start positions, orientations, joint noise). Each env keeps its own copy of both global states and swaps it in
-    around its calls, so an env's episodes depend only on its own seed, whatever other envs in the process do."""
+    (start positions, orientations, joint noise), looking the functions up at each call. Each env owns a seeded
+    RandomState and Random and points those module functions at them around its calls, so an env's episodes depend
+    only on its own seed, whatever other envs in the process do. (Swapping the global states with get_state and
+    set_state instead costs ~116 us per call, more than a Bullet step.)"""
 
     def __init__(self, seed):
-        self.numpy = np.random.RandomState(seed).get_state()
-        self.python = random.Random(seed).getstate()
+        numpy_draws, python_draws = np.random.RandomState(seed), random.Random(seed)
+        self.patch = [(np.random, name, getattr(numpy_draws, name)) for name in _NUMPY_DRAWS] + [
+            (random, name, getattr(python_draws, name)) for name in _PYTHON_DRAWS]
 
     def __enter__(self):
-        self.saved = np.random.get_state(), random.getstate()
-        np.random.set_state(self.numpy)
-        random.setstate(self.python)
+        for module, name, draw in self.patch:
+            setattr(module, name, draw)
 
     def __exit__(self, *exc):
-        self.numpy, self.python = np.random.get_state(), random.getstate()
-        np.random.set_state(self.saved[0])
-        random.setstate(self.saved[1])
+        for module, name, draw in _GLOBAL_DRAWS:
+            setattr(module, name, draw)
         return False
 
 
@@ -116,7 +124,8 @@ class Env:
         return np.asarray(obs, dtype=np.float32).reshape(-1)
 
     def step(self, action):
-        action = np.clip(np.asarray(action, dtype=np.float64), self.low, self.high)
+        # np.minimum/np.maximum: the same result as np.clip at a sixth of its call cost on tiny arrays.
+        action = np.minimum(np.maximum(np.asarray(action, dtype=np.float64), self.low), self.high)
         if self.family == SAFETY_GYMNASIUM:
             obs, reward, cost, terminated, truncated, _ = self._env.step(action)
         elif self.family == BULLET:

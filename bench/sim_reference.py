@@ -1,0 +1,84 @@
+"""In-process Python reference for bench/sim.sh: steps K environments of one task with uniform random actions and
+reset-on-done, with no RPC at all, and prints one JSON line like dsrl-sim-bench does.
+
+--mode raw:   the simulator's own env objects (gymnasium / safety_gymnasium / SafeMetaDrive) in a Python loop,
+              the way a researcher steps them; MetaDrive allows one env per process, so raw MetaDrive is K=1 only.
+--mode batch: dsrl_sim.batch.Batch, the exact code the worker runs, called directly (MetaDrive: one child process
+              per env, as in the worker).
+"""
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "sim" / "python"))
+from dsrl_sim import batch as batch_module, tasks  # noqa: E402
+
+tasks.quiet()
+
+
+def raw(task, k, steps, warmup, seed):
+    envs = [tasks.make_env(task) for _ in range(k)]
+    raw_envs = [e._env for e in envs]
+    family = envs[0].family
+    low, high = envs[0].low, envs[0].high
+    rng = np.random.default_rng(seed)
+    for i, env in enumerate(raw_envs):
+        env.reset(seed=seed + i)
+    resets = [0] * k
+    ended = 0
+    for n in range(warmup + steps):
+        if n == warmup:
+            started = time.perf_counter()
+        for i, env in enumerate(raw_envs):
+            action = rng.uniform(low, high)
+            if family == tasks.SAFETY_GYMNASIUM:
+                _, _, _, terminated, truncated, _ = env.step(action)
+            else:
+                _, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                ended += 1
+                resets[i] += 1
+                env.reset(seed=seed + i + resets[i] * k)
+    return time.perf_counter() - started, ended, envs[0]
+
+
+def batched(task, k, steps, warmup, seed):
+    b = batch_module.Batch(task, [seed + i for i in range(k)], auto_reset=True)
+    indices = list(range(k))
+    b.reset(indices, [seed + i for i in indices])
+    rng = np.random.default_rng(seed)
+    ended = 0
+    for n in range(warmup + steps):
+        if n == warmup:
+            started = time.perf_counter()
+        actions = rng.uniform(b.low, b.high, size=(k, b.act_dim)).astype(np.float32).tobytes()
+        out = b.step(indices, actions)
+        ended += int(np.frombuffer(out[3], np.uint8).sum() + np.frombuffer(out[4], np.uint8).sum())
+    seconds = time.perf_counter() - started
+    b.close()
+    return seconds, ended, None
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--envs", type=int, default=1)
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--mode", choices=["raw", "batch"], default="raw")
+    args = parser.parse_args()
+    run = raw if args.mode == "raw" else batched
+    seconds, ended, _ = run(args.task, args.envs, args.steps, args.warmup, args.seed)
+    env_steps = args.steps * args.envs
+    print(json.dumps({"task": args.task, "envs": args.envs, "mode": args.mode, "env_steps": env_steps,
+                      "seconds": round(seconds, 3), "env_steps_per_s": round(env_steps / seconds, 1),
+                      "episodes_ended": ended}))
+
+
+if __name__ == "__main__":
+    main()
