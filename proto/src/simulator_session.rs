@@ -112,6 +112,8 @@ pub struct StepResult {
     pub truncated: Vec<bool>,
     /// With `AUTO_RESET_SAME_STEP`: the finished episodes' last observations (zeros for the others).
     pub final_observations: Option<Vec<f32>>,
+    /// `[n * act_dim]`: what the simulator applied (the client's actions clipped, or a controller's).
+    pub applied_actions: Vec<f32>,
 }
 
 /// A decoded response to one pipelined request.
@@ -238,6 +240,7 @@ impl SimulatorSession {
                     .final_observations
                     .map(|t| t.to_f32("final_observations"))
                     .transpose()?,
+                applied_actions: required(step.applied_actions, "applied_actions")?.to_f32("applied_actions")?,
             })),
             Some(session_response::Kind::Closed(_)) => Ok(Reply::Closed),
             _ => Err(Status::internal("unexpected response in a simulator session")),

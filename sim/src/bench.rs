@@ -60,6 +60,7 @@ async fn main() -> anyhow::Result<()> {
         num_envs: args.envs,
         seeds: (0..u64::from(args.envs)).map(|i| args.seed + i).collect(),
         auto_reset: AutoReset::SameStep as i32,
+        controller: None,
     };
     let (mut session, _) = SimulatorSession::open(channel, open).await?;
     let spec = session.spec().clone();

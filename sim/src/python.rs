@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use pyo3::prelude::*;
-use pyo3::types::{PyBytes, PyTuple};
+use pyo3::types::{PyBytes, PyDict, PyTuple};
 
 use crate::error::SimError;
 
@@ -40,6 +40,13 @@ pub struct StepBytes {
     pub terminated: Vec<u8>,
     pub truncated: Vec<u8>,
     pub final_observations: Vec<u8>,
+    pub applied_actions: Vec<u8>,
+}
+
+/// A built-in driver instead of the client's actions (see `Controller` in the proto).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Controller {
+    Idm { target_speed: f64, acc_factor: f64 },
 }
 
 pub struct PythonHost {
@@ -118,9 +125,34 @@ impl PythonHost {
     }
 
     /// Builds K environments of `sim_id` (a simulator id) without resetting them.
-    pub fn open(&self, sim_id: &str, seeds: &[u64], auto_reset: bool) -> Result<(PyBatch, BatchShape), SimError> {
+    pub fn open(
+        &self,
+        sim_id: &str,
+        seeds: &[u64],
+        auto_reset: bool,
+        controller: Option<Controller>,
+    ) -> Result<(PyBatch, BatchShape), SimError> {
         Python::attach(|py| {
-            let built = self.batch_class.bind(py).call1((sim_id, seeds.to_vec(), auto_reset));
+            let controller = match controller {
+                None => py.None().into_bound(py),
+                Some(Controller::Idm {
+                    target_speed,
+                    acc_factor,
+                }) => {
+                    let idm = PyDict::new(py);
+                    let inner = PyDict::new(py);
+                    let set = inner
+                        .set_item("target_speed", target_speed)
+                        .and(inner.set_item("acc_factor", acc_factor));
+                    set.and(idm.set_item("idm", inner))
+                        .map_err(|e| simulator_error(py, "controller", e))?;
+                    idm.into_any()
+                }
+            };
+            let built = self
+                .batch_class
+                .bind(py)
+                .call1((sim_id, seeds.to_vec(), auto_reset, controller));
             let batch = built.map_err(|e| simulator_error(py, &format!("building {sim_id}"), e))?;
             let shape = self
                 .shape(py, sim_id, &batch)
@@ -174,6 +206,7 @@ impl PyBatch {
                     terminated: bytes_of(parts.get_item(3)?)?,
                     truncated: bytes_of(parts.get_item(4)?)?,
                     final_observations: bytes_of(parts.get_item(5)?)?,
+                    applied_actions: bytes_of(parts.get_item(6)?)?,
                 })
             };
             call().map_err(|e| simulator_error(py, "step", e))

@@ -5,18 +5,19 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
+use dsrl_proto::simulator::v1 as pb;
 use dsrl_proto::simulator::v1::{
     AutoReset, Closed, DType, DescribeRequest, HealthRequest, HealthResponse, Observations, Opened, SessionRequest,
     SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response, simulator_server::Simulator,
 };
-use dsrl_suite::catalog::Catalog;
+use dsrl_suite::catalog::{Catalog, Family};
 use pyo3::Python;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::SimError;
-use crate::python::{BatchShape, PyBatch, PythonHost};
+use crate::python::{BatchShape, Controller, PyBatch, PythonHost};
 use crate::session::{Limits, SessionState, check_open};
 
 #[derive(Clone)]
@@ -114,6 +115,40 @@ impl Inner {
         })
     }
 
+    /// The built-in driver an `Open` asks for, if any: only MetaDrive tasks have one.
+    fn controller(&self, sim_id: &str, controller: Option<&pb::Controller>) -> Result<Option<Controller>, SimError> {
+        let Some(controller) = controller else { return Ok(None) };
+        let Some(pb::controller::Kind::Idm(idm)) = &controller.kind else {
+            return Err(SimError::InvalidArgument(
+                "a controller must name its kind (idm)".into(),
+            ));
+        };
+        let metadrive = self
+            .catalog
+            .tasks()
+            .iter()
+            .any(|t| t.simulator_env_id == sim_id && t.family == Family::MetaDrive);
+        if !metadrive {
+            return Err(SimError::InvalidArgument(format!(
+                "{sim_id} has no IDM controller: only MetaDrive tasks do"
+            )));
+        }
+        if !(idm.target_speed.is_finite()
+            && idm.target_speed > 0.0
+            && idm.acc_factor.is_finite()
+            && idm.acc_factor >= 0.0)
+        {
+            return Err(SimError::InvalidArgument(format!(
+                "IDM needs target_speed > 0 and acc_factor >= 0, got {} and {}",
+                idm.target_speed, idm.acc_factor
+            )));
+        }
+        Ok(Some(Controller::Idm {
+            target_speed: idm.target_speed,
+            acc_factor: idm.acc_factor,
+        }))
+    }
+
     fn reserve(&self, count: u32) -> Result<EnvReservation, SimError> {
         let max = self.limits.max_envs;
         self.envs
@@ -194,13 +229,14 @@ async fn run_session(
     };
     let sim_id = inner.simulator_id(&open.task)?;
     let seeds = check_open(&open, inner.limits)?;
+    let controller = inner.controller(&sim_id, open.controller.as_ref())?;
     let reservation = inner.reserve(open.num_envs)?;
     let auto_reset = open.auto_reset == AutoReset::SameStep as i32;
     let k = seeds.len();
     let host = inner.host.clone();
     // This runs on the session's own thread (see `session`), so Python is called directly.
     let (batch, shape, observations) = {
-        let (batch, shape) = host.open(&sim_id, &seeds, auto_reset)?;
+        let (batch, shape) = host.open(&sim_id, &seeds, auto_reset, controller)?;
         let all: Vec<u32> = (0..k as u32).collect();
         match batch.reset(&all, &seeds) {
             Ok(observations) => (batch, shape, observations),
@@ -283,6 +319,13 @@ async fn run_session(
                     terminated: Some(tensor(DType::Bool, &[n], out.terminated, 1, "terminated")?),
                     truncated: Some(tensor(DType::Bool, &[n], out.truncated, 1, "truncated")?),
                     final_observations,
+                    applied_actions: Some(tensor(
+                        DType::Float32,
+                        &[n, act_dim],
+                        out.applied_actions,
+                        4,
+                        "applied actions",
+                    )?),
                     envs,
                 })
             }
@@ -308,7 +351,7 @@ impl Simulator for SimulatorService {
         let host = inner.host.clone();
         let id = sim_id.clone();
         let shape = blocking(move || {
-            let (batch, shape) = host.open(&id, &[0], false)?;
+            let (batch, shape) = host.open(&id, &[0], false, None)?;
             batch.close();
             drop(reservation);
             Ok(shape)

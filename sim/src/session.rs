@@ -183,6 +183,7 @@ mod tests {
             num_envs,
             seeds,
             auto_reset: 0,
+            controller: None,
         };
         assert_eq!(check_open(&open(3, vec![]), limits).unwrap(), vec![0, 1, 2]);
         assert_eq!(check_open(&open(2, vec![7, 9]), limits).unwrap(), vec![7, 9]);

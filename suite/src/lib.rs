@@ -5,6 +5,7 @@
 //! it on a blocking thread and the client can reuse it offline.
 
 pub mod catalog;
+pub mod collection;
 pub mod convert;
 pub mod episode;
 pub mod filters;

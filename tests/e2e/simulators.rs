@@ -43,6 +43,7 @@ fn open(task: &str, k: u32) -> Open {
         num_envs: k,
         seeds: vec![],
         auto_reset: AutoReset::SameStep as i32,
+        controller: None,
     }
 }
 

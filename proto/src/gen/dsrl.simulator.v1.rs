@@ -43,7 +43,7 @@ pub struct TaskSpec {
     pub max_envs_per_session: u32,
 }
 #[allow(clippy::all)]
-#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+#[derive(Clone, PartialEq, ::prost::Message)]
 pub struct SessionRequest {
     /// Echoed in the response.
     #[prost(uint64, tag = "1")]
@@ -54,7 +54,7 @@ pub struct SessionRequest {
 /// Nested message and enum types in `SessionRequest`.
 pub mod session_request {
     #[allow(clippy::all)]
-    #[derive(Clone, PartialEq, Eq, Hash, ::prost::Oneof)]
+    #[derive(Clone, PartialEq, ::prost::Oneof)]
     pub enum Kind {
         #[prost(message, tag = "2")]
         Open(super::Open),
@@ -67,7 +67,7 @@ pub mod session_request {
     }
 }
 #[allow(clippy::all)]
-#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+#[derive(Clone, PartialEq, ::prost::Message)]
 pub struct Open {
     #[prost(string, tag = "1")]
     pub task: ::prost::alloc::string::String,
@@ -79,6 +79,36 @@ pub struct Open {
     pub seeds: ::prost::alloc::vec::Vec<u64>,
     #[prost(enumeration = "AutoReset", tag = "4")]
     pub auto_reset: i32,
+    /// A built-in driver that chooses the actions instead of the client (unset: the client's actions are applied).
+    /// The client still sends actions of the right shape; they are ignored, and `applied_actions` says what was done.
+    #[prost(message, optional, tag = "5")]
+    pub controller: ::core::option::Option<Controller>,
+}
+#[allow(clippy::all)]
+#[derive(Clone, Copy, PartialEq, ::prost::Message)]
+pub struct Controller {
+    #[prost(oneof = "controller::Kind", tags = "1")]
+    pub kind: ::core::option::Option<controller::Kind>,
+}
+/// Nested message and enum types in `Controller`.
+pub mod controller {
+    #[allow(clippy::all)]
+    #[derive(Clone, Copy, PartialEq, ::prost::Oneof)]
+    pub enum Kind {
+        #[prost(message, tag = "1")]
+        Idm(super::Idm),
+    }
+}
+/// MetaDrive only: DSRL's noisy IDM driver (spec 6.5): lane changes off, uniform noise on steering and throttle,
+/// seeded by the episode seed.
+#[allow(clippy::all)]
+#[derive(Clone, Copy, PartialEq, ::prost::Message)]
+pub struct Idm {
+    /// km/h.
+    #[prost(double, tag = "1")]
+    pub target_speed: f64,
+    #[prost(double, tag = "2")]
+    pub acc_factor: f64,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
@@ -164,6 +194,10 @@ pub struct Transition {
     /// AUTO_RESET_SAME_STEP only: FLOAT32 \[n, obs_dim\], the finished episodes' last observations (zeros elsewhere).
     #[prost(message, optional, tag = "7")]
     pub final_observations: ::core::option::Option<Tensor>,
+    /// FLOAT32 \[n, act_dim\]: the actions the simulator applied (the client's, clipped to the action space, or the
+    /// controller's). Datasets record these.
+    #[prost(message, optional, tag = "8")]
+    pub applied_actions: ::core::option::Option<Tensor>,
 }
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]

@@ -2,8 +2,9 @@
 
     batch = Batch("SafetyBallRun-v0", seeds=[0, 1, 2], auto_reset=False)
     obs = batch.reset([0, 1, 2], [0, 1, 2])             # float32 [n, obs_dim]
-    obs, rewards, costs, terminated, truncated, final_obs = batch.step([0, 1, 2], actions)
-    # float32 [n, obs_dim], float64 [n], float64 [n], uint8 [n], uint8 [n], float32 [n, obs_dim] or b""
+    obs, rewards, costs, terminated, truncated, final_obs, applied = batch.step([0, 1, 2], actions)
+    # float32 [n, obs_dim], float64 [n], float64 [n], uint8 [n], uint8 [n], float32 [n, obs_dim] or b"",
+    # float32 [n, act_dim] (the actions the simulators applied: clipped, or a controller's)
 
 Bullet-Safety-Gym and Safety-Gymnasium envs live in this process. MetaDrive allows one engine per process, so each
 MetaDrive env lives in its own process (multiprocessing, spawn start method) and a batch steps them in parallel.
@@ -20,9 +21,9 @@ import numpy as np
 from . import tasks
 
 
-def _host(conn, sim_id):
+def _host(conn, sim_id, controller):
     """A MetaDrive env in its own process, driven over a pipe."""
-    env = tasks.make_env(sim_id)
+    env = tasks.make_env(sim_id, controller)
     conn.send((env.obs_dim, env.act_dim, env.low, env.high, env.max_episode_steps))
     while True:
         command, argument = conn.recv()
@@ -39,9 +40,9 @@ def _host(conn, sim_id):
 class _Remote:
     """The parent side of a `_host` process, with the `Env` interface split into send/receive halves."""
 
-    def __init__(self, sim_id, context):
+    def __init__(self, sim_id, controller, context):
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_host, args=(child, sim_id), daemon=True)
+        self.process = context.Process(target=_host, args=(child, sim_id, controller), daemon=True)
         self.process.start()
         child.close()
         self.obs_dim, self.act_dim, self.low, self.high, self.max_episode_steps = self.conn.recv()
@@ -64,7 +65,7 @@ class _Remote:
 
 
 class Batch:
-    def __init__(self, sim_id, seeds, auto_reset):
+    def __init__(self, sim_id, seeds, auto_reset, controller=None):
         self.sim_id = sim_id
         self.seeds = [int(s) for s in seeds]
         self.auto_reset = bool(auto_reset)
@@ -75,9 +76,9 @@ class Batch:
             python = os.environ.get("DSRL_SIM_PYTHON")
             if python:  # embedded: sys.executable is the worker binary, not a Python
                 context.set_executable(python)
-            self.envs = [_Remote(sim_id, context) for _ in self.seeds]
+            self.envs = [_Remote(sim_id, controller, context) for _ in self.seeds]
         else:
-            self.envs = [tasks.make_env(sim_id) for _ in self.seeds]
+            self.envs = [tasks.make_env(sim_id, controller) for _ in self.seeds]
         first = self.envs[0]
         self.obs_dim, self.act_dim = first.obs_dim, first.act_dim
         self.low, self.high, self.max_episode_steps = first.low, first.high, first.max_episode_steps
@@ -107,6 +108,7 @@ class Batch:
         costs = np.array([r[2] for r in results], dtype=np.float64)
         terminated = np.array([r[3] for r in results], dtype=np.uint8)
         truncated = np.array([r[4] for r in results], dtype=np.uint8)
+        applied = np.stack([r[5] for r in results]).astype(np.float32, copy=False)
         final = b""
         if self.auto_reset:
             finished = [k for k in range(len(indices)) if terminated[k] or truncated[k]]
@@ -122,7 +124,8 @@ class Batch:
                     final_obs[k] = obs[k]
                     obs[k] = row
             final = final_obs.tobytes()
-        return obs.tobytes(), rewards.tobytes(), costs.tobytes(), terminated.tobytes(), truncated.tobytes(), final
+        return (obs.tobytes(), rewards.tobytes(), costs.tobytes(), terminated.tobytes(), truncated.tobytes(), final,
+                applied.tobytes())
 
     def close(self):
         for env in self.envs:

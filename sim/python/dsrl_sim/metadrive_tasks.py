@@ -11,8 +11,38 @@ generator at every reset: the map stays DSRL's, the traffic varies by seed and i
 """
 import numpy as np
 from metadrive.base_class.randomizable import Randomizable
+from metadrive.component.vehicle.PID_controller import PIDController
 from metadrive.envs import SafeMetaDriveEnv
 from metadrive.manager.traffic_manager import TrafficMode
+from metadrive.policy.idm_policy import IDMPolicy
+
+class IDMCustomSpeed(IDMPolicy):
+    """The noisy IDM driver of DSRL's MetaDrive data collection (metadrive_clean `IDMPolicy_CustomSpeed`, spec §6.5):
+    target speed and acceleration factor from the env config, lane changes off, DSRL's PID gains, and uniform
+    noise on steering (+-0.1) and acceleration (+0..0.2) drawn from `np.random`, which the env seeds at every reset
+    (this process hosts one env, so the global generator is the env's own)."""
+
+    def __init__(self, control_object, random_seed):
+        super().__init__(control_object, random_seed)
+        config = self.engine.global_config
+        self.NORMAL_SPEED = config.get("idm_target_speed", 30)
+        self.DISTANCE_WANTED = 10.0 - config.get("idm_target_speed", 30) / 6.0
+        self.target_speed = config.get("idm_target_speed", 30)
+        self.ACC_FACTOR = config.get("idm_acc_factor", 1.0)
+        self.DEACC_FACTOR = config.get("idm_deacc_factor", 5.0)
+        self.LANE_CHANGE_FREQ = 1000
+        self.enable_lane_change = False
+        self.heading_pid = PIDController(self.KP_HEADING, 0.01, 3.5)
+        self.lateral_pid = PIDController(self.KP_LATERAL, 0.002, 0.05)
+
+    def act(self, *args, **kwargs):
+        steering, acc = super().act(*args, **kwargs)
+        steering += 0.2 * (np.random.rand() - 0.5)
+        acc += 0.2 * np.random.rand()
+        action = [float(np.clip(steering, -1.0, 1.0)), float(np.clip(acc, -1.0, 1.0))]
+        self.action_info["action"] = action
+        return action
+
 
 ROADS = {"easy": (0, "SCS"), "medium": (100, "XST"), "hard": (200, "TRO")}
 TRAFFIC = {"sparse": 0.1, "mean": 0.15, "dense": 0.2}
@@ -46,6 +76,8 @@ class SafeMetaDrive(SafeMetaDriveEnv):
 
     def reset(self, seed=None, options=None):
         self._episode_seed = 0 if seed is None else int(seed)
+        # The IDM driver's noise (when it drives) comes from np.random: seed it per episode too.
+        np.random.seed(self._episode_seed % (2**32))
         obs, _ = super().reset(seed=self.config["start_seed"])
         return obs, {}
 
@@ -61,8 +93,15 @@ class SafeMetaDrive(SafeMetaDriveEnv):
         return o, r, terminated, truncated, i
 
 
-def make(sim_id):
-    """`SafeMetaDrive-{easy,medium,hard}{sparse,mean,dense}-v0`."""
+def make(sim_id, controller=None):
+    """`SafeMetaDrive-{easy,medium,hard}{sparse,mean,dense}-v0`. `controller={"idm": {"target_speed": v,
+    "acc_factor": a}}` lets the noisy IDM driver steer (the actions passed to `step` are then ignored; the env
+    reports the applied action in `info["raw_action"]`)."""
+    extra = {}
+    if controller:
+        idm = controller["idm"]
+        extra = {"agent_policy": IDMCustomSpeed, "idm_target_speed": float(idm["target_speed"]),
+                 "idm_acc_factor": float(idm["acc_factor"])}
     name = sim_id[len("SafeMetaDrive-"):-len("-v0")]
     for road, (start_seed, blocks) in ROADS.items():
         if name.startswith(road) and name[len(road):] in TRAFFIC:
@@ -77,6 +116,7 @@ def make(sim_id):
                     "horizon": HORIZON,
                     "use_render": False,
                     "log_level": 50,
+                    **extra,
                 }
             )
     raise KeyError(sim_id)

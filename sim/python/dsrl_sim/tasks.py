@@ -88,9 +88,12 @@ class _GlobalRandomState:
 
 
 class Env:
-    def __init__(self, sim_id):
+    def __init__(self, sim_id, controller=None):
         self.sim_id = sim_id
         self.family = family(sim_id)
+        if controller and self.family != METADRIVE:
+            raise ValueError(f"{sim_id}: only MetaDrive tasks take a controller")
+        self.controlled = bool(controller)
         if self.family == BULLET:
             import gymnasium
             import bullet_safety_gym  # noqa: F401  (registers the tasks)
@@ -106,7 +109,7 @@ class Env:
         else:
             from . import metadrive_tasks
 
-            self._env = metadrive_tasks.make(sim_id)
+            self._env = metadrive_tasks.make(sim_id, controller)
             self.max_episode_steps = metadrive_tasks.HORIZON
         space = self._env.action_space
         self.low = np.asarray(space.low, dtype=np.float64)
@@ -124,6 +127,8 @@ class Env:
         return np.asarray(obs, dtype=np.float32).reshape(-1)
 
     def step(self, action):
+        """-> observation, reward, cost, terminated, truncated, and the action the simulator applied (the clipped
+        action, or the controller's)."""
         # np.minimum/np.maximum: the same result as np.clip at a sixth of its call cost on tiny arrays.
         action = np.minimum(np.maximum(np.asarray(action, dtype=np.float64), self.low), self.high)
         if self.family == SAFETY_GYMNASIUM:
@@ -135,15 +140,17 @@ class Env:
         else:
             obs, reward, terminated, truncated, info = self._env.step(action)
             cost = info["cost"]
+            if self.controlled:
+                action = np.asarray(info["raw_action"], dtype=np.float64)
         return (np.asarray(obs, dtype=np.float32).reshape(-1), float(reward), float(cost), bool(terminated),
-                bool(truncated))
+                bool(truncated), action)
 
     def close(self):
         self._env.close()
 
 
-def make_env(sim_id):
-    return Env(sim_id)
+def make_env(sim_id, controller=None):
+    return Env(sim_id, controller)
 
 
 def quiet():

@@ -131,6 +131,7 @@ async fn out_of_bounds_actions_are_clipped_to_the_action_space() {
         };
         let a = clipped.step(&[], &wild).await.unwrap();
         let b = bounded.step(&[], &edge).await.unwrap();
+        assert_eq!(a.applied_actions, edge, "the applied action is the clipped one");
         assert_eq!(a, b, "step {i}: an action beyond the bounds must act as the bound");
     }
 }

@@ -3,6 +3,7 @@
 
 mod all_tasks;
 mod compliance;
+mod controller;
 mod determinism;
 mod smoke;
 mod support;

@@ -89,6 +89,7 @@ impl Worker {
             num_envs: seeds.len() as u32,
             seeds: seeds.to_vec(),
             auto_reset: auto_reset as i32,
+            controller: None,
         };
         SimulatorSession::open(self.channel().await, open)
             .await
