@@ -56,7 +56,7 @@ impl<T> TrajectoryBuffer<T> {
         if limits.max_trajectory == 0 {
             return Err("max_trajectory must be at least 1".into());
         }
-        if !(limits.filter_interval > 1.0) {
+        if limits.filter_interval.is_nan() || limits.filter_interval <= 1.0 {
             return Err(format!(
                 "filter_interval must be greater than 1, not {}",
                 limits.filter_interval

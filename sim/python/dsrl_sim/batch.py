@@ -22,19 +22,22 @@ from . import tasks
 
 
 def _host(conn, sim_id, controller):
-    """A MetaDrive env in its own process, driven over a pipe."""
-    env = tasks.make_env(sim_id, controller)
-    conn.send((env.obs_dim, env.act_dim, env.low, env.high, env.max_episode_steps))
-    while True:
-        command, argument = conn.recv()
-        if command == "reset":
-            conn.send(env.reset(argument))
-        elif command == "step":
-            conn.send(env.step(argument))
-        else:
-            env.close()
-            conn.send(None)
-            return
+    """A MetaDrive env in its own process, driven over a pipe; it exits quietly when its parent goes away."""
+    try:
+        env = tasks.make_env(sim_id, controller)
+        conn.send((env.obs_dim, env.act_dim, env.low, env.high, env.max_episode_steps))
+        while True:
+            command, argument = conn.recv()
+            if command == "reset":
+                conn.send(env.reset(argument))
+            elif command == "step":
+                conn.send(env.step(argument))
+            else:
+                env.close()
+                conn.send(None)
+                return
+    except (EOFError, OSError):  # the parent is gone: nothing left to serve
+        return
 
 
 class _Remote:

@@ -1,0 +1,279 @@
+//! A recipe run from start to dataset: sweep settings in parallel over the worker pool, keep each finished
+//! setting on disk (so a killed run resumes where it stopped), then the trajectory buffer and the final grid filter
+//! in a fixed order, and the canonical Parquet file with its provenance.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::Context;
+use dsrl_server::config::SimulatorsConfig;
+use dsrl_server::simulators::SimulatorPool;
+use dsrl_suite::catalog::{ObservationSpace, Task};
+use dsrl_suite::collection::{Stored, TrajectoryBuffer};
+use dsrl_suite::convert::{Converted, ImportError, write_canonical};
+use dsrl_suite::filters::pyrandom::PyRandom;
+use dsrl_suite::parquet_file::ParquetTransitions;
+use dsrl_suite::transitions::TransitionChunk;
+use dsrl_suite::{Catalog, Provenance};
+use futures::StreamExt;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::collect::{Episode, collect_setting};
+use crate::recipe::{Recipe, Setting};
+
+pub struct Run {
+    pub recipe: Recipe,
+    pub recipe_path: PathBuf,
+    /// Where finished settings and the output live; a re-run with the same folder resumes.
+    pub state_dir: PathBuf,
+    /// Budget override: episodes per sweep setting (the recipe's by default).
+    pub episodes_per_setting: Option<u32>,
+    pub workers: u32,
+    pub envs_per_session: u32,
+    pub simulators: SimulatorsConfig,
+    pub progress: bool,
+}
+
+/// What a run produced.
+pub struct Built {
+    pub path: PathBuf,
+    pub converted: Converted,
+    pub provenance: Provenance,
+    pub collected: usize,
+    pub after_buffer: usize,
+}
+
+fn setting_path(state: &Path, setting: &Setting) -> PathBuf {
+    state.join("settings").join(format!("{:03}.parquet", setting.index))
+}
+
+fn chunks(episodes: &[&Episode]) -> impl Iterator<Item = Result<TransitionChunk, ImportError>> {
+    episodes
+        .iter()
+        .map(|e| Ok(e.transitions.clone()))
+        .collect::<Vec<_>>()
+        .into_iter()
+}
+
+/// Writes a finished setting atomically (temporary name, then rename), validated like any dataset.
+fn save_setting(task: &Task, state: &Path, setting: &Setting, episodes: &[Episode]) -> anyhow::Result<()> {
+    let path = setting_path(state, setting);
+    let part = path.with_extension("parquet.part");
+    let refs: Vec<&Episode> = episodes.iter().collect();
+    write_canonical(task, ObservationSpace::Simulator, chunks(&refs), Vec::new(), &part)
+        .with_context(|| format!("writing setting {}", setting.index))?;
+    std::fs::rename(&part, &path)?;
+    Ok(())
+}
+
+/// Reads a finished setting back, split into its episodes.
+fn load_setting(recipe: &Recipe, state: &Path, setting: &Setting) -> anyhow::Result<Option<Vec<Episode>>> {
+    let path = setting_path(state, setting);
+    let Ok(file) = std::fs::File::open(&path) else {
+        return Ok(None);
+    };
+    let mut all: Option<TransitionChunk> = None;
+    for chunk in ParquetTransitions::open(file).with_context(|| format!("reading {}", path.display()))? {
+        let chunk = chunk.with_context(|| format!("reading {}", path.display()))?;
+        match &mut all {
+            Some(all) => all.append(&chunk),
+            None => all = Some(chunk),
+        }
+    }
+    let Some(mut all) = all else {
+        return Ok(Some(Vec::new()));
+    };
+    let mut episodes = Vec::new();
+    while !all.is_empty() {
+        let end = (0..all.len())
+            .find(|&i| all.is_done(i))
+            .context("a stored setting ends mid-episode")?
+            + 1;
+        let number = episodes.len() as u32;
+        let mut chunk = all.take_front(end);
+        chunk.episode = None;
+        chunk.step = None;
+        episodes.push(Episode::from_chunk(
+            setting.index,
+            number,
+            recipe.episode_seed(setting.index, number),
+            chunk,
+        ));
+    }
+    anyhow::ensure!(
+        episodes.len() == setting.episodes as usize,
+        "{} holds {} episodes, expected {}",
+        path.display(),
+        episodes.len(),
+        setting.episodes
+    );
+    Ok(Some(episodes))
+}
+
+/// The recipe as provenance names it: `data/recipes/<task>.toml` for the repository's own, else the path given.
+fn recipe_name(path: &Path, task: &Task) -> String {
+    let default = Recipe::default_path(task.id.as_str());
+    match (path.canonicalize(), default.canonicalize()) {
+        (Ok(a), Ok(b)) if a == b => format!("data/recipes/{}.toml", task.id),
+        _ => path.display().to_string(),
+    }
+}
+
+impl Run {
+    pub async fn execute(self, catalog: &Catalog) -> anyhow::Result<Built> {
+        let started = Instant::now();
+        let task = self.recipe.validate(catalog)?.clone();
+        std::fs::create_dir_all(self.state_dir.join("settings"))?;
+        // A state folder belongs to one recipe and budget: refuse to mix runs.
+        let identity = serde_json::json!({ "recipe": self.recipe, "episodes_per_setting": self.episodes_per_setting });
+        let identity_path = self.state_dir.join("run.json");
+        match std::fs::read(&identity_path) {
+            Ok(bytes) => {
+                let stored: serde_json::Value = serde_json::from_slice(&bytes)?;
+                anyhow::ensure!(
+                    stored == identity,
+                    "{} holds a run of another recipe or budget; use another --state folder",
+                    self.state_dir.display()
+                );
+            }
+            Err(_) => std::fs::write(&identity_path, serde_json::to_vec_pretty(&identity)?)?,
+        }
+
+        let settings = self.recipe.settings(self.episodes_per_setting);
+        let total: u64 = settings.iter().map(|s| u64::from(s.episodes)).sum();
+        let mut finished: BTreeMap<usize, Vec<Episode>> = BTreeMap::new();
+        for setting in &settings {
+            if let Some(episodes) = load_setting(&self.recipe, &self.state_dir, setting)? {
+                finished.insert(setting.index, episodes);
+            }
+        }
+        let resumed: u64 = finished.values().map(|v| v.len() as u64).sum();
+        let bar = if self.progress {
+            ProgressBar::new(total)
+        } else {
+            ProgressBar::hidden()
+        };
+        bar.set_style(
+            ProgressStyle::with_template("{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} episodes (eta {eta})")
+                .expect("template"),
+        );
+        bar.set_message(task.id.to_string());
+        bar.set_position(resumed);
+        if resumed > 0 {
+            tracing::info!(resumed, "resuming: finished settings found in the state folder");
+        }
+
+        let todo: Vec<Setting> = settings
+            .iter()
+            .filter(|s| !finished.contains_key(&s.index))
+            .copied()
+            .collect();
+        if !todo.is_empty() {
+            let pool = Arc::new(SimulatorPool::start(&SimulatorsConfig {
+                local_workers: self.workers,
+                ..self.simulators.clone()
+            }));
+            let wanted = (self.workers as usize + self.simulators.remote_workers.len()).max(1);
+            anyhow::ensure!(
+                pool.wait_healthy(wanted, std::time::Duration::from_secs(180)).await,
+                "simulator workers did not become healthy: {:?}",
+                pool.workers()
+            );
+            let jobs = futures::stream::iter(todo.into_iter().map(|setting| {
+                let (pool, recipe, bar) = (pool.clone(), self.recipe.clone(), bar.clone());
+                let (task, state) = (task.clone(), self.state_dir.clone());
+                let envs = self.envs_per_session;
+                async move {
+                    let episodes = collect_setting(&pool, &recipe, setting, envs, || bar.inc(1)).await?;
+                    let saved = episodes.clone();
+                    tokio::task::spawn_blocking(move || save_setting(&task, &state, &setting, &saved)).await??;
+                    anyhow::Ok((setting.index, episodes))
+                }
+            }))
+            .buffer_unordered(wanted);
+            futures::pin_mut!(jobs);
+            while let Some(result) = jobs.next().await {
+                let (index, episodes) = result?;
+                finished.insert(index, episodes);
+            }
+        }
+        bar.finish();
+
+        // Fixed order whatever finished first: settings by index, episodes by number.
+        let mut buffer =
+            TrajectoryBuffer::new(self.recipe.buffer_limits(), self.recipe.seed).map_err(anyhow::Error::msg)?;
+        let all: Vec<&Episode> = finished.values().flatten().collect();
+        for (i, episode) in all.iter().enumerate() {
+            buffer.offer(Stored {
+                reward_return: episode.reward_return,
+                cost_return: episode.cost_return,
+                payload: i,
+            });
+        }
+        let kept_by_buffer: Vec<usize> = buffer.episodes().iter().map(|s| s.payload).collect();
+        let returns: Vec<(f64, f64)> = kept_by_buffer
+            .iter()
+            .map(|&i| (all[i].reward_return, all[i].cost_return))
+            .collect();
+        let mut grid_random = PyRandom::seed(self.recipe.seed);
+        let kept: Vec<&Episode> = self
+            .recipe
+            .final_grid()
+            .apply(&returns, &mut grid_random)
+            .into_iter()
+            .map(|j| all[kept_by_buffer[j]])
+            .collect();
+        anyhow::ensure!(
+            !kept.is_empty(),
+            "the final grid filter kept no episode (check final_grid against the returns)"
+        );
+
+        let cap = self.recipe.final_grid.cost_cap;
+        let path = self
+            .state_dir
+            .join(format!("{}-{cap}-{}.parquet", task.dataset_file_prefix, kept.len()));
+        let part = path.with_extension("parquet.part");
+        let converted = {
+            let (task, part, kept) = (task.clone(), part.clone(), kept.clone());
+            let owned: Vec<Episode> = kept.into_iter().cloned().collect();
+            tokio::task::spawn_blocking(move || {
+                let refs: Vec<&Episode> = owned.iter().collect();
+                write_canonical(&task, ObservationSpace::Simulator, chunks(&refs), Vec::new(), &part)
+            })
+            .await??
+        };
+        std::fs::rename(&part, &path)?;
+        let provenance = Provenance::Recipe {
+            recipe: recipe_name(&self.recipe_path, &task),
+            seeds: vec![self.recipe.seed],
+            code_version: concat!("dsrl-pipeline ", env!("CARGO_PKG_VERSION")).to_owned(),
+            details: serde_json::json!({
+                "recipe": self.recipe,
+                "episodes_per_setting": self.episodes_per_setting.unwrap_or_else(|| self.recipe.settings(None)[0].episodes),
+                "budget_scaled": self.episodes_per_setting.is_some(),
+                "settings": settings.len(),
+                "episodes_collected": all.len(),
+                "episodes_after_buffer": kept_by_buffer.len(),
+                "episodes_kept": kept.len(),
+                "transitions": converted.episode_index.iter().map(|e| u64::from(e.length)).sum::<u64>(),
+                "workers": self.workers,
+                "envs_per_session": self.envs_per_session,
+                "wall_seconds": started.elapsed().as_secs_f64().round(),
+                "recipe_file": self.recipe_path.display().to_string(),
+            }),
+        };
+        std::fs::write(
+            path.with_extension("provenance.json"),
+            serde_json::to_vec_pretty(&provenance)?,
+        )?;
+        Ok(Built {
+            path,
+            converted,
+            provenance,
+            collected: all.len(),
+            after_buffer: kept_by_buffer.len(),
+        })
+    }
+}
