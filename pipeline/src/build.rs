@@ -11,7 +11,7 @@ use anyhow::Context;
 use dsrl_server::config::SimulatorsConfig;
 use dsrl_server::simulators::SimulatorPool;
 use dsrl_suite::catalog::{ObservationSpace, Task};
-use dsrl_suite::collection::{Stored, TrajectoryBuffer};
+use dsrl_suite::collection::{Stored, TrajectoryBuffer, filter_points};
 use dsrl_suite::convert::{Converted, ImportError, write_canonical};
 use dsrl_suite::filters::pyrandom::PyRandom;
 use dsrl_suite::parquet_file::ParquetTransitions;
@@ -34,6 +34,10 @@ pub struct Run {
     pub envs_per_session: u32,
     pub simulators: SimulatorsConfig,
     pub progress: bool,
+    /// Thin the result to at most this many episodes with the trajectory buffer's grid (starter datasets).
+    pub max_episodes: Option<usize>,
+    /// Where the output goes (default: the state folder).
+    pub out_dir: Option<PathBuf>,
 }
 
 /// What a run produced.
@@ -229,11 +233,22 @@ impl Run {
             !kept.is_empty(),
             "the final grid filter kept no episode (check final_grid against the returns)"
         );
+        let after_grid = kept.len();
+        let kept: Vec<&Episode> = match self.max_episodes {
+            Some(n) if kept.len() > n => {
+                // The same spread-preserving thinning as the buffer, seeded apart from it; file order is kept.
+                let points: Vec<(f64, f64)> = kept.iter().map(|e| (e.reward_return, e.cost_return)).collect();
+                let mut chosen = filter_points(&points, n, &mut PyRandom::seed(self.recipe.seed.wrapping_add(1)));
+                chosen.sort_unstable();
+                chosen.into_iter().map(|i| kept[i]).collect()
+            }
+            _ => kept,
+        };
 
         let cap = self.recipe.final_grid.cost_cap;
-        let path = self
-            .state_dir
-            .join(format!("{}-{cap}-{}.parquet", task.dataset_file_prefix, kept.len()));
+        let out_dir = self.out_dir.clone().unwrap_or_else(|| self.state_dir.clone());
+        std::fs::create_dir_all(&out_dir)?;
+        let path = out_dir.join(format!("{}-{cap}-{}.parquet", task.dataset_file_prefix, kept.len()));
         let part = path.with_extension("parquet.part");
         let converted = {
             let (task, part, kept) = (task.clone(), part.clone(), kept.clone());
@@ -256,7 +271,9 @@ impl Run {
                 "settings": settings.len(),
                 "episodes_collected": all.len(),
                 "episodes_after_buffer": kept_by_buffer.len(),
+                "episodes_after_final_grid": after_grid,
                 "episodes_kept": kept.len(),
+                "thinned_to": self.max_episodes,
                 "transitions": converted.episode_index.iter().map(|e| u64::from(e.length)).sum::<u64>(),
                 "workers": self.workers,
                 "envs_per_session": self.envs_per_session,
@@ -264,10 +281,9 @@ impl Run {
                 "recipe_file": self.recipe_path.display().to_string(),
             }),
         };
-        std::fs::write(
-            path.with_extension("provenance.json"),
-            serde_json::to_vec_pretty(&provenance)?,
-        )?;
+        // `<file>.provenance.json`: the name the server's starter loader reads beside a dataset.
+        let provenance_path = PathBuf::from(format!("{}.provenance.json", path.display()));
+        std::fs::write(provenance_path, serde_json::to_vec_pretty(&provenance)?)?;
         Ok(Built {
             path,
             converted,

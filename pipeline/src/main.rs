@@ -26,7 +26,7 @@ enum Command {
     /// Starts its own simulator workers (dsrl-sim-worker beside this binary), runs the recipe's sweep settings in
     /// parallel, and keeps every finished setting in the state folder: a run that is killed resumes where it
     /// stopped when started again with the same folder. The result is deterministic for a recipe, its seed and
-    /// the budget. Output: <state>/<prefix>-<cost cap>-<episodes>.parquet and its .provenance.json.
+    /// the budget. Output: <state>/<prefix>-<cost cap>-<episodes>.parquet and <that name>.provenance.json.
     Collect {
         /// Offline task id, e.g. OfflineMetadrive-easysparse-v0.
         #[arg(long)]
@@ -46,6 +46,13 @@ enum Command {
         /// Environments per worker session (MetaDrive: one process each, ~300 MB).
         #[arg(long, default_value_t = 4)]
         envs_per_session: u32,
+        /// Thin the result to at most N episodes, spread over the (reward, cost) plane like the trajectory buffer
+        /// does (for starter datasets; a finished run's settings are reused, nothing is simulated again).
+        #[arg(long)]
+        max_episodes: Option<usize>,
+        /// Output folder (default: the state folder).
+        #[arg(long)]
+        out: Option<PathBuf>,
         /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
         #[arg(long)]
         worker_binary: Option<PathBuf>,
@@ -79,6 +86,8 @@ async fn main() -> anyhow::Result<()> {
         workers,
         envs_per_session,
         worker_binary,
+        max_episodes,
+        out,
         server,
         token,
         tag,
@@ -110,6 +119,8 @@ async fn main() -> anyhow::Result<()> {
             ..SimulatorsConfig::default()
         },
         progress: !json,
+        max_episodes,
+        out_dir: out,
     };
     let built = run.execute(&catalog).await?;
     let mut report = serde_json::json!({

@@ -104,4 +104,22 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
     assert_eq!(provenance["seeds"], serde_json::json!([0]));
     assert_eq!(provenance["details"]["episodes_collected"], 4);
     assert_eq!(manifest["episodes"], 4);
+
+    // A starter-sized cut of the finished run reuses its settings: nothing is simulated again.
+    let starter = env.path("starter");
+    let started = std::time::Instant::now();
+    let cut = run_json(collect(
+        &recipe,
+        &state,
+        &["--max-episodes", "2", "--out", starter.to_str().unwrap()],
+    ));
+    assert!(started.elapsed() < Duration::from_secs(20), "the cut simulated again");
+    assert_eq!(cut["episodes"], 2);
+    assert_eq!(cut["provenance"]["details"]["thinned_to"], 2);
+    let file = cut["file"].as_str().unwrap();
+    assert!(
+        file.starts_with(starter.to_str().unwrap()) && file.ends_with("-85-2.parquet"),
+        "{file}"
+    );
+    assert!(Path::new(&format!("{file}.provenance.json")).exists());
 }
