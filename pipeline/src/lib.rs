@@ -8,4 +8,5 @@
 
 pub mod build;
 pub mod collect;
+pub mod expert;
 pub mod recipe;
