@@ -322,13 +322,23 @@ mod tests {
         let catalog = Catalog::embedded().unwrap();
         let recipe = Recipe::load(&Recipe::default_path("OfflineMetadrive-easysparse-v0")).unwrap();
         let task = recipe.validate(&catalog).unwrap();
-        let setting = Setting { index: 3, acc_factor: 1.2, target_speed: 13.0, episodes: 12 };
-        let episodes: Vec<Episode> = (0..12).map(|n| synthetic_episode(task, 3, n, 900 + n as usize * 7)).collect();
+        let setting = Setting {
+            index: 3,
+            acc_factor: 1.2,
+            target_speed: 13.0,
+            episodes: 12,
+        };
+        let episodes: Vec<Episode> = (0..12)
+            .map(|n| synthetic_episode(task, 3, n, 900 + n as usize * 7))
+            .collect();
         let dir = tempfile::tempdir().unwrap();
         std::fs::create_dir_all(dir.path().join("settings")).unwrap();
         save_setting(task, dir.path(), &setting, &episodes).unwrap();
         let file = std::fs::File::open(setting_path(dir.path(), &setting)).unwrap();
-        assert!(ParquetTransitions::open(file).unwrap().count() > 1, "the test needs a file read in several chunks");
+        assert!(
+            ParquetTransitions::open(file).unwrap().count() > 1,
+            "the test needs a file read in several chunks"
+        );
         let back = load_setting(&recipe, dir.path(), &setting).unwrap().unwrap();
         assert_eq!(back.len(), 12);
         for (a, b) in episodes.iter().zip(&back) {

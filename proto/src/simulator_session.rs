@@ -13,37 +13,32 @@ use crate::simulator::v1::{
 };
 
 impl Tensor {
-    pub fn from_f32(shape: &[usize], values: &[f32]) -> Tensor {
-        let mut data = Vec::with_capacity(values.len() * 4);
-        for v in values {
-            data.extend_from_slice(&v.to_le_bytes());
-        }
+    fn raw(dtype: DType, shape: &[usize], data: Vec<u8>) -> Tensor {
         Tensor {
-            dtype: DType::Float32 as i32,
+            dtype: dtype as i32,
             shape: shape.iter().map(|&d| d as u64).collect(),
             data,
         }
+    }
+
+    pub fn from_f32(shape: &[usize], values: &[f32]) -> Tensor {
+        Tensor::raw(
+            DType::Float32,
+            shape,
+            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        )
     }
 
     pub fn from_f64(shape: &[usize], values: &[f64]) -> Tensor {
-        let mut data = Vec::with_capacity(values.len() * 8);
-        for v in values {
-            data.extend_from_slice(&v.to_le_bytes());
-        }
-        Tensor {
-            dtype: DType::Float64 as i32,
-            shape: shape.iter().map(|&d| d as u64).collect(),
-            data,
-        }
+        Tensor::raw(
+            DType::Float64,
+            shape,
+            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        )
     }
 
     pub fn from_bool(shape: &[usize], values: &[bool]) -> Tensor {
-        let data = values.iter().map(|&b| b as u8).collect();
-        Tensor {
-            dtype: DType::Bool as i32,
-            shape: shape.iter().map(|&d| d as u64).collect(),
-            data,
-        }
+        Tensor::raw(DType::Bool, shape, values.iter().map(|&b| b as u8).collect())
     }
 
     /// The number of elements the shape declares, or `None` when it overflows.

@@ -59,6 +59,33 @@ pub struct SimulatorPool {
 }
 
 impl Slot {
+    fn new(name: String, address: Option<String>, source: Source) -> Arc<Slot> {
+        let kind = match source {
+            Source::Local { .. } => "local",
+            Source::Remote { .. } => "remote",
+        };
+        let status = WorkerStatus {
+            name,
+            kind: kind.into(),
+            address,
+            pid: None,
+            healthy: false,
+            sessions: 0,
+            envs: 0,
+            max_envs: 0,
+            version: None,
+            restarts: 0,
+            last_error: None,
+        };
+        Arc::new(Slot {
+            source,
+            state: Mutex::new(SlotState {
+                status: Some(status),
+                ..Default::default()
+            }),
+        })
+    }
+
     fn status(&self) -> WorkerStatus {
         self.state
             .lock()
@@ -124,55 +151,17 @@ impl SimulatorPool {
         let binary = config.worker_binary.clone().unwrap_or_else(default_worker_binary);
         let mut slots = Vec::new();
         for i in 0..config.local_workers {
-            let status = WorkerStatus {
-                name: format!("local-{i}"),
-                kind: "local".into(),
-                address: None,
-                pid: None,
-                healthy: false,
-                sessions: 0,
-                envs: 0,
-                max_envs: 0,
-                version: None,
-                restarts: 0,
-                last_error: None,
-            };
             let source = Source::Local {
                 binary: binary.clone(),
                 args: config.worker_args.clone(),
             };
-            slots.push(Arc::new(Slot {
-                source,
-                state: Mutex::new(SlotState {
-                    status: Some(status),
-                    ..Default::default()
-                }),
-            }));
+            slots.push(Slot::new(format!("local-{i}"), None, source));
         }
         for (i, address) in config.remote_workers.iter().enumerate() {
-            let status = WorkerStatus {
-                name: format!("remote-{i}"),
-                kind: "remote".into(),
-                address: Some(address.clone()),
-                pid: None,
-                healthy: false,
-                sessions: 0,
-                envs: 0,
-                max_envs: 0,
-                version: None,
-                restarts: 0,
-                last_error: None,
-            };
             let source = Source::Remote {
                 address: address.clone(),
             };
-            slots.push(Arc::new(Slot {
-                source,
-                state: Mutex::new(SlotState {
-                    status: Some(status),
-                    ..Default::default()
-                }),
-            }));
+            slots.push(Slot::new(format!("remote-{i}"), Some(address.clone()), source));
         }
         let (stop, stopped) = watch::channel(false);
         let interval = Duration::from_millis(config.health_interval_ms.max(50));
