@@ -45,8 +45,8 @@ pub async fn run_announced(
     shutdown: impl Future<Output = ()>,
 ) -> anyhow::Result<()> {
     let paths = config.paths.clone();
-    let host = tokio::task::spawn_blocking(move || python::PythonHost::start(&paths)).await??;
-    let service = service::SimulatorService::new(host, config.catalog, config.limits);
+    let (python, host) = tokio::task::spawn_blocking(move || python::PythonThread::start(&paths)).await??;
+    let service = service::SimulatorService::new(python, host, config.catalog, config.limits);
     ready.await;
     // Small messages in lockstep: Nagle's algorithm would add delayed-ACK stalls to every K=1 step.
     let incoming = TcpListenerStream::new(listener).map(|stream| {

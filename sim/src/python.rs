@@ -1,8 +1,11 @@
-//! The embedded CPython: start-up (the simulator venv's site-packages and `sim/python` on `sys.path`) and the
-//! calls into `dsrl_sim.batch.Batch`, with raw little-endian bytes crossing the boundary both ways.
+//! The embedded CPython: start-up (the simulator venv's site-packages and `sim/python` on `sys.path`), the one
+//! thread that runs all Python, and the calls into `dsrl_sim.batch.Batch`, with raw little-endian bytes crossing
+//! the boundary both ways.
 //!
-//! Every call takes the GIL for its duration; the service runs them on blocking threads so the async executor
-//! keeps serving other sessions (which then wait for the GIL, as they would in any single Python process).
+//! All Python runs on a single dedicated thread holding one thread state for the life of the worker. Python calls
+//! are serialized by the GIL anyway, and this keeps the simulators' C extensions away from thread-state juggling:
+//! with calls spread over a thread pool, MuJoCo's pybind11 layer once re-acquired the GIL through a stale thread
+//! state of a reused pool thread and deadlocked the worker.
 
 use std::path::{Path, PathBuf};
 
@@ -49,6 +52,65 @@ pub enum Controller {
     Idm { target_speed: f64, acc_factor: f64 },
 }
 
+type Job = Box<dyn FnOnce() + Send>;
+
+/// The worker's Python thread: every Python call is a job run there, in order.
+#[derive(Clone)]
+pub struct PythonThread {
+    jobs: std::sync::mpsc::Sender<Job>,
+}
+
+impl PythonThread {
+    /// Starts the interpreter on a new thread and imports `dsrl_sim` there (blocks until it is ready).
+    pub fn start(paths: &PythonPaths) -> Result<(PythonThread, PythonHost), SimError> {
+        let (jobs, queue) = std::sync::mpsc::channel::<Job>();
+        let (ready, started) = std::sync::mpsc::channel();
+        let paths = paths.clone();
+        std::thread::Builder::new()
+            .name("python".into())
+            .spawn(move || {
+                let host = PythonHost::start(&paths);
+                let failed = host.is_err();
+                let _ = ready.send(host);
+                if failed {
+                    return;
+                }
+                Python::attach(|py| {
+                    // Wait for work with the GIL released; run each job with it held.
+                    let queue = std::sync::Mutex::new(queue);
+                    while let Ok(job) = py.detach(|| queue.lock().expect("job queue").recv()) {
+                        if std::panic::catch_unwind(std::panic::AssertUnwindSafe(job)).is_err() {
+                            tracing::error!("a Python job panicked");
+                        }
+                    }
+                });
+            })
+            .map_err(|e| SimError::Setup(format!("starting the Python thread: {e}")))?;
+        let host = started
+            .recv()
+            .map_err(|_| SimError::Setup("the Python thread died while starting".into()))??;
+        Ok((PythonThread { jobs }, host))
+    }
+
+    /// Runs `f` on the Python thread and waits for its result.
+    pub async fn run<T: Send + 'static>(&self, f: impl FnOnce() -> T + Send + 'static) -> Result<T, SimError> {
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        self.jobs
+            .send(Box::new(move || {
+                let _ = reply.send(f());
+            }))
+            .map_err(|_| SimError::Setup("the Python thread has stopped".into()))?;
+        answer
+            .await
+            .map_err(|_| SimError::Simulator("a simulator call panicked".into()))
+    }
+
+    /// Queues `f` on the Python thread without waiting (closing batches).
+    pub fn spawn(&self, f: impl FnOnce() + Send + 'static) {
+        let _ = self.jobs.send(Box::new(f));
+    }
+}
+
 pub struct PythonHost {
     batch_class: Py<PyAny>,
     tasks: Py<PyModule>,
@@ -67,8 +129,8 @@ fn simulator_error(py: Python<'_>, context: &str, err: PyErr) -> SimError {
 
 impl PythonHost {
     /// Starts the interpreter and imports `dsrl_sim`. Fails with a message naming the missing piece (usually: run
-    /// `sim/setup.sh`).
-    pub fn start(paths: &PythonPaths) -> Result<PythonHost, SimError> {
+    /// `sim/setup.sh`). Runs on the Python thread.
+    fn start(paths: &PythonPaths) -> Result<PythonHost, SimError> {
         let python = paths.venv.join("bin").join("python");
         if !python.exists() {
             return Err(SimError::Setup(format!(

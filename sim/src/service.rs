@@ -11,13 +11,12 @@ use dsrl_proto::simulator::v1::{
     SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response, simulator_server::Simulator,
 };
 use dsrl_suite::catalog::{Catalog, Family};
-use pyo3::Python;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::SimError;
-use crate::python::{BatchShape, Controller, PyBatch, PythonHost};
+use crate::python::{BatchShape, Controller, PyBatch, PythonHost, PythonThread};
 use crate::session::{Limits, SessionState, check_open};
 
 #[derive(Clone)]
@@ -27,6 +26,7 @@ pub struct SimulatorService {
 
 struct Inner {
     host: Arc<PythonHost>,
+    python: PythonThread,
     catalog: Catalog,
     limits: Limits,
     sessions: AtomicU32,
@@ -46,11 +46,12 @@ impl Drop for EnvReservation {
     }
 }
 
-/// An open batch: closed (on a blocking thread, as Python work is) when the session ends for any reason, and only
-/// then are its environments given back to the worker's capacity.
+/// An open batch: closed (on the Python thread) when the session ends for any reason, and only then are its
+/// environments given back to the worker's capacity.
 struct OpenBatch {
     batch: Option<Arc<PyBatch>>,
     reservation: Option<EnvReservation>,
+    python: PythonThread,
 }
 
 impl Drop for OpenBatch {
@@ -58,22 +59,19 @@ impl Drop for OpenBatch {
         let (Some(batch), reservation) = (self.batch.take(), self.reservation.take()) else {
             return;
         };
-        let close = move || {
+        self.python.spawn(move || {
             batch.close();
             drop(reservation);
-        };
-        match tokio::runtime::Handle::try_current() {
-            Ok(runtime) => drop(runtime.spawn_blocking(close)),
-            Err(_) => close(),
-        }
+        });
     }
 }
 
 impl SimulatorService {
-    pub fn new(host: PythonHost, catalog: Catalog, limits: Limits) -> SimulatorService {
+    pub fn new(python: PythonThread, host: PythonHost, catalog: Catalog, limits: Limits) -> SimulatorService {
         SimulatorService {
             inner: Arc::new(Inner {
                 host: Arc::new(host),
+                python,
                 catalog,
                 limits,
                 sessions: AtomicU32::new(0),
@@ -181,14 +179,6 @@ impl Inner {
     }
 }
 
-async fn blocking<T: Send + 'static>(
-    work: impl FnOnce() -> Result<T, SimError> + Send + 'static,
-) -> Result<T, SimError> {
-    tokio::task::spawn_blocking(work)
-        .await
-        .map_err(|e| SimError::Simulator(format!("simulator call panicked: {e}")))?
-}
-
 fn tensor(dtype: DType, shape: &[usize], data: Vec<u8>, width: usize, name: &str) -> Result<Tensor, SimError> {
     let want = shape.iter().product::<usize>() * width;
     if data.len() != want {
@@ -234,26 +224,30 @@ async fn run_session(
     let auto_reset = open.auto_reset == AutoReset::SameStep as i32;
     let k = seeds.len();
     let host = inner.host.clone();
-    // This runs on the session's own thread (see `session`), so Python is called directly.
-    let (batch, shape, observations) = {
-        let (batch, shape) = host.open(&sim_id, &seeds, auto_reset, controller)?;
-        let all: Vec<u32> = (0..k as u32).collect();
-        match batch.reset(&all, &seeds) {
-            Ok(observations) => (batch, shape, observations),
-            Err(err) => {
-                batch.close();
-                return Err(err);
+    let id = sim_id.clone();
+    let (batch, shape, observations) = inner
+        .python
+        .run(move || {
+            let (batch, shape) = host.open(&id, &seeds, auto_reset, controller)?;
+            let all: Vec<u32> = (0..k as u32).collect();
+            match batch.reset(&all, &seeds) {
+                Ok(observations) => Ok((batch, shape, observations)),
+                Err(err) => {
+                    batch.close();
+                    Err(err)
+                }
             }
-        }
-    };
+        })
+        .await??;
     let batch = Arc::new(batch);
     let _open = OpenBatch {
         batch: Some(batch.clone()),
         reservation: Some(reservation),
+        python: inner.python.clone(),
     };
     let spec = inner.spec(&sim_id, &shape);
     let (obs_dim, act_dim) = (shape.obs_dim as usize, shape.act_dim as usize);
-    let mut state = SessionState::new(obs_dim, act_dim, k, auto_reset);
+    let state = SessionState::new(obs_dim, act_dim, k, auto_reset);
     let observations = tensor(DType::Float32, &[k, obs_dim], observations, 4, "observations")?;
     tracing::info!(task = %sim_id, envs = k, auto_reset, "session opened");
     let opened = Opened {
@@ -266,74 +260,161 @@ async fn run_session(
     {
         return Ok(());
     }
+    // Requests are answered in order by jobs on the Python thread, submitted as soon as they arrive: a client
+    // that pipelines keeps the simulator busy while earlier answers travel back. The session's rules are checked
+    // inside each job (its state lives with the jobs), and after the first error no later job runs.
+    let shape = Shape {
+        obs_dim,
+        act_dim,
+        auto_reset,
+    };
+    let shared = Arc::new(Mutex::new(Jobs { state, failed: false }));
+    let (pending, mut answers) = mpsc::channel::<(u64, Answer)>(64);
+    let (stop, mut stopped) = tokio::sync::oneshot::channel::<()>();
+    let replies = outbox.clone();
+    let forwarder = tokio::spawn(async move {
+        while let Some((id, answer)) = answers.recv().await {
+            let result = answer
+                .await
+                .unwrap_or_else(|_| Err(SimError::Simulator("a simulator call failed".into())));
+            match result {
+                Ok(kind) => {
+                    if reply(&replies, id, kind).await.is_err() {
+                        break;
+                    }
+                }
+                Err(err) => {
+                    tracing::info!(error = %err, "session ended with an error");
+                    let _ = replies.send(Err(err.into())).await;
+                    break;
+                }
+            }
+        }
+        let _ = stop.send(());
+    });
     loop {
-        let request = match inbound.message().await {
-            Ok(Some(request)) => request,
-            // End of stream or a broken connection: the client is gone.
-            Ok(None) | Err(_) => return Ok(()),
+        let request = tokio::select! {
+            message = inbound.message() => match message {
+                Ok(Some(request)) => request,
+                // End of stream or a broken connection: the client is gone.
+                Ok(None) | Err(_) => break,
+            },
+            _ = &mut stopped => break,
         };
-        let kind = match request.kind {
+        let (answer, answered) = tokio::sync::oneshot::channel();
+        let closing = matches!(request.kind, Some(session_request::Kind::Close(_)));
+        match request.kind {
             Some(session_request::Kind::Open(_)) => {
-                return Err(SimError::FailedPrecondition("this session is already open".into()));
+                let _ = answer.send(Err(SimError::FailedPrecondition("this session is already open".into())));
+            }
+            None => {
+                let _ = answer.send(Err(SimError::InvalidArgument(
+                    "a session request without a kind".into(),
+                )));
             }
             Some(session_request::Kind::Close(_)) => {
-                let _ = reply(outbox, request.id, session_response::Kind::Closed(Closed {})).await;
-                return Ok(());
+                let _ = answer.send(Ok(session_response::Kind::Closed(Closed {})));
             }
-            Some(session_request::Kind::Reset(reset)) => {
-                let (envs, seeds) = state.check_reset(&reset)?;
-                let observations = batch.reset(&envs, &seeds)?;
-                state.after_reset(&envs);
-                let observations = tensor(DType::Float32, &[envs.len(), obs_dim], observations, 4, "observations")?;
-                session_response::Kind::Reset(Observations {
-                    envs,
-                    observations: Some(observations),
-                })
+            Some(kind) => {
+                let (shared, batch) = (shared.clone(), batch.clone());
+                inner.python.spawn(move || {
+                    let mut jobs = shared.lock().expect("session state");
+                    if jobs.failed {
+                        return;
+                    }
+                    let result = respond(kind, &mut jobs.state, &batch, shape);
+                    jobs.failed = result.is_err();
+                    let _ = answer.send(result);
+                });
             }
-            Some(session_request::Kind::Step(step)) => {
-                let (envs, actions) = state.check_step(&step)?;
-                let out = batch.step(&envs, actions)?;
-                state.after_step(&envs, &out.terminated, &out.truncated);
-                let n = envs.len();
-                let final_observations = if auto_reset {
-                    Some(tensor(
-                        DType::Float32,
-                        &[n, obs_dim],
-                        out.final_observations,
-                        4,
-                        "final observations",
-                    )?)
-                } else {
-                    None
-                };
-                session_response::Kind::Step(Transition {
-                    observations: Some(tensor(
-                        DType::Float32,
-                        &[n, obs_dim],
-                        out.observations,
-                        4,
-                        "observations",
-                    )?),
-                    rewards: Some(tensor(DType::Float64, &[n], out.rewards, 8, "rewards")?),
-                    costs: Some(tensor(DType::Float64, &[n], out.costs, 8, "costs")?),
-                    terminated: Some(tensor(DType::Bool, &[n], out.terminated, 1, "terminated")?),
-                    truncated: Some(tensor(DType::Bool, &[n], out.truncated, 1, "truncated")?),
-                    final_observations,
-                    applied_actions: Some(tensor(
-                        DType::Float32,
-                        &[n, act_dim],
-                        out.applied_actions,
-                        4,
-                        "applied actions",
-                    )?),
-                    envs,
-                })
-            }
-            None => return Err(SimError::InvalidArgument("a session request without a kind".into())),
-        };
-        if reply(outbox, request.id, kind).await.is_err() {
-            return Ok(());
         }
+        if pending.send((request.id, answered)).await.is_err() || closing {
+            break;
+        }
+    }
+    drop(pending);
+    let _ = forwarder.await;
+    Ok(())
+}
+
+type Answer = tokio::sync::oneshot::Receiver<Result<session_response::Kind, SimError>>;
+
+/// A session's rules and whether it has failed, owned by its jobs on the Python thread.
+struct Jobs {
+    state: SessionState,
+    failed: bool,
+}
+
+#[derive(Clone, Copy)]
+struct Shape {
+    obs_dim: usize,
+    act_dim: usize,
+    auto_reset: bool,
+}
+
+/// Checks and answers one reset or step (on the Python thread).
+fn respond(
+    kind: session_request::Kind,
+    state: &mut SessionState,
+    batch: &PyBatch,
+    shape: Shape,
+) -> Result<session_response::Kind, SimError> {
+    let Shape {
+        obs_dim,
+        act_dim,
+        auto_reset,
+    } = shape;
+    match kind {
+        session_request::Kind::Reset(reset) => {
+            let (envs, seeds) = state.check_reset(&reset)?;
+            let observations = batch.reset(&envs, &seeds)?;
+            state.after_reset(&envs);
+            let observations = tensor(DType::Float32, &[envs.len(), obs_dim], observations, 4, "observations")?;
+            Ok(session_response::Kind::Reset(Observations {
+                envs,
+                observations: Some(observations),
+            }))
+        }
+        session_request::Kind::Step(step) => {
+            let (envs, actions) = state.check_step(&step)?;
+            let out = batch.step(&envs, actions)?;
+            state.after_step(&envs, &out.terminated, &out.truncated);
+            let n = envs.len();
+            let final_observations = if auto_reset {
+                Some(tensor(
+                    DType::Float32,
+                    &[n, obs_dim],
+                    out.final_observations,
+                    4,
+                    "final observations",
+                )?)
+            } else {
+                None
+            };
+            Ok(session_response::Kind::Step(Transition {
+                observations: Some(tensor(
+                    DType::Float32,
+                    &[n, obs_dim],
+                    out.observations,
+                    4,
+                    "observations",
+                )?),
+                rewards: Some(tensor(DType::Float64, &[n], out.rewards, 8, "rewards")?),
+                costs: Some(tensor(DType::Float64, &[n], out.costs, 8, "costs")?),
+                terminated: Some(tensor(DType::Bool, &[n], out.terminated, 1, "terminated")?),
+                truncated: Some(tensor(DType::Bool, &[n], out.truncated, 1, "truncated")?),
+                final_observations,
+                applied_actions: Some(tensor(
+                    DType::Float32,
+                    &[n, act_dim],
+                    out.applied_actions,
+                    4,
+                    "applied actions",
+                )?),
+                envs,
+            }))
+        }
+        _ => Err(SimError::InvalidArgument("not a reset or a step".into())),
     }
 }
 
@@ -350,13 +431,15 @@ impl Simulator for SimulatorService {
         let reservation = inner.reserve(1)?;
         let host = inner.host.clone();
         let id = sim_id.clone();
-        let shape = blocking(move || {
-            let (batch, shape) = host.open(&id, &[0], false, None)?;
-            batch.close();
-            drop(reservation);
-            Ok(shape)
-        })
-        .await?;
+        let shape = inner
+            .python
+            .run(move || {
+                let (batch, shape) = host.open(&id, &[0], false, None)?;
+                batch.close();
+                drop(reservation);
+                Ok::<_, SimError>(shape)
+            })
+            .await??;
         let spec = inner.spec(&sim_id, &shape);
         inner.specs.lock().expect("spec cache").insert(sim_id, spec.clone());
         Ok(Response::new(spec))
@@ -371,10 +454,7 @@ impl Simulator for SimulatorService {
         let mut inbound = request.into_inner();
         let (outbox, responses) = mpsc::channel(16);
         let inner = self.inner.clone();
-        // A session lives on its own blocking thread and calls Python directly: a step then costs one thread
-        // wake-up each way (connection task -> session thread -> connection task) instead of also hopping through
-        // an executor task and the blocking pool, which measurably slowed small batches (BENCHMARKS.md).
-        let runtime = tokio::runtime::Handle::current();
+        // Each Python call of the session is a job on the worker's Python thread (see python.rs).
         let session = async move {
             inner.sessions.fetch_add(1, Ordering::SeqCst);
             let result = run_session(inner.clone(), &mut inbound, &outbox).await;
@@ -384,9 +464,7 @@ impl Simulator for SimulatorService {
                 let _ = outbox.send(Err(err.into())).await;
             }
         };
-        // The thread keeps one Python thread state for the whole session (attached once, then detached while it
-        // waits): re-attaching it for each call is cheap, where a fresh state per call cost ~25 us.
-        tokio::task::spawn_blocking(move || Python::attach(|py| py.detach(|| runtime.block_on(session))));
+        tokio::spawn(session);
         Ok(Response::new(Box::pin(ReceiverStream::new(responses))))
     }
 
