@@ -53,20 +53,13 @@ fn setting_path(state: &Path, setting: &Setting) -> PathBuf {
     state.join("settings").join(format!("{:03}.parquet", setting.index))
 }
 
-fn chunks(episodes: &[&Episode]) -> impl Iterator<Item = Result<TransitionChunk, ImportError>> {
-    episodes
-        .iter()
-        .map(|e| Ok(e.transitions.clone()))
-        .collect::<Vec<_>>()
-        .into_iter()
-}
-
 /// Writes a finished setting atomically (temporary name, then rename), validated like any dataset.
 fn save_setting(task: &Task, state: &Path, setting: &Setting, episodes: &[Episode]) -> anyhow::Result<()> {
     let path = setting_path(state, setting);
     let part = path.with_extension("parquet.part");
-    let refs: Vec<&Episode> = episodes.iter().collect();
-    write_canonical(task, ObservationSpace::Simulator, chunks(&refs), Vec::new(), &part)
+    // One episode copied at a time: the writer takes owned chunks, the caller keeps the episodes.
+    let chunks = episodes.iter().map(|e| Ok::<_, ImportError>(e.transitions.clone()));
+    write_canonical(task, ObservationSpace::Simulator, chunks, Vec::new(), &part)
         .with_context(|| format!("writing setting {}", setting.index))?;
     std::fs::rename(&part, &path)?;
     Ok(())
@@ -194,8 +187,10 @@ impl Run {
                 let envs = self.envs_per_session;
                 async move {
                     let episodes = collect_setting(&pool, &recipe, setting, envs, || bar.inc(1)).await?;
-                    let saved = episodes.clone();
-                    tokio::task::spawn_blocking(move || save_setting(&task, &state, &setting, &saved)).await??;
+                    let episodes = tokio::task::spawn_blocking(move || {
+                        save_setting(&task, &state, &setting, &episodes).map(|()| episodes)
+                    })
+                    .await??;
                     anyhow::Ok((setting.index, episodes))
                 }
             }))
@@ -225,22 +220,26 @@ impl Run {
             .map(|&i| (all[i].reward_return, all[i].cost_return))
             .collect();
         let mut grid_random = PyRandom::seed(self.recipe.seed);
-        let kept: Vec<&Episode> = self
+        // Positions in `all` of the episodes the final grid keeps, in its output order.
+        let kept: Vec<usize> = self
             .recipe
             .final_grid()
             .apply(&returns, &mut grid_random)
             .into_iter()
-            .map(|j| all[kept_by_buffer[j]])
+            .map(|j| kept_by_buffer[j])
             .collect();
         anyhow::ensure!(
             !kept.is_empty(),
             "the final grid filter kept no episode (check final_grid against the returns)"
         );
         let after_grid = kept.len();
-        let kept: Vec<&Episode> = match self.max_episodes {
+        let kept: Vec<usize> = match self.max_episodes {
             Some(n) if kept.len() > n => {
                 // The same spread-preserving thinning as the buffer, seeded apart from it; file order is kept.
-                let points: Vec<(f64, f64)> = kept.iter().map(|e| (e.reward_return, e.cost_return)).collect();
+                let points: Vec<(f64, f64)> = kept
+                    .iter()
+                    .map(|&i| (all[i].reward_return, all[i].cost_return))
+                    .collect();
                 let mut chosen = filter_points(&points, n, &mut PyRandom::seed(self.recipe.seed.wrapping_add(1)));
                 chosen.sort_unstable();
                 chosen.into_iter().map(|i| kept[i]).collect()
@@ -253,12 +252,16 @@ impl Run {
         std::fs::create_dir_all(&out_dir)?;
         let path = out_dir.join(format!("{}-{cap}-{}.parquet", task.dataset_file_prefix, kept.len()));
         let part = path.with_extension("parquet.part");
+        let (collected, after_buffer, episodes_kept) = (all.len(), kept_by_buffer.len(), kept.len());
+        // The episodes move into the writer (same order as `all`); kept ones are taken out, not copied.
+        let mut episodes: Vec<Episode> = finished.into_values().flatten().collect();
         let converted = {
-            let (task, part, kept) = (task.clone(), part.clone(), kept.clone());
-            let owned: Vec<Episode> = kept.into_iter().cloned().collect();
+            let (task, part) = (task.clone(), part.clone());
             tokio::task::spawn_blocking(move || {
-                let refs: Vec<&Episode> = owned.iter().collect();
-                write_canonical(&task, ObservationSpace::Simulator, chunks(&refs), Vec::new(), &part)
+                let chunks = kept
+                    .iter()
+                    .map(|&i| Ok::<_, ImportError>(std::mem::take(&mut episodes[i].transitions)));
+                write_canonical(&task, ObservationSpace::Simulator, chunks, Vec::new(), &part)
             })
             .await??
         };
@@ -272,10 +275,10 @@ impl Run {
                 "episodes_per_setting": self.episodes_per_setting.unwrap_or_else(|| self.recipe.settings(None)[0].episodes),
                 "budget_scaled": self.episodes_per_setting.is_some(),
                 "settings": settings.len(),
-                "episodes_collected": all.len(),
-                "episodes_after_buffer": kept_by_buffer.len(),
+                "episodes_collected": collected,
+                "episodes_after_buffer": after_buffer,
                 "episodes_after_final_grid": after_grid,
-                "episodes_kept": kept.len(),
+                "episodes_kept": episodes_kept,
                 "thinned_to": self.max_episodes,
                 "transitions": converted.episode_index.iter().map(|e| u64::from(e.length)).sum::<u64>(),
                 "workers": self.workers,
@@ -290,8 +293,8 @@ impl Run {
             path,
             converted,
             provenance,
-            collected: all.len(),
-            after_buffer: kept_by_buffer.len(),
+            collected,
+            after_buffer,
         })
     }
 }

@@ -7,6 +7,7 @@ use std::time::Instant;
 use clap::Parser;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_proto::simulator_session::{Reply, SimulatorSession};
+use dsrl_sim::random_actions::UniformActions;
 
 /// Measures env-steps/s of one task through a running dsrl-sim-worker; prints one JSON line.
 #[derive(Parser, Debug)]
@@ -35,19 +36,6 @@ struct Args {
     seed: u64,
 }
 
-/// SplitMix64: a seeded, dependency-free source of uniform actions.
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next_unit(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 // One thread: the client's own task handoffs would otherwise add to the protocol cost being measured.
 #[tokio::main(flavor = "current_thread")]
 async fn main() -> anyhow::Result<()> {
@@ -64,16 +52,8 @@ async fn main() -> anyhow::Result<()> {
     };
     let (mut session, _) = SimulatorSession::open(channel, open).await?;
     let spec = session.spec().clone();
-    let mut rng = SplitMix(args.seed);
-    let mut random_actions = |n: usize| -> Vec<f32> {
-        let dim = spec.act_dim as usize;
-        (0..n * dim)
-            .map(|j| {
-                let (low, high) = (spec.action_low[j % dim], spec.action_high[j % dim]);
-                (low + (high - low) * rng.next_unit()) as f32
-            })
-            .collect()
-    };
+    let mut actions = UniformActions::new(args.seed);
+    let mut random_actions = |n: usize| actions.batch(&spec.action_low, &spec.action_high, n);
     // Group g holds envs g, g + G, g + 2G, ...; each group steps `warmup + steps` times.
     let groups = args.groups.clamp(1, args.envs) as usize;
     let members: Vec<Vec<u32>> = (0..groups)

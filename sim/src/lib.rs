@@ -7,6 +7,7 @@
 
 pub mod error;
 pub mod python;
+pub mod random_actions;
 pub mod service;
 pub mod session;
 

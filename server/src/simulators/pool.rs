@@ -195,8 +195,9 @@ impl SimulatorPool {
 
     /// Opens a session on the healthy worker with the most free capacity.
     pub async fn open(&self, open: Open) -> Result<PooledSession, ApiError> {
-        let (slot, channel, name) = self.place(open.num_envs)?;
-        let opened = tokio::time::timeout(self.request_timeout, SimulatorSession::open(channel, open.clone())).await;
+        let num_envs = open.num_envs;
+        let (slot, channel, name) = self.place(num_envs)?;
+        let opened = tokio::time::timeout(self.request_timeout, SimulatorSession::open(channel, open)).await;
         let result = match opened {
             Ok(result) => result.map_err(|status| PooledSession::error(&name, status)),
             Err(_) => Err(ApiError::Unavailable(format!(
@@ -208,7 +209,7 @@ impl SimulatorPool {
         // Count the envs at once so the next placement sees them before the next health check does.
         slot.update(|s| {
             if let Some(status) = &mut s.status {
-                status.envs += open.num_envs;
+                status.envs += num_envs;
                 status.sessions += 1;
             }
         });

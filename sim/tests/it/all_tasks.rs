@@ -29,7 +29,7 @@ async fn run_tasks(tasks: Vec<dsrl_suite::catalog::Task>) -> Vec<String> {
             continue;
         }
         let (mut session, _) = worker.open(&id, &[0], AutoReset::SameStep).await;
-        let mut actions = Actions(0);
+        let mut actions = Actions::new(0);
         for _ in 0..5 {
             if let Err(status) = session
                 .step(&[], &actions.batch(&spec.action_low, &spec.action_high, 1))

@@ -141,7 +141,7 @@ async fn stepping_a_finished_episode_is_failed_precondition_until_reset() {
     let worker = Worker::start(&[]).await;
     let (mut session, _) = worker.open(TASK, &[1], AutoReset::None).await;
     let spec = session.spec().clone();
-    let mut actions = Actions(7);
+    let mut actions = Actions::new(7);
     let mut steps = 0;
     loop {
         let out = session
@@ -184,7 +184,7 @@ async fn auto_reset_returns_the_final_observation_and_continues() {
     let worker = Worker::start(&[]).await;
     let (mut session, _) = worker.open(TASK, &[2, 3], AutoReset::SameStep).await;
     let spec = session.spec().clone();
-    let mut actions = Actions(3);
+    let mut actions = Actions::new(3);
     let mut ended = 0;
     for _ in 0..(2 * spec.max_episode_steps) {
         let out = session

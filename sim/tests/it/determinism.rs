@@ -17,7 +17,7 @@ async fn trajectory(
     let (mut session, first) = worker.open(task, seeds, AutoReset::SameStep).await;
     let spec = session.spec().clone();
     let (low, high) = bounds.unwrap_or((spec.action_low, spec.action_high));
-    let mut actions = Actions(42);
+    let mut actions = Actions::new(42);
     let mut out = Vec::new();
     for _ in 0..steps {
         let batch = actions.batch(&low, &high, seeds.len());

@@ -17,7 +17,7 @@ async fn smoke(offline_id: &str, simulator: &str, steps: usize) {
     assert_eq!((spec.obs_dim, spec.act_dim), (task.obs_dim, task.act_dim));
     assert_eq!(spec.max_episode_steps, task.max_episode_steps);
     assert_eq!(first.len(), 2 * task.obs_dim as usize);
-    let mut actions = Actions(1);
+    let mut actions = Actions::new(1);
     let mut cost = 0.0;
     for _ in 0..steps {
         let out = session

@@ -113,22 +113,4 @@ impl Worker {
     }
 }
 
-/// Seeded uniform actions inside the action box (SplitMix64).
-pub struct Actions(pub u64);
-
-impl Actions {
-    pub fn batch(&mut self, low: &[f64], high: &[f64], n: usize) -> Vec<f32> {
-        let mut out = Vec::with_capacity(n * low.len());
-        for _ in 0..n {
-            for (l, h) in low.iter().zip(high) {
-                self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = self.0;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                let unit = ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64;
-                out.push((l + (h - l) * unit) as f32);
-            }
-        }
-        out
-    }
-}
+pub use dsrl_sim::random_actions::UniformActions as Actions;
