@@ -1,6 +1,7 @@
-//! A recipe run from start to dataset: sweep settings in parallel over the worker pool, keep each finished
-//! setting on disk (so a killed run resumes where it stopped), then the trajectory buffer and the final grid filter
-//! in a fixed order, and the canonical Parquet file with its provenance.
+//! A recipe run from start to dataset: an IDM sweep (settings in parallel over the worker pool, each finished
+//! setting kept on disk) or an expert's training (saved periodically), so a killed run resumes where it stopped;
+//! then the trajectory buffer and the final grid filter in a fixed order, and the canonical Parquet file with its
+//! provenance.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -30,6 +31,8 @@ pub struct Run {
     pub state_dir: PathBuf,
     /// Budget override: episodes per sweep setting (the recipe's by default).
     pub episodes_per_setting: Option<u32>,
+    /// Budget override for expert recipes: environment steps to train for.
+    pub budget_steps: Option<u64>,
     pub workers: u32,
     pub envs_per_session: u32,
     pub simulators: SimulatorsConfig,
@@ -125,9 +128,13 @@ impl Run {
     pub async fn execute(self, catalog: &Catalog) -> anyhow::Result<Built> {
         let started = Instant::now();
         let task = self.recipe.validate(catalog)?.clone();
-        std::fs::create_dir_all(self.state_dir.join("settings"))?;
+        std::fs::create_dir_all(&self.state_dir)?;
         // A state folder belongs to one recipe and budget: refuse to mix runs.
-        let identity = serde_json::json!({ "recipe": self.recipe, "episodes_per_setting": self.episodes_per_setting });
+        let mut identity =
+            serde_json::json!({ "recipe": self.recipe, "episodes_per_setting": self.episodes_per_setting });
+        if self.recipe.expert.is_some() {
+            identity["budget_steps"] = serde_json::json!(self.budget_steps);
+        }
         let identity_path = self.state_dir.join("run.json");
         match std::fs::read(&identity_path) {
             Ok(bytes) => {
@@ -141,6 +148,77 @@ impl Run {
             Err(_) => std::fs::write(&identity_path, serde_json::to_vec_pretty(&identity)?)?,
         }
 
+        let (buffered, collected, method) = if self.recipe.expert.is_some() {
+            self.run_expert(&task).await?
+        } else {
+            self.run_sweep(&task).await?
+        };
+        self.write_dataset(&task, buffered, collected, method, started).await
+    }
+
+    fn progress_bar(&self, len: u64, template: &str) -> ProgressBar {
+        let bar = if self.progress {
+            ProgressBar::new(len)
+        } else {
+            ProgressBar::hidden()
+        };
+        bar.set_style(ProgressStyle::with_template(template).expect("template"));
+        bar
+    }
+
+    /// Starts the run's own local workers and waits until they (and the configured remote ones) are healthy.
+    async fn start_pool(&self) -> anyhow::Result<Arc<SimulatorPool>> {
+        let pool = Arc::new(SimulatorPool::start(&SimulatorsConfig {
+            local_workers: self.workers,
+            ..self.simulators.clone()
+        }));
+        let wanted = (self.workers as usize + self.simulators.remote_workers.len()).max(1);
+        anyhow::ensure!(
+            pool.wait_healthy(wanted, std::time::Duration::from_secs(180)).await,
+            "simulator workers did not become healthy: {:?}",
+            pool.workers()
+        );
+        Ok(pool)
+    }
+
+    /// The expert recipe: train (or resume) and return what the trajectory buffer kept, in its order.
+    async fn run_expert(&self, task: &Task) -> anyhow::Result<(Vec<Episode>, usize, serde_json::Value)> {
+        let expert = self.recipe.expert.as_ref().expect("checked by the caller");
+        let budget = self.budget_steps.unwrap_or(expert.budget_steps);
+        let bar = self.progress_bar(
+            budget,
+            "{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} steps (eta {eta})",
+        );
+        bar.set_message(task.id.to_string());
+        let pool = self.start_pool().await?;
+        let collection =
+            crate::expert::train::train(&pool, &self.recipe, task, &self.state_dir.join("expert"), budget, &bar)
+                .await?;
+        bar.finish();
+        let seconds = |f: fn(&crate::expert::train::CollectLog) -> f64| -> f64 {
+            collection.log.iter().map(f).sum::<f64>().round()
+        };
+        let details = serde_json::json!({
+            "budget_steps": budget,
+            "paper_steps": expert.cost_limit.paper_steps(),
+            "budget_scale": budget as f64 / expert.cost_limit.paper_steps() as f64,
+            "steps_trained": collection.steps,
+            "collects": collection.log.len(),
+            "final_lagrangian": collection.log.last().map(|l| l.lagrangian),
+            "simulator_seconds": seconds(|l| l.simulator_seconds),
+            "acting_seconds": seconds(|l| l.acting_seconds),
+            "update_seconds": seconds(|l| l.update_seconds),
+            "expert_policy": "expert/policy (policy.safetensors + policy.json)",
+            "training_log": "expert/training.csv",
+        });
+        let offered = collection.offered as usize;
+        Ok((collection.episodes, offered, details))
+    }
+
+    /// The IDM sweep: every setting (resumed from disk when already finished), then the trajectory buffer over all
+    /// episodes in a fixed order whatever finished first.
+    async fn run_sweep(&self, task: &Task) -> anyhow::Result<(Vec<Episode>, usize, serde_json::Value)> {
+        std::fs::create_dir_all(self.state_dir.join("settings"))?;
         let settings = self.recipe.settings(self.episodes_per_setting);
         let total: u64 = settings.iter().map(|s| u64::from(s.episodes)).sum();
         let mut finished: BTreeMap<usize, Vec<Episode>> = BTreeMap::new();
@@ -150,14 +228,9 @@ impl Run {
             }
         }
         let resumed: u64 = finished.values().map(|v| v.len() as u64).sum();
-        let bar = if self.progress {
-            ProgressBar::new(total)
-        } else {
-            ProgressBar::hidden()
-        };
-        bar.set_style(
-            ProgressStyle::with_template("{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} episodes (eta {eta})")
-                .expect("template"),
+        let bar = self.progress_bar(
+            total,
+            "{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} episodes (eta {eta})",
         );
         bar.set_message(task.id.to_string());
         bar.set_position(resumed);
@@ -171,16 +244,8 @@ impl Run {
             .copied()
             .collect();
         if !todo.is_empty() {
-            let pool = Arc::new(SimulatorPool::start(&SimulatorsConfig {
-                local_workers: self.workers,
-                ..self.simulators.clone()
-            }));
+            let pool = self.start_pool().await?;
             let wanted = (self.workers as usize + self.simulators.remote_workers.len()).max(1);
-            anyhow::ensure!(
-                pool.wait_healthy(wanted, std::time::Duration::from_secs(180)).await,
-                "simulator workers did not become healthy: {:?}",
-                pool.workers()
-            );
             let jobs = futures::stream::iter(todo.into_iter().map(|setting| {
                 let (pool, recipe, bar) = (pool.clone(), self.recipe.clone(), bar.clone());
                 let (task, state) = (task.clone(), self.state_dir.clone());
@@ -206,28 +271,42 @@ impl Run {
         // Fixed order whatever finished first: settings by index, episodes by number.
         let mut buffer =
             TrajectoryBuffer::new(self.recipe.buffer_limits(), self.recipe.seed).map_err(anyhow::Error::msg)?;
-        let all: Vec<&Episode> = finished.values().flatten().collect();
-        for (i, episode) in all.iter().enumerate() {
+        let mut collected = 0;
+        for episode in finished.into_values().flatten() {
+            collected += 1;
             buffer.offer(Stored {
                 reward_return: episode.reward_return,
                 cost_return: episode.cost_return,
-                payload: i,
+                payload: episode,
             });
         }
-        let kept_by_buffer: Vec<usize> = buffer.episodes().iter().map(|s| s.payload).collect();
-        let returns: Vec<(f64, f64)> = kept_by_buffer
-            .iter()
-            .map(|&i| (all[i].reward_return, all[i].cost_return))
-            .collect();
+        let details = serde_json::json!({
+            "episodes_per_setting": self.episodes_per_setting.unwrap_or_else(|| self.recipe.settings(None)[0].episodes),
+            "budget_scaled": self.episodes_per_setting.is_some(),
+            "settings": settings.len(),
+            "envs_per_session": self.envs_per_session,
+        });
+        Ok((
+            buffer.into_episodes().into_iter().map(|s| s.payload).collect(),
+            collected,
+            details,
+        ))
+    }
+
+    /// The final grid filter over the buffer's episodes, the optional starter thinning, the canonical Parquet file
+    /// and its provenance.
+    async fn write_dataset(
+        &self,
+        task: &Task,
+        mut buffered: Vec<Episode>,
+        collected: usize,
+        method: serde_json::Value,
+        started: Instant,
+    ) -> anyhow::Result<Built> {
+        let returns: Vec<(f64, f64)> = buffered.iter().map(|e| (e.reward_return, e.cost_return)).collect();
         let mut grid_random = PyRandom::seed(self.recipe.seed);
-        // Positions in `all` of the episodes the final grid keeps, in its output order.
-        let kept: Vec<usize> = self
-            .recipe
-            .final_grid()
-            .apply(&returns, &mut grid_random)
-            .into_iter()
-            .map(|j| kept_by_buffer[j])
-            .collect();
+        // Positions in `buffered` of the episodes the final grid keeps, in its output order.
+        let kept: Vec<usize> = self.recipe.final_grid().apply(&returns, &mut grid_random);
         anyhow::ensure!(
             !kept.is_empty(),
             "the final grid filter kept no episode (check final_grid against the returns)"
@@ -236,10 +315,7 @@ impl Run {
         let kept: Vec<usize> = match self.max_episodes {
             Some(n) if kept.len() > n => {
                 // The same spread-preserving thinning as the buffer, seeded apart from it; file order is kept.
-                let points: Vec<(f64, f64)> = kept
-                    .iter()
-                    .map(|&i| (all[i].reward_return, all[i].cost_return))
-                    .collect();
+                let points: Vec<(f64, f64)> = kept.iter().map(|&i| returns[i]).collect();
                 let mut chosen = filter_points(&points, n, &mut PyRandom::seed(self.recipe.seed.wrapping_add(1)));
                 chosen.sort_unstable();
                 chosen.into_iter().map(|i| kept[i]).collect()
@@ -252,39 +328,38 @@ impl Run {
         std::fs::create_dir_all(&out_dir)?;
         let path = out_dir.join(format!("{}-{cap}-{}.parquet", task.dataset_file_prefix, kept.len()));
         let part = path.with_extension("parquet.part");
-        let (collected, after_buffer, episodes_kept) = (all.len(), kept_by_buffer.len(), kept.len());
-        // The episodes move into the writer (same order as `all`); kept ones are taken out, not copied.
-        let mut episodes: Vec<Episode> = finished.into_values().flatten().collect();
+        let (after_buffer, episodes_kept) = (buffered.len(), kept.len());
+        // Kept episodes are taken out of `buffered`, not copied.
         let converted = {
             let (task, part) = (task.clone(), part.clone());
             tokio::task::spawn_blocking(move || {
                 let chunks = kept
                     .iter()
-                    .map(|&i| Ok::<_, ImportError>(std::mem::take(&mut episodes[i].transitions)));
+                    .map(|&i| Ok::<_, ImportError>(std::mem::take(&mut buffered[i].transitions)));
                 write_canonical(&task, ObservationSpace::Simulator, chunks, Vec::new(), &part)
             })
             .await??
         };
         std::fs::rename(&part, &path)?;
+        let mut details = serde_json::json!({
+            "recipe": self.recipe,
+            "episodes_collected": collected,
+            "episodes_after_buffer": after_buffer,
+            "episodes_after_final_grid": after_grid,
+            "episodes_kept": episodes_kept,
+            "thinned_to": self.max_episodes,
+            "transitions": converted.episode_index.iter().map(|e| u64::from(e.length)).sum::<u64>(),
+            "workers": self.workers,
+            "wall_seconds": started.elapsed().as_secs_f64().round(),
+        });
+        if let (Some(details), serde_json::Value::Object(method)) = (details.as_object_mut(), method) {
+            details.extend(method);
+        }
         let provenance = Provenance::Recipe {
-            recipe: recipe_name(&self.recipe_path, &task),
+            recipe: recipe_name(&self.recipe_path, task),
             seeds: vec![self.recipe.seed],
             code_version: concat!("dsrl-pipeline ", env!("CARGO_PKG_VERSION")).to_owned(),
-            details: serde_json::json!({
-                "recipe": self.recipe,
-                "episodes_per_setting": self.episodes_per_setting.unwrap_or_else(|| self.recipe.settings(None)[0].episodes),
-                "budget_scaled": self.episodes_per_setting.is_some(),
-                "settings": settings.len(),
-                "episodes_collected": collected,
-                "episodes_after_buffer": after_buffer,
-                "episodes_after_final_grid": after_grid,
-                "episodes_kept": episodes_kept,
-                "thinned_to": self.max_episodes,
-                "transitions": converted.episode_index.iter().map(|e| u64::from(e.length)).sum::<u64>(),
-                "workers": self.workers,
-                "envs_per_session": self.envs_per_session,
-                "wall_seconds": started.elapsed().as_secs_f64().round(),
-            }),
+            details,
         };
         // `<file>.provenance.json`: the name the server's starter loader reads beside a dataset.
         let provenance_path = PathBuf::from(format!("{}.provenance.json", path.display()));

@@ -23,10 +23,13 @@ struct Args {
 enum Command {
     /// Collect a task's dataset with its recipe, then (with --server) ingest it as a new version.
     ///
-    /// Starts its own simulator workers (dsrl-sim-worker beside this binary), runs the recipe's sweep settings in
-    /// parallel, and keeps every finished setting in the state folder: a run that is killed resumes where it
-    /// stopped when started again with the same folder. The result is deterministic for a recipe, its seed and
-    /// the budget. Output: <state>/<prefix>-<cost cap>-<episodes>.parquet and <that name>.provenance.json.
+    /// Starts its own simulator workers (dsrl-sim-worker beside this binary). MetaDrive recipes run their IDM
+    /// sweep settings in parallel and keep every finished setting in the state folder; Bullet and Safety-Gymnasium
+    /// recipes train a PPO-Lagrangian expert while its cost limit sweeps, keep what it plays in the trajectory
+    /// buffer and save everything periodically (expert/ in the state folder, with expert/training.csv and the
+    /// final expert policy in expert/policy). A run that is killed resumes where it stopped when started again
+    /// with the same folder. The result is deterministic for a recipe, its seed and the budget.
+    /// Output: <state>/<prefix>-<cost cap>-<episodes>.parquet and <that name>.provenance.json.
     Collect {
         /// Offline task id, e.g. OfflineMetadrive-easysparse-v0.
         #[arg(long)]
@@ -37,9 +40,13 @@ enum Command {
         /// State and output folder (default: ~/.dsrl/collect/<task>).
         #[arg(long)]
         state: Option<PathBuf>,
-        /// Scale the budget down: episodes per sweep setting instead of the recipe's.
+        /// Scale an IDM sweep's budget: episodes per sweep setting instead of the recipe's.
         #[arg(long)]
         episodes_per_setting: Option<u32>,
+        /// Scale an expert recipe's budget: environment steps to train for instead of the recipe's budget_steps
+        /// (the cost-limit schedule is compressed or stretched to fit).
+        #[arg(long)]
+        budget_steps: Option<u64>,
         /// Local simulator workers (default: one per core).
         #[arg(long)]
         workers: Option<u32>,
@@ -70,8 +77,16 @@ enum Command {
     },
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<()> {
+    // SAFETY: first thing in main, before the runtime or any other thread exists.
+    unsafe { dsrl_policy::pin_candle_threads() };
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(run())
+}
+
+async fn run() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG").unwrap_or_else(|_| "warn".parse().expect("filter")),
@@ -83,6 +98,7 @@ async fn main() -> anyhow::Result<()> {
         recipe,
         state,
         episodes_per_setting,
+        budget_steps,
         workers,
         envs_per_session,
         worker_binary,
@@ -112,6 +128,7 @@ async fn main() -> anyhow::Result<()> {
         recipe_path,
         state_dir,
         episodes_per_setting,
+        budget_steps,
         workers: workers.unwrap_or(cores).max(1),
         envs_per_session: envs_per_session.max(1),
         simulators: SimulatorsConfig {

@@ -12,7 +12,10 @@ pub struct Recipe {
     pub task: String,
     /// Root of every random choice: episode seeds, buffer thinning and the final grid filter derive from it.
     pub seed: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub idm_sweep: Option<IdmSweep>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expert: Option<ExpertSettings>,
     pub buffer: BufferSettings,
     pub final_grid: FinalGridSettings,
 }
@@ -47,6 +50,86 @@ pub struct IdmSweep {
 pub struct BufferSettings {
     pub max_trajectory: usize,
     pub filter_interval: f64,
+    /// Episodes with returns outside these bounds are not stored (FSRL's `rmin`, `rmax`, `cmin`, `cmax`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reward_range: Option<[f64; 2]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cost_range: Option<[f64; 2]>,
+}
+
+/// Bullet-Safety-Gym and Safety-Gymnasium (spec 6.1): a Lagrangian policy-gradient expert trained while its cost
+/// limit moves from `cost_start` to `cost_end`; every episode it plays is offered to the trajectory buffer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExpertSettings {
+    pub algorithm: ExpertAlgorithm,
+    pub hidden_sizes: Vec<usize>,
+    pub gamma: f64,
+    pub gae_lambda: f64,
+    pub lr: f64,
+    /// PPO's probability-ratio clip.
+    pub clip_ratio: f64,
+    pub repeat_per_collect: u32,
+    pub minibatch_size: usize,
+    pub max_grad_norm: f64,
+    /// Each collect plays one episode in each of `sessions × envs_per_session` environments, then updates the
+    /// policy (FSRL: 10 episodes per collect). Fixed by the recipe, so the result does not depend on how many
+    /// workers run it.
+    pub sessions: u32,
+    pub envs_per_session: u32,
+    /// Environment steps to train for (`--budget-steps` overrides).
+    pub budget_steps: u64,
+    /// Sessions are reopened and the whole training state saved every this many collects; a killed run resumes
+    /// from the last save and gives the same result as an uninterrupted one.
+    pub checkpoint_every_collects: u32,
+    pub cost_limit: PaperSchedule,
+    pub lagrangian: PidGains,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ExpertAlgorithm {
+    PpoLagrangian,
+}
+
+/// The paper's cost-limit schedule in its epochs (`epochs` of `steps_per_epoch` environment steps); a smaller
+/// budget runs the same schedule compressed in proportion.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PaperSchedule {
+    pub cost_start: f64,
+    pub cost_end: f64,
+    pub epoch_start: u32,
+    pub epoch_end: u32,
+    pub epochs: u32,
+    pub steps_per_epoch: u64,
+}
+
+impl PaperSchedule {
+    /// The paper's budget in environment steps.
+    pub fn paper_steps(&self) -> u64 {
+        u64::from(self.epochs) * self.steps_per_epoch
+    }
+
+    /// The cost limit after `steps` of a `budget`-step run: the paper's limit at the same fraction of training.
+    pub fn limit_at(&self, steps: u64, budget: u64) -> f64 {
+        let epoch = (steps as f64 / budget.max(1) as f64 * f64::from(self.epochs)).floor() as u32;
+        crate::expert::lagrangian::CostLimitSchedule {
+            cost_start: self.cost_start,
+            cost_end: self.cost_end,
+            epoch_start: self.epoch_start,
+            epoch_end: self.epoch_end,
+        }
+        .at(epoch)
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PidGains {
+    pub kp: f64,
+    pub ki: f64,
+    pub kd: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -97,12 +180,52 @@ impl Recipe {
                 anyhow::ensure!(!sweep.target_speeds.is_empty(), "idm_sweep.target_speeds is empty");
             }
             (Some(_), family) => anyhow::bail!("{}: an IDM sweep needs a MetaDrive task, not {family:?}", task.id),
-            (None, _) => anyhow::bail!(
-                "{}: the recipe names no collection method (this build knows idm_sweep, for MetaDrive; expert \
-                 training recipes for Bullet and Safety-Gymnasium are not implemented yet)",
-                task.id
-            ),
+            (None, _) => match &self.expert {
+                Some(expert) => {
+                    anyhow::ensure!(
+                        task.family != Family::MetaDrive,
+                        "{}: MetaDrive datasets come from the IDM sweep, not an expert",
+                        task.id
+                    );
+                    anyhow::ensure!(
+                        expert.sessions > 0 && expert.envs_per_session > 0,
+                        "expert.sessions and expert.envs_per_session must be at least 1"
+                    );
+                    anyhow::ensure!(
+                        expert.budget_steps > 0 && expert.checkpoint_every_collects > 0,
+                        "expert.budget_steps and expert.checkpoint_every_collects must be at least 1"
+                    );
+                    anyhow::ensure!(
+                        !expert.hidden_sizes.is_empty() && !expert.hidden_sizes.contains(&0),
+                        "expert.hidden_sizes must be non-empty and positive"
+                    );
+                    anyhow::ensure!(
+                        expert.minibatch_size > 0 && expert.repeat_per_collect > 0,
+                        "expert.minibatch_size and expert.repeat_per_collect must be at least 1"
+                    );
+                    anyhow::ensure!(
+                        expert.lr > 0.0 && expert.clip_ratio > 0.0,
+                        "expert.lr and clip_ratio must be positive"
+                    );
+                    anyhow::ensure!(
+                        (0.0..=1.0).contains(&expert.gamma) && (0.0..=1.0).contains(&expert.gae_lambda),
+                        "expert.gamma and expert.gae_lambda must lie in [0, 1]"
+                    );
+                    anyhow::ensure!(
+                        expert.cost_limit.epochs > 0 && expert.cost_limit.steps_per_epoch > 0,
+                        "expert.cost_limit needs epochs and steps_per_epoch"
+                    );
+                }
+                None => anyhow::bail!(
+                    "{}: the recipe names no collection method (idm_sweep for MetaDrive, expert otherwise)",
+                    task.id
+                ),
+            },
         }
+        anyhow::ensure!(
+            self.idm_sweep.is_none() || self.expert.is_none(),
+            "a recipe has either idm_sweep or expert, not both"
+        );
         anyhow::ensure!(
             self.buffer.max_trajectory > 0,
             "buffer.max_trajectory must be at least 1"
@@ -155,10 +278,10 @@ impl Recipe {
         BufferLimits {
             max_trajectory: self.buffer.max_trajectory,
             filter_interval: self.buffer.filter_interval,
-            rmin: f64::NEG_INFINITY,
-            rmax: f64::INFINITY,
-            cmin: f64::NEG_INFINITY,
-            cmax: f64::INFINITY,
+            rmin: self.buffer.reward_range.map_or(f64::NEG_INFINITY, |r| r[0]),
+            rmax: self.buffer.reward_range.map_or(f64::INFINITY, |r| r[1]),
+            cmin: self.buffer.cost_range.map_or(f64::NEG_INFINITY, |c| c[0]),
+            cmax: self.buffer.cost_range.map_or(f64::INFINITY, |c| c[1]),
         }
     }
 
@@ -203,6 +326,97 @@ mod tests {
             }
             .values(),
             want
+        );
+    }
+
+    #[test]
+    fn every_expert_recipe_loads_with_the_papers_settings() {
+        let catalog = Catalog::embedded().unwrap();
+        let expected: Vec<csv_row::Row> = csv_row::read();
+        let experts: Vec<_> = catalog
+            .tasks()
+            .iter()
+            .filter(|t| t.family != Family::MetaDrive)
+            .collect();
+        assert_eq!(experts.len(), 29);
+        for task in experts {
+            let recipe = Recipe::load(&Recipe::default_path(task.id.as_str())).unwrap();
+            assert_eq!(recipe.validate(&catalog).unwrap().id, task.id);
+            let expert = recipe.expert.as_ref().expect("an expert recipe");
+            assert_eq!(recipe.final_grid.cost_cap, task.paper_cost_cap, "{}", task.id);
+            assert!(
+                recipe.final_grid.reward_range[1] >= task.max_episode_reward,
+                "{}",
+                task.id
+            );
+            let row = expected
+                .iter()
+                .find(|r| task.id.as_str() == format!("Offline{}", &r.task["Safety".len()..]))
+                .unwrap_or_else(|| panic!("no expert settings for {}", task.id));
+            assert_eq!(
+                (
+                    expert.cost_limit.cost_start,
+                    expert.cost_limit.cost_end,
+                    expert.cost_limit.epochs
+                ),
+                (row.cost_start, row.cost_end, row.epochs),
+                "{}",
+                task.id
+            );
+            assert_eq!(recipe.buffer.max_trajectory, row.capacity, "{}", task.id);
+            assert!(expert.budget_steps <= expert.cost_limit.paper_steps());
+        }
+    }
+
+    /// DSRL's per-task expert settings, from the reference table the recipes were written from.
+    mod csv_row {
+        pub struct Row {
+            pub task: String,
+            pub cost_start: f64,
+            pub cost_end: f64,
+            pub epochs: u32,
+            pub capacity: usize,
+        }
+
+        pub fn read() -> Vec<Row> {
+            // task,cost_start,cost_end,epoch_start,epoch_end,epoch,max_traj_len,...
+            include_str!("../../data/expert_collection.csv")
+                .lines()
+                .skip(1)
+                .map(|line| {
+                    let f: Vec<&str> = line.split(',').collect();
+                    Row {
+                        task: f[0].to_owned(),
+                        cost_start: f[1].parse().unwrap(),
+                        cost_end: f[2].parse().unwrap(),
+                        epochs: f[5].parse().unwrap(),
+                        capacity: f[6].parse().unwrap(),
+                    }
+                })
+                .collect()
+        }
+    }
+
+    #[test]
+    fn the_papers_schedule_is_compressed_onto_a_smaller_budget() {
+        let schedule = PaperSchedule {
+            cost_start: 5.0,
+            cost_end: 100.0,
+            epoch_start: 100,
+            epoch_end: 900,
+            epochs: 1000,
+            steps_per_epoch: 10_000,
+        };
+        assert_eq!(schedule.paper_steps(), 10_000_000);
+        // A tenth of the budget: paper epoch = steps / 1000.
+        assert_eq!(schedule.limit_at(0, 1_000_000), 5.0);
+        assert_eq!(schedule.limit_at(100_999, 1_000_000), 5.0);
+        assert_eq!(schedule.limit_at(500_000, 1_000_000), 5.0 + 400.0 * 95.0 / 800.0);
+        assert_eq!(schedule.limit_at(950_000, 1_000_000), 100.0);
+        // The full budget is the paper's schedule itself.
+        assert_eq!(
+            schedule.limit_at(5_000_000, 10_000_000),
+            schedule.limit_at(500_000, 1_000_000)
         );
     }
 

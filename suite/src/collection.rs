@@ -42,6 +42,15 @@ pub enum Offer {
     KeptAndThinned,
 }
 
+/// A buffer's counters and random state; with its episodes it is the whole buffer.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct BufferSnapshot {
+    pub offered: u64,
+    pub thinnings: u64,
+    pub random_mt: Vec<u32>,
+    pub random_index: usize,
+}
+
 pub struct TrajectoryBuffer<T> {
     limits: BufferLimits,
     threshold: usize,
@@ -71,6 +80,32 @@ impl<T> TrajectoryBuffer<T> {
             offered: 0,
             thinnings: 0,
         })
+    }
+
+    /// A buffer as [`TrajectoryBuffer::snapshot`] left it (resuming a collection).
+    pub fn restore(
+        limits: BufferLimits,
+        snapshot: BufferSnapshot,
+        episodes: Vec<Stored<T>>,
+    ) -> Result<TrajectoryBuffer<T>, String> {
+        let mut buffer = TrajectoryBuffer::new(limits, 0)?;
+        buffer.random = PyRandom::from_state(&snapshot.random_mt, snapshot.random_index)
+            .ok_or("the buffer's random state is malformed")?;
+        buffer.episodes = episodes;
+        buffer.offered = snapshot.offered;
+        buffer.thinnings = snapshot.thinnings;
+        Ok(buffer)
+    }
+
+    /// Everything but the episodes, for a checkpoint.
+    pub fn snapshot(&self) -> BufferSnapshot {
+        let (random_mt, random_index) = self.random.state();
+        BufferSnapshot {
+            offered: self.offered,
+            thinnings: self.thinnings,
+            random_mt,
+            random_index,
+        }
     }
 
     /// Offers a finished episode (FSRL `store` at the end of a trajectory).
@@ -298,6 +333,33 @@ mod tests {
             assert!(kept.contains(&spread), "{spread} was thinned away: {kept:?}");
         }
         assert_eq!(buffer.counts().0, 100);
+    }
+
+    #[test]
+    fn a_restored_buffer_continues_exactly_like_the_original() {
+        let episode = |i: u32| Stored {
+            reward_return: f64::from(i * 37 % 101),
+            cost_return: f64::from(i * 13 % 97),
+            payload: i,
+        };
+        let mut original = TrajectoryBuffer::new(limits(10), 5).unwrap();
+        for i in 0..23 {
+            original.offer(episode(i));
+        }
+        assert!(original.counts().1 >= 1, "the snapshot must carry a used random state");
+        let snapshot = original.snapshot();
+        let mut restored =
+            TrajectoryBuffer::restore(limits(10), snapshot.clone(), original.episodes().to_vec()).unwrap();
+        assert_eq!(restored.snapshot(), snapshot);
+        for i in 23..80 {
+            assert_eq!(original.offer(episode(i)), restored.offer(episode(i)));
+        }
+        assert_eq!(original.episodes(), restored.episodes());
+        let broken = BufferSnapshot {
+            random_mt: vec![1, 2, 3],
+            ..snapshot
+        };
+        assert!(TrajectoryBuffer::<u32>::restore(limits(10), broken, Vec::new()).is_err());
     }
 
     #[test]

@@ -4,6 +4,7 @@
 
 mod catalog;
 mod collect;
+mod expert;
 mod fetch;
 mod filters;
 mod http;

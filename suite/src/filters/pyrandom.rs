@@ -29,6 +29,19 @@ impl PyRandom {
         r
     }
 
+    /// The generator's state (`random.getstate()` without the Gauss cache), for checkpoints.
+    pub fn state(&self) -> (Vec<u32>, usize) {
+        (self.mt.to_vec(), self.index)
+    }
+
+    /// A generator from [`PyRandom::state`]; `None` if the state is malformed.
+    pub fn from_state(mt: &[u32], index: usize) -> Option<PyRandom> {
+        Some(PyRandom {
+            mt: mt.try_into().ok()?,
+            index: if index <= N { index } else { return None },
+        })
+    }
+
     fn init_by_array(&mut self, key: &[u32]) {
         let mt = &mut self.mt;
         let (mut i, mut j) = (1usize, 0usize);

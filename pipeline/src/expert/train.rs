@@ -1,0 +1,520 @@
+//! Training an expert while collecting what it plays (spec 6.1): each collect plays one whole episode in each of
+//! the recipe's environments with the current stochastic policy, offers every finished episode to the trajectory
+//! buffer, then updates the policy against the cost limit of that point of the schedule.
+//!
+//! Every `checkpoint_every_collects` collects the sessions are closed and the whole state is saved (networks,
+//! optimizer moments, the multiplier, the random state, the buffer and its episodes) into a new
+//! `expert/ckpt-NNNNNN/` folder whose `state.json` is written last. Sessions are reopened after each save in an
+//! uninterrupted run too, because a simulator's state cannot be saved: that way a run resumed from a save is
+//! exactly the run that never stopped (Bullet environments carry state across resets within a session).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use dsrl_policy::noise::Noise;
+use dsrl_proto::simulator::v1::{AutoReset, Open};
+use dsrl_server::simulators::{PooledSession, SimulatorPool};
+use dsrl_suite::catalog::{ObservationSpace, Task};
+use dsrl_suite::collection::{BufferSnapshot, Stored, TrajectoryBuffer};
+use dsrl_suite::convert::{ImportError, write_canonical};
+use dsrl_suite::parquet_file::ParquetTransitions;
+use dsrl_suite::transitions::TransitionChunk;
+use indicatif::ProgressBar;
+use serde::{Deserialize, Serialize};
+
+use super::ppo::{Learner, LearnerState, Rollout, UpdateStats};
+use crate::collect::Episode;
+use crate::recipe::{ExpertSettings, Recipe};
+
+/// What the training left in its buffer, with the numbers provenance records.
+pub struct ExpertCollection {
+    /// The buffer's episodes in buffer order (`setting` = collect, `number` = environment).
+    pub episodes: Vec<Episode>,
+    pub offered: u64,
+    pub steps: u64,
+    pub log: Vec<CollectLog>,
+}
+
+/// One line of `expert/training.csv`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CollectLog {
+    pub collect: u64,
+    pub steps: u64,
+    pub cost_limit: f64,
+    pub mean_reward: f64,
+    pub mean_cost: f64,
+    pub lagrangian: f64,
+    pub approx_kl: f64,
+    pub std: f64,
+    /// Waiting for the simulators (steps and resets).
+    pub simulator_seconds: f64,
+    /// The policy's forward passes while acting.
+    pub acting_seconds: f64,
+    pub update_seconds: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct State {
+    collects: u64,
+    steps: u64,
+    noise: Noise,
+    learner: LearnerState,
+    buffer: BufferSnapshot,
+    /// (collect, environment, seed) of each buffered episode, in buffer order.
+    buffered: Vec<(u64, u32, u64)>,
+    log: Vec<CollectLog>,
+}
+
+fn checkpoint_dirs(root: &Path) -> Vec<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(root)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("ckpt-"))
+                && p.join("state.json").is_file()
+        })
+        .collect();
+    dirs.sort();
+    dirs
+}
+
+fn save(
+    root: &Path,
+    task: &Task,
+    state: &State,
+    learner: &Learner,
+    buffer: &TrajectoryBuffer<Episode>,
+) -> anyhow::Result<()> {
+    let dir = root.join(format!("ckpt-{:06}", state.collects));
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir)?;
+    }
+    std::fs::create_dir_all(&dir)?;
+    let tensors: HashMap<String, dsrl_policy::Tensor> = learner.tensors().into_iter().collect();
+    dsrl_policy::candle_save(&tensors, &dir.join("state.safetensors"))?;
+    if !buffer.episodes().is_empty() {
+        let chunks = buffer
+            .episodes()
+            .iter()
+            .map(|e| Ok::<_, ImportError>(e.payload.transitions.clone()));
+        write_canonical(
+            task,
+            ObservationSpace::Simulator,
+            chunks,
+            Vec::new(),
+            &dir.join("buffer.parquet"),
+        )
+        .context("saving the trajectory buffer")?;
+    }
+    // Written last: a folder without it is an unfinished save and is ignored.
+    std::fs::write(dir.join("state.json"), serde_json::to_vec(state)?)?;
+    for old in checkpoint_dirs(root) {
+        if old != dir {
+            std::fs::remove_dir_all(old)?;
+        }
+    }
+    write_log(root, &state.log)
+}
+
+fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
+    let mut text = String::from(
+        "collect,steps,cost_limit,mean_reward,mean_cost,lagrangian,approx_kl,std,simulator_seconds,acting_seconds,update_seconds\n",
+    );
+    for l in log {
+        text.push_str(&format!(
+            "{},{},{},{:.3},{:.3},{:.5},{:.6},{:.4},{:.3},{:.3},{:.3}\n",
+            l.collect,
+            l.steps,
+            l.cost_limit,
+            l.mean_reward,
+            l.mean_cost,
+            l.lagrangian,
+            l.approx_kl,
+            l.std,
+            l.simulator_seconds,
+            l.acting_seconds,
+            l.update_seconds
+        ));
+    }
+    std::fs::write(root.join("training.csv"), text)?;
+    Ok(())
+}
+
+/// Reads the latest complete save: its state, tensors and buffered episodes.
+/// A save as read back: the state, the learner's tensors and the buffered episodes.
+type Saved = (State, HashMap<String, dsrl_policy::Tensor>, Vec<Episode>);
+
+fn load(root: &Path) -> anyhow::Result<Option<Saved>> {
+    let Some(dir) = checkpoint_dirs(root).pop() else {
+        return Ok(None);
+    };
+    let state: State = serde_json::from_slice(&std::fs::read(dir.join("state.json"))?)
+        .with_context(|| format!("reading {}", dir.join("state.json").display()))?;
+    let bytes = std::fs::read(dir.join("state.safetensors"))?;
+    let tensors = dsrl_policy::checkpoint::parse_weights(&bytes)?;
+    let mut episodes = Vec::with_capacity(state.buffered.len());
+    if !state.buffered.is_empty() {
+        let path = dir.join("buffer.parquet");
+        let mut all: Option<TransitionChunk> = None;
+        for chunk in ParquetTransitions::open(std::fs::File::open(&path)?)? {
+            let mut chunk = chunk.with_context(|| format!("reading {}", path.display()))?;
+            chunk.episode = None;
+            chunk.step = None;
+            match &mut all {
+                Some(all) => all.append(&chunk),
+                None => all = Some(chunk),
+            }
+        }
+        let mut all = all.context("the saved buffer is empty")?;
+        for &(collect, env, seed) in &state.buffered {
+            let end = (0..all.len())
+                .find(|&i| all.is_done(i))
+                .context("the saved buffer ends mid-episode")?
+                + 1;
+            let mut chunk = all.take_front(end);
+            chunk.episode = None;
+            chunk.step = None;
+            episodes.push(Episode::from_chunk(collect as usize, env, seed, chunk));
+        }
+        anyhow::ensure!(
+            all.is_empty(),
+            "the saved buffer holds more episodes than its state lists"
+        );
+    }
+    Ok(Some((state, tensors, episodes)))
+}
+
+/// The action bound of a task whose actions lie in `[-m, m]` in every dimension (true of every Bullet and
+/// Safety-Gymnasium task); the Gaussian actor's mean is `m·tanh(·)`.
+fn symmetric_bound(session: &PooledSession) -> anyhow::Result<f64> {
+    let spec = session.spec();
+    let m = spec
+        .action_high
+        .first()
+        .copied()
+        .context("the task declares no action bounds")?;
+    anyhow::ensure!(
+        spec.action_high.iter().all(|&h| h == m) && spec.action_low.iter().all(|&l| l == -m),
+        "{}: the expert needs symmetric action bounds, got {:?}..{:?}",
+        spec.task,
+        spec.action_low,
+        spec.action_high
+    );
+    Ok(m)
+}
+
+struct Played {
+    rollout: Rollout,
+    /// One finished episode per environment, in environment order.
+    episodes: Vec<TransitionChunk>,
+    simulator_seconds: f64,
+    acting_seconds: f64,
+}
+
+/// Plays one episode in every environment of `sessions` from the observations `obs` (`[envs, obs_dim]`).
+async fn play(
+    sessions: &mut [PooledSession],
+    envs_per_session: usize,
+    mut obs: Vec<f32>,
+    learner: &Learner,
+    noise: &mut Noise,
+    obs_dim: usize,
+    act_dim: usize,
+) -> anyhow::Result<Played> {
+    #[derive(Default)]
+    struct Trace {
+        chunk: Option<TransitionChunk>,
+        actions: Vec<f32>,
+        log_probs: Vec<f32>,
+    }
+    let total = sessions.len() * envs_per_session;
+    let mut traces: Vec<Trace> = (0..total)
+        .map(|_| Trace {
+            chunk: Some(TransitionChunk::empty(obs_dim, act_dim)),
+            ..Trace::default()
+        })
+        .collect();
+    let mut active = vec![true; total];
+    let (mut simulator_seconds, mut acting_seconds) = (0.0, 0.0);
+    while active.iter().any(|&a| a) {
+        let playing: Vec<usize> = (0..total).filter(|&j| active[j]).collect();
+        let batch: Vec<f32> = playing
+            .iter()
+            .flat_map(|&j| obs[j * obs_dim..(j + 1) * obs_dim].iter().copied())
+            .collect();
+        let started = Instant::now();
+        let (actions, log_probs) = learner.act(&batch, playing.len(), noise)?;
+        acting_seconds += started.elapsed().as_secs_f64();
+        // Per session: its playing environments (local ids) and their rows in the batch.
+        let mut requests: Vec<(Vec<u32>, Vec<f32>, Vec<usize>)> = vec![Default::default(); sessions.len()];
+        for (row, &j) in playing.iter().enumerate() {
+            let r = &mut requests[j / envs_per_session];
+            r.0.push((j % envs_per_session) as u32);
+            r.1.extend_from_slice(&actions[row * act_dim..(row + 1) * act_dim]);
+            r.2.push(row);
+        }
+        let started = Instant::now();
+        let steps = futures::future::try_join_all(
+            sessions
+                .iter_mut()
+                .zip(&requests)
+                .filter(|(_, r)| !r.0.is_empty())
+                .map(|(session, (envs, actions, _))| session.step(envs, actions)),
+        )
+        .await?;
+        simulator_seconds += started.elapsed().as_secs_f64();
+        for (step, (envs, _, rows)) in steps.iter().zip(requests.iter().filter(|r| !r.0.is_empty())) {
+            for (k, (&local, &row)) in envs.iter().zip(rows).enumerate() {
+                let j = playing[row];
+                debug_assert_eq!(j % envs_per_session, local as usize);
+                let next = &step.observations[k * obs_dim..(k + 1) * obs_dim];
+                let trace = &mut traces[j];
+                let chunk = trace.chunk.as_mut().expect("an active environment has a chunk");
+                chunk
+                    .observations
+                    .extend_from_slice(&obs[j * obs_dim..(j + 1) * obs_dim]);
+                chunk.next_observations.extend_from_slice(next);
+                chunk
+                    .actions
+                    .extend_from_slice(&step.applied_actions[k * act_dim..(k + 1) * act_dim]);
+                chunk.rewards.push(step.rewards[k] as f32);
+                chunk.costs.push(step.costs[k] as f32);
+                chunk.terminals.push(step.terminated[k]);
+                chunk.timeouts.push(step.truncated[k] && !step.terminated[k]);
+                trace
+                    .actions
+                    .extend_from_slice(&actions[row * act_dim..(row + 1) * act_dim]);
+                trace.log_probs.push(log_probs[row]);
+                obs[j * obs_dim..(j + 1) * obs_dim].copy_from_slice(next);
+                if step.terminated[k] || step.truncated[k] {
+                    active[j] = false;
+                }
+            }
+        }
+    }
+    let mut rollout = Rollout {
+        obs_dim,
+        act_dim,
+        ..Rollout::default()
+    };
+    let mut episodes = Vec::with_capacity(total);
+    for trace in traces {
+        let chunk = trace.chunk.expect("every environment played");
+        rollout.observations.extend_from_slice(&chunk.observations);
+        rollout.next_observations.extend_from_slice(&chunk.next_observations);
+        rollout.actions.extend_from_slice(&trace.actions);
+        rollout.log_probs.extend_from_slice(&trace.log_probs);
+        rollout.rewards.extend(chunk.rewards.iter().map(|&r| f64::from(r)));
+        rollout.costs.extend(chunk.costs.iter().map(|&c| f64::from(c)));
+        rollout.terminated.extend_from_slice(&chunk.terminals);
+        let n = chunk.len();
+        rollout.episode_end.extend((0..n).map(|t| t + 1 == n));
+        episodes.push(chunk);
+    }
+    Ok(Played {
+        rollout,
+        episodes,
+        simulator_seconds,
+        acting_seconds,
+    })
+}
+
+/// The seed of environment `env` in collect `collect`: distinct across the run.
+fn env_seed(recipe: &Recipe, collect: u64, env: u32) -> u64 {
+    recipe.episode_seed(collect as usize, env)
+}
+
+/// Trains the recipe's expert for `budget` environment steps (resuming from `root` if a save is there) and
+/// returns what its trajectory buffer kept.
+pub async fn train(
+    pool: &SimulatorPool,
+    recipe: &Recipe,
+    task: &Task,
+    root: &Path,
+    budget: u64,
+    bar: &ProgressBar,
+) -> anyhow::Result<ExpertCollection> {
+    let expert: &ExpertSettings = recipe.expert.as_ref().context("the recipe has no expert section")?;
+    std::fs::create_dir_all(root)?;
+    let (obs_dim, act_dim) = (task.obs_dim as usize, task.act_dim as usize);
+    let limits = recipe.buffer_limits();
+    let (mut state, mut buffer, tensors) = match load(root)? {
+        Some((state, tensors, episodes)) => {
+            let stored = episodes
+                .into_iter()
+                .map(|e| Stored {
+                    reward_return: e.reward_return,
+                    cost_return: e.cost_return,
+                    payload: e,
+                })
+                .collect();
+            let buffer = TrajectoryBuffer::restore(limits, state.buffer.clone(), stored).map_err(anyhow::Error::msg)?;
+            tracing::info!(
+                collects = state.collects,
+                steps = state.steps,
+                "resuming the expert from its last save"
+            );
+            (state, buffer, Some(tensors))
+        }
+        None => {
+            let buffer = TrajectoryBuffer::new(limits, recipe.seed).map_err(anyhow::Error::msg)?;
+            let state = State {
+                collects: 0,
+                steps: 0,
+                // Apart from the buffer's and the episode seeds' streams.
+                noise: Noise::seeded(recipe.seed ^ 0x5EED_0FE7_BE57),
+                learner: LearnerState {
+                    lagrangian: super::lagrangian::PidLagrangian::new(
+                        expert.lagrangian.kp,
+                        expert.lagrangian.ki,
+                        expert.lagrangian.kd,
+                    ),
+                    actor_steps: 0,
+                    critic_steps: 0,
+                },
+                buffer: buffer.snapshot(),
+                buffered: Vec::new(),
+                log: Vec::new(),
+            };
+            (state, buffer, None)
+        }
+    };
+    bar.set_length(budget);
+    bar.set_position(state.steps.min(budget));
+    let (sessions_n, envs) = (expert.sessions as usize, expert.envs_per_session as usize);
+    let mut learner: Option<Learner> = None;
+    let mut tensors = tensors;
+    let mut last_max_action = None;
+    while state.steps < budget {
+        // A segment: fresh sessions, `checkpoint_every_collects` collects, a save.
+        let opens = (0..sessions_n).map(|s| {
+            let seeds: Vec<u64> = (0..envs)
+                .map(|i| env_seed(recipe, state.collects, (s * envs + i) as u32))
+                .collect();
+            pool.open(Open {
+                task: recipe.task.clone(),
+                num_envs: envs as u32,
+                seeds,
+                auto_reset: AutoReset::None as i32,
+                controller: None,
+            })
+        });
+        let mut sessions = futures::future::try_join_all(opens).await?;
+        let max_action = symmetric_bound(&sessions[0])?;
+        last_max_action = Some(max_action);
+        let learner = match &mut learner {
+            Some(l) => l,
+            None => learner.insert(match tensors.take() {
+                Some(t) => Learner::restore(expert, max_action, &t, &state.learner)?,
+                None => Learner::new(expert, obs_dim, act_dim, max_action, &mut state.noise)?,
+            }),
+        };
+        let mut obs: Vec<f32> = sessions
+            .iter()
+            .flat_map(|s| s.initial_observations().to_vec())
+            .collect();
+        for c in 0..expert.checkpoint_every_collects {
+            if state.steps >= budget {
+                break;
+            }
+            let reset_started = Instant::now();
+            if c > 0 {
+                obs.clear();
+                for (s, session) in sessions.iter_mut().enumerate() {
+                    let ids: Vec<u32> = (0..envs as u32).collect();
+                    let seeds: Vec<u64> = ids
+                        .iter()
+                        .map(|&i| env_seed(recipe, state.collects, s as u32 * envs as u32 + i))
+                        .collect();
+                    obs.extend(session.reset(&ids, &seeds).await?);
+                }
+            }
+            let reset_seconds = reset_started.elapsed().as_secs_f64();
+            let played = play(
+                &mut sessions,
+                envs,
+                obs.clone(),
+                learner,
+                &mut state.noise,
+                obs_dim,
+                act_dim,
+            )
+            .await?;
+            let mut costs = Vec::with_capacity(played.episodes.len());
+            let mut rewards = Vec::with_capacity(played.episodes.len());
+            for (j, chunk) in played.episodes.into_iter().enumerate() {
+                let episode = Episode::from_chunk(
+                    state.collects as usize,
+                    j as u32,
+                    env_seed(recipe, state.collects, j as u32),
+                    chunk,
+                );
+                costs.push(episode.cost_return);
+                rewards.push(episode.reward_return);
+                buffer.offer(Stored {
+                    reward_return: episode.reward_return,
+                    cost_return: episode.cost_return,
+                    payload: episode,
+                });
+            }
+            let cost_limit = expert.cost_limit.limit_at(state.steps, budget);
+            let started = Instant::now();
+            let stats: UpdateStats =
+                tokio::task::block_in_place(|| learner.update(&played.rollout, &costs, cost_limit, &mut state.noise))?;
+            let update_seconds = started.elapsed().as_secs_f64();
+            state.steps += played.rollout.len() as u64;
+            let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+            state.log.push(CollectLog {
+                collect: state.collects,
+                steps: state.steps,
+                cost_limit,
+                mean_reward: mean(&rewards),
+                mean_cost: mean(&costs),
+                lagrangian: stats.lagrangian,
+                approx_kl: stats.approx_kl,
+                std: stats.std,
+                simulator_seconds: played.simulator_seconds + reset_seconds,
+                acting_seconds: played.acting_seconds,
+                update_seconds,
+            });
+            state.collects += 1;
+            bar.set_position(state.steps.min(budget));
+            bar.set_message(format!(
+                "{} limit {cost_limit:.0} λ {:.2} R {:.0} C {:.1}",
+                task.id,
+                stats.lagrangian,
+                mean(&rewards),
+                mean(&costs)
+            ));
+        }
+        for session in sessions {
+            session.close().await?;
+        }
+        state.learner = learner.state();
+        state.buffer = buffer.snapshot();
+        state.buffered = buffer
+            .episodes()
+            .iter()
+            .map(|e| (e.payload.setting as u64, e.payload.number, e.payload.seed))
+            .collect();
+        let (task, root) = (task.clone(), root.to_path_buf());
+        tokio::task::block_in_place(|| save(&root, &task, &state, learner, &buffer))?;
+    }
+    if let (Some(learner), Some(_)) = (&learner, last_max_action) {
+        learner.write_policy(&root.join("policy"), task.id.as_str())?;
+    }
+    write_log(root, &state.log)?;
+    let (offered, _) = buffer.counts();
+    Ok(ExpertCollection {
+        episodes: buffer.into_episodes().into_iter().map(|s| s.payload).collect(),
+        offered,
+        steps: state.steps,
+        log: state.log,
+    })
+}

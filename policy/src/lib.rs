@@ -1,0 +1,51 @@
+//! Policy networks in candle, shared by the expert trainer (`dsrl-admin collect`) and, later, the evaluator, with
+//! their checkpoint format: `policy.safetensors` (the weights) beside `policy.json` (what the weights are).
+//!
+//! Everything random takes an explicit seed ([`noise::Noise`]): weight initialisation, exploration noise and
+//! minibatch order, so a training run is a function of its recipe. Candle's matrix products are pinned to one
+//! thread by the binaries (two threads were slower on this machine, and one thread keeps sums in a fixed order).
+
+pub mod adam;
+pub mod checkpoint;
+pub mod gaussian;
+pub mod mlp;
+pub mod noise;
+
+pub use candle_core::{DType, Device, Tensor, Var};
+
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    #[error("tensor computation failed: {0}")]
+    Candle(#[from] candle_core::Error),
+    #[error("{0}")]
+    Format(String),
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+pub type Result<T> = std::result::Result<T, PolicyError>;
+
+/// Writes named tensors as one safetensors file (through a temporary name and a rename).
+pub fn candle_save(tensors: &std::collections::HashMap<String, Tensor>, path: &std::path::Path) -> Result<()> {
+    let part = path.with_extension("safetensors.part");
+    candle_core::safetensors::save(tensors, &part)?;
+    std::fs::rename(&part, path).map_err(|source| PolicyError::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// Pins candle's CPU kernels to one thread unless the caller chose otherwise (`RAYON_NUM_THREADS`).
+///
+/// # Safety
+/// Sets an environment variable: call before any other thread exists (first thing in `main`).
+pub unsafe fn pin_candle_threads() {
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        // SAFETY: the caller guarantees no other thread reads the environment concurrently.
+        unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
+    }
+}
