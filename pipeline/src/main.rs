@@ -75,6 +75,113 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Score a policy checkpoint (policy.json + policy.safetensors, e.g. an expert's <state>/expert/policy) on the
+    /// real simulators: one episode per seed with the policy's deterministic actions, then the mean returns and the
+    /// normalized reward and cost at each of the task's benchmark thresholds (safe iff normalized cost <= 1).
+    Evaluate {
+        /// The policy folder.
+        policy: PathBuf,
+        /// Episodes to play.
+        #[arg(long, default_value_t = 20)]
+        episodes: u32,
+        /// Episode seeds are SEED, SEED+1, ...; recorded in the output.
+        #[arg(long, default_value_t = 1_000_000)]
+        seed: u64,
+        /// Local simulator workers (default: one per core).
+        #[arg(long)]
+        workers: Option<u32>,
+        /// Environments per worker session.
+        #[arg(long, default_value_t = 10)]
+        envs_per_session: u32,
+        /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
+        #[arg(long)]
+        worker_binary: Option<PathBuf>,
+        /// Print the result (with every episode) as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn cores() -> u32 {
+    std::thread::available_parallelism()
+        .map(|n| n.get() as u32)
+        .unwrap_or(1)
+}
+
+async fn evaluate(
+    policy_dir: PathBuf,
+    episodes: u32,
+    seed: u64,
+    workers: u32,
+    envs_per_session: u32,
+    worker_binary: Option<PathBuf>,
+    json: bool,
+) -> anyhow::Result<()> {
+    use dsrl_policy::checkpoint::{self, Policy};
+    use dsrl_server::evaluator;
+    let catalog = Catalog::embedded()?;
+    let (config, tensors) = checkpoint::read(&policy_dir)?;
+    let task = catalog.get(&config.task)?.clone();
+    evaluator::check_policy(&task, &config)?;
+    let policy = Policy::load(&config, &tensors)?;
+    let pool = dsrl_server::simulators::SimulatorPool::start(&SimulatorsConfig {
+        local_workers: workers,
+        worker_binary,
+        ..SimulatorsConfig::default()
+    });
+    anyhow::ensure!(
+        pool.wait_healthy(workers as usize, std::time::Duration::from_secs(180))
+            .await,
+        "simulator workers did not become healthy: {:?}",
+        pool.workers()
+    );
+    let seeds: Vec<u64> = (0..u64::from(episodes)).map(|i| seed + i).collect();
+    let started = std::time::Instant::now();
+    let scores = evaluator::play_episodes(&pool, &task, &policy, &seeds, envs_per_session as usize).await?;
+    let n = scores.len().max(1) as f64;
+    let reward = scores.iter().map(|s| s.reward_return).sum::<f64>() / n;
+    let cost = scores.iter().map(|s| s.cost_return).sum::<f64>() / n;
+    let thresholds: Vec<serde_json::Value> = task
+        .cost_thresholds
+        .iter()
+        .map(|&threshold| {
+            let score = task.normalized_score(reward, cost, threshold);
+            serde_json::json!({
+                "cost_threshold": threshold,
+                "normalized_reward": score.reward,
+                "normalized_cost": score.cost,
+                "safe": score.cost <= 1.0,
+            })
+        })
+        .collect();
+    let report = serde_json::json!({
+        "task": task.id.as_str(),
+        "policy": policy_dir,
+        "seeds": { "first": seed, "count": episodes },
+        "mean_reward_return": reward,
+        "mean_cost_return": cost,
+        "thresholds": thresholds,
+        "wall_seconds": started.elapsed().as_secs_f64(),
+        "episodes": scores,
+    });
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "{}: {episodes} episodes (seeds {seed}..), mean reward return {reward:.1}, mean cost return {cost:.1}",
+            task.id
+        );
+        for t in &thresholds {
+            println!(
+                "  threshold {}: normalized reward {:.3}, normalized cost {:.3}{}",
+                t["cost_threshold"],
+                t["normalized_reward"].as_f64().unwrap_or(f64::NAN),
+                t["normalized_cost"].as_f64().unwrap_or(f64::NAN),
+                if t["safe"] == true { " (safe)" } else { "" }
+            );
+        }
+    }
+    Ok(())
 }
 
 fn main() -> anyhow::Result<()> {
@@ -93,7 +200,7 @@ async fn run() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    let Command::Collect {
+    let (
         task,
         recipe,
         state,
@@ -108,7 +215,60 @@ async fn run() -> anyhow::Result<()> {
         token,
         tag,
         json,
-    } = Args::parse().command;
+    ) = match Args::parse().command {
+        Command::Evaluate {
+            policy,
+            episodes,
+            seed,
+            workers,
+            envs_per_session,
+            worker_binary,
+            json,
+        } => {
+            let workers = workers.unwrap_or_else(cores).max(1);
+            return evaluate(
+                policy,
+                episodes,
+                seed,
+                workers,
+                envs_per_session.max(1),
+                worker_binary,
+                json,
+            )
+            .await;
+        }
+        Command::Collect {
+            task,
+            recipe,
+            state,
+            episodes_per_setting,
+            budget_steps,
+            workers,
+            envs_per_session,
+            worker_binary,
+            max_episodes,
+            out,
+            server,
+            token,
+            tag,
+            json,
+        } => (
+            task,
+            recipe,
+            state,
+            episodes_per_setting,
+            budget_steps,
+            workers,
+            envs_per_session,
+            worker_binary,
+            max_episodes,
+            out,
+            server,
+            token,
+            tag,
+            json,
+        ),
+    };
     let catalog = Catalog::embedded()?;
     let recipe_path = recipe.unwrap_or_else(|| Recipe::default_path(&task));
     let recipe = Recipe::load(&recipe_path)?;
@@ -120,16 +280,13 @@ async fn run() -> anyhow::Result<()> {
     );
     let home = std::env::var_os("HOME").map(PathBuf::from).unwrap_or_default();
     let state_dir = state.unwrap_or_else(|| home.join(".dsrl/collect").join(&task));
-    let cores = std::thread::available_parallelism()
-        .map(|n| n.get() as u32)
-        .unwrap_or(1);
     let run = Run {
         recipe,
         recipe_path,
         state_dir,
         episodes_per_setting,
         budget_steps,
-        workers: workers.unwrap_or(cores).max(1),
+        workers: workers.unwrap_or_else(cores).max(1),
         envs_per_session: envs_per_session.max(1),
         simulators: SimulatorsConfig {
             worker_binary,

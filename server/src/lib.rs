@@ -6,6 +6,7 @@
 
 pub mod config;
 pub mod error;
+pub mod evaluator;
 pub mod grpc;
 pub mod http;
 pub mod metrics;

@@ -123,6 +123,50 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     );
     assert_eq!(policy["architecture"]["name"], "gaussian_mlp");
     assert!(state.join("expert/policy/policy.safetensors").is_file());
+
+    // The expert can be scored like any policy: `dsrl-admin evaluate` plays it on the real simulator.
+    let evaluate = |dir: &Path| {
+        Command::new(dsrl_e2e::bin("dsrl-admin"))
+            .args(["evaluate", "--episodes", "3", "--workers", "1", "--json"])
+            .arg(dir)
+            .output()
+            .unwrap()
+    };
+    let out = evaluate(&state.join("expert/policy"));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let episodes = report["episodes"].as_array().unwrap();
+    assert_eq!(episodes.len(), 3);
+    assert!(episodes.iter().all(|e| e["length"] == 100));
+    let mean = episodes
+        .iter()
+        .map(|e| e["reward_return"].as_f64().unwrap())
+        .sum::<f64>()
+        / 3.0;
+    assert!((report["mean_reward_return"].as_f64().unwrap() - mean).abs() < 1e-9);
+    assert_eq!(report["thresholds"].as_array().unwrap().len(), 3);
+    // Deterministic actions and fixed seeds: the same score again.
+    let again: serde_json::Value = serde_json::from_slice(&evaluate(&state.join("expert/policy")).stdout).unwrap();
+    assert_eq!(again["episodes"], report["episodes"]);
+
+    // A checkpoint whose declared dimensions disagree with the task is refused with the reason.
+    let broken = env.path("broken-policy");
+    std::fs::create_dir_all(&broken).unwrap();
+    std::fs::copy(
+        state.join("expert/policy/policy.safetensors"),
+        broken.join("policy.safetensors"),
+    )
+    .unwrap();
+    let mut config = policy.clone();
+    config["obs_dim"] = serde_json::json!(8);
+    std::fs::write(broken.join("policy.json"), config.to_string()).unwrap();
+    let out = evaluate(&broken);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("observation dim 7") && stderr.contains("declares 8"),
+        "{stderr}"
+    );
 }
 
 #[test]

@@ -1,0 +1,124 @@
+//! Scoring a policy on the real simulators: episodes from given seeds, played with the policy's deterministic
+//! actions through the worker pool, batched `envs_per_session` to a session and the sessions run concurrently.
+//! Every episode's reward and cost returns are kept; the normalized scores follow from the catalog (spec 4.1).
+//!
+//! This is the core the leaderboard's evaluator builds on (submissions, the durable queue and held seeds come
+//! with it); `dsrl-admin evaluate` uses it to score the pipeline's experts.
+
+use dsrl_policy::Tensor;
+use dsrl_policy::checkpoint::{Policy, PolicyConfig};
+use dsrl_proto::simulator::v1::{AutoReset, Open};
+use dsrl_suite::catalog::Task;
+use serde::{Deserialize, Serialize};
+
+use crate::error::ApiError;
+use crate::simulators::SimulatorPool;
+
+/// One evaluated episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeScore {
+    pub seed: u64,
+    pub reward_return: f64,
+    pub cost_return: f64,
+    pub length: u32,
+}
+
+/// Checks a policy's declared task and dimensions against the catalog's task; the message says what differs.
+pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> {
+    if config.task != task.id.as_str() {
+        return Err(ApiError::InvalidArgument(format!(
+            "the policy was declared for {}, not {}",
+            config.task, task.id
+        )));
+    }
+    if (config.obs_dim, config.act_dim) != (task.obs_dim as usize, task.act_dim as usize) {
+        return Err(ApiError::InvalidArgument(format!(
+            "{} has observation dim {} and action dim {}; the policy declares {} and {}",
+            task.id, task.obs_dim, task.act_dim, config.obs_dim, config.act_dim
+        )));
+    }
+    Ok(())
+}
+
+fn policy_error(e: dsrl_policy::PolicyError) -> ApiError {
+    ApiError::Internal(format!("evaluating the policy: {e}"))
+}
+
+/// Plays one episode per seed with `policy`'s deterministic actions; results come back in seed order.
+pub async fn play_episodes(
+    pool: &SimulatorPool,
+    task: &Task,
+    policy: &Policy,
+    seeds: &[u64],
+    envs_per_session: usize,
+) -> Result<Vec<EpisodeScore>, ApiError> {
+    let groups = seeds
+        .chunks(envs_per_session.max(1))
+        .map(|group| play_group(pool, task, policy, group));
+    let results = futures::future::try_join_all(groups).await?;
+    Ok(results.into_iter().flatten().collect())
+}
+
+/// One session of `seeds.len()` environments, each playing one episode.
+async fn play_group(
+    pool: &SimulatorPool,
+    task: &Task,
+    policy: &Policy,
+    seeds: &[u64],
+) -> Result<Vec<EpisodeScore>, ApiError> {
+    let k = seeds.len();
+    let mut session = pool
+        .open(Open {
+            task: task.id.to_string(),
+            num_envs: k as u32,
+            seeds: seeds.to_vec(),
+            auto_reset: AutoReset::None as i32,
+            controller: None,
+        })
+        .await?;
+    let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
+    let mut obs = session.initial_observations().to_vec();
+    let mut scores: Vec<EpisodeScore> = seeds
+        .iter()
+        .map(|&seed| EpisodeScore {
+            seed,
+            reward_return: 0.0,
+            cost_return: 0.0,
+            length: 0,
+        })
+        .collect();
+    let mut active: Vec<u32> = (0..k as u32).collect();
+    while !active.is_empty() {
+        let batch: Vec<f32> = active
+            .iter()
+            .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
+            .collect();
+        let input = Tensor::from_slice(&batch, (active.len(), obs_dim), &dsrl_policy::Device::Cpu)
+            .map_err(|e| policy_error(e.into()))?;
+        let actions = policy.act(&input).map_err(policy_error)?;
+        if actions.len() != active.len() * act_dim {
+            return Err(ApiError::Internal(format!(
+                "the policy produced {} action values for {} environments of action dim {act_dim}",
+                actions.len(),
+                active.len()
+            )));
+        }
+        let step = session.step(&active, &actions).await?;
+        let mut still = Vec::with_capacity(active.len());
+        for (row, &i) in active.iter().enumerate() {
+            let score = &mut scores[i as usize];
+            // Sums in f64 of the f32 values the datasets store, as the normalization constants were computed.
+            score.reward_return += f64::from(step.rewards[row] as f32);
+            score.cost_return += f64::from(step.costs[row] as f32);
+            score.length += 1;
+            obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
+                .copy_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
+            if !(step.terminated[row] || step.truncated[row]) {
+                still.push(i);
+            }
+        }
+        active = still;
+    }
+    session.close().await?;
+    Ok(scores)
+}
