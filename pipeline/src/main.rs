@@ -141,8 +141,12 @@ async fn evaluate(
     let n = scores.len().max(1) as f64;
     let reward = scores.iter().map(|s| s.reward_return).sum::<f64>() / n;
     let cost = scores.iter().map(|s| s.cost_return).sum::<f64>() / n;
-    let thresholds: Vec<serde_json::Value> = task
-        .cost_thresholds
+    // A policy trained for one threshold is scored at that threshold only.
+    let thresholds = match config.conditioning {
+        checkpoint::Conditioning::Unconditioned => task.cost_thresholds.clone(),
+        checkpoint::Conditioning::PerThreshold { cost_threshold } => vec![cost_threshold],
+    };
+    let thresholds: Vec<serde_json::Value> = thresholds
         .iter()
         .map(|&threshold| {
             let score = task.normalized_score(reward, cost, threshold);

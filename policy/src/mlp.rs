@@ -17,7 +17,7 @@ pub enum Activation {
 }
 
 impl Activation {
-    fn apply(self, x: &Tensor) -> Result<Tensor> {
+    pub fn apply(self, x: &Tensor) -> Result<Tensor> {
         Ok(match self {
             Activation::Tanh => x.tanh()?,
             Activation::Relu => x.relu()?,

@@ -149,6 +149,38 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     let again: serde_json::Value = serde_json::from_slice(&evaluate(&state.join("expert/policy")).stdout).unwrap();
     assert_eq!(again["episodes"], report["episodes"]);
 
+    // A BC-Safe reference policy trained on the ingested version (fetched from the server into a dataset cache)
+    // is written in the same format and scored at its own threshold only.
+    let out = Command::new(dsrl_e2e::bin("dsrl-train"))
+        .args([
+            "bc",
+            "--task",
+            TASK,
+            "--mode",
+            "safe",
+            "--cost-threshold",
+            "40",
+            "--steps",
+            "50",
+        ])
+        .args(["--server", &env.server.url, "--version", "expert-tiny"])
+        .arg("--out")
+        .arg(env.path("bc"))
+        .env("DSRL_DATASET_DIR", env.path("cache"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bc_policy: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(env.path("bc/bc-safe-40/policy.json")).unwrap()).unwrap();
+    assert_eq!(bc_policy["architecture"]["name"], "mlp_actor");
+    assert_eq!(bc_policy["conditioning"]["cost_threshold"], 40.0);
+    assert_eq!(bc_policy["training"]["dataset_version"], version.as_str());
+    let out = evaluate(&env.path("bc/bc-safe-40"));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["thresholds"].as_array().unwrap().len(), 1);
+    assert_eq!(report["thresholds"][0]["cost_threshold"], 40.0);
+
     // A checkpoint whose declared dimensions disagree with the task is refused with the reason.
     let broken = env.path("broken-policy");
     std::fs::create_dir_all(&broken).unwrap();

@@ -176,6 +176,8 @@ impl Learner {
                 max_action: self.actor.max_action,
             },
             observation_normalization: None,
+            conditioning: checkpoint::Conditioning::Unconditioned,
+            training: Some(serde_json::json!({ "by": "dsrl-admin collect (PPO-Lagrangian expert)" })),
         };
         let tensors: Vec<(String, Tensor)> = self
             .actor

@@ -1,0 +1,263 @@
+//! Reference learners trained in candle on the hosted datasets, written in the evaluator's policy format.
+//!
+//! BC-All and BC-Safe (OSRL `bc.py`, spec 5.5): an `MLPActor` (`[256, 256]`, ReLU, `tanh · max_action`) regressing
+//! the dataset's actions with MSE, Adam lr 1e-3, batches of 512 drawn uniformly with replacement. BC-Safe keeps only
+//! the episodes whose (undiscounted) cost return is at most the threshold and is trained once per threshold.
+
+use std::path::Path;
+
+use anyhow::Context;
+use dsrl_policy::adam::Adam;
+use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig};
+use dsrl_policy::gaussian::matrix;
+use dsrl_policy::mlp::{Activation, Mlp};
+use dsrl_policy::noise::Noise;
+use dsrl_policy::{Device, Tensor};
+use dsrl_suite::parquet_file::ParquetTransitions;
+
+/// Every action of the 38 tasks lies in [-1, 1].
+pub const MAX_ACTION: f64 = 1.0;
+
+/// A dataset's observations and actions with its episodes' boundaries and returns.
+pub struct Demonstrations {
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    pub observations: Vec<f32>,
+    pub actions: Vec<f32>,
+    /// (first row, rows, reward return, cost return) per episode.
+    pub episodes: Vec<(usize, usize, f64, f64)>,
+}
+
+impl Demonstrations {
+    pub fn read(path: &Path) -> anyhow::Result<Demonstrations> {
+        let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+        let mut out: Option<Demonstrations> = None;
+        let (mut start, mut rows, mut reward, mut cost) = (0usize, 0usize, 0f64, 0f64);
+        for chunk in ParquetTransitions::open(file).with_context(|| format!("reading {}", path.display()))? {
+            let chunk = chunk.with_context(|| format!("reading {}", path.display()))?;
+            let d = out.get_or_insert_with(|| Demonstrations {
+                obs_dim: chunk.obs_dim,
+                act_dim: chunk.act_dim,
+                observations: Vec::new(),
+                actions: Vec::new(),
+                episodes: Vec::new(),
+            });
+            d.observations.extend_from_slice(&chunk.observations);
+            d.actions.extend_from_slice(&chunk.actions);
+            for i in 0..chunk.len() {
+                rows += 1;
+                reward += f64::from(chunk.rewards[i]);
+                cost += f64::from(chunk.costs[i]);
+                if chunk.is_done(i) {
+                    d.episodes.push((start, rows, reward, cost));
+                    start += rows;
+                    (rows, reward, cost) = (0, 0.0, 0.0);
+                }
+            }
+        }
+        let d = out.context("the dataset holds no transitions")?;
+        anyhow::ensure!(rows == 0, "the dataset ends in the middle of an episode");
+        Ok(d)
+    }
+
+    /// The rows of the episodes whose cost return is at most `cost_threshold` (all rows for `None`).
+    pub fn select(&self, cost_threshold: Option<f64>) -> (Vec<f32>, Vec<f32>, usize) {
+        let (mut obs, mut act, mut kept) = (Vec::new(), Vec::new(), 0);
+        for &(start, rows, _, cost) in &self.episodes {
+            if cost_threshold.is_some_and(|k| cost > k) {
+                continue;
+            }
+            kept += 1;
+            obs.extend_from_slice(&self.observations[start * self.obs_dim..(start + rows) * self.obs_dim]);
+            act.extend_from_slice(&self.actions[start * self.act_dim..(start + rows) * self.act_dim]);
+        }
+        (obs, act, kept)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct BcSettings {
+    pub hidden_sizes: Vec<usize>,
+    pub lr: f64,
+    pub batch_size: usize,
+    pub steps: u64,
+    pub seed: u64,
+}
+
+impl Default for BcSettings {
+    /// OSRL's BC configuration (100k steps; 200k for MetaDrive).
+    fn default() -> Self {
+        BcSettings {
+            hidden_sizes: vec![256, 256],
+            lr: 1e-3,
+            batch_size: 512,
+            steps: 100_000,
+            seed: 0,
+        }
+    }
+}
+
+/// An actor being trained by behaviour cloning.
+pub struct BcLearner {
+    pub net: Mlp,
+    optimizer: Adam,
+    noise: Noise,
+    observations: Tensor,
+    actions: Tensor,
+    rows: usize,
+    batch_size: usize,
+}
+
+impl BcLearner {
+    pub fn new(
+        settings: &BcSettings,
+        observations: &[f32],
+        actions: &[f32],
+        obs_dim: usize,
+        act_dim: usize,
+    ) -> anyhow::Result<Self> {
+        let rows = observations.len() / obs_dim;
+        anyhow::ensure!(rows > 0, "no transitions to learn from");
+        anyhow::ensure!(
+            actions.len() == rows * act_dim,
+            "observations and actions disagree in length"
+        );
+        let mut noise = Noise::seeded(settings.seed);
+        let sizes: Vec<usize> = std::iter::once(obs_dim)
+            .chain(settings.hidden_sizes.iter().copied())
+            .chain([act_dim])
+            .collect();
+        let net = Mlp::orthogonal("actor.net", &sizes, Activation::Relu, 2f64.sqrt(), 1.0, &mut noise)?;
+        let optimizer = Adam::new(net.named_vars(), settings.lr, None)?;
+        Ok(BcLearner {
+            net,
+            optimizer,
+            noise,
+            observations: matrix(observations, rows, obs_dim)?,
+            actions: matrix(actions, rows, act_dim)?,
+            rows,
+            batch_size: settings.batch_size,
+        })
+    }
+
+    /// `max_action · tanh(net(obs))`.
+    pub fn act(&self, obs: &Tensor) -> anyhow::Result<Tensor> {
+        Ok(self.net.forward(obs)?.tanh()?.affine(MAX_ACTION, 0.0)?)
+    }
+
+    /// One Adam step on a uniformly drawn batch; returns its MSE.
+    pub fn step(&mut self) -> anyhow::Result<f64> {
+        let idx: Vec<u32> = (0..self.batch_size)
+            .map(|_| (self.noise.next_u64() % self.rows as u64) as u32)
+            .collect();
+        let idx = Tensor::from_slice(&idx, idx.len(), &Device::Cpu)?;
+        let predicted = self.act(&self.observations.index_select(&idx, 0)?)?;
+        let loss = predicted.sub(&self.actions.index_select(&idx, 0)?)?.sqr()?.mean_all()?;
+        self.optimizer.step(&loss.backward()?)?;
+        Ok(f64::from(loss.to_scalar::<f32>()?))
+    }
+
+    /// Writes the actor as an `mlp_actor` policy.
+    pub fn write(
+        &self,
+        dir: &Path,
+        task: &str,
+        hidden_sizes: &[usize],
+        conditioning: Conditioning,
+        training: serde_json::Value,
+    ) -> anyhow::Result<()> {
+        let config = PolicyConfig {
+            format: checkpoint::FORMAT.into(),
+            task: task.to_owned(),
+            obs_dim: self.net.input_dim(),
+            act_dim: self.net.output_dim(),
+            architecture: Architecture::MlpActor {
+                hidden_sizes: hidden_sizes.to_vec(),
+                activation: Activation::Relu,
+                max_action: MAX_ACTION,
+            },
+            observation_normalization: None,
+            conditioning,
+            training: Some(training),
+        };
+        let tensors: Vec<(String, Tensor)> = self
+            .net
+            .named_vars()
+            .into_iter()
+            .map(|(n, v)| (n, v.as_tensor().clone()))
+            .collect();
+        checkpoint::write(dir, &config, &tensors)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bc_learns_a_linear_expert_and_bc_safe_keeps_only_safe_episodes() {
+        // 40 one-dimensional episodes of 10 steps; the expert's action is 0.5·obs; episode e costs e.
+        let mut noise = Noise::seeded(1);
+        let mut d = Demonstrations {
+            obs_dim: 1,
+            act_dim: 1,
+            observations: Vec::new(),
+            actions: Vec::new(),
+            episodes: Vec::new(),
+        };
+        for e in 0..40 {
+            for _ in 0..10 {
+                let o = (noise.uniform() * 2.0 - 1.0) as f32;
+                d.observations.push(o);
+                d.actions.push(0.5 * o);
+            }
+            d.episodes.push((e * 10, 10, 0.0, e as f64));
+        }
+        let (obs, act, kept) = d.select(Some(9.5));
+        assert_eq!((kept, obs.len(), act.len()), (10, 100, 100));
+        assert_eq!(obs[..], d.observations[..100]);
+        assert_eq!(d.select(None).2, 40);
+
+        let settings = BcSettings {
+            hidden_sizes: vec![32, 32],
+            batch_size: 64,
+            steps: 600,
+            ..BcSettings::default()
+        };
+        let (obs, act, _) = d.select(None);
+        let mut learner = BcLearner::new(&settings, &obs, &act, 1, 1).unwrap();
+        let first = learner.step().unwrap();
+        let mut last = first;
+        for _ in 1..settings.steps {
+            last = learner.step().unwrap();
+        }
+        assert!(last < first / 20.0 && last < 2e-3, "MSE {first} -> {last}");
+        let probe = matrix(&[-0.8, 0.0, 0.6], 3, 1).unwrap();
+        let got = learner
+            .act(&probe)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        for (g, want) in got.iter().zip([-0.4f32, 0.0, 0.3]) {
+            assert!((g - want).abs() < 0.05, "{got:?}");
+        }
+
+        // The written policy acts exactly like the learner.
+        let dir = tempfile::tempdir().unwrap();
+        learner
+            .write(
+                dir.path(),
+                "OfflineBallRun-v0",
+                &[32, 32],
+                Conditioning::Unconditioned,
+                serde_json::json!({}),
+            )
+            .unwrap();
+        let (config, tensors) = checkpoint::read(dir.path()).unwrap();
+        let policy = checkpoint::Policy::load(&config, &tensors).unwrap();
+        assert_eq!(policy.act(&probe).unwrap(), got);
+    }
+}
