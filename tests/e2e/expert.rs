@@ -181,6 +181,44 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     assert_eq!(report["thresholds"].as_array().unwrap().len(), 1);
     assert_eq!(report["thresholds"][0]["cost_threshold"], 40.0);
 
+    // Parity: the same checkpoints played in-process in Python (NumPy forward pass, the simulator objects directly)
+    // give the same episodes. Costs and lengths are equal; reward returns agree to float32 rounding, because BLAS
+    // and candle's gemm sum the matrix products in different orders.
+    for (dir, report) in [
+        (state.join("expert/policy"), &again),
+        (env.path("bc/bc-safe-40"), &report),
+    ] {
+        let out = Command::new(dsrl_e2e::repo_root().join(".venv-sim/bin/python"))
+            .arg(dsrl_e2e::repo_root().join("tests/parity/evaluate_in_python.py"))
+            .arg(&dir)
+            .args(["--sim-id", "SafetyBallRun-v0", "--episodes", "3"])
+            .stderr(Stdio::inherit())
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "the Python reference failed");
+        let python: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let (ours, theirs) = (
+            report["episodes"].as_array().unwrap(),
+            python["episodes"].as_array().unwrap(),
+        );
+        assert_eq!(ours.len(), theirs.len());
+        for (a, b) in ours.iter().zip(theirs) {
+            assert_eq!(
+                (&a["seed"], &a["length"], &a["cost_return"]),
+                (&b["seed"], &b["length"], &b["cost_return"])
+            );
+            let (ra, rb) = (
+                a["reward_return"].as_f64().unwrap(),
+                b["reward_return"].as_f64().unwrap(),
+            );
+            assert!(
+                (ra - rb).abs() <= 1e-5 * rb.abs().max(1.0),
+                "{}: {ra} vs {rb}",
+                dir.display()
+            );
+        }
+    }
+
     // A checkpoint whose declared dimensions disagree with the task is refused with the reason.
     let broken = env.path("broken-policy");
     std::fs::create_dir_all(&broken).unwrap();
