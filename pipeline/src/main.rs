@@ -30,51 +30,7 @@ enum Command {
     /// final expert policy in expert/policy). A run that is killed resumes where it stopped when started again
     /// with the same folder. The result is deterministic for a recipe, its seed and the budget.
     /// Output: <state>/<prefix>-<cost cap>-<episodes>.parquet and <that name>.provenance.json.
-    Collect {
-        /// Offline task id, e.g. OfflineMetadrive-easysparse-v0.
-        #[arg(long)]
-        task: String,
-        /// Recipe file (default: data/recipes/<task>.toml).
-        #[arg(long)]
-        recipe: Option<PathBuf>,
-        /// State and output folder (default: ~/.dsrl/collect/<task>).
-        #[arg(long)]
-        state: Option<PathBuf>,
-        /// Scale an IDM sweep's budget: episodes per sweep setting instead of the recipe's.
-        #[arg(long)]
-        episodes_per_setting: Option<u32>,
-        /// Scale an expert recipe's budget: environment steps to train for instead of the recipe's budget_steps
-        /// (the cost-limit schedule is compressed or stretched to fit).
-        #[arg(long)]
-        budget_steps: Option<u64>,
-        /// Local simulator workers (default: one per core).
-        #[arg(long)]
-        workers: Option<u32>,
-        /// Environments per worker session (MetaDrive: one process each, ~300 MB).
-        #[arg(long, default_value_t = 4)]
-        envs_per_session: u32,
-        /// Thin the result to at most N episodes, spread over the (reward, cost) plane like the trajectory buffer
-        /// does (for starter datasets; a finished run's settings are reused, nothing is simulated again).
-        #[arg(long)]
-        max_episodes: Option<usize>,
-        /// Output folder (default: the state folder).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
-        #[arg(long)]
-        worker_binary: Option<PathBuf>,
-        /// Ingest the result into this dsrl-server (admin token from --token or DSRL_ADMIN_TOKEN).
-        #[arg(long, env = "DSRL_SERVER")]
-        server: Option<String>,
-        #[arg(long, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
-        token: Option<String>,
-        /// Tags to point at the ingested version besides latest.
-        #[arg(long)]
-        tag: Vec<String>,
-        /// Print the result as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Collect(CollectArgs),
     /// Score a policy checkpoint (policy.json + policy.safetensors, e.g. an expert's <state>/expert/policy) on the
     /// real simulators: one episode per seed with the policy's deterministic actions, then the mean returns and the
     /// normalized reward and cost at each of the task's benchmark thresholds (safe iff normalized cost <= 1).
@@ -100,6 +56,53 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+}
+
+#[derive(clap::Args, Debug)]
+struct CollectArgs {
+    /// Offline task id, e.g. OfflineMetadrive-easysparse-v0.
+    #[arg(long)]
+    task: String,
+    /// Recipe file (default: data/recipes/<task>.toml).
+    #[arg(long)]
+    recipe: Option<PathBuf>,
+    /// State and output folder (default: ~/.dsrl/collect/<task>).
+    #[arg(long)]
+    state: Option<PathBuf>,
+    /// Scale an IDM sweep's budget: episodes per sweep setting instead of the recipe's.
+    #[arg(long)]
+    episodes_per_setting: Option<u32>,
+    /// Scale an expert recipe's budget: environment steps to train for instead of the recipe's budget_steps
+    /// (the cost-limit schedule is compressed or stretched to fit).
+    #[arg(long)]
+    budget_steps: Option<u64>,
+    /// Local simulator workers (default: one per core).
+    #[arg(long)]
+    workers: Option<u32>,
+    /// Environments per worker session (MetaDrive: one process each, ~300 MB).
+    #[arg(long, default_value_t = 4)]
+    envs_per_session: u32,
+    /// Thin the result to at most N episodes, spread over the (reward, cost) plane like the trajectory buffer
+    /// does (for starter datasets; a finished run's settings are reused, nothing is simulated again).
+    #[arg(long)]
+    max_episodes: Option<usize>,
+    /// Output folder (default: the state folder).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
+    #[arg(long)]
+    worker_binary: Option<PathBuf>,
+    /// Ingest the result into this dsrl-server (admin token from --token or DSRL_ADMIN_TOKEN).
+    #[arg(long, env = "DSRL_SERVER")]
+    server: Option<String>,
+    #[arg(long, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Tags to point at the ingested version besides latest.
+    #[arg(long)]
+    tag: Vec<String>,
+    /// Print the result as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 fn cores() -> u32 {
@@ -204,7 +207,7 @@ async fn run() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    let (
+    let CollectArgs {
         task,
         recipe,
         state,
@@ -219,7 +222,7 @@ async fn run() -> anyhow::Result<()> {
         token,
         tag,
         json,
-    ) = match Args::parse().command {
+    } = match Args::parse().command {
         Command::Evaluate {
             policy,
             episodes,
@@ -241,37 +244,7 @@ async fn run() -> anyhow::Result<()> {
             )
             .await;
         }
-        Command::Collect {
-            task,
-            recipe,
-            state,
-            episodes_per_setting,
-            budget_steps,
-            workers,
-            envs_per_session,
-            worker_binary,
-            max_episodes,
-            out,
-            server,
-            token,
-            tag,
-            json,
-        } => (
-            task,
-            recipe,
-            state,
-            episodes_per_setting,
-            budget_steps,
-            workers,
-            envs_per_session,
-            worker_binary,
-            max_episodes,
-            out,
-            server,
-            token,
-            tag,
-            json,
-        ),
+        Command::Collect(args) => args,
     };
     let catalog = Catalog::embedded()?;
     let recipe_path = recipe.unwrap_or_else(|| Recipe::default_path(&task));
