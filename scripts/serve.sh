@@ -15,8 +15,8 @@ cargo build --release --locked --workspace --bins
 target=${CARGO_TARGET_DIR:-target}
 bin_dir="${CARGO_HOME:-$HOME/.cargo}/bin"
 mkdir -p "$bin_dir"
-for b in dsrl-server dsrl-client dsrl-sim-worker dsrl-admin; do
+for b in dsrl-server dsrl-client dsrl-sim-worker dsrl-admin dsrl-train; do
   ln -sf "$(realpath "$target/release/$b")" "$bin_dir/$b"
 done
-echo "dsrl-server, dsrl-client, dsrl-sim-worker and dsrl-admin are linked into $bin_dir" >&2
+echo "dsrl-server, dsrl-client, dsrl-sim-worker, dsrl-admin and dsrl-train are linked into $bin_dir" >&2
 exec "$target/release/dsrl-server" "$@"

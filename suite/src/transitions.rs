@@ -67,7 +67,11 @@ impl TransitionChunk {
     pub fn take_front(&mut self, n: usize) -> TransitionChunk {
         fn front<T>(v: &mut Vec<T>, k: usize) -> Vec<T> {
             let rest = v.split_off(k);
-            std::mem::replace(v, rest)
+            let mut front = std::mem::replace(v, rest);
+            // The front keeps the whole vector's allocation otherwise: splitting a file into its episodes would
+            // hold one full-size buffer per episode.
+            front.shrink_to_fit();
+            front
         }
         TransitionChunk {
             obs_dim: self.obs_dim,
@@ -136,6 +140,13 @@ mod tests {
         assert_eq!(head.len(), 2);
         assert_eq!(c.len(), 3);
         assert_eq!(head.observations, vec![0.0, 1.0, 2.0, 3.0]);
+        // The head does not keep the whole chunk's allocation (splitting a file into episodes once held one
+        // full-size buffer per episode and ran out of memory).
+        assert!(
+            head.observations.capacity() < 10,
+            "capacity {}",
+            head.observations.capacity()
+        );
         assert_eq!(c.observations[0], 4.0);
         assert!(c.is_done(2));
         let mut joined = head.clone();

@@ -64,6 +64,9 @@ struct State {
     buffer: BufferSnapshot,
     /// (collect, environment, seed) of each buffered episode, in buffer order.
     buffered: Vec<(u64, u32, u64)>,
+    /// The task's action bound, known once a session has opened.
+    #[serde(default)]
+    max_action: Option<f64>,
     log: Vec<CollectLog>,
 }
 
@@ -171,19 +174,24 @@ fn load(root: &Path) -> anyhow::Result<Option<Saved>> {
                 None => all = Some(chunk),
             }
         }
-        let mut all = all.context("the saved buffer is empty")?;
+        let all = all.context("the saved buffer is empty")?;
+        // Episodes are copied out by offset: splitting from the front would move the rest once per episode.
+        let mut start = 0;
         for &(collect, env, seed) in &state.buffered {
-            let end = (0..all.len())
+            let end = (start..all.len())
                 .find(|&i| all.is_done(i))
                 .context("the saved buffer ends mid-episode")?
                 + 1;
-            let mut chunk = all.take_front(end);
-            chunk.episode = None;
-            chunk.step = None;
-            episodes.push(Episode::from_chunk(collect as usize, env, seed, chunk));
+            episodes.push(Episode::from_chunk(
+                collect as usize,
+                env,
+                seed,
+                all.rows(start, end - start),
+            ));
+            start = end;
         }
         anyhow::ensure!(
-            all.is_empty(),
+            start == all.len(),
             "the saved buffer holds more episodes than its state lists"
         );
     }
@@ -380,6 +388,7 @@ pub async fn train(
                 },
                 buffer: buffer.snapshot(),
                 buffered: Vec::new(),
+                max_action: None,
                 log: Vec::new(),
             };
             (state, buffer, None)
@@ -390,7 +399,6 @@ pub async fn train(
     let (sessions_n, envs) = (expert.sessions as usize, expert.envs_per_session as usize);
     let mut learner: Option<Learner> = None;
     let mut tensors = tensors;
-    let mut last_max_action = None;
     while state.steps < budget {
         // A segment: fresh sessions, `checkpoint_every_collects` collects, a save.
         let opens = (0..sessions_n).map(|s| {
@@ -407,7 +415,7 @@ pub async fn train(
         });
         let mut sessions = futures::future::try_join_all(opens).await?;
         let max_action = symmetric_bound(&sessions[0])?;
-        last_max_action = Some(max_action);
+        state.max_action = Some(max_action);
         let learner = match &mut learner {
             Some(l) => l,
             None => learner.insert(match tensors.take() {
@@ -506,8 +514,15 @@ pub async fn train(
         let (task, root) = (task.clone(), root.to_path_buf());
         tokio::task::block_in_place(|| save(&root, &task, &state, learner, &buffer))?;
     }
-    if let (Some(learner), Some(_)) = (&learner, last_max_action) {
-        learner.write_policy(&root.join("policy"), task.id.as_str())?;
+    // The final expert, also when a run stopped between its last save and this write.
+    let policy_dir = root.join("policy");
+    match (&learner, tensors, state.max_action) {
+        (Some(learner), _, _) => learner.write_policy(&policy_dir, task.id.as_str())?,
+        (None, Some(tensors), Some(max_action)) if !policy_dir.join("policy.json").is_file() => {
+            Learner::restore(expert, max_action, &tensors, &state.learner)?
+                .write_policy(&policy_dir, task.id.as_str())?
+        }
+        _ => {}
     }
     write_log(root, &state.log)?;
     let (offered, _) = buffer.counts();
