@@ -12,6 +12,7 @@ pub mod filters;
 pub mod hashing;
 pub mod hdf5_file;
 pub mod ids;
+pub mod leaderboard;
 pub mod manifest;
 pub mod parquet_file;
 pub mod plot;
