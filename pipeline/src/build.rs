@@ -191,9 +191,10 @@ impl Run {
         );
         bar.set_message(task.id.to_string());
         let pool = self.start_pool().await?;
-        let collection =
-            crate::expert::train::train(&pool, &self.recipe, task, &self.state_dir.join("expert"), budget, &bar)
-                .await?;
+        // One session per worker: every worker steps.
+        let sessions = self.workers as usize + self.simulators.remote_workers.len();
+        let root = self.state_dir.join("expert");
+        let collection = crate::expert::train::train(&pool, &self.recipe, task, &root, budget, sessions, &bar).await?;
         bar.finish();
         let seconds = |f: fn(&crate::expert::train::CollectLog) -> f64| -> f64 {
             collection.log.iter().map(f).sum::<f64>().round()

@@ -72,11 +72,10 @@ pub struct ExpertSettings {
     pub repeat_per_collect: u32,
     pub minibatch_size: usize,
     pub max_grad_norm: f64,
-    /// Each collect plays one episode in each of `sessions × envs_per_session` environments, then updates the
-    /// policy (FSRL: 10 episodes per collect). Fixed by the recipe, so the result does not depend on how many
-    /// workers run it.
-    pub sessions: u32,
-    pub envs_per_session: u32,
+    /// Each collect plays one episode in each of `envs` environments, then updates the policy (FSRL: 10 episodes
+    /// per collect). The environments are spread over one session per worker (up to `envs`); how they are grouped
+    /// does not change the result, so it does not depend on how many workers run it.
+    pub envs: u32,
     /// Environment steps to train for (`--budget-steps` overrides).
     pub budget_steps: u64,
     /// Sessions are reopened and the whole training state saved every this many collects; a killed run resumes
@@ -187,10 +186,7 @@ impl Recipe {
                         "{}: MetaDrive datasets come from the IDM sweep, not an expert",
                         task.id
                     );
-                    anyhow::ensure!(
-                        expert.sessions > 0 && expert.envs_per_session > 0,
-                        "expert.sessions and expert.envs_per_session must be at least 1"
-                    );
+                    anyhow::ensure!(expert.envs > 0, "expert.envs must be at least 1");
                     anyhow::ensure!(
                         expert.budget_steps > 0 && expert.checkpoint_every_collects > 0,
                         "expert.budget_steps and expert.checkpoint_every_collects must be at least 1"

@@ -11,19 +11,14 @@ use crate::Env;
 /// A task's committed recipe with fewer environments per collect and saves every `every` collects.
 fn small_recipe(dir: &Path, task: &str, envs: u32, every: u32) -> PathBuf {
     let text = std::fs::read_to_string(dsrl_e2e::repo_root().join(format!("data/recipes/{task}.toml"))).unwrap();
-    let small = text
-        .replace("sessions = 2 ", "sessions = 1 ")
-        .replace("envs_per_session = 5", &format!("envs_per_session = {envs}"))
-        .replace(
-            "checkpoint_every_collects = 25",
-            &format!("checkpoint_every_collects = {every}"),
-        );
-    assert_eq!(
-        small.matches(&format!("envs_per_session = {envs}")).count(),
-        1,
+    let small = text.replace("envs = 10 ", &format!("envs = {envs} ")).replace(
+        "checkpoint_every_collects = 25",
+        &format!("checkpoint_every_collects = {every}"),
+    );
+    assert!(
+        small.contains(&format!("envs = {envs} ")) && small.contains(&format!("checkpoint_every_collects = {every}")),
         "{task}: the recipe's layout changed"
     );
-    assert!(small.contains("sessions = 1 "), "{task}: the recipe's layout changed");
     let path = dir.join(format!("{task}.toml"));
     std::fs::write(&path, small).unwrap();
     path
@@ -73,7 +68,8 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     assert_eq!(details["episodes_collected"], 48);
     assert!(reference["episodes"].as_u64().unwrap() >= 1);
 
-    // Killed once the first save exists, then resumed (with a different worker count) and ingested.
+    // Killed once the first save exists, then resumed with two workers (the 4 environments now in two sessions of
+    // 2, not one of 4: the grouping must not change the data) and ingested.
     let state = env.path("killed");
     let mut child = collect(TASK, &recipe, &state, budget, 1, &[])
         .stdout(Stdio::null())

@@ -225,10 +225,17 @@ struct Played {
     acting_seconds: f64,
 }
 
-/// Plays one episode in every environment of `sessions` from the observations `obs` (`[envs, obs_dim]`).
+/// Where environment `j` of a collect lives: `(session, index in the session)`, environments dealt out in order.
+fn layout(envs: usize, sessions: usize) -> Vec<(usize, u32)> {
+    let per = envs.div_ceil(sessions.max(1)).max(1);
+    (0..envs).map(|j| (j / per, (j % per) as u32)).collect()
+}
+
+/// Plays one episode in every environment from the observations `obs` (`[envs, obs_dim]`, global order); the
+/// policy acts on all playing environments in one batch whatever the sessions, so the grouping changes nothing.
 async fn play(
     sessions: &mut [PooledSession],
-    envs_per_session: usize,
+    layout: &[(usize, u32)],
     mut obs: Vec<f32>,
     learner: &Learner,
     noise: &mut Noise,
@@ -241,7 +248,7 @@ async fn play(
         actions: Vec<f32>,
         log_probs: Vec<f32>,
     }
-    let total = sessions.len() * envs_per_session;
+    let total = layout.len();
     let mut traces: Vec<Trace> = (0..total)
         .map(|_| Trace {
             chunk: Some(TransitionChunk::empty(obs_dim, act_dim)),
@@ -262,8 +269,9 @@ async fn play(
         // Per session: its playing environments (local ids) and their rows in the batch.
         let mut requests: Vec<(Vec<u32>, Vec<f32>, Vec<usize>)> = vec![Default::default(); sessions.len()];
         for (row, &j) in playing.iter().enumerate() {
-            let r = &mut requests[j / envs_per_session];
-            r.0.push((j % envs_per_session) as u32);
+            let (session, local) = layout[j];
+            let r = &mut requests[session];
+            r.0.push(local);
             r.1.extend_from_slice(&actions[row * act_dim..(row + 1) * act_dim]);
             r.2.push(row);
         }
@@ -280,7 +288,7 @@ async fn play(
         for (step, (envs, _, rows)) in steps.iter().zip(requests.iter().filter(|r| !r.0.is_empty())) {
             for (k, (&local, &row)) in envs.iter().zip(rows).enumerate() {
                 let j = playing[row];
-                debug_assert_eq!(j % envs_per_session, local as usize);
+                debug_assert_eq!(layout[j], (layout[j].0, local));
                 let next = &step.observations[k * obs_dim..(k + 1) * obs_dim];
                 let trace = &mut traces[j];
                 let chunk = trace.chunk.as_mut().expect("an active environment has a chunk");
@@ -339,13 +347,15 @@ fn env_seed(recipe: &Recipe, collect: u64, env: u32) -> u64 {
 }
 
 /// Trains the recipe's expert for `budget` environment steps (resuming from `root` if a save is there) and
-/// returns what its trajectory buffer kept.
+/// returns what its trajectory buffer kept. The environments are spread over up to `sessions` sessions (one per
+/// worker); the result is the same for any number.
 pub async fn train(
     pool: &SimulatorPool,
     recipe: &Recipe,
     task: &Task,
     root: &Path,
     budget: u64,
+    sessions: usize,
     bar: &ProgressBar,
 ) -> anyhow::Result<ExpertCollection> {
     let expert: &ExpertSettings = recipe.expert.as_ref().context("the recipe has no expert section")?;
@@ -396,18 +406,25 @@ pub async fn train(
     };
     bar.set_length(budget);
     bar.set_position(state.steps.min(budget));
-    let (sessions_n, envs) = (expert.sessions as usize, expert.envs_per_session as usize);
+    let layout = layout(expert.envs as usize, sessions);
+    let session_count = layout.last().map_or(0, |&(s, _)| s + 1);
+    // The global environment numbers of each session, in order.
+    let members: Vec<Vec<u32>> = (0..session_count)
+        .map(|s| {
+            (0..layout.len() as u32)
+                .filter(|&j| layout[j as usize].0 == s)
+                .collect()
+        })
+        .collect();
     let mut learner: Option<Learner> = None;
     let mut tensors = tensors;
     while state.steps < budget {
         // A segment: fresh sessions, `checkpoint_every_collects` collects, a save.
-        let opens = (0..sessions_n).map(|s| {
-            let seeds: Vec<u64> = (0..envs)
-                .map(|i| env_seed(recipe, state.collects, (s * envs + i) as u32))
-                .collect();
+        let opens = members.iter().map(|envs| {
+            let seeds: Vec<u64> = envs.iter().map(|&j| env_seed(recipe, state.collects, j)).collect();
             pool.open(Open {
                 task: recipe.task.clone(),
-                num_envs: envs as u32,
+                num_envs: envs.len() as u32,
                 seeds,
                 auto_reset: AutoReset::None as i32,
                 controller: None,
@@ -434,19 +451,19 @@ pub async fn train(
             let reset_started = Instant::now();
             if c > 0 {
                 obs.clear();
-                for (s, session) in sessions.iter_mut().enumerate() {
-                    let ids: Vec<u32> = (0..envs as u32).collect();
-                    let seeds: Vec<u64> = ids
-                        .iter()
-                        .map(|&i| env_seed(recipe, state.collects, s as u32 * envs as u32 + i))
-                        .collect();
-                    obs.extend(session.reset(&ids, &seeds).await?);
+                let resets = sessions.iter_mut().zip(&members).map(|(session, envs)| {
+                    let ids: Vec<u32> = (0..envs.len() as u32).collect();
+                    let seeds: Vec<u64> = envs.iter().map(|&j| env_seed(recipe, state.collects, j)).collect();
+                    async move { session.reset(&ids, &seeds).await }
+                });
+                for observations in futures::future::try_join_all(resets).await? {
+                    obs.extend(observations);
                 }
             }
             let reset_seconds = reset_started.elapsed().as_secs_f64();
             let played = play(
                 &mut sessions,
-                envs,
+                &layout,
                 obs.clone(),
                 learner,
                 &mut state.noise,
@@ -532,4 +549,18 @@ pub async fn train(
         steps: state.steps,
         log: state.log,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn environments_are_dealt_to_sessions_in_order() {
+        assert_eq!(super::layout(4, 1), vec![(0, 0), (0, 1), (0, 2), (0, 3)]);
+        assert_eq!(super::layout(4, 2), vec![(0, 0), (0, 1), (1, 0), (1, 1)]);
+        // 10 environments on 4 workers: sessions of 3, 3, 3 and 1; more workers than environments: one each.
+        let ten = super::layout(10, 4);
+        assert_eq!(ten.iter().filter(|(s, _)| *s == 3).count(), 1);
+        assert_eq!(ten[9], (3, 0));
+        assert_eq!(super::layout(2, 16), vec![(0, 0), (1, 0)]);
+    }
 }
