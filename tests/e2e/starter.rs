@@ -46,3 +46,56 @@ fn starter_datasets_load_once_and_never_move_latest_back() {
         "latest stays on the newer upload after a restart"
     );
 }
+
+#[test]
+fn every_committed_starter_dataset_loads_with_its_recipe_provenance() {
+    // What the README's first command serves: every file under data/starter, validated and ingested at start-up.
+    let starter = dsrl_e2e::repo_root().join("data/starter");
+    let mut expected: Vec<(String, u64)> = Vec::new();
+    for task in std::fs::read_dir(&starter).unwrap() {
+        let task = task.unwrap();
+        for file in std::fs::read_dir(task.path()).unwrap() {
+            let name = file.unwrap().file_name().into_string().unwrap();
+            if let Some(stem) = name.strip_suffix(".parquet") {
+                // DSRL's naming: <prefix>-<cost cap>-<trajectories>.
+                let episodes = stem.rsplit('-').next().unwrap().parse().unwrap();
+                expected.push((task.file_name().into_string().unwrap(), episodes));
+            }
+        }
+    }
+    assert!(
+        expected.len() >= 9,
+        "the 8 Bullet starters and MetaDrive's: {expected:?}"
+    );
+    let total: u64 = walk_bytes(&starter);
+    assert!(
+        total <= 60_000_000,
+        "starter data is {total} bytes, over the 60 MB budget"
+    );
+
+    let env = Env::with(&["--starter-datasets", s(&starter)], &[]);
+    for (task, episodes) in &expected {
+        let manifest = env.cli.run(&["--json", "show", task]).ok().json();
+        assert_eq!(manifest["episodes"], *episodes, "{task}");
+        assert_eq!(manifest["provenance"]["kind"], "recipe", "{task}");
+        assert_eq!(
+            manifest["provenance"]["recipe"],
+            format!("data/recipes/{task}.toml"),
+            "{task}"
+        );
+    }
+}
+
+fn walk_bytes(dir: &std::path::Path) -> u64 {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_dir() {
+                walk_bytes(&e.path())
+            } else {
+                e.metadata().unwrap().len()
+            }
+        })
+        .sum()
+}
