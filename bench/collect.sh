@@ -3,7 +3,7 @@
 # workers): env-steps/s and episodes/min, and for the expert recipes where the time goes per collect (waiting for
 # the simulators, the policy's forward passes while acting, the PPO-Lagrangian update). Short budgets of the
 # committed recipes: Bullet OfflineBallRun-v0 and OfflineAntRun-v0, Safety-Gymnasium OfflinePointGoal1Gymnasium-v0
-# and OfflineHalfCheetahVelocityGymnasium-v1 (experts), MetaDrive OfflineMetadrive-easysparse-v0 (the IDM sweep,
+# and OfflineCarCircle1Gymnasium-v0 (experts), MetaDrive OfflineMetadrive-easysparse-v0 (the IDM sweep,
 # one episode per setting). Prints a Markdown table (also written to bench/out/collect.md).
 # Usage: bench/collect.sh [SCALE=1]   (SCALE multiplies the budgets)
 set -euo pipefail
@@ -51,7 +51,7 @@ done <<'EOF_TASKS'
 bullet OfflineBallRun-v0 --budget-steps 100000
 bullet OfflineAntRun-v0 --budget-steps 50000
 safety-gymnasium OfflinePointGoal1Gymnasium-v0 --budget-steps 50000
-safety-gymnasium OfflineHalfCheetahVelocityGymnasium-v1 --budget-steps 50000
+safety-gymnasium OfflineCarCircle1Gymnasium-v0 --budget-steps 50000
 metadrive OfflineMetadrive-easysparse-v0 --episodes-per-setting 1
 EOF_TASKS
 cat "$out"
