@@ -298,6 +298,101 @@ impl Client {
     }
 }
 
+/// The checkpoint files of a submission folder, named as the server expects: `policy.json` and
+/// `policy.safetensors` at the top (one checkpoint for every threshold), or in one subfolder per cost threshold.
+pub fn submission_files(dir: &Path) -> Result<Vec<(String, std::path::PathBuf)>, ClientError> {
+    const FILES: [&str; 2] = ["policy.json", "policy.safetensors"];
+    let usage = |m: String| ClientError::Usage(m);
+    if dir.join(FILES[0]).is_file() {
+        return Ok(FILES.iter().map(|f| (f.to_string(), dir.join(f))).collect());
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| usage(format!("cannot read {}: {e}", dir.display())))?;
+    let mut files = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(|e| usage(format!("cannot read {}: {e}", dir.display())))?;
+        let path = entry.path();
+        if path.join(FILES[0]).is_file() {
+            let slot = entry.file_name().to_string_lossy().into_owned();
+            files.extend(FILES.iter().map(|f| (format!("{slot}/{f}"), path.join(f))));
+        }
+    }
+    files.sort();
+    if files.is_empty() {
+        return Err(usage(format!(
+            "{} holds no checkpoint: expected policy.json and policy.safetensors in it, or in one subfolder per \
+             cost threshold",
+            dir.display()
+        )));
+    }
+    Ok(files)
+}
+
+impl Client {
+    fn bearer(&self, request: reqwest::RequestBuilder, what: &str) -> Result<reqwest::RequestBuilder, ClientError> {
+        let token = self.token.as_deref().ok_or_else(|| {
+            ClientError::Usage(format!(
+                "{what} needs a user token: pass --token or set DSRL_TOKEN (an admin creates one with \
+                 `dsrl-client admin create-user NAME`)"
+            ))
+        })?;
+        Ok(request.header(AUTHORIZATION, format!("Bearer {token}")))
+    }
+
+    async fn json_of(response: Response, what: &str) -> Result<serde_json::Value, ClientError> {
+        response
+            .json()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("{what}: {e}")))
+    }
+
+    /// `POST /v1/users` (admin token): the new user with its token.
+    pub async fn create_user(&self, name: &str) -> Result<serde_json::Value, ClientError> {
+        let request = self
+            .http
+            .post(self.url("/v1/users"))
+            .json(&serde_json::json!({ "name": name }));
+        let response = self.send(self.admin(request)?).await?;
+        Self::json_of(response, "create-user response").await
+    }
+
+    /// Uploads a checkpoint folder as a submission (user token); returns the queued submission.
+    pub async fn submit(&self, dir: &Path, task: &str, name: &str) -> Result<serde_json::Value, ClientError> {
+        // Part names are checkpoint paths (`threshold-10/policy.json`, ASCII by construction); sent verbatim,
+        // since a percent-encoded `name*=` form is not read by every multipart parser.
+        let mut form = reqwest::multipart::Form::new()
+            .percent_encode_noop()
+            .text("task", task.to_owned())
+            .text("name", name.to_owned());
+        for (part, path) in submission_files(dir)? {
+            let bytes = tokio::fs::read(&path)
+                .await
+                .map_err(|e| ClientError::Usage(format!("cannot read {}: {e}", path.display())))?;
+            form = form.part(part.clone(), reqwest::multipart::Part::bytes(bytes).file_name(part));
+        }
+        let request = self.http.post(self.url("/v1/submissions")).multipart(form);
+        let response = self.send(self.bearer(request, "submitting")?).await?;
+        Self::json_of(response, "submit response").await
+    }
+
+    pub async fn submission(&self, id: i64) -> Result<serde_json::Value, ClientError> {
+        self.get_json(&format!("/v1/submissions/{id}")).await
+    }
+
+    pub async fn cancel(&self, id: i64) -> Result<serde_json::Value, ClientError> {
+        let request = self.http.post(self.url(&format!("/v1/submissions/{id}/cancel")));
+        let response = self.send(self.bearer(request, "cancelling")?).await?;
+        Self::json_of(response, "cancel response").await
+    }
+
+    pub async fn leaderboard(&self, task: Option<&str>) -> Result<serde_json::Value, ClientError> {
+        let mut request = self.http.get(self.url("/v1/leaderboard"));
+        if let Some(task) = task {
+            request = request.query(&[("task", task)]);
+        }
+        Self::json_of(self.send(request).await?, "leaderboard").await
+    }
+}
+
 fn with_filter(request: reqwest::RequestBuilder, filter: Option<&str>) -> reqwest::RequestBuilder {
     match filter {
         Some(f) if !f.is_empty() => request.query(&[("filter", f)]),

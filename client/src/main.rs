@@ -36,13 +36,14 @@ Exit codes:
   3  integrity: a download did not match its sha256, or verify found (and removed) corrupt files
   4  not found: unknown task, version or tag
   5  server unreachable or failing (5xx); an interrupted download is kept and resumes on the next fetch
-  6  rejected by the server as invalid (400, 413, 416)
-  7  missing or wrong admin token (401, 403)
+  6  rejected by the server: invalid (400, 413, 416), a duplicate submission (409), over quota (429)
+  7  missing or wrong token (401, 403)
 
 Environment:
   DSRL_SERVER        server URL (default http://127.0.0.1:7070)
   DSRL_DATASET_DIR   cache root (default ~/.dsrl/datasets)
-  DSRL_ADMIN_TOKEN   admin token for `admin` commands";
+  DSRL_ADMIN_TOKEN   admin token for `admin` commands
+  DSRL_TOKEN         user token for `submit` and `cancel`";
 
 /// Offline safe-RL datasets from a dsrl server: the 38 DSRL tasks, verified and resumable downloads into a
 /// local cache laid out so DSRL/OSRL code finds the files.
@@ -102,6 +103,47 @@ enum Command {
     },
     /// Re-hash every cached file; report and remove corrupt ones.
     Verify,
+    /// Submit a policy to the leaderboard: DIR holds policy.json + policy.safetensors (one checkpoint scored at
+    /// each of the task's three cost thresholds), or one subfolder per threshold whose policy.json declares
+    /// conditioning {"kind": "per_threshold", "cost_threshold": K}. The server checks it, queues it, and scores
+    /// it on the simulators with seeds it never shows: 20 episodes per threshold. Prints the submission id.
+    Submit {
+        dir: PathBuf,
+        #[arg(long)]
+        task: String,
+        /// The entry's name on the leaderboard (letters, digits, . _ -), e.g. BC-Safe.
+        #[arg(long)]
+        name: String,
+        /// User token [default: $DSRL_TOKEN].
+        #[arg(long, env = "DSRL_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+        /// Wait until the submission is scored (or fails) and print the result.
+        #[arg(long)]
+        wait: bool,
+    },
+    /// A submission's state (queued, running, finished, failed, cancelled), reason and scores.
+    Status {
+        id: i64,
+        /// Also print every evaluated episode.
+        #[arg(long)]
+        episodes: bool,
+        /// Wait until it is scored, fails or is cancelled.
+        #[arg(long)]
+        wait: bool,
+    },
+    /// Cancel one of your queued or running submissions.
+    Cancel {
+        id: i64,
+        /// User token [default: $DSRL_TOKEN].
+        #[arg(long, env = "DSRL_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+    },
+    /// The leaderboard: each family's entries (interquartile mean across tasks, 95% bootstrap interval) and each
+    /// task's table (safe entries by normalized reward, then unsafe ones).
+    Leaderboard {
+        #[arg(long)]
+        task: Option<String>,
+    },
     /// Operations that need the admin token.
     Admin(AdminArgs),
 }
@@ -117,6 +159,8 @@ struct AdminArgs {
 
 #[derive(Debug, Subcommand)]
 enum AdminCommand {
+    /// Create a leaderboard user and print its bearer token (shown only this once).
+    CreateUser { name: String },
     /// Upload a Parquet or DSRL HDF5 file as a new version of TASK (identical data is a no-op).
     Ingest {
         #[arg(long)]
@@ -371,6 +415,47 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 return Ok(exit::INTEGRITY);
             }
         }
+        Command::Submit {
+            dir,
+            task,
+            name,
+            token,
+            wait,
+        } => {
+            let client = client.with_token(token);
+            let submission = client.submit(&dir, &task, &name).await?;
+            let id = submission["id"].as_i64().unwrap_or_default();
+            if wait {
+                let done = wait_for_submission(&client, id, cli.json).await?;
+                return Ok(report_submission(&done, cli.json, false));
+            }
+            if cli.json {
+                print_json(&submission);
+            } else {
+                eprintln!("submission {id} queued; follow it with `dsrl-client status {id} --wait`");
+                out!("{id}");
+            }
+        }
+        Command::Status { id, episodes, wait } => {
+            let submission = if wait {
+                wait_for_submission(&client, id, cli.json).await?
+            } else {
+                client.submission(id).await?
+            };
+            return Ok(report_submission(&submission, cli.json, episodes));
+        }
+        Command::Cancel { id, token } => {
+            let submission = client.with_token(token).cancel(id).await?;
+            return Ok(report_submission(&submission, cli.json, false));
+        }
+        Command::Leaderboard { task } => {
+            let board = client.leaderboard(task.as_deref()).await?;
+            if cli.json {
+                print_json(&board);
+            } else {
+                print_board(&board);
+            }
+        }
         Command::Admin(admin) => {
             let token = admin.token.or_else(|| local_admin_token(&cli.server));
             let client = client.with_token(token);
@@ -430,6 +515,15 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                         );
                     }
                 }
+                AdminCommand::CreateUser { name } => {
+                    let user = client.create_user(&name).await?;
+                    if cli.json {
+                        print_json(&user);
+                    } else {
+                        eprintln!("created user {name}; its token (shown only now):");
+                        out!("{}", user["token"].as_str().unwrap_or_default());
+                    }
+                }
                 AdminCommand::Tag { task, version, tag } => {
                     let v = client.tag(&task, &tag, &version).await?;
                     if cli.json {
@@ -442,6 +536,130 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
         }
     }
     Ok(exit::OK)
+}
+
+const ENDED: [&str; 3] = ["finished", "failed", "cancelled"];
+
+/// Polls a submission until it ends, with a spinner showing its state.
+async fn wait_for_submission(client: &Client, id: i64, quiet: bool) -> Result<serde_json::Value, ClientError> {
+    let spinner = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new_spinner()
+    };
+    loop {
+        let submission = client.submission(id).await?;
+        let state = submission["state"].as_str().unwrap_or_default().to_owned();
+        if ENDED.contains(&state.as_str()) {
+            spinner.finish_and_clear();
+            return Ok(submission);
+        }
+        spinner.set_message(format!("submission {id}: {state} (attempt {})", submission["attempts"]));
+        spinner.tick();
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    }
+}
+
+fn number(value: &serde_json::Value) -> String {
+    value.as_f64().map_or_else(|| "–".to_owned(), |x| format!("{x:.3}"))
+}
+
+/// Prints a submission; the exit code is FAILURE for a failed one.
+fn report_submission(s: &serde_json::Value, json: bool, episodes: bool) -> u8 {
+    let state = s["state"].as_str().unwrap_or_default();
+    if json {
+        print_json(s);
+    } else {
+        out!(
+            "submission {}: {} {:?} by {}: {state} (attempts {})",
+            s["id"],
+            s["task"].as_str().unwrap_or_default(),
+            s["name"].as_str().unwrap_or_default(),
+            s["user"].as_str().unwrap_or_default(),
+            s["attempts"]
+        );
+        if let Some(reason) = s["reason"].as_str() {
+            out!("  reason: {reason}");
+        }
+        if state == "finished" {
+            out!(
+                "  normalized reward {}, normalized cost {} ({})",
+                number(&s["normalized_reward"]),
+                number(&s["normalized_cost"]),
+                if s["safe"] == true { "safe" } else { "unsafe" }
+            );
+        }
+        for t in s["thresholds"].as_array().into_iter().flatten() {
+            out!(
+                "  threshold {}: {} episodes, mean reward return {}, mean cost return {}, normalized reward {}, \
+                 normalized cost {}",
+                t["cost_threshold"],
+                t["episodes"],
+                number(&t["mean_reward_return"]),
+                number(&t["mean_cost_return"]),
+                number(&t["normalized_reward"]),
+                number(&t["normalized_cost"])
+            );
+        }
+        if episodes {
+            for e in s["episodes"].as_array().into_iter().flatten() {
+                out!(
+                    "    threshold {} episode {}: reward {}, cost {}, length {}",
+                    e["cost_threshold"],
+                    e["episode"],
+                    number(&e["reward_return"]),
+                    number(&e["cost_return"]),
+                    e["length"]
+                );
+            }
+        }
+    }
+    if state == "failed" { exit::FAILURE } else { exit::OK }
+}
+
+fn print_board(board: &serde_json::Value) {
+    for family in board["families"].as_array().into_iter().flatten() {
+        out!(
+            "{} (interquartile mean across tasks, 95% bootstrap interval)",
+            family["family"].as_str().unwrap_or_default()
+        );
+        for e in family["entries"].as_array().into_iter().flatten() {
+            let (r, c) = (&e["normalized_reward"], &e["normalized_cost"]);
+            out!(
+                "  {:>3}. {} ({}): reward {} [{}, {}], cost {} [{}, {}], safe on {} of {} tasks",
+                e["rank"],
+                e["name"].as_str().unwrap_or_default(),
+                e["user"].as_str().unwrap_or_default(),
+                number(&r["estimate"]),
+                number(&r["low"]),
+                number(&r["high"]),
+                number(&c["estimate"]),
+                number(&c["low"]),
+                number(&c["high"]),
+                e["safe_tasks"],
+                e["tasks"]
+            );
+        }
+    }
+    for table in board["tasks"].as_array().into_iter().flatten() {
+        out!("{}", table["task"].as_str().unwrap_or_default());
+        let entries = table["entries"].as_array().cloned().unwrap_or_default();
+        if entries.is_empty() {
+            out!("  no scored entries yet");
+        }
+        for e in entries {
+            out!(
+                "  {:>3}. {} ({}): normalized reward {}, normalized cost {}{} [submission {}]",
+                e["rank"],
+                e["name"].as_str().unwrap_or_default(),
+                e["user"].as_str().unwrap_or_default(),
+                number(&e["normalized_reward"]),
+                number(&e["normalized_cost"]),
+                if e["safe"] == true { "" } else { " UNSAFE" },
+                e["submission"]
+            );
+        }
+    }
 }
 
 /// Repeated `--filter` values as one filter string.

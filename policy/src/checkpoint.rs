@@ -81,6 +81,17 @@ pub enum Architecture {
     },
 }
 
+impl Architecture {
+    /// The `name` in `policy.json`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Architecture::GaussianMlp { .. } => "gaussian_mlp",
+            Architecture::MlpActor { .. } => "mlp_actor",
+            Architecture::SquashedGaussianMlp { .. } => "squashed_gaussian_mlp",
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ObservationNormalization {
@@ -139,16 +150,27 @@ pub fn parse_weights(bytes: &[u8]) -> Result<HashMap<String, Tensor>> {
     Ok(tensors)
 }
 
-/// Reads a checkpoint folder's config and weights.
-pub fn read(dir: &Path) -> Result<(PolicyConfig, HashMap<String, Tensor>)> {
-    let config: PolicyConfig = serde_json::from_slice(&read_limited(&dir.join(CONFIG_FILE), MAX_CONFIG_BYTES)?)
-        .map_err(|e| PolicyError::Format(format!("{CONFIG_FILE}: {e}")))?;
+/// Parses `policy.json` bytes (size-limited) and checks the format name.
+pub fn parse_config(bytes: &[u8]) -> Result<PolicyConfig> {
+    if bytes.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(PolicyError::Format(format!(
+            "{CONFIG_FILE} is larger than the {MAX_CONFIG_BYTES}-byte limit"
+        )));
+    }
+    let config: PolicyConfig =
+        serde_json::from_slice(bytes).map_err(|e| PolicyError::Format(format!("{CONFIG_FILE}: {e}")))?;
     if config.format != FORMAT {
         return Err(PolicyError::Format(format!(
             "{CONFIG_FILE}: format is {:?}, this service reads {FORMAT:?}",
             config.format
         )));
     }
+    Ok(config)
+}
+
+/// Reads a checkpoint folder's config and weights.
+pub fn read(dir: &Path) -> Result<(PolicyConfig, HashMap<String, Tensor>)> {
+    let config = parse_config(&read_limited(&dir.join(CONFIG_FILE), MAX_CONFIG_BYTES)?)?;
     let tensors = parse_weights(&read_limited(&dir.join(WEIGHTS_FILE), MAX_WEIGHTS_BYTES)?)?;
     Ok((config, tensors))
 }

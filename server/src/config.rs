@@ -18,6 +18,47 @@ pub struct Config {
     pub auth: AuthConfig,
     pub storage: StorageConfig,
     pub simulators: SimulatorsConfig,
+    pub leaderboard: LeaderboardConfig,
+}
+
+/// Submissions and their evaluation (the paper's protocol: the task's three cost thresholds, 20 episodes each).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LeaderboardConfig {
+    /// Jobs this server evaluates at once (0: it queues submissions but another server evaluates them).
+    pub evaluators: u32,
+    /// Episodes per cost threshold.
+    pub episodes_per_threshold: u32,
+    /// Environments per simulator session while scoring.
+    pub envs_per_session: u32,
+    /// An evaluator's claim on a job lapses this long after its last heartbeat; another evaluator then re-runs it.
+    pub lease_seconds: u64,
+    /// A job claimed this many times without finishing fails.
+    pub max_attempts: u32,
+    /// Submissions one user may make in 24 hours.
+    pub submissions_per_day: u32,
+    /// Submissions one user may have queued or running at once.
+    pub concurrent_submissions: u32,
+    /// Largest accepted submission (all checkpoint files together), in bytes.
+    pub max_submission_bytes: u64,
+    /// The secret the held episode seeds derive from. Unset: generated once into `<data_dir>/evaluation-secret`.
+    pub seed_secret: Option<String>,
+}
+
+impl Default for LeaderboardConfig {
+    fn default() -> Self {
+        LeaderboardConfig {
+            evaluators: 1,
+            episodes_per_threshold: 20,
+            envs_per_session: 10,
+            lease_seconds: 60,
+            max_attempts: 3,
+            submissions_per_day: 10,
+            concurrent_submissions: 2,
+            max_submission_bytes: 3 * (64 << 20),
+            seed_secret: None,
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -136,6 +177,7 @@ impl Default for Config {
                 s3: S3Config::default(),
             },
             simulators: SimulatorsConfig::default(),
+            leaderboard: LeaderboardConfig::default(),
         }
     }
 }

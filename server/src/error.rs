@@ -17,18 +17,22 @@ pub enum ErrorCode {
     RangeNotSatisfiable,
     Unauthenticated,
     PermissionDenied,
+    AlreadyExists,
+    ResourceExhausted,
     Unavailable,
     Internal,
 }
 
 impl ErrorCode {
-    pub const ALL: [ErrorCode; 8] = [
+    pub const ALL: [ErrorCode; 10] = [
         ErrorCode::NotFound,
         ErrorCode::InvalidArgument,
         ErrorCode::PayloadTooLarge,
         ErrorCode::RangeNotSatisfiable,
         ErrorCode::Unauthenticated,
         ErrorCode::PermissionDenied,
+        ErrorCode::AlreadyExists,
+        ErrorCode::ResourceExhausted,
         ErrorCode::Unavailable,
         ErrorCode::Internal,
     ];
@@ -42,6 +46,8 @@ impl ErrorCode {
             ErrorCode::RangeNotSatisfiable => (StatusCode::RANGE_NOT_SATISFIABLE, tonic::Code::OutOfRange),
             ErrorCode::Unauthenticated => (StatusCode::UNAUTHORIZED, tonic::Code::Unauthenticated),
             ErrorCode::PermissionDenied => (StatusCode::FORBIDDEN, tonic::Code::PermissionDenied),
+            ErrorCode::AlreadyExists => (StatusCode::CONFLICT, tonic::Code::AlreadyExists),
+            ErrorCode::ResourceExhausted => (StatusCode::TOO_MANY_REQUESTS, tonic::Code::ResourceExhausted),
             ErrorCode::Unavailable => (StatusCode::SERVICE_UNAVAILABLE, tonic::Code::Unavailable),
             ErrorCode::Internal => (StatusCode::INTERNAL_SERVER_ERROR, tonic::Code::Internal),
         }
@@ -63,6 +69,8 @@ impl ErrorCode {
             ErrorCode::RangeNotSatisfiable => "range_not_satisfiable",
             ErrorCode::Unauthenticated => "unauthenticated",
             ErrorCode::PermissionDenied => "permission_denied",
+            ErrorCode::AlreadyExists => "already_exists",
+            ErrorCode::ResourceExhausted => "resource_exhausted",
             ErrorCode::Unavailable => "unavailable",
             ErrorCode::Internal => "internal",
         }
@@ -90,6 +98,14 @@ pub enum ApiError {
     Unauthenticated,
     #[error("the bearer token is not valid for admin operations")]
     PermissionDenied,
+    #[error("this operation needs a user bearer token (an admin issues one: dsrl-client admin create-user NAME)")]
+    UserUnauthenticated,
+    #[error("the bearer token belongs to no user")]
+    UnknownUserToken,
+    #[error("{0}")]
+    AlreadyExists(String),
+    #[error("quota exceeded: {0}")]
+    QuotaExceeded(String),
     #[error("service unavailable: {0}")]
     Unavailable(String),
     #[error("internal error: {0}")]
@@ -103,7 +119,11 @@ impl ApiError {
             ApiError::InvalidArgument(_) | ApiError::InvalidUpload(_) => ErrorCode::InvalidArgument,
             ApiError::UploadTooLarge { .. } => ErrorCode::PayloadTooLarge,
             ApiError::RangeNotSatisfiable { .. } => ErrorCode::RangeNotSatisfiable,
-            ApiError::Unauthenticated => ErrorCode::Unauthenticated,
+            ApiError::Unauthenticated | ApiError::UserUnauthenticated | ApiError::UnknownUserToken => {
+                ErrorCode::Unauthenticated
+            }
+            ApiError::AlreadyExists(_) => ErrorCode::AlreadyExists,
+            ApiError::QuotaExceeded(_) => ErrorCode::ResourceExhausted,
             ApiError::PermissionDenied => ErrorCode::PermissionDenied,
             ApiError::Unavailable(_) => ErrorCode::Unavailable,
             ApiError::Internal(_) => ErrorCode::Internal,

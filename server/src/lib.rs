@@ -9,6 +9,7 @@ pub mod error;
 pub mod evaluator;
 pub mod grpc;
 pub mod http;
+pub mod leaderboard;
 pub mod metrics;
 pub mod simulators;
 pub mod starter;
@@ -29,6 +30,7 @@ use tower_http::trace::TraceLayer;
 
 use crate::config::Config;
 use crate::http::auth::AdminAuth;
+use crate::leaderboard::Leaderboard;
 use crate::metrics::Metrics;
 use crate::simulators::SimulatorPool;
 use crate::storage::converter::Converter;
@@ -43,6 +45,7 @@ pub struct AppState {
     pub metrics: Arc<Metrics>,
     pub max_upload_bytes: u64,
     pub simulators: Arc<SimulatorPool>,
+    pub leaderboard: Arc<Leaderboard>,
 }
 
 /// Opens storage, loads the catalog and the starter datasets: everything the server needs before it listens.
@@ -55,14 +58,16 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         None => Catalog::embedded()?,
     };
     tracing::info!(tasks = catalog.tasks().len(), "task catalog loaded");
+    let catalog = Arc::new(catalog);
     let db = Db::open(&data_dir.join("dsrl.sqlite3"))
         .await
         .context("opening the SQLite database")?;
     let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
+    let leaderboard_store = store.clone();
     let metrics = Arc::new(Metrics::new());
     let local_objects = (config.storage.backend == config::StorageBackend::Local).then(|| data_dir.join("objects"));
     let datasets = Datasets::new(DatasetsSetup {
-        catalog: Arc::new(catalog),
+        catalog: catalog.clone(),
         db,
         store,
         local_objects,
@@ -80,7 +85,21 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     }
     metrics.dataset_versions.set(datasets.db().version_count().await?);
     let simulators = Arc::new(SimulatorPool::start(&config.simulators));
+    let seed_secret = match &config.leaderboard.seed_secret {
+        Some(secret) => secret.clone(),
+        None => http::auth::load_or_generate_secret(&data_dir.join("evaluation-secret"), "evaluation seed secret")?,
+    };
+    let leaderboard = Arc::new(Leaderboard::new(
+        datasets.db().pool().clone(),
+        leaderboard_store,
+        catalog,
+        simulators.clone(),
+        config.leaderboard.clone(),
+        seed_secret,
+    ));
+    leaderboard::runner::spawn(leaderboard.clone());
     Ok(AppState {
+        leaderboard,
         simulators,
         datasets: Arc::new(datasets),
         auth: Arc::new(auth),

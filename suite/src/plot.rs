@@ -94,6 +94,73 @@ pub fn cost_reward_svg(task: &Task, title: &str, subtitle: Option<&str>, points:
     Ok(svg)
 }
 
+/// One leaderboard entry on the normalized cost–reward plane.
+#[derive(Debug, Clone)]
+pub struct EntryPoint {
+    /// Drawn beside the marker (the entry's rank).
+    pub label: String,
+    pub normalized_cost: f64,
+    pub normalized_reward: f64,
+    pub safe: bool,
+}
+
+/// The entries of a leaderboard table on the normalized cost–reward plane, safe ones in blue, unsafe in red, with
+/// the safety boundary (normalized cost 1) dashed.
+pub fn entries_svg(title: &str, entries: &[EntryPoint]) -> Result<String, String> {
+    let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
+    let xmax = entries.iter().map(|e| finite(e.normalized_cost)).fold(2.0f64, f64::max) * 1.1;
+    let ymin = entries
+        .iter()
+        .map(|e| finite(e.normalized_reward))
+        .fold(0.0f64, f64::min)
+        - 0.05;
+    let ymax = entries
+        .iter()
+        .map(|e| finite(e.normalized_reward))
+        .fold(1.0f64, f64::max)
+        + 0.05;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (560, 400)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 16))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(52)
+            .build_cartesian_2d(0f64..xmax, ymin..ymax)
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("normalized cost")
+            .y_desc("normalized reward")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        let boundary = DashedLineSeries::new([(1.0, ymin), (1.0, ymax)], 6, 4, BLACK.stroke_width(1));
+        chart.draw_series(boundary).map_err(|e| e.to_string())?;
+        for e in entries {
+            let color = if e.safe {
+                RGBColor(30, 144, 255)
+            } else {
+                RGBColor(220, 60, 40)
+            };
+            let xy = (finite(e.normalized_cost), finite(e.normalized_reward));
+            chart
+                .draw_series([Circle::new(xy, 5, color.filled())])
+                .map_err(|e| e.to_string())?;
+            chart
+                .draw_series([Text::new(
+                    e.label.clone(),
+                    (xy.0 + xmax * 0.015, xy.1),
+                    ("sans-serif", 12).into_font(),
+                )])
+                .map_err(|e| e.to_string())?;
+        }
+        root.present().map_err(|e| e.to_string())?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -167,11 +167,11 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let bc_policy: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(env.path("bc/bc-safe-40/policy.json")).unwrap()).unwrap();
+        serde_json::from_slice(&std::fs::read(env.path("bc/bc-safe/threshold-40/policy.json")).unwrap()).unwrap();
     assert_eq!(bc_policy["architecture"]["name"], "mlp_actor");
     assert_eq!(bc_policy["conditioning"]["cost_threshold"], 40.0);
     assert_eq!(bc_policy["training"]["dataset_version"], version.as_str());
-    let out = evaluate(&env.path("bc/bc-safe-40"));
+    let out = evaluate(&env.path("bc/bc-safe/threshold-40"));
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["thresholds"].as_array().unwrap().len(), 1);
@@ -182,7 +182,7 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     // and candle's gemm sum the matrix products in different orders.
     for (dir, report) in [
         (state.join("expert/policy"), &again),
-        (env.path("bc/bc-safe-40"), &report),
+        (env.path("bc/bc-safe/threshold-40"), &report),
     ] {
         let out = Command::new(dsrl_e2e::repo_root().join(".venv-sim/bin/python"))
             .arg(dsrl_e2e::repo_root().join("tests/parity/evaluate_in_python.py"))

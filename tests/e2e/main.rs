@@ -9,6 +9,7 @@ mod fetch;
 mod filters;
 mod http;
 mod ingest;
+mod leaderboard;
 mod s3;
 mod simulators;
 mod starter;

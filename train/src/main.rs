@@ -22,7 +22,7 @@ struct Args {
     command: Command,
 }
 
-#[derive(Debug, Clone, Copy, ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Mode {
     /// Every episode of the dataset (one model).
     All,
@@ -35,7 +35,8 @@ enum Command {
     /// Behaviour cloning (OSRL's BC-All / BC-Safe): MLP actor [256, 256], MSE, Adam lr 1e-3, batch 512.
     ///
     /// The data comes from a local Parquet file (--dataset) or is fetched from a server (--server, with
-    /// --version and --filter) into the dataset cache. Writes <out>/bc-all or <out>/bc-safe-<threshold> per model.
+    /// --version and --filter) into the dataset cache. Writes <out>/bc-all, or <out>/bc-safe/threshold-<K> per
+    /// threshold: each folder is what `dsrl-client submit` takes (--submit does it here).
     Bc {
         /// Offline task id, e.g. OfflineBallRun-v0.
         #[arg(long)]
@@ -66,6 +67,10 @@ enum Command {
         /// Output folder (default: ./policies/<task>).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Submit the trained entry to the leaderboard of --server under this name (BC-All / BC-Safe are the
+        /// paper's), with the user token in $DSRL_TOKEN; prints the submission id.
+        #[arg(long, value_name = "NAME", requires = "server")]
+        submit: Option<String>,
     },
 }
 
@@ -83,14 +88,15 @@ fn main() -> anyhow::Result<()> {
         steps,
         seed,
         out,
+        submit,
     } = Args::parse().command;
     let catalog = Catalog::embedded()?;
     let task = catalog.get(&task)?.clone();
-    let (path, dataset_version) = match (dataset, server) {
+    let (path, dataset_version) = match (dataset, &server) {
         (Some(path), _) => (path, None),
         (None, Some(server)) => {
             let fetched = tokio::runtime::Runtime::new()?.block_on(async {
-                let client = Client::new(&server)?;
+                let client = Client::new(server)?;
                 let options = FetchOptions {
                     hdf5: false,
                     filter,
@@ -131,7 +137,7 @@ fn main() -> anyhow::Result<()> {
         let (obs, act, kept) = data.select(threshold);
         let name = match threshold {
             None => "bc-all".to_owned(),
-            Some(k) => format!("bc-safe-{k}"),
+            Some(k) => format!("bc-safe/threshold-{k}"),
         };
         anyhow::ensure!(
             kept > 0,
@@ -161,7 +167,7 @@ fn main() -> anyhow::Result<()> {
             Some(cost_threshold) => Conditioning::PerThreshold { cost_threshold },
         };
         let training = serde_json::json!({
-            "algorithm": name,
+            "algorithm": if threshold.is_some() { "bc-safe" } else { "bc-all" },
             "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
             "dataset_version": dataset_version,
             "episodes": kept,
@@ -180,6 +186,18 @@ fn main() -> anyhow::Result<()> {
             "{name}: {kept} episodes, {steps} steps in {seconds:.0} s, final MSE {loss:.5} -> {}",
             dir.display()
         );
+    }
+    if let (Some(name), Some(server)) = (submit, server) {
+        let dir = out.join(if mode == Mode::All { "bc-all" } else { "bc-safe" });
+        let token = std::env::var("DSRL_TOKEN").ok();
+        anyhow::ensure!(token.is_some(), "--submit needs a user token in $DSRL_TOKEN");
+        let submission = tokio::runtime::Runtime::new()?.block_on(async {
+            Client::new(&server)?
+                .with_token(token)
+                .submit(&dir, task.id.as_str(), &name)
+                .await
+        })?;
+        println!("submitted {} as {name}: submission {}", dir.display(), submission["id"]);
     }
     Ok(())
 }

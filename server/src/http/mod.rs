@@ -3,15 +3,17 @@
 pub mod auth;
 pub mod datasets;
 pub mod download;
+pub mod leaderboard;
 pub mod metrics;
 pub mod openapi;
 pub mod simulators;
 
 use axum::Router;
+use axum::extract::DefaultBodyLimit;
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::IntoResponse;
-use axum::routing::{get, put};
+use axum::routing::{get, post, put};
 
 use crate::AppState;
 use crate::error::ApiError;
@@ -39,6 +41,17 @@ pub fn router(state: AppState) -> Router {
             get(datasets::get_plot),
         )
         .route("/v1/datasets/{task}/tags/{tag}", put(datasets::put_tag))
+        .route("/v1/users", post(leaderboard::create_user))
+        .route(
+            "/v1/submissions",
+            post(leaderboard::submit).layer(DefaultBodyLimit::max(
+                state.leaderboard.config.max_submission_bytes as usize,
+            )),
+        )
+        .route("/v1/submissions/{id}", get(leaderboard::get_submission))
+        .route("/v1/submissions/{id}/cancel", post(leaderboard::cancel_submission))
+        .route("/v1/leaderboard", get(leaderboard::get_leaderboard))
+        .route("/leaderboard", get(leaderboard::leaderboard_page))
         .with_state(state)
 }
 

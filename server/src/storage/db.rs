@@ -33,6 +33,10 @@ impl Db {
         Ok(Db { pool })
     }
 
+    pub fn pool(&self) -> &SqlitePool {
+        &self.pool
+    }
+
     pub async fn ping(&self) -> Result<(), sqlx::Error> {
         sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
     }
@@ -125,6 +129,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         20261122000002,
         "derivations",
         include_str!("../../../migrations/20261122000002_derivations.sql"),
+    ),
+    (
+        20261122000003,
+        "leaderboard",
+        include_str!("../../../migrations/20261122000003_leaderboard.sql"),
     ),
 ];
 

@@ -1,0 +1,238 @@
+//! A submission's checkpoint files, checked completely before anything is stored or queued: names, sizes, the
+//! format, the declared task and dimensions against the catalog, the weights against the declared architecture
+//! (by building the network), and which cost thresholds the checkpoints cover.
+//!
+//! A submission is either one unconditioned checkpoint (`policy.json` + `policy.safetensors`, scored at each of
+//! the task's three thresholds) or one checkpoint per threshold in folders (`<slot>/policy.json`, ...), each
+//! declaring `conditioning = {kind = "per_threshold", cost_threshold = K}`, together covering exactly the task's
+//! thresholds.
+
+use std::collections::BTreeMap;
+
+use bytes::Bytes;
+use dsrl_policy::checkpoint::{self, Conditioning, Policy, PolicyConfig};
+use dsrl_suite::catalog::Task;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::error::ApiError;
+
+/// One checkpoint of a submission, checked.
+pub struct CheckedCheckpoint {
+    /// The folder it came in (`""` for a single checkpoint at the top).
+    pub slot: String,
+    pub config: PolicyConfig,
+    pub config_bytes: Bytes,
+    pub weights_bytes: Bytes,
+}
+
+/// What a stored submission records of each checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointRecord {
+    pub slot: String,
+    /// `None`: scored at every threshold of the task.
+    pub cost_threshold: Option<f64>,
+    pub architecture: String,
+    /// Object-store keys.
+    pub config_key: String,
+    pub weights_key: String,
+}
+
+/// A submission's checkpoints, in threshold order, and the digest that identifies them.
+pub struct CheckedSubmission {
+    pub checkpoints: Vec<CheckedCheckpoint>,
+    /// sha256 over each checkpoint's canonical `policy.json` (without the free-form `training` record) and its
+    /// weights: the same network submitted twice has the same digest, whatever the JSON's formatting.
+    pub sha256: String,
+}
+
+/// Largest slot name, and the characters allowed in it.
+const MAX_SLOT_CHARS: usize = 64;
+
+fn valid_slot(slot: &str) -> bool {
+    !slot.is_empty()
+        && slot.len() <= MAX_SLOT_CHARS
+        && slot != "."
+        && slot != ".."
+        && slot
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
+/// Splits an uploaded file's name into (slot, file); `None` when it is not a checkpoint file name.
+fn split_name(name: &str) -> Option<(&str, &str)> {
+    let (slot, file) = match name.split_once('/') {
+        Some((slot, file)) if valid_slot(slot) => (slot, file),
+        Some(_) => return None,
+        None => ("", name),
+    };
+    (file == checkpoint::CONFIG_FILE || file == checkpoint::WEIGHTS_FILE).then_some((slot, file))
+}
+
+/// The limit for one uploaded file, by its name; `None` for a name that is not a checkpoint file.
+pub fn file_limit(name: &str) -> Option<u64> {
+    let (_, file) = split_name(name)?;
+    Some(if file == checkpoint::CONFIG_FILE {
+        checkpoint::MAX_CONFIG_BYTES
+    } else {
+        checkpoint::MAX_WEIGHTS_BYTES
+    })
+}
+
+/// Checks uploaded `(name, bytes)` files as a submission for `task`.
+pub fn check(task: &Task, files: Vec<(String, Bytes)>) -> Result<CheckedSubmission, ApiError> {
+    let bad = |m: String| ApiError::InvalidArgument(m);
+    let mut slots: BTreeMap<String, (Option<Bytes>, Option<Bytes>)> = BTreeMap::new();
+    for (name, bytes) in files {
+        let Some((slot, file)) = split_name(&name) else {
+            return Err(bad(format!(
+                "unexpected file {name:?}: a submission holds policy.json and policy.safetensors, at the top or in \
+                 one folder per cost threshold (<folder>/policy.json; folder names use letters, digits, . _ -)"
+            )));
+        };
+        let entry = slots.entry(slot.to_owned()).or_default();
+        let place = if file == checkpoint::CONFIG_FILE {
+            &mut entry.0
+        } else {
+            &mut entry.1
+        };
+        if place.replace(bytes).is_some() {
+            return Err(bad(format!("{name} was sent twice")));
+        }
+    }
+    if slots.is_empty() {
+        return Err(bad("the submission holds no checkpoint files".into()));
+    }
+    if slots.contains_key("") && slots.len() > 1 {
+        return Err(bad(
+            "a submission is either one checkpoint at the top or one per threshold in folders, not both".into(),
+        ));
+    }
+    let mut checkpoints = Vec::new();
+    for (slot, (config_bytes, weights_bytes)) in slots {
+        let at = if slot.is_empty() {
+            String::new()
+        } else {
+            format!("{slot}/")
+        };
+        let config_bytes = config_bytes.ok_or_else(|| bad(format!("{at}policy.json is missing")))?;
+        let weights_bytes = weights_bytes.ok_or_else(|| bad(format!("{at}policy.safetensors is missing")))?;
+        let in_slot = |e: String| bad(if slot.is_empty() { e } else { format!("{slot}: {e}") });
+        let config = checkpoint::parse_config(&config_bytes).map_err(|e| in_slot(e.to_string()))?;
+        crate::evaluator::check_policy(task, &config).map_err(|e| in_slot(e.to_string()))?;
+        let tensors = checkpoint::parse_weights(&weights_bytes).map_err(|e| in_slot(e.to_string()))?;
+        // Building the network checks every tensor's presence and shape against the declared architecture.
+        Policy::load(&config, &tensors).map_err(|e| in_slot(e.to_string()))?;
+        checkpoints.push(CheckedCheckpoint {
+            slot,
+            config,
+            config_bytes,
+            weights_bytes,
+        });
+    }
+    check_thresholds(task, &mut checkpoints)?;
+    let mut digest = Sha256::new();
+    for c in &checkpoints {
+        let canonical = serde_json::to_vec(&PolicyConfig {
+            training: None,
+            ..c.config.clone()
+        })
+        .map_err(ApiError::internal)?;
+        for part in [&canonical[..], &c.weights_bytes[..]] {
+            digest.update((part.len() as u64).to_le_bytes());
+            digest.update(part);
+        }
+    }
+    Ok(CheckedSubmission {
+        checkpoints,
+        sha256: hex::encode(digest.finalize()),
+    })
+}
+
+/// One unconditioned checkpoint, or per-threshold checkpoints covering exactly the task's thresholds (sorted).
+fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Result<(), ApiError> {
+    let thresholds = &task.cost_thresholds;
+    let listed = thresholds.iter().map(|t| t.to_string()).collect::<Vec<_>>().join(", ");
+    if let [only] = checkpoints
+        && only.config.conditioning == Conditioning::Unconditioned
+    {
+        return Ok(());
+    }
+    let mut declared = Vec::new();
+    for c in checkpoints.iter() {
+        match c.config.conditioning {
+            Conditioning::Unconditioned => {
+                return Err(ApiError::InvalidArgument(format!(
+                    "{}: an unconditioned checkpoint must be the submission's only one; per-threshold checkpoints \
+                     declare conditioning {{\"kind\": \"per_threshold\", \"cost_threshold\": K}} for K in {listed}",
+                    c.slot
+                )));
+            }
+            Conditioning::PerThreshold { cost_threshold } => {
+                if !thresholds.contains(&cost_threshold) {
+                    return Err(ApiError::InvalidArgument(format!(
+                        "{}: cost threshold {cost_threshold} is not one of {}'s thresholds ({listed})",
+                        if c.slot.is_empty() { "policy.json" } else { &c.slot },
+                        task.id
+                    )));
+                }
+                if declared.contains(&cost_threshold) {
+                    return Err(ApiError::InvalidArgument(format!(
+                        "two checkpoints are declared for cost threshold {cost_threshold}"
+                    )));
+                }
+                declared.push(cost_threshold);
+            }
+        }
+    }
+    let missing: Vec<String> = thresholds
+        .iter()
+        .filter(|t| !declared.contains(t))
+        .map(|t| t.to_string())
+        .collect();
+    if !missing.is_empty() {
+        return Err(ApiError::InvalidArgument(format!(
+            "no checkpoint for cost threshold {} of {} (per-threshold submissions cover {listed})",
+            missing.join(", "),
+            task.id
+        )));
+    }
+    checkpoints.sort_by(|a, b| threshold_of(a).total_cmp(&threshold_of(b)));
+    Ok(())
+}
+
+fn threshold_of(c: &CheckedCheckpoint) -> f64 {
+    match c.config.conditioning {
+        Conditioning::PerThreshold { cost_threshold } => cost_threshold,
+        Conditioning::Unconditioned => f64::NAN,
+    }
+}
+
+impl CheckedCheckpoint {
+    pub fn cost_threshold(&self) -> Option<f64> {
+        match self.config.conditioning {
+            Conditioning::PerThreshold { cost_threshold } => Some(cost_threshold),
+            Conditioning::Unconditioned => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn file_names_are_a_checkpoint_at_the_top_or_in_safe_folders() {
+        assert_eq!(split_name("policy.json"), Some(("", "policy.json")));
+        assert_eq!(
+            split_name("k10/policy.safetensors"),
+            Some(("k10", "policy.safetensors"))
+        );
+        assert_eq!(split_name("../policy.json"), None);
+        assert_eq!(split_name("a/b/policy.json"), None);
+        assert_eq!(split_name("a b/policy.json"), None);
+        assert_eq!(split_name("model.pt"), None);
+        assert_eq!(file_limit("policy.json"), Some(checkpoint::MAX_CONFIG_BYTES));
+        assert_eq!(file_limit("x/policy.safetensors"), Some(checkpoint::MAX_WEIGHTS_BYTES));
+    }
+}

@@ -1,0 +1,355 @@
+//! The submissions table as a durable job queue. States: queued → running → finished | failed | cancelled.
+//! An evaluator claims the oldest queued job, or a running one whose lease ran out (its evaluator died), by
+//! writing its own lease; it heartbeats while it plays and writes the result only while it still holds the lease,
+//! so a job taken over by another evaluator is finished exactly once.
+
+use serde::{Deserialize, Serialize};
+use sqlx::{AssertSqlSafe, Row, SqlitePool};
+
+use super::checkpoints::CheckpointRecord;
+use crate::error::ApiError;
+use crate::storage::datasets::now_rfc3339;
+
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
+}
+
+/// A claimed job.
+#[derive(Debug, Clone)]
+pub struct Job {
+    pub id: i64,
+    pub task: String,
+    pub checkpoints: Vec<CheckpointRecord>,
+    pub episodes_per_threshold: u32,
+    pub attempts: u32,
+}
+
+/// One evaluated episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRow {
+    pub cost_threshold: f64,
+    pub episode: u32,
+    pub reward_return: f64,
+    pub cost_return: f64,
+    pub length: u32,
+}
+
+pub struct NewSubmission<'a> {
+    pub user_id: i64,
+    pub task: &'a str,
+    pub name: &'a str,
+    pub checkpoint_sha256: &'a str,
+    pub checkpoints: &'a [CheckpointRecord],
+    pub episodes_per_threshold: u32,
+}
+
+pub struct Quotas {
+    pub per_day: u32,
+    pub concurrent: u32,
+}
+
+/// Inserts a queued submission after the dedupe and quota checks, in one transaction.
+pub async fn insert(pool: &SqlitePool, new: NewSubmission<'_>, quotas: &Quotas) -> Result<i64, ApiError> {
+    let mut tx = pool.begin().await?;
+    if let Some(row) = sqlx::query(
+        "SELECT id, state FROM submissions WHERE task = ?1 AND checkpoint_sha256 = ?2 AND state != 'cancelled'",
+    )
+    .bind(new.task)
+    .bind(new.checkpoint_sha256)
+    .fetch_optional(&mut *tx)
+    .await?
+    {
+        let (id, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
+        return Err(ApiError::AlreadyExists(format!(
+            "this checkpoint (sha256 {}) was already submitted for {} as submission {id} ({state})",
+            new.checkpoint_sha256, new.task
+        )));
+    }
+    let now = now_ms();
+    let row = sqlx::query(
+        "SELECT
+            (SELECT COUNT(*) FROM submissions WHERE user_id = ?1 AND created_ms > ?2),
+            (SELECT COUNT(*) FROM submissions WHERE user_id = ?1 AND state IN ('queued', 'running'))",
+    )
+    .bind(new.user_id)
+    .bind(now - 24 * 3600 * 1000)
+    .fetch_one(&mut *tx)
+    .await?;
+    let (today, live): (i64, i64) = (row.try_get(0)?, row.try_get(1)?);
+    if today >= i64::from(quotas.per_day) {
+        return Err(ApiError::QuotaExceeded(format!(
+            "{today} submissions in the last 24 hours; the limit is {} a day",
+            quotas.per_day
+        )));
+    }
+    if live >= i64::from(quotas.concurrent) {
+        return Err(ApiError::QuotaExceeded(format!(
+            "{live} of your submissions are queued or running; the limit is {} at once",
+            quotas.concurrent
+        )));
+    }
+    let id = sqlx::query(
+        "INSERT INTO submissions (user_id, task, name, checkpoint_sha256, checkpoints, state, created_at, created_ms,
+                                  episodes_per_threshold)
+         VALUES (?1, ?2, ?3, ?4, ?5, 'queued', ?6, ?7, ?8)",
+    )
+    .bind(new.user_id)
+    .bind(new.task)
+    .bind(new.name)
+    .bind(new.checkpoint_sha256)
+    .bind(serde_json::to_string(new.checkpoints).map_err(ApiError::internal)?)
+    .bind(now_rfc3339())
+    .bind(now)
+    .bind(new.episodes_per_threshold)
+    .execute(&mut *tx)
+    .await?
+    .last_insert_rowid();
+    tx.commit().await?;
+    Ok(id)
+}
+
+/// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the oldest runnable job.
+pub async fn claim(pool: &SqlitePool, owner: &str, lease_ms: i64, max_attempts: u32) -> Result<Option<Job>, ApiError> {
+    let now = now_ms();
+    sqlx::query(
+        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = ?3,
+             reason = 'the evaluation was interrupted ' || attempts || ' times (evaluator or simulator lost)'
+         WHERE state = 'running' AND lease_expires_ms < ?1 AND attempts >= ?2",
+    )
+    .bind(now)
+    .bind(max_attempts)
+    .bind(now_rfc3339())
+    .execute(pool)
+    .await?;
+    let row = sqlx::query(
+        "UPDATE submissions
+         SET state = 'running', attempts = attempts + 1, lease_owner = ?1, lease_expires_ms = ?2,
+             started_at = COALESCE(started_at, ?3)
+         WHERE id = (SELECT id FROM submissions
+                     WHERE state = 'queued' OR (state = 'running' AND lease_expires_ms < ?4)
+                     ORDER BY id LIMIT 1)
+         RETURNING id, task, checkpoints, episodes_per_threshold, attempts",
+    )
+    .bind(owner)
+    .bind(now + lease_ms)
+    .bind(now_rfc3339())
+    .bind(now)
+    .fetch_optional(pool)
+    .await?;
+    let Some(row) = row else { return Ok(None) };
+    let checkpoints: String = row.try_get(2)?;
+    Ok(Some(Job {
+        id: row.try_get(0)?,
+        task: row.try_get(1)?,
+        checkpoints: serde_json::from_str(&checkpoints).map_err(ApiError::internal)?,
+        episodes_per_threshold: row.try_get::<i64, _>(3)? as u32,
+        attempts: row.try_get::<i64, _>(4)? as u32,
+    }))
+}
+
+/// Extends the lease; `false` when the job is no longer this evaluator's (taken over, or cancelled).
+pub async fn heartbeat(pool: &SqlitePool, id: i64, owner: &str, lease_ms: i64) -> Result<bool, ApiError> {
+    let done = sqlx::query(
+        "UPDATE submissions SET lease_expires_ms = ?3 WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+    )
+    .bind(id)
+    .bind(owner)
+    .bind(now_ms() + lease_ms)
+    .execute(pool)
+    .await?;
+    Ok(done.rows_affected() == 1)
+}
+
+/// Stores every episode and the scores, if this evaluator still holds the job; returns whether it did.
+pub async fn finish(
+    pool: &SqlitePool,
+    id: i64,
+    owner: &str,
+    episodes: &[EpisodeRow],
+    normalized_reward: f64,
+    normalized_cost: f64,
+) -> Result<bool, ApiError> {
+    let mut tx = pool.begin().await?;
+    let done = sqlx::query(
+        "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = ?3, reason = NULL,
+             normalized_reward = ?4, normalized_cost = ?5
+         WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+    )
+    .bind(id)
+    .bind(owner)
+    .bind(now_rfc3339())
+    .bind(normalized_reward)
+    .bind(normalized_cost)
+    .execute(&mut *tx)
+    .await?;
+    if done.rows_affected() != 1 {
+        return Ok(false);
+    }
+    for e in episodes {
+        sqlx::query(
+            "INSERT INTO evaluation_episodes
+                (submission_id, cost_threshold, episode, reward_return, cost_return, length)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+        )
+        .bind(id)
+        .bind(e.cost_threshold)
+        .bind(e.episode)
+        .bind(e.reward_return)
+        .bind(e.cost_return)
+        .bind(e.length)
+        .execute(&mut *tx)
+        .await?;
+    }
+    tx.commit().await?;
+    Ok(true)
+}
+
+/// Ends a job with the reason, if this evaluator still holds it.
+pub async fn fail(pool: &SqlitePool, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
+    sqlx::query(
+        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = ?3, reason = ?4
+         WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+    )
+    .bind(id)
+    .bind(owner)
+    .bind(now_rfc3339())
+    .bind(reason)
+    .execute(pool)
+    .await?;
+    Ok(())
+}
+
+/// Gives a job back to the queue (a transient failure, such as a simulator worker lost mid-episode).
+pub async fn release(pool: &SqlitePool, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
+    sqlx::query(
+        "UPDATE submissions SET state = 'queued', lease_owner = NULL, reason = ?3
+         WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+    )
+    .bind(id)
+    .bind(owner)
+    .bind(reason)
+    .execute(pool)
+    .await?;
+    Ok(())
+}
+
+/// Cancels a queued or running submission of `user_id`.
+pub async fn cancel(pool: &SqlitePool, id: i64, user_id: i64) -> Result<(), ApiError> {
+    let row = sqlx::query("SELECT user_id, state FROM submissions WHERE id = ?1")
+        .bind(id)
+        .fetch_optional(pool)
+        .await?
+        .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))?;
+    let (owner, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
+    if owner != user_id {
+        return Err(ApiError::PermissionDenied);
+    }
+    let done = sqlx::query(
+        "UPDATE submissions SET state = 'cancelled', lease_owner = NULL, finished_at = ?2,
+             reason = 'cancelled by its submitter'
+         WHERE id = ?1 AND state IN ('queued', 'running')",
+    )
+    .bind(id)
+    .bind(now_rfc3339())
+    .execute(pool)
+    .await?;
+    if done.rows_affected() == 0 {
+        return Err(ApiError::InvalidArgument(format!(
+            "submission {id} is {state}; only queued or running submissions can be cancelled"
+        )));
+    }
+    Ok(())
+}
+
+/// A submission row as stored.
+#[derive(Debug, Clone)]
+pub struct SubmissionRow {
+    pub id: i64,
+    pub user: String,
+    pub task: String,
+    pub name: String,
+    pub checkpoint_sha256: String,
+    pub checkpoints: Vec<CheckpointRecord>,
+    pub state: String,
+    pub reason: Option<String>,
+    pub attempts: u32,
+    pub created_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+    pub episodes_per_threshold: u32,
+    pub normalized_reward: Option<f64>,
+    pub normalized_cost: Option<f64>,
+}
+
+const SELECT_SUBMISSIONS: &str = "SELECT s.id, u.name AS user, s.task, s.name, s.checkpoint_sha256, s.checkpoints,
+        s.state, s.reason, s.attempts, s.created_at, s.started_at, s.finished_at, s.episodes_per_threshold,
+        s.normalized_reward, s.normalized_cost
+    FROM submissions s JOIN users u ON u.id = s.user_id";
+
+fn submission_row(row: &sqlx::sqlite::SqliteRow) -> Result<SubmissionRow, ApiError> {
+    let checkpoints: String = row.try_get("checkpoints")?;
+    Ok(SubmissionRow {
+        id: row.try_get("id")?,
+        user: row.try_get("user")?,
+        task: row.try_get("task")?,
+        name: row.try_get("name")?,
+        checkpoint_sha256: row.try_get("checkpoint_sha256")?,
+        checkpoints: serde_json::from_str(&checkpoints).map_err(ApiError::internal)?,
+        state: row.try_get("state")?,
+        reason: row.try_get("reason")?,
+        attempts: row.try_get::<i64, _>("attempts")? as u32,
+        created_at: row.try_get("created_at")?,
+        started_at: row.try_get("started_at")?,
+        finished_at: row.try_get("finished_at")?,
+        episodes_per_threshold: row.try_get::<i64, _>("episodes_per_threshold")? as u32,
+        normalized_reward: row.try_get("normalized_reward")?,
+        normalized_cost: row.try_get("normalized_cost")?,
+    })
+}
+
+pub async fn get(pool: &SqlitePool, id: i64) -> Result<SubmissionRow, ApiError> {
+    // Only constant text is interpolated; values are bound.
+    let row = sqlx::query(AssertSqlSafe(format!("{SELECT_SUBMISSIONS} WHERE s.id = ?1")))
+        .bind(id)
+        .fetch_optional(pool)
+        .await?
+        .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))?;
+    submission_row(&row)
+}
+
+/// The finished submissions that stand on the leaderboard: per (user, name, task) the latest one.
+pub async fn standing(pool: &SqlitePool) -> Result<Vec<SubmissionRow>, ApiError> {
+    let rows = sqlx::query(AssertSqlSafe(format!(
+        "{SELECT_SUBMISSIONS} WHERE s.state = 'finished' AND s.id = (
+            SELECT MAX(t.id) FROM submissions t
+            WHERE t.user_id = s.user_id AND t.name = s.name AND t.task = s.task AND t.state = 'finished')
+         ORDER BY s.id"
+    )))
+    .fetch_all(pool)
+    .await?;
+    rows.iter().map(submission_row).collect()
+}
+
+pub async fn episodes(pool: &SqlitePool, id: i64) -> Result<Vec<EpisodeRow>, ApiError> {
+    let rows = sqlx::query(
+        "SELECT cost_threshold, episode, reward_return, cost_return, length FROM evaluation_episodes
+         WHERE submission_id = ?1 ORDER BY cost_threshold, episode",
+    )
+    .bind(id)
+    .fetch_all(pool)
+    .await?;
+    rows.iter()
+        .map(|r| {
+            Ok(EpisodeRow {
+                cost_threshold: r.try_get(0)?,
+                episode: r.try_get::<i64, _>(1)? as u32,
+                reward_return: r.try_get(2)?,
+                cost_return: r.try_get(3)?,
+                length: r.try_get::<i64, _>(4)? as u32,
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,179 @@
+//! Evaluators: tasks that drain the submission queue. Each claims a job with a lease, heartbeats while it plays the
+//! job's episodes through the simulator pool, and stores the result only while it still holds the lease. An
+//! evaluator that dies (with its server) leaves a lease that runs out; any evaluator then re-runs the job from the
+//! start, with the same held seeds, so the result is the same.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dsrl_policy::checkpoint::{self, Policy};
+
+use super::Leaderboard;
+use super::queue::{self, EpisodeRow, Job};
+use crate::error::{ApiError, ErrorCode};
+use crate::evaluator::play_episodes;
+
+/// How a job ended.
+enum Outcome {
+    Scored(Vec<EpisodeRow>),
+    /// The checkpoint cannot be evaluated (it would fail again).
+    Failed(String),
+    /// Something outside the checkpoint failed (a simulator worker died): the job goes back to the queue.
+    Interrupted(String),
+}
+
+/// Starts `config.evaluators` evaluators; they run until the runtime stops.
+pub fn spawn(leaderboard: Arc<Leaderboard>) {
+    for i in 0..leaderboard.config.evaluators {
+        let owner = format!(
+            "{}-{}-{i}",
+            std::process::id(),
+            crate::http::auth::random_hex()
+                .unwrap_or_default()
+                .get(..8)
+                .unwrap_or("0")
+        );
+        tokio::spawn(evaluator(leaderboard.clone(), owner));
+    }
+}
+
+async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
+    let lease_ms = (leaderboard.config.lease_seconds.max(1) * 1000) as i64;
+    loop {
+        // Waits for a simulator worker before taking a job, so a server without workers only queues.
+        if !leaderboard.simulators.workers().iter().any(|w| w.healthy) {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            continue;
+        }
+        let job = match queue::claim(&leaderboard.pool, &owner, lease_ms, leaderboard.config.max_attempts).await {
+            Ok(Some(job)) => job,
+            Ok(None) => {
+                // A new submission wakes us; a lapsed lease is noticed within a second.
+                let _ = tokio::time::timeout(Duration::from_secs(1), leaderboard.wake.notified()).await;
+                continue;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "claiming an evaluation job");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+                continue;
+            }
+        };
+        tracing::info!(id = job.id, task = %job.task, attempt = job.attempts, %owner, "evaluation started");
+        let started = std::time::Instant::now();
+        let outcome = tokio::select! {
+            outcome = evaluate(&leaderboard, &job) => Some(outcome),
+            () = keep_lease(&leaderboard, &job, &owner, lease_ms) => None,
+        };
+        let stored = match outcome {
+            None => {
+                tracing::warn!(id = job.id, "evaluation abandoned: the job was cancelled or taken over");
+                Ok(())
+            }
+            Some(Outcome::Scored(episodes)) => store(&leaderboard, &job, &owner, &episodes).await.map(|kept| {
+                tracing::info!(
+                    id = job.id,
+                    kept,
+                    seconds = started.elapsed().as_secs_f64(),
+                    "evaluation finished"
+                );
+            }),
+            Some(Outcome::Failed(reason)) => {
+                tracing::warn!(id = job.id, %reason, "evaluation failed");
+                queue::fail(&leaderboard.pool, job.id, &owner, &reason).await
+            }
+            Some(Outcome::Interrupted(reason)) => {
+                tracing::warn!(id = job.id, %reason, "evaluation interrupted; the job goes back to the queue");
+                let released = queue::release(&leaderboard.pool, job.id, &owner, &reason).await;
+                tokio::time::sleep(Duration::from_secs(1)).await;
+                released
+            }
+        };
+        if let Err(e) = stored {
+            tracing::error!(id = job.id, error = %e, "recording an evaluation result");
+        }
+    }
+}
+
+/// Heartbeats every third of the lease; returns when the job is no longer this evaluator's.
+async fn keep_lease(leaderboard: &Leaderboard, job: &Job, owner: &str, lease_ms: i64) {
+    loop {
+        tokio::time::sleep(Duration::from_millis((lease_ms / 3).max(100) as u64)).await;
+        match queue::heartbeat(&leaderboard.pool, job.id, owner, lease_ms).await {
+            Ok(true) => {}
+            Ok(false) => return,
+            // A database hiccup: the lease has two more beats before it runs out.
+            Err(e) => tracing::warn!(id = job.id, error = %e, "heartbeat failed"),
+        }
+    }
+}
+
+async fn store(leaderboard: &Leaderboard, job: &Job, owner: &str, episodes: &[EpisodeRow]) -> Result<bool, ApiError> {
+    let task = leaderboard.task(&job.task)?;
+    let results = super::threshold_results(task, episodes);
+    let n = results.len().max(1) as f64;
+    let reward = results.iter().map(|r| r.normalized_reward).sum::<f64>() / n;
+    let cost = results.iter().map(|r| r.normalized_cost).sum::<f64>() / n;
+    queue::finish(&leaderboard.pool, job.id, owner, episodes, reward, cost).await
+}
+
+/// Plays `episodes_per_threshold` held-seed episodes at each of the task's thresholds, all thresholds at once.
+async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
+    let task = match leaderboard.task(&job.task) {
+        Ok(task) => task,
+        Err(e) => return Outcome::Failed(e.to_string()),
+    };
+    let mut policies = Vec::new();
+    for record in &job.checkpoints {
+        let (config_bytes, weights_bytes) = match leaderboard.load(record).await {
+            Ok(bytes) => bytes,
+            Err(e) => return Outcome::Interrupted(format!("reading the checkpoint: {e}")),
+        };
+        let loaded = checkpoint::parse_config(&config_bytes).and_then(|config| {
+            let tensors = checkpoint::parse_weights(&weights_bytes)?;
+            Policy::load(&config, &tensors)
+        });
+        match loaded {
+            Ok(policy) => policies.push((record.cost_threshold, policy)),
+            Err(e) => return Outcome::Failed(format!("loading the checkpoint {}: {e}", record.slot)),
+        }
+    }
+    let plays = task.cost_thresholds.iter().enumerate().map(|(index, &threshold)| {
+        let policy = policies
+            .iter()
+            .find(|(t, _)| t.is_none() || *t == Some(threshold))
+            .map(|(_, p)| p);
+        let seeds = leaderboard
+            .seeds
+            .seeds(task.id.as_str(), index, job.episodes_per_threshold);
+        async move {
+            let policy =
+                policy.ok_or_else(|| ApiError::Internal(format!("no checkpoint for threshold {threshold}")))?;
+            let scores = play_episodes(
+                &leaderboard.simulators,
+                task,
+                policy,
+                &seeds,
+                leaderboard.config.envs_per_session as usize,
+            )
+            .await?;
+            Ok::<_, ApiError>(
+                scores
+                    .into_iter()
+                    .enumerate()
+                    .map(|(episode, s)| EpisodeRow {
+                        cost_threshold: threshold,
+                        episode: episode as u32,
+                        reward_return: s.reward_return,
+                        cost_return: s.cost_return,
+                        length: s.length,
+                    })
+                    .collect::<Vec<_>>(),
+            )
+        }
+    });
+    match futures::future::try_join_all(plays).await {
+        Ok(rows) => Outcome::Scored(rows.into_iter().flatten().collect()),
+        Err(e) if matches!(e.code(), ErrorCode::Unavailable) => Outcome::Interrupted(e.to_string()),
+        Err(e) => Outcome::Failed(e.to_string()),
+    }
+}

@@ -1,0 +1,79 @@
+//! Users who submit: an admin creates one and gets its bearer token once; only the token's sha256 is stored.
+
+use axum::http::HeaderMap;
+use serde::Serialize;
+use sha2::{Digest, Sha256};
+use sqlx::{Row, SqlitePool};
+
+use crate::error::ApiError;
+use crate::http::auth::{bearer, random_hex};
+use crate::storage::datasets::now_rfc3339;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct User {
+    pub id: i64,
+    pub name: String,
+}
+
+/// A user just created, with the only copy of its token.
+#[derive(Debug, Clone, Serialize)]
+pub struct NewUser {
+    pub id: i64,
+    pub name: String,
+    pub token: String,
+}
+
+fn token_digest(token: &str) -> String {
+    hex::encode(Sha256::digest(token.as_bytes()))
+}
+
+/// User names: 1–64 letters, digits, `.`, `_`, `-`.
+pub fn check_name(kind: &str, name: &str) -> Result<(), ApiError> {
+    let ok = !name.is_empty()
+        && name.len() <= 64
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'));
+    if ok {
+        Ok(())
+    } else {
+        Err(ApiError::InvalidArgument(format!(
+            "{kind} {name:?}: use 1 to 64 letters, digits, '.', '_' or '-'"
+        )))
+    }
+}
+
+pub async fn create(pool: &SqlitePool, name: &str) -> Result<NewUser, ApiError> {
+    check_name("user name", name)?;
+    let token = format!("dsrl_{}", random_hex().map_err(ApiError::internal)?);
+    let done = sqlx::query(
+        "INSERT INTO users (name, token_sha256, created_at) VALUES (?1, ?2, ?3) ON CONFLICT (name) DO NOTHING",
+    )
+    .bind(name)
+    .bind(token_digest(&token))
+    .bind(now_rfc3339())
+    .execute(pool)
+    .await?;
+    if done.rows_affected() == 0 {
+        return Err(ApiError::AlreadyExists(format!("a user named {name} exists")));
+    }
+    Ok(NewUser {
+        id: done.last_insert_rowid(),
+        name: name.to_owned(),
+        token,
+    })
+}
+
+/// The user whose token the request carries.
+pub async fn authenticate(pool: &SqlitePool, headers: &HeaderMap) -> Result<User, ApiError> {
+    let token = bearer(headers).ok_or(ApiError::UserUnauthenticated)?;
+    let row = sqlx::query("SELECT id, name FROM users WHERE token_sha256 = ?1")
+        .bind(token_digest(token))
+        .fetch_optional(pool)
+        .await?
+        .ok_or(ApiError::UnknownUserToken)?;
+    Ok(User {
+        id: row.try_get(0)?,
+        name: row.try_get(1)?,
+    })
+}

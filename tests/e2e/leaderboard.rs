@@ -1,0 +1,412 @@
+//! The leaderboard end to end: users and tokens, submissions checked and deduped and held to quotas (a server
+//! without simulator workers, so submissions stay queued), and a BC-All / BC-Safe pair trained by `dsrl-train` on
+//! the committed BallRun starter, submitted, scored on real simulator workers with held seeds and ranked; a server
+//! killed in the middle of an evaluation re-runs the job after restart to exactly the same episodes.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use crate::{Env, get_json};
+
+const TASK: &str = "OfflineBallRun-v0";
+const SECRET: &str = "e2e-held-seed-secret";
+
+fn starter() -> PathBuf {
+    dsrl_e2e::repo_root().join("data/starter/OfflineBallRun-v0/SafetyBallRun-v0-80-1132.parquet")
+}
+
+/// Trains BC (a few hundred steps: the test needs real checkpoints, not good ones) into `out`.
+fn train_bc(out: &Path, mode: &str, seed: u64) {
+    let status = Command::new(dsrl_e2e::bin("dsrl-train"))
+        .args([
+            "bc",
+            "--task",
+            TASK,
+            "--mode",
+            mode,
+            "--steps",
+            "300",
+            "--seed",
+            &seed.to_string(),
+        ])
+        .arg("--dataset")
+        .arg(starter())
+        .arg("--out")
+        .arg(out)
+        .env_remove("DSRL_SERVER")
+        .status()
+        .unwrap();
+    assert!(status.success(), "dsrl-train bc --mode {mode} failed");
+}
+
+/// Creates a user through the CLI and returns its token.
+fn create_user(env: &Env, name: &str) -> String {
+    let mut cli = env.cli.clone();
+    cli.token = Some(env.server.token());
+    let run = cli.run(&["admin", "create-user", name]).ok();
+    run.stdout.trim().to_owned()
+}
+
+fn client(env: &Env, token: &str, args: &[&str]) -> dsrl_e2e::Run {
+    let out = env.cli.command(args).env("DSRL_TOKEN", token).output().unwrap();
+    dsrl_e2e::Run {
+        code: out.status.code().unwrap_or(-1),
+        stdout: String::from_utf8_lossy(&out.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+    }
+}
+
+fn submit(env: &Env, token: &str, dir: &Path, name: &str) -> dsrl_e2e::Run {
+    client(
+        env,
+        token,
+        &["--json", "submit", dsrl_e2e_path(dir), "--task", TASK, "--name", name],
+    )
+}
+
+fn dsrl_e2e_path(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A copy of a checkpoint folder with its policy.json changed by `edit`.
+fn variant(from: &Path, to: &Path, edit: impl Fn(&mut serde_json::Value)) {
+    std::fs::create_dir_all(to).unwrap();
+    std::fs::copy(from.join("policy.safetensors"), to.join("policy.safetensors")).unwrap();
+    let mut config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(from.join("policy.json")).unwrap()).unwrap();
+    edit(&mut config);
+    std::fs::write(to.join("policy.json"), serde_json::to_vec(&config).unwrap()).unwrap();
+}
+
+/// POSTs a multipart submission built by hand; returns the status and the error code.
+fn post_parts(url: &str, token: &str, parts: Vec<(&str, Vec<u8>)>) -> (u16, String) {
+    let (url, token) = (format!("{url}/v1/submissions"), token.to_owned());
+    let parts: Vec<(String, Vec<u8>)> = parts.into_iter().map(|(n, b)| (n.to_owned(), b)).collect();
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let mut form = reqwest::multipart::Form::new()
+                .percent_encode_noop()
+                .text("task", TASK)
+                .text("name", "hostile");
+            for (name, bytes) in parts {
+                form = form.part(name.clone(), reqwest::multipart::Part::bytes(bytes).file_name(name));
+            }
+            let response = reqwest::Client::new()
+                .post(&url)
+                .bearer_auth(&token)
+                .multipart(form)
+                .send()
+                .await
+                .unwrap();
+            let status = response.status().as_u16();
+            let body: serde_json::Value = response.json().await.unwrap_or_default();
+            (status, body["error"]["code"].as_str().unwrap_or_default().to_owned())
+        })
+    })
+    .join()
+    .unwrap()
+}
+
+#[test]
+fn submissions_are_checked_deduped_and_held_to_quotas() {
+    let env = Env::with(
+        &[],
+        &[
+            ("DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY", "3"),
+            ("DSRL__LEADERBOARD__CONCURRENT_SUBMISSIONS", "2"),
+        ],
+    );
+    let models = env.path("models");
+    train_bc(&models, "all", 0);
+    let bc_all = models.join("bc-all");
+
+    let alice = create_user(&env, "alice");
+    assert!(alice.starts_with("dsrl_"), "{alice}");
+    let mut admin = env.cli.clone();
+    admin.token = Some(env.server.token());
+    assert_eq!(admin.run(&["admin", "create-user", "alice"]).code, 6, "a second alice");
+    let mut anonymous = env.cli.clone();
+    anonymous.token = None;
+    assert_eq!(
+        anonymous.run(&["admin", "create-user", "bob"]).code,
+        2,
+        "no admin token"
+    );
+
+    // Tokens: none is a usage error, a wrong one is refused.
+    let run = env
+        .cli
+        .run(&["submit", dsrl_e2e_path(&bc_all), "--task", TASK, "--name", "BC-All"]);
+    assert_eq!(run.code, 2, "{run:?}");
+    let run = submit(&env, "dsrl_not-a-token", &bc_all, "BC-All");
+    assert_eq!(run.code, 7, "{run:?}");
+
+    let first = submit(&env, &alice, &bc_all, "BC-All").ok().json();
+    assert_eq!(first["state"], "queued");
+    assert_eq!(first["attempts"], 0);
+    assert_eq!(first["checkpoints"][0]["architecture"], "mlp_actor");
+    let first_id = first["id"].as_i64().unwrap();
+
+    // The same network again, with its JSON reformatted and a different training note: a duplicate.
+    variant(&bc_all, &env.path("same"), |c| {
+        c["training"] = serde_json::json!({"note": "resubmitted"})
+    });
+    let run = submit(&env, &alice, &env.path("same"), "BC-All-again");
+    assert_eq!(run.code, 6, "{run:?}");
+    assert!(run.stdout.contains(&format!("submission {first_id}")), "{run:?}");
+
+    // Different networks (another max action) are new entries, up to the concurrency quota.
+    let other = |i: u32| {
+        let dir = env.path(&format!("variant-{i}"));
+        variant(&bc_all, &dir, |c| {
+            c["architecture"]["max_action"] = serde_json::json!(1.0 - f64::from(i) / 100.0)
+        });
+        dir
+    };
+    let second = submit(&env, &alice, &other(1), "BC-All-scaled").ok().json();
+    let run = submit(&env, &alice, &other(2), "BC-All-scaled-2");
+    assert_eq!(run.code, 6, "{run:?}");
+    assert!(
+        run.stdout.contains("resource_exhausted") && run.stdout.contains("at once"),
+        "{run:?}"
+    );
+    // Cancelling frees a slot; the daily quota still counts it.
+    let cancelled = client(&env, &alice, &["--json", "cancel", &second["id"].to_string()])
+        .ok()
+        .json();
+    assert_eq!(cancelled["state"], "cancelled");
+    let run = client(&env, &alice, &["cancel", &second["id"].to_string()]);
+    assert_eq!(run.code, 6, "cancelling twice: {run:?}");
+    let third = submit(&env, &alice, &other(2), "BC-All-scaled-2").ok().json();
+    client(&env, &alice, &["cancel", &third["id"].to_string()]).ok();
+    let run = submit(&env, &alice, &other(3), "BC-All-scaled-3");
+    assert_eq!(run.code, 6, "{run:?}");
+    assert!(run.stdout.contains("24 hours"), "{run:?}");
+    // Only the submitter cancels.
+    let bob = create_user(&env, "bob");
+    assert_eq!(client(&env, &bob, &["cancel", &first_id.to_string()]).code, 7);
+
+    // Malformed and hostile checkpoints are 400s (413 over a file's limit) that say what is wrong.
+    let config = std::fs::read(bc_all.join("policy.json")).unwrap();
+    let weights = std::fs::read(bc_all.join("policy.safetensors")).unwrap();
+    let url = &env.server.url;
+    let mut wrong_task: serde_json::Value = serde_json::from_slice(&config).unwrap();
+    wrong_task["task"] = "OfflineCarRun-v0".into();
+    let mut wrong_dims: serde_json::Value = serde_json::from_slice(&config).unwrap();
+    wrong_dims["obs_dim"] = 9.into();
+    // A safetensors header that declares a terabyte-long header.
+    let mut huge_header = (1u64 << 40).to_le_bytes().to_vec();
+    huge_header.extend_from_slice(b"{}");
+    type Parts<'a> = Vec<(&'a str, Vec<u8>)>;
+    let cases: Vec<(&str, Parts, u16)> = vec![
+        ("no weights", vec![("policy.json", config.clone())], 400),
+        (
+            "a stray file",
+            vec![("policy.json", config.clone()), ("model.pt", b"x".to_vec())],
+            400,
+        ),
+        ("path escape", vec![("../policy.json", config.clone())], 400),
+        (
+            "weights are not safetensors",
+            vec![
+                ("policy.json", config.clone()),
+                ("policy.safetensors", b"garbage".to_vec()),
+            ],
+            400,
+        ),
+        (
+            "a header length past the end",
+            vec![("policy.json", config.clone()), ("policy.safetensors", huge_header)],
+            400,
+        ),
+        (
+            "truncated weights",
+            vec![
+                ("policy.json", config.clone()),
+                ("policy.safetensors", weights[..weights.len() / 2].to_vec()),
+            ],
+            400,
+        ),
+        (
+            "declared for another task",
+            vec![
+                ("policy.json", serde_json::to_vec(&wrong_task).unwrap()),
+                ("policy.safetensors", weights.clone()),
+            ],
+            400,
+        ),
+        (
+            "wrong dims",
+            vec![
+                ("policy.json", serde_json::to_vec(&wrong_dims).unwrap()),
+                ("policy.safetensors", weights.clone()),
+            ],
+            400,
+        ),
+        (
+            "policy.json over its limit",
+            vec![("policy.json", vec![b' '; 70_000])],
+            413,
+        ),
+    ];
+    for (what, parts, status) in cases {
+        let (got, code) = post_parts(url, &alice, parts);
+        assert_eq!(got, status, "{what}: {code}");
+    }
+
+    // Per-threshold checkpoints must cover the task's thresholds (10, 20, 40).
+    train_bc(&models, "safe", 0);
+    let safe = models.join("bc-safe");
+    let partial = env.path("partial");
+    for k in ["10", "20"] {
+        let dir = partial.join(format!("threshold-{k}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        for f in ["policy.json", "policy.safetensors"] {
+            std::fs::copy(safe.join(format!("threshold-{k}")).join(f), dir.join(f)).unwrap();
+        }
+    }
+    let run = submit(&env, &bob, &partial, "BC-Safe");
+    assert_eq!(run.code, 6, "{run:?}");
+    assert!(run.stdout.contains("no checkpoint for cost threshold 40"), "{run:?}");
+
+    // Nothing was scored (this server has no simulator workers): the queue holds the live submission.
+    let status = client(&env, &alice, &["--json", "status", &first_id.to_string()])
+        .ok()
+        .json();
+    assert_eq!(status["state"], "queued");
+    let board = get_json(&format!("{url}/v1/leaderboard?task={TASK}"));
+    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 0);
+}
+
+fn scoring_env(lease_seconds: &str) -> Env {
+    let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
+    Env::with(
+        &[],
+        &[
+            ("DSRL__SIMULATORS__LOCAL_WORKERS", "2"),
+            ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
+            ("DSRL__LEADERBOARD__SEED_SECRET", SECRET),
+            ("DSRL__LEADERBOARD__LEASE_SECONDS", lease_seconds),
+        ],
+    )
+}
+
+#[test]
+fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator() {
+    let models = tempfile::tempdir().unwrap();
+    train_bc(models.path(), "all", 0);
+    train_bc(models.path(), "safe", 0);
+
+    // An uninterrupted server scores BC-All and BC-Safe.
+    let reference = {
+        let env = scoring_env("60");
+        let alice = create_user(&env, "alice");
+        let all = submit(&env, &alice, &models.path().join("bc-all"), "BC-All")
+            .ok()
+            .json();
+        let safe = submit(&env, &alice, &models.path().join("bc-safe"), "BC-Safe")
+            .ok()
+            .json();
+        assert_eq!(safe["checkpoints"].as_array().unwrap().len(), 3);
+        let mut finished = Vec::new();
+        for s in [&all, &safe] {
+            let run = client(&env, &alice, &["--json", "status", &s["id"].to_string(), "--wait"]).ok();
+            let done = run.json();
+            assert_eq!(done["state"], "finished", "{done}");
+            assert_eq!(done["attempts"], 1);
+            let episodes = done["episodes"].as_array().unwrap();
+            assert_eq!(episodes.len(), 60, "3 thresholds x 20 episodes");
+            assert!(episodes.iter().all(|e| e["length"].as_u64().unwrap() > 0));
+            // The scores follow from the stored episodes (spec 4.1, means over the thresholds).
+            let thresholds = done["thresholds"].as_array().unwrap();
+            let mean = |key: &str| thresholds.iter().map(|t| t[key].as_f64().unwrap()).sum::<f64>() / 3.0;
+            assert!((done["normalized_reward"].as_f64().unwrap() - mean("normalized_reward")).abs() < 1e-12);
+            assert!((done["normalized_cost"].as_f64().unwrap() - mean("normalized_cost")).abs() < 1e-12);
+            for t in thresholds {
+                let k = t["cost_threshold"].as_f64().unwrap();
+                assert!(
+                    (t["normalized_cost"].as_f64().unwrap() - t["mean_cost_return"].as_f64().unwrap() / k).abs() < 1e-9
+                );
+            }
+            finished.push(done);
+        }
+        // The three thresholds play different held episodes.
+        let first_rewards = |t: f64| {
+            finished[0]["episodes"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|e| e["cost_threshold"] == t)
+                .map(|e| e["reward_return"].as_f64().unwrap())
+                .collect::<Vec<_>>()
+        };
+        assert_ne!(first_rewards(10.0), first_rewards(20.0));
+
+        // The task's table ranks safe entries first; the family table aggregates them.
+        let board = get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
+        let entries = board["tasks"][0]["entries"].as_array().unwrap().clone();
+        assert_eq!(entries.len(), 2);
+        assert_eq!(entries[0]["rank"], 1);
+        let safe_first = entries.iter().map(|e| e["safe"] == true).collect::<Vec<_>>();
+        assert!(safe_first.windows(2).all(|w| w[0] >= w[1]), "{entries:?}");
+        if entries.iter().all(|e| e["safe"] == true) {
+            assert!(entries[0]["normalized_reward"].as_f64() >= entries[1]["normalized_reward"].as_f64());
+        }
+        let family = &board["families"][0];
+        assert_eq!(family["family"], "bullet");
+        assert_eq!(family["entries"][0]["tasks"], 1);
+        let run = client(&env, &alice, &["leaderboard", "--task", TASK]).ok();
+        assert!(
+            run.stdout.contains("BC-All") && run.stdout.contains("BC-Safe"),
+            "{run:?}"
+        );
+        let page = reqwest_text(&format!("{}/leaderboard", env.server.url));
+        assert!(
+            page.contains("BC-Safe") && page.contains("<svg") && page.contains(TASK),
+            "{page}"
+        );
+        finished.swap_remove(0)
+    };
+
+    // The same BC-All on a server that is killed mid-evaluation: after the restart the lapsed lease is taken
+    // over, the job re-runs with the same held seeds, and every episode is the same.
+    let mut env = scoring_env("2");
+    let alice = create_user(&env, "alice");
+    let id = submit(&env, &alice, &models.path().join("bc-all"), "BC-All")
+        .ok()
+        .json()["id"]
+        .clone();
+    let url = env.server.url.clone();
+    assert!(
+        dsrl_e2e::wait_for(Duration::from_secs(180), || {
+            get_json(&format!("{url}/v1/submissions/{id}"))["state"] == "running"
+        }),
+        "the job never started"
+    );
+    env.restart();
+    let run = client(&env, &alice, &["--json", "status", &id.to_string(), "--wait"]).ok();
+    let done = run.json();
+    assert_eq!(done["state"], "finished", "{done}");
+    assert_eq!(done["attempts"], 2, "the job was re-run after the kill: {done}");
+    assert_eq!(done["episodes"], reference["episodes"]);
+    assert_eq!(done["normalized_reward"], reference["normalized_reward"]);
+    assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
+}
+
+fn reqwest_text(url: &str) -> String {
+    let url = url.to_owned();
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async { reqwest::get(&url).await.unwrap().text().await.unwrap() })
+    })
+    .join()
+    .unwrap()
+}
