@@ -8,6 +8,12 @@ pub mod datasets {
     }
 }
 
+pub mod leaderboard {
+    pub mod v1 {
+        include!("gen/dsrl.leaderboard.v1.rs");
+    }
+}
+
 pub mod simulator {
     pub mod v1 {
         include!("gen/dsrl.simulator.v1.rs");

@@ -2,7 +2,11 @@
 
 use std::path::{Path, PathBuf};
 
-const PROTOS: &[&str] = &["dsrl/datasets/v1/datasets.proto", "dsrl/simulator/v1/simulator.proto"];
+const PROTOS: &[&str] = &[
+    "dsrl/datasets/v1/datasets.proto",
+    "dsrl/leaderboard/v1/leaderboard.proto",
+    "dsrl/simulator/v1/simulator.proto",
+];
 
 fn generate(out: &Path) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));

@@ -23,6 +23,7 @@ use axum::Router;
 use axum::http::StatusCode;
 use axum::response::IntoResponse;
 use dsrl_proto::datasets::v1::dataset_service_server::DatasetServiceServer;
+use dsrl_proto::leaderboard::v1::leaderboard_service_server::LeaderboardServiceServer;
 use dsrl_suite::Catalog;
 use tonic::server::NamedService;
 use tower_http::catch_panic::CatchPanicLayer;
@@ -112,8 +113,16 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
 pub fn app(state: AppState) -> Router {
     let grpc_service = DatasetServiceServer::new(grpc::DatasetGrpc::new(state.clone()));
     let grpc_path = format!("/{}/{{*method}}", DatasetServiceServer::<grpc::DatasetGrpc>::NAME);
+    // A submission arrives in one message: allow its size (the files' own limits are checked in the handler).
+    let leaderboard_service = LeaderboardServiceServer::new(leaderboard::grpc::LeaderboardGrpc::new(state.clone()))
+        .max_decoding_message_size(state.leaderboard.config.max_submission_bytes as usize + (1 << 20));
+    let leaderboard_path = format!(
+        "/{}/{{*method}}",
+        LeaderboardServiceServer::<leaderboard::grpc::LeaderboardGrpc>::NAME
+    );
     http::router(state.clone())
         .route_service(&grpc_path, grpc_service)
+        .route_service(&leaderboard_path, leaderboard_service)
         .fallback(http::not_found)
         .layer(axum::middleware::from_fn_with_state(state, http::metrics::track))
         .layer(TraceLayer::new_for_http())

@@ -274,6 +274,8 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     assert_eq!(run.code, 6, "{run:?}");
     assert!(run.stdout.contains("no checkpoint for cost threshold 40"), "{run:?}");
 
+    grpc_submissions(&env.server.url, &alice, &bc_all, first_id);
+
     // Nothing was scored (this server has no simulator workers): the queue holds the live submission.
     let status = client(&env, &alice, &["--json", "status", &first_id.to_string()])
         .ok()
@@ -281,6 +283,81 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     assert_eq!(status["state"], "queued");
     let board = get_json(&format!("{url}/v1/leaderboard?task={TASK}"));
     assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 0);
+}
+
+/// The same service over gRPC: tokens in metadata, the same dedupe and the same errors as REST.
+fn grpc_submissions(url: &str, token: &str, bc_all: &Path, first_id: i64) {
+    use dsrl_proto::leaderboard::v1 as pb;
+    use dsrl_proto::leaderboard::v1::leaderboard_service_client::LeaderboardServiceClient;
+    let files: Vec<pb::CheckpointFile> = ["policy.json", "policy.safetensors"]
+        .iter()
+        .map(|f| pb::CheckpointFile {
+            path: f.to_string(),
+            content: std::fs::read(bc_all.join(f)).unwrap(),
+        })
+        .collect();
+    let (url, token) = (url.to_owned(), token.to_owned());
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let mut grpc = LeaderboardServiceClient::connect(url).await.unwrap();
+            let submit = |token: Option<&str>, files: Vec<pb::CheckpointFile>| {
+                let mut request = tonic::Request::new(pb::SubmitRequest {
+                    task: TASK.into(),
+                    name: "BC-All-grpc".into(),
+                    files,
+                });
+                if let Some(t) = token {
+                    request
+                        .metadata_mut()
+                        .insert("authorization", format!("Bearer {t}").parse().unwrap());
+                }
+                request
+            };
+            let err = grpc.submit(submit(None, files.clone())).await.unwrap_err();
+            assert_eq!(err.code(), tonic::Code::Unauthenticated);
+            let err = grpc.submit(submit(Some(&token), files.clone())).await.unwrap_err();
+            assert_eq!(err.code(), tonic::Code::AlreadyExists, "{err:?}");
+            assert!(err.message().contains(&format!("submission {first_id}")), "{err:?}");
+            let err = grpc
+                .submit(submit(Some(&token), files[..1].to_vec()))
+                .await
+                .unwrap_err();
+            assert_eq!(err.code(), tonic::Code::InvalidArgument);
+            assert!(err.message().contains("policy.safetensors is missing"), "{err:?}");
+            let submission = grpc
+                .get_submission(pb::GetSubmissionRequest {
+                    id: first_id,
+                    episodes: true,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!(submission.state, "queued");
+            assert_eq!(submission.name, "BC-All");
+            let board = grpc
+                .get_leaderboard(pb::GetLeaderboardRequest {
+                    task: Some(TASK.into()),
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!(board.tasks.len(), 1);
+            assert!(board.tasks[0].entries.is_empty());
+            let err = grpc
+                .get_leaderboard(pb::GetLeaderboardRequest {
+                    task: Some("AntRun".into()),
+                })
+                .await
+                .unwrap_err();
+            assert_eq!(err.code(), tonic::Code::NotFound);
+        })
+    })
+    .join()
+    .unwrap();
 }
 
 fn scoring_env(lease_seconds: &str) -> Env {

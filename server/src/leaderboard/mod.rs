@@ -6,6 +6,7 @@
 //! `runner` the evaluators that drain it, `seeds` the held episode seeds, `page` the HTML page.
 
 pub mod checkpoints;
+pub mod grpc;
 pub mod page;
 pub mod queue;
 pub mod runner;

@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# Benchmark: wall time to score one leaderboard submission (the paper's protocol: 3 cost thresholds x 20 episodes)
+# on OfflineBallCircle-v0 (SafetyBallCircle-v0, 200-step episodes), side by side in one run:
+#   - dsrl: a release dsrl-server with two local simulator workers (one per core) scores a BC-All checkpoint
+#     submitted with dsrl-client; timed from the submit call until the submission reads `finished` (polled every
+#     50 ms), so it includes the upload, the checks, the queue and storing all 60 episodes;
+#   - reference: a sequential in-process Python loop like OSRL's evaluation (tests/parity/evaluate_in_python.py:
+#     one env, one episode after another, NumPy forward pass per step) playing the same checkpoint for 60 episodes.
+# The checkpoint is BC-All trained by dsrl-train on the committed BallCircle starter (2000 steps; its quality does
+# not matter here, only that both sides play the same network). Prints a Markdown table (bench/out/score.md).
+# Usage: bench/score.sh [ROUNDS=3]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+rounds=${1:-3}
+sim/setup.sh >&2
+export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
+cargo build --release --locked -p dsrl-server -p dsrl-client -p dsrl-train -p dsrl-sim --bins >&2
+bin=$(realpath "${CARGO_TARGET_DIR:-target}/release")
+work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-score-bench.XXXXXX")
+server_pid=
+cleanup() { [ -n "$server_pid" ] && kill "$server_pid" 2>/dev/null; rm -rf "$work"; }
+trap cleanup EXIT
+mkdir -p bench/out
+task=OfflineBallCircle-v0
+"$bin/dsrl-train" bc --task $task --mode all --dataset "$(ls data/starter/$task/*.parquet)" --steps 2000 \
+  --out "$work/policy" >&2
+
+# The server on a free loopback port, with its own data folder and two workers.
+DSRL__SIMULATORS__LOCAL_WORKERS=2 DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000 \
+  "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
+  > "$work/server.out" 2> "$work/server.log" &
+server_pid=$!
+for _ in $(seq 100); do grep -q 'listening on' "$work/server.out" 2>/dev/null && break; sleep 0.1; done
+url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
+export DSRL_SERVER=$url
+for _ in $(seq 600); do
+  [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(sum(w["healthy"] for w in json.load(sys.stdin)["workers"]))')" = 2 ] && break
+  sleep 0.2
+done
+export DSRL_TOKEN=$(DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin create-user bench)
+
+python_s=() dsrl_s=()
+for round in $(seq "$rounds"); do
+  # A new network each round (max_action differs in the last digit), so the dedupe does not answer from the
+  # first result; the play is the same.
+  dir="$work/round-$round"; mkdir -p "$dir"
+  cp "$work/policy/bc-all/policy.safetensors" "$dir/"
+  python3 -c "import json,sys; c=json.load(open('$work/policy/bc-all/policy.json')); c['architecture']['max_action']=1.0-$round*1e-9; json.dump(c, open('$dir/policy.json','w'))"
+  start=$(date +%s.%N)
+  id=$("$bin/dsrl-client" submit "$dir" --task $task --name "bench-$round" 2>/dev/null)
+  while :; do
+    state=$(curl -s "$url/v1/submissions/$id" | python3 -c 'import json,sys; print(json.load(sys.stdin)["state"])')
+    case $state in finished) break ;; failed|cancelled) echo "submission $id $state" >&2; exit 1 ;; esac
+    sleep 0.05
+  done
+  end=$(date +%s.%N)
+  dsrl_s+=("$(python3 -c "print($end - $start)")")
+  start=$(date +%s.%N)
+  .venv-sim/bin/python tests/parity/evaluate_in_python.py "$dir" --sim-id SafetyBallCircle-v0 --episodes 60 > "$work/python.json"
+  end=$(date +%s.%N)
+  python_s+=("$(python3 -c "print($end - $start)")")
+done
+steps=$(curl -s "$url/v1/submissions/$id" | python3 -c 'import json,sys; print(sum(e["length"] for e in json.load(sys.stdin)["episodes"]))')
+steps_py=$(python3 -c "import json; print(sum(e['length'] for e in json.load(open('$work/python.json'))['episodes']))")
+median() { printf '%s\n' "$@" | sort -g | awk '{a[NR]=$1} END{print a[int((NR+1)/2)]}'; }
+{
+  echo "| scoring one submission on $task (3 thresholds x 20 episodes) | env-steps | median wall s ($rounds rounds) | each round, s |"
+  echo "|---|---|---|---|"
+  echo "| sequential in-process Python loop (OSRL-style, 1 env) | $steps_py | $(median "${python_s[@]}") | ${python_s[*]} |"
+  echo "| dsrl-server: submit → finished (2 workers, 10 envs per session) | $steps | $(median "${dsrl_s[@]}") | ${dsrl_s[*]} |"
+} > bench/out/score.md
+cat bench/out/score.md
