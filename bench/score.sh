@@ -67,6 +67,6 @@ median() { printf '%s\n' "$@" | sort -g | awk '{a[NR]=$1} END{print a[int((NR+1)
   echo "| scoring one submission on $task (3 thresholds x 20 episodes) | env-steps | median wall s ($rounds rounds) | each round, s |"
   echo "|---|---|---|---|"
   echo "| sequential in-process Python loop (OSRL-style, 1 env) | $steps_py | $(median "${python_s[@]}") | ${python_s[*]} |"
-  echo "| dsrl-server: submit → finished (2 workers, 10 envs per session) | $steps | $(median "${dsrl_s[@]}") | ${dsrl_s[*]} |"
+  echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | ${dsrl_s[*]} |"
 } > bench/out/score.md
 cat bench/out/score.md

@@ -140,7 +140,9 @@ async fn evaluate(
     );
     let seeds: Vec<u64> = (0..u64::from(episodes)).map(|i| seed + i).collect();
     let started = std::time::Instant::now();
-    let scores = evaluator::play_episodes(&pool, &task, &policy, &seeds, envs_per_session as usize).await?;
+    // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
+    let sessions = seeds.len().div_ceil(envs_per_session.max(1) as usize);
+    let scores = evaluator::play_episodes(&pool, &task, &policy, &seeds, envs_per_session as usize, sessions).await?;
     let n = scores.len().max(1) as f64;
     let reward = scores.iter().map(|s| s.reward_return).sum::<f64>() / n;
     let cost = scores.iter().map(|s| s.cost_return).sum::<f64>() / n;

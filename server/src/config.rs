@@ -29,7 +29,8 @@ pub struct LeaderboardConfig {
     pub evaluators: u32,
     /// Episodes per cost threshold.
     pub episodes_per_threshold: u32,
-    /// Environments per simulator session while scoring.
+    /// Environments per threshold while scoring: one session each, every environment playing
+    /// `episodes_per_threshold / envs_per_session` episodes in turn (creating environments costs more than stepping).
     pub envs_per_session: u32,
     /// An evaluator's claim on a job lapses this long after its last heartbeat; another evaluator then re-runs it.
     pub lease_seconds: u64,
@@ -50,7 +51,7 @@ impl Default for LeaderboardConfig {
         LeaderboardConfig {
             evaluators: 1,
             episodes_per_threshold: 20,
-            envs_per_session: 10,
+            envs_per_session: 5,
             lease_seconds: 60,
             max_attempts: 3,
             submissions_per_day: 10,

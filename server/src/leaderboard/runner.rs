@@ -154,6 +154,7 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
                 policy,
                 &seeds,
                 leaderboard.config.envs_per_session as usize,
+                1,
             )
             .await?;
             Ok::<_, ApiError>(
