@@ -372,11 +372,7 @@ mod tests {
     #[test]
     fn a_written_checkpoint_reads_back_to_the_same_actions() {
         let actor = GaussianActor::new(7, 2, &[32, 32], Activation::Tanh, 1.0, &mut Noise::seeded(2)).unwrap();
-        let tensors: Vec<(String, Tensor)> = actor
-            .named_vars()
-            .into_iter()
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect();
+        let tensors = crate::tensors_of(actor.named_vars());
         let dir = tempfile::tempdir().unwrap();
         write(dir.path(), &config(), &tensors).unwrap();
         let (back_config, back_tensors) = read(dir.path()).unwrap();
@@ -463,10 +459,6 @@ mod tests {
         assert_eq!(read_limited(&big, 4096).unwrap().len(), 2048);
     }
 
-    fn named(vars: Vec<(String, crate::Var)>) -> Vec<(String, Tensor)> {
-        vars.into_iter().map(|(n, v)| (n, v.as_tensor().clone())).collect()
-    }
-
     #[test]
     fn every_architecture_acts_as_its_definition_and_applies_the_declared_normalization() {
         let mut noise = Noise::seeded(3);
@@ -492,7 +484,7 @@ mod tests {
             },
             None,
         );
-        let tensors: HashMap<String, Tensor> = named(net.named_vars()).into_iter().collect();
+        let tensors: HashMap<String, Tensor> = crate::tensors_of(net.named_vars()).into_iter().collect();
         let policy = Policy::load(&config, &tensors).unwrap();
         let want = net.forward(&obs).unwrap().tanh().unwrap().affine(2.0, 0.0).unwrap();
         assert_eq!(
@@ -524,9 +516,9 @@ mod tests {
         let trunk = Mlp::orthogonal("actor.trunk", &[3, 8, 8], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
         let mu = Mlp::orthogonal("actor.mu", &[8, 2], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
         let log_std = Mlp::orthogonal("actor.log_std", &[8, 2], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
-        let mut all = named(trunk.named_vars());
-        all.extend(named(mu.named_vars()));
-        all.extend(named(log_std.named_vars()));
+        let mut all = crate::tensors_of(trunk.named_vars());
+        all.extend(crate::tensors_of(mu.named_vars()));
+        all.extend(crate::tensors_of(log_std.named_vars()));
         let tensors: HashMap<String, Tensor> = all.into_iter().collect();
         let config = with(
             Architecture::SquashedGaussianMlp {

@@ -29,6 +29,11 @@ pub enum PolicyError {
 
 pub type Result<T> = std::result::Result<T, PolicyError>;
 
+/// The current values of named variables, as a checkpoint or a training state stores them.
+pub fn tensors_of(vars: impl IntoIterator<Item = (String, Var)>) -> Vec<(String, Tensor)> {
+    vars.into_iter().map(|(n, v)| (n, v.as_tensor().clone())).collect()
+}
+
 /// Writes named tensors as one safetensors file (through a temporary name and a rename).
 pub fn candle_save(tensors: &std::collections::HashMap<String, Tensor>, path: &std::path::Path) -> Result<()> {
     let part = path.with_extension("safetensors.part");

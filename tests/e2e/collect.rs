@@ -50,23 +50,13 @@ fn collect(recipe: &Path, state: &Path, extra: &[&str]) -> Command {
     cmd
 }
 
-fn run_json(mut cmd: Command) -> serde_json::Value {
-    let out = cmd.stderr(Stdio::inherit()).output().unwrap();
-    assert!(
-        out.status.success(),
-        "dsrl-admin failed: {}",
-        String::from_utf8_lossy(&out.stdout)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
-}
-
 #[test]
 fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance() {
     let env = Env::new();
     let recipe = tiny_recipe(env.dir.path());
 
     // Uninterrupted reference run.
-    let reference = run_json(collect(&recipe, &env.path("reference"), &[]));
+    let reference = crate::admin_json(collect(&recipe, &env.path("reference"), &[]));
     assert_eq!(reference["episodes"], 4);
     let version = reference["version"].as_str().unwrap().to_owned();
 
@@ -89,7 +79,7 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
         "the run finished before it could be killed"
     );
     let token = env.server.token();
-    let resumed = run_json(collect(
+    let resumed = crate::admin_json(collect(
         &recipe,
         &state,
         &["--server", &env.server.url, "--token", &token, "--tag", "idm-tiny"],
@@ -108,7 +98,7 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
     // A starter-sized cut of the finished run reuses its settings: nothing is simulated again.
     let starter = env.path("starter");
     let started = std::time::Instant::now();
-    let cut = run_json(collect(
+    let cut = crate::admin_json(collect(
         &recipe,
         &state,
         &["--max-episodes", "2", "--out", starter.to_str().unwrap()],

@@ -39,16 +39,6 @@ fn collect(task: &str, recipe: &Path, state: &Path, budget: u64, workers: u32, e
     cmd
 }
 
-fn run_json(mut cmd: Command) -> serde_json::Value {
-    let out = cmd.stderr(Stdio::inherit()).output().unwrap();
-    assert!(
-        out.status.success(),
-        "dsrl-admin failed: {}",
-        String::from_utf8_lossy(&out.stdout)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
-}
-
 #[test]
 fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_provenance() {
     const TASK: &str = "OfflineBallRun-v0";
@@ -57,7 +47,7 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     let recipe = small_recipe(env.dir.path(), TASK, 4, 2);
     let budget = 4800;
 
-    let reference = run_json(collect(TASK, &recipe, &env.path("reference"), budget, 1, &[]));
+    let reference = crate::admin_json(collect(TASK, &recipe, &env.path("reference"), budget, 1, &[]));
     let version = reference["version"].as_str().unwrap().to_owned();
     let details = &reference["provenance"]["details"];
     assert_eq!(details["collects"], 12);
@@ -88,7 +78,7 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
         "the run finished before it could be killed"
     );
     let token = env.server.token();
-    let resumed = run_json(collect(
+    let resumed = crate::admin_json(collect(
         TASK,
         &recipe,
         &state,

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use crate::{Env, get_json};
+use crate::{Env, block_on, get_json, s};
 
 const TASK: &str = "OfflineBallRun-v0";
 const SECRET: &str = "e2e-held-seed-secret";
@@ -48,25 +48,17 @@ fn create_user(env: &Env, name: &str) -> String {
     run.stdout.trim().to_owned()
 }
 
+/// The CLI as the user holding `token`.
 fn client(env: &Env, token: &str, args: &[&str]) -> dsrl_e2e::Run {
-    let out = env.cli.command(args).env("DSRL_TOKEN", token).output().unwrap();
-    dsrl_e2e::Run {
-        code: out.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&out.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
-    }
+    dsrl_e2e::Run::from(env.cli.command(args).env("DSRL_TOKEN", token).output().unwrap())
 }
 
 fn submit(env: &Env, token: &str, dir: &Path, name: &str) -> dsrl_e2e::Run {
     client(
         env,
         token,
-        &["--json", "submit", dsrl_e2e_path(dir), "--task", TASK, "--name", name],
+        &["--json", "submit", s(dir), "--task", TASK, "--name", name],
     )
-}
-
-fn dsrl_e2e_path(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// A copy of a checkpoint folder with its policy.json changed by `edit`.
@@ -83,33 +75,25 @@ fn variant(from: &Path, to: &Path, edit: impl Fn(&mut serde_json::Value)) {
 fn post_parts(url: &str, token: &str, parts: Vec<(&str, Vec<u8>)>) -> (u16, String) {
     let (url, token) = (format!("{url}/v1/submissions"), token.to_owned());
     let parts: Vec<(String, Vec<u8>)> = parts.into_iter().map(|(n, b)| (n.to_owned(), b)).collect();
-    std::thread::spawn(move || {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
+    block_on(async move {
+        let mut form = reqwest::multipart::Form::new()
+            .percent_encode_noop()
+            .text("task", TASK)
+            .text("name", "hostile");
+        for (name, bytes) in parts {
+            form = form.part(name.clone(), reqwest::multipart::Part::bytes(bytes).file_name(name));
+        }
+        let response = reqwest::Client::new()
+            .post(&url)
+            .bearer_auth(&token)
+            .multipart(form)
+            .send()
+            .await
             .unwrap();
-        rt.block_on(async {
-            let mut form = reqwest::multipart::Form::new()
-                .percent_encode_noop()
-                .text("task", TASK)
-                .text("name", "hostile");
-            for (name, bytes) in parts {
-                form = form.part(name.clone(), reqwest::multipart::Part::bytes(bytes).file_name(name));
-            }
-            let response = reqwest::Client::new()
-                .post(&url)
-                .bearer_auth(&token)
-                .multipart(form)
-                .send()
-                .await
-                .unwrap();
-            let status = response.status().as_u16();
-            let body: serde_json::Value = response.json().await.unwrap_or_default();
-            (status, body["error"]["code"].as_str().unwrap_or_default().to_owned())
-        })
+        let status = response.status().as_u16();
+        let body: serde_json::Value = response.json().await.unwrap_or_default();
+        (status, body["error"]["code"].as_str().unwrap_or_default().to_owned())
     })
-    .join()
-    .unwrap()
 }
 
 #[test]
@@ -139,9 +123,7 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     );
 
     // Tokens: none is a usage error, a wrong one is refused.
-    let run = env
-        .cli
-        .run(&["submit", dsrl_e2e_path(&bc_all), "--task", TASK, "--name", "BC-All"]);
+    let run = env.cli.run(&["submit", s(&bc_all), "--task", TASK, "--name", "BC-All"]);
     assert_eq!(run.code, 2, "{run:?}");
     let run = submit(&env, "dsrl_not-a-token", &bc_all, "BC-All");
     assert_eq!(run.code, 7, "{run:?}");
@@ -297,67 +279,59 @@ fn grpc_submissions(url: &str, token: &str, bc_all: &Path, first_id: i64) {
         })
         .collect();
     let (url, token) = (url.to_owned(), token.to_owned());
-    std::thread::spawn(move || {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .unwrap();
-        rt.block_on(async {
-            let mut grpc = LeaderboardServiceClient::connect(url).await.unwrap();
-            let submit = |token: Option<&str>, files: Vec<pb::CheckpointFile>| {
-                let mut request = tonic::Request::new(pb::SubmitRequest {
-                    task: TASK.into(),
-                    name: "BC-All-grpc".into(),
-                    files,
-                });
-                if let Some(t) = token {
-                    request
-                        .metadata_mut()
-                        .insert("authorization", format!("Bearer {t}").parse().unwrap());
-                }
+    block_on(async move {
+        let mut grpc = LeaderboardServiceClient::connect(url).await.unwrap();
+        let submit = |token: Option<&str>, files: Vec<pb::CheckpointFile>| {
+            let mut request = tonic::Request::new(pb::SubmitRequest {
+                task: TASK.into(),
+                name: "BC-All-grpc".into(),
+                files,
+            });
+            if let Some(t) = token {
                 request
-            };
-            let err = grpc.submit(submit(None, files.clone())).await.unwrap_err();
-            assert_eq!(err.code(), tonic::Code::Unauthenticated);
-            let err = grpc.submit(submit(Some(&token), files.clone())).await.unwrap_err();
-            assert_eq!(err.code(), tonic::Code::AlreadyExists, "{err:?}");
-            assert!(err.message().contains(&format!("submission {first_id}")), "{err:?}");
-            let err = grpc
-                .submit(submit(Some(&token), files[..1].to_vec()))
-                .await
-                .unwrap_err();
-            assert_eq!(err.code(), tonic::Code::InvalidArgument);
-            assert!(err.message().contains("policy.safetensors is missing"), "{err:?}");
-            let submission = grpc
-                .get_submission(pb::GetSubmissionRequest {
-                    id: first_id,
-                    episodes: true,
-                })
-                .await
-                .unwrap()
-                .into_inner();
-            assert_eq!(submission.state, "queued");
-            assert_eq!(submission.name, "BC-All");
-            let board = grpc
-                .get_leaderboard(pb::GetLeaderboardRequest {
-                    task: Some(TASK.into()),
-                })
-                .await
-                .unwrap()
-                .into_inner();
-            assert_eq!(board.tasks.len(), 1);
-            assert!(board.tasks[0].entries.is_empty());
-            let err = grpc
-                .get_leaderboard(pb::GetLeaderboardRequest {
-                    task: Some("AntRun".into()),
-                })
-                .await
-                .unwrap_err();
-            assert_eq!(err.code(), tonic::Code::NotFound);
-        })
-    })
-    .join()
-    .unwrap();
+                    .metadata_mut()
+                    .insert("authorization", format!("Bearer {t}").parse().unwrap());
+            }
+            request
+        };
+        let err = grpc.submit(submit(None, files.clone())).await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::Unauthenticated);
+        let err = grpc.submit(submit(Some(&token), files.clone())).await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::AlreadyExists, "{err:?}");
+        assert!(err.message().contains(&format!("submission {first_id}")), "{err:?}");
+        let err = grpc
+            .submit(submit(Some(&token), files[..1].to_vec()))
+            .await
+            .unwrap_err();
+        assert_eq!(err.code(), tonic::Code::InvalidArgument);
+        assert!(err.message().contains("policy.safetensors is missing"), "{err:?}");
+        let submission = grpc
+            .get_submission(pb::GetSubmissionRequest {
+                id: first_id,
+                episodes: true,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(submission.state, "queued");
+        assert_eq!(submission.name, "BC-All");
+        let board = grpc
+            .get_leaderboard(pb::GetLeaderboardRequest {
+                task: Some(TASK.into()),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(board.tasks.len(), 1);
+        assert!(board.tasks[0].entries.is_empty());
+        let err = grpc
+            .get_leaderboard(pb::GetLeaderboardRequest {
+                task: Some("AntRun".into()),
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(err.code(), tonic::Code::NotFound);
+    });
 }
 
 fn scoring_env(lease_seconds: &str) -> Env {
@@ -477,13 +451,5 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
 
 fn reqwest_text(url: &str) -> String {
     let url = url.to_owned();
-    std::thread::spawn(move || {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .unwrap();
-        rt.block_on(async { reqwest::get(&url).await.unwrap().text().await.unwrap() })
-    })
-    .join()
-    .unwrap()
+    block_on(async move { reqwest::get(&url).await.unwrap().text().await.unwrap() })
 }

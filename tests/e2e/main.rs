@@ -70,18 +70,38 @@ impl Env {
     }
 }
 
-/// GET returning JSON, usable from synchronous tests (runs its own runtime on a separate thread).
-pub fn get_json(url: &str) -> serde_json::Value {
-    let url = url.to_owned();
+/// Runs an async client call from a synchronous test: its own runtime, on a separate thread.
+pub fn block_on<F>(future: F) -> F::Output
+where
+    F: std::future::Future + Send + 'static,
+    F::Output: Send + 'static,
+{
     std::thread::spawn(move || {
-        let rt = tokio::runtime::Builder::new_current_thread()
+        tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
-            .unwrap();
-        rt.block_on(async { reqwest::get(&url).await.unwrap().json().await.unwrap() })
+            .unwrap()
+            .block_on(future)
     })
     .join()
     .unwrap()
+}
+
+/// GET returning JSON, usable from synchronous tests.
+pub fn get_json(url: &str) -> serde_json::Value {
+    let url = url.to_owned();
+    block_on(async move { reqwest::get(&url).await.unwrap().json().await.unwrap() })
+}
+
+/// Runs a `dsrl-admin` command that prints JSON (its progress goes to the test's stderr); asserts success.
+pub fn admin_json(mut cmd: std::process::Command) -> serde_json::Value {
+    let out = cmd.stderr(std::process::Stdio::inherit()).output().unwrap();
+    assert!(
+        out.status.success(),
+        "dsrl-admin failed: {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
 }
 
 pub fn sha256_file(path: &Path) -> String {

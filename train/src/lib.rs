@@ -180,13 +180,7 @@ impl BcLearner {
             conditioning,
             training: Some(training),
         };
-        let tensors: Vec<(String, Tensor)> = self
-            .net
-            .named_vars()
-            .into_iter()
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect();
-        checkpoint::write(dir, &config, &tensors)?;
+        checkpoint::write(dir, &config, &dsrl_policy::tensors_of(self.net.named_vars()))?;
         Ok(())
     }
 }

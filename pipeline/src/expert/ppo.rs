@@ -108,14 +108,13 @@ impl Learner {
 
     /// Every tensor of the training state: networks and optimizer moments.
     pub fn tensors(&self) -> Vec<(String, Tensor)> {
-        let mut out: Vec<(String, Tensor)> = self
-            .actor
-            .named_vars()
-            .into_iter()
-            .chain(self.reward_critic.named_vars())
-            .chain(self.cost_critic.named_vars())
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect();
+        let mut out = dsrl_policy::tensors_of(
+            self.actor
+                .named_vars()
+                .into_iter()
+                .chain(self.reward_critic.named_vars())
+                .chain(self.cost_critic.named_vars()),
+        );
         out.extend(self.actor_opt.state("adam.actor"));
         out.extend(self.critic_opt.state("adam.critic"));
         out
@@ -179,13 +178,7 @@ impl Learner {
             conditioning: checkpoint::Conditioning::Unconditioned,
             training: Some(serde_json::json!({ "by": "dsrl-admin collect (PPO-Lagrangian expert)" })),
         };
-        let tensors: Vec<(String, Tensor)> = self
-            .actor
-            .named_vars()
-            .into_iter()
-            .map(|(n, v)| (n, v.as_tensor().clone()))
-            .collect();
-        checkpoint::write(dir, &config, &tensors)?;
+        checkpoint::write(dir, &config, &dsrl_policy::tensors_of(self.actor.named_vars()))?;
         Ok(())
     }
 

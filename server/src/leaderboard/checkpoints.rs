@@ -197,15 +197,10 @@ fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Resul
             task.id
         )));
     }
-    checkpoints.sort_by(|a, b| threshold_of(a).total_cmp(&threshold_of(b)));
+    // Every checkpoint here is per-threshold (checked above).
+    let key = |c: &CheckedCheckpoint| c.cost_threshold().unwrap_or_default();
+    checkpoints.sort_by(|a, b| key(a).total_cmp(&key(b)));
     Ok(())
-}
-
-fn threshold_of(c: &CheckedCheckpoint) -> f64 {
-    match c.config.conditioning {
-        Conditioning::PerThreshold { cost_threshold } => cost_threshold,
-        Conditioning::Unconditioned => f64::NAN,
-    }
 }
 
 impl CheckedCheckpoint {
