@@ -2,7 +2,7 @@
 //! the same dataset as an uninterrupted run, and is ingested with its recipe provenance.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use crate::Env;
@@ -62,21 +62,10 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
 
     // Killed once the first setting is saved, then resumed and ingested.
     let state = env.path("killed");
-    let mut child = collect(&recipe, &state, &[])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let first = state.join("settings/000.parquet");
-    assert!(
-        dsrl_e2e::wait_for(Duration::from_secs(300), || first.exists()),
-        "no setting finished"
-    );
-    child.kill().unwrap();
-    child.wait().unwrap();
-    assert!(
-        !state.join("settings/001.parquet").exists(),
-        "the run finished before it could be killed"
+    crate::kill_once_saved(
+        collect(&recipe, &state, &[]),
+        &state.join("settings/000.parquet"),
+        &state.join("settings/001.parquet"),
     );
     let token = env.server.token();
     let resumed = crate::admin_json(collect(

@@ -4,7 +4,6 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::Duration;
 
 use crate::Env;
 
@@ -61,21 +60,10 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
     // Killed once the first save exists, then resumed with two workers (the 4 environments now in two sessions of
     // 2, not one of 4: the grouping must not change the data) and ingested.
     let state = env.path("killed");
-    let mut child = collect(TASK, &recipe, &state, budget, 1, &[])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let first_save = state.join("expert/ckpt-000002/state.json");
-    assert!(
-        dsrl_e2e::wait_for(Duration::from_secs(300), || first_save.exists()),
-        "no save appeared"
-    );
-    child.kill().unwrap();
-    child.wait().unwrap();
-    assert!(
-        !state.join("expert/ckpt-000012").exists(),
-        "the run finished before it could be killed"
+    crate::kill_once_saved(
+        collect(TASK, &recipe, &state, budget, 1, &[]),
+        &state.join("expert/ckpt-000002/state.json"),
+        &state.join("expert/ckpt-000012"),
     );
     let token = env.server.token();
     let resumed = crate::admin_json(collect(

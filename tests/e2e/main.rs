@@ -93,6 +93,21 @@ pub fn get_json(url: &str) -> serde_json::Value {
     block_on(async move { reqwest::get(&url).await.unwrap().json().await.unwrap() })
 }
 
+/// Starts `cmd` quietly, SIGKILLs it as soon as `saved` exists, and checks it had not yet written `unfinished`
+/// (so the kill really interrupted it).
+pub fn kill_once_saved(mut cmd: std::process::Command, saved: &Path, unfinished: &Path) {
+    use std::process::Stdio;
+    let mut child = cmd.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    assert!(
+        dsrl_e2e::wait_for(std::time::Duration::from_secs(300), || saved.exists()),
+        "{} never appeared",
+        saved.display()
+    );
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!unfinished.exists(), "the run finished before it could be killed");
+}
+
 /// Runs a `dsrl-admin` command that prints JSON (its progress goes to the test's stderr); asserts success.
 pub fn admin_json(mut cmd: std::process::Command) -> serde_json::Value {
     let out = cmd.stderr(std::process::Stdio::inherit()).output().unwrap();
