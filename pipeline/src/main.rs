@@ -34,28 +34,36 @@ enum Command {
     /// Score a policy checkpoint (policy.json + policy.safetensors, e.g. an expert's <state>/expert/policy) on the
     /// real simulators: one episode per seed with the policy's deterministic actions, then the mean returns and the
     /// normalized reward and cost at each of the task's benchmark thresholds (safe iff normalized cost <= 1).
-    Evaluate {
-        /// The policy folder.
-        policy: PathBuf,
-        /// Episodes to play.
-        #[arg(long, default_value_t = 20)]
-        episodes: u32,
-        /// Episode seeds are SEED, SEED+1, ...; recorded in the output.
-        #[arg(long, default_value_t = 1_000_000)]
-        seed: u64,
-        /// Local simulator workers (default: one per core).
-        #[arg(long)]
-        workers: Option<u32>,
-        /// Environments per worker session.
-        #[arg(long, default_value_t = 10)]
-        envs_per_session: u32,
-        /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
-        #[arg(long)]
-        worker_binary: Option<PathBuf>,
-        /// Print the result (with every episode) as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    /// A per-threshold checkpoint is scored at its threshold; a conditioned one (target_cost, returns_to_go) plays
+    /// its episodes at each threshold in turn, or at --cost-threshold.
+    Evaluate(EvaluateArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct EvaluateArgs {
+    /// The policy folder.
+    policy: PathBuf,
+    /// Episodes to play (at each threshold, for a conditioned policy).
+    #[arg(long, default_value_t = 20)]
+    episodes: u32,
+    /// Episode seeds are SEED, SEED+1, ...; recorded in the output.
+    #[arg(long, default_value_t = 1_000_000)]
+    seed: u64,
+    /// Score a conditioned policy at this threshold only (default: each of the task's thresholds).
+    #[arg(long)]
+    cost_threshold: Option<f64>,
+    /// Local simulator workers (default: one per core).
+    #[arg(long)]
+    workers: Option<u32>,
+    /// Environments per worker session.
+    #[arg(long, default_value_t = 10)]
+    envs_per_session: u32,
+    /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
+    #[arg(long)]
+    worker_binary: Option<PathBuf>,
+    /// Print the result (with every episode) as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -111,25 +119,28 @@ fn cores() -> u32 {
         .unwrap_or(1)
 }
 
-async fn evaluate(
-    policy_dir: PathBuf,
-    episodes: u32,
-    seed: u64,
-    workers: u32,
-    envs_per_session: u32,
-    worker_binary: Option<PathBuf>,
-    json: bool,
-) -> anyhow::Result<()> {
-    use dsrl_policy::checkpoint::{self, Policy};
+async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
+    use dsrl_policy::{Policy, checkpoint};
     use dsrl_server::evaluator;
     let catalog = Catalog::embedded()?;
-    let (config, tensors) = checkpoint::read(&policy_dir)?;
+    let (config, tensors) = checkpoint::read(&args.policy)?;
     let task = catalog.get(&config.task)?.clone();
     evaluator::check_policy(&task, &config)?;
     let policy = Policy::load(&config, &tensors)?;
+    // Where the episodes are played, and at which thresholds each play is scored: an unconditioned policy plays
+    // once and is scored at every threshold; a per-threshold one at its own; a conditioned one plays at each.
+    let plays: Vec<(f64, Vec<f64>)> = match (&config.conditioning, args.cost_threshold) {
+        (checkpoint::Conditioning::PerThreshold { cost_threshold }, _) => {
+            vec![(*cost_threshold, vec![*cost_threshold])]
+        }
+        (c, Some(k)) if c.is_conditioned() => vec![(k, vec![k])],
+        (c, None) if c.is_conditioned() => task.cost_thresholds.iter().map(|&k| (k, vec![k])).collect(),
+        _ => vec![(task.cost_thresholds[0], task.cost_thresholds.clone())],
+    };
+    let workers = args.workers.unwrap_or_else(cores).max(1);
     let pool = dsrl_server::simulators::SimulatorPool::start(&SimulatorsConfig {
         local_workers: workers,
-        worker_binary,
+        worker_binary: args.worker_binary.clone(),
         ..SimulatorsConfig::default()
     });
     anyhow::ensure!(
@@ -138,52 +149,67 @@ async fn evaluate(
         "simulator workers did not become healthy: {:?}",
         pool.workers()
     );
-    let seeds: Vec<u64> = (0..u64::from(episodes)).map(|i| seed + i).collect();
+    let seed = args.seed;
+    let seeds: Vec<u64> = (0..u64::from(args.episodes)).map(|i| seed + i).collect();
+    let envs_per_session = args.envs_per_session.max(1) as usize;
     let started = std::time::Instant::now();
-    // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
-    let sessions = seeds.len().div_ceil(envs_per_session.max(1) as usize);
-    let scores = evaluator::play_episodes(&pool, &task, &policy, &seeds, envs_per_session as usize, sessions).await?;
-    let n = scores.len().max(1) as f64;
-    let reward = scores.iter().map(|s| s.reward_return).sum::<f64>() / n;
-    let cost = scores.iter().map(|s| s.cost_return).sum::<f64>() / n;
-    // A policy trained for one threshold is scored at that threshold only.
-    let thresholds = match config.conditioning {
-        checkpoint::Conditioning::Unconditioned => task.cost_thresholds.clone(),
-        checkpoint::Conditioning::PerThreshold { cost_threshold } => vec![cost_threshold],
-    };
-    let thresholds: Vec<serde_json::Value> = thresholds
-        .iter()
-        .map(|&threshold| {
+    let mut thresholds = Vec::new();
+    let mut all_episodes = Vec::new();
+    for (played_at, scored_at) in &plays {
+        // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
+        let sessions = seeds.len().div_ceil(envs_per_session);
+        let scores =
+            evaluator::play_episodes(&pool, &task, &policy, *played_at, &seeds, envs_per_session, sessions).await?;
+        let n = scores.len().max(1) as f64;
+        let reward = scores.iter().map(|s| s.reward_return).sum::<f64>() / n;
+        let cost = scores.iter().map(|s| s.cost_return).sum::<f64>() / n;
+        for &threshold in scored_at {
             let score = task.normalized_score(reward, cost, threshold);
-            serde_json::json!({
+            thresholds.push(serde_json::json!({
                 "cost_threshold": threshold,
+                "mean_reward_return": reward,
+                "mean_cost_return": cost,
                 "normalized_reward": score.reward,
                 "normalized_cost": score.cost,
                 "safe": score.cost <= 1.0,
-            })
-        })
-        .collect();
-    let report = serde_json::json!({
+            }));
+        }
+        all_episodes.push(scores);
+    }
+    // A single play's episodes at the top, else each threshold's beside it.
+    let mut report = serde_json::json!({
         "task": task.id.as_str(),
-        "policy": policy_dir,
-        "seeds": { "first": seed, "count": episodes },
-        "mean_reward_return": reward,
-        "mean_cost_return": cost,
+        "policy": args.policy,
+        "architecture": config.architecture.name(),
+        "seeds": { "first": seed, "count": args.episodes },
         "thresholds": thresholds,
         "wall_seconds": started.elapsed().as_secs_f64(),
-        "episodes": scores,
     });
-    if json {
+    if let [only] = &all_episodes[..] {
+        report["episodes"] = serde_json::to_value(only)?;
+        report["mean_reward_return"] = report["thresholds"][0]["mean_reward_return"].clone();
+        report["mean_cost_return"] = report["thresholds"][0]["mean_cost_return"].clone();
+    } else {
+        for (t, episodes) in report["thresholds"]
+            .as_array_mut()
+            .expect("built above")
+            .iter_mut()
+            .zip(&all_episodes)
+        {
+            t["episodes"] = serde_json::to_value(episodes)?;
+        }
+    }
+    if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!(
-            "{}: {episodes} episodes (seeds {seed}..), mean reward return {reward:.1}, mean cost return {cost:.1}",
-            task.id
-        );
-        for t in &thresholds {
+        println!("{}: {} episodes per play (seeds {seed}..)", task.id, args.episodes);
+        for t in report["thresholds"].as_array().expect("built above") {
             println!(
-                "  threshold {}: normalized reward {:.3}, normalized cost {:.3}{}",
+                "  threshold {}: mean reward return {:.1}, mean cost return {:.1}, normalized reward {:.3}, \
+                 normalized cost {:.3}{}",
                 t["cost_threshold"],
+                t["mean_reward_return"].as_f64().unwrap_or(f64::NAN),
+                t["mean_cost_return"].as_f64().unwrap_or(f64::NAN),
                 t["normalized_reward"].as_f64().unwrap_or(f64::NAN),
                 t["normalized_cost"].as_f64().unwrap_or(f64::NAN),
                 if t["safe"] == true { " (safe)" } else { "" }
@@ -225,27 +251,7 @@ async fn run() -> anyhow::Result<()> {
         tag,
         json,
     } = match Args::parse().command {
-        Command::Evaluate {
-            policy,
-            episodes,
-            seed,
-            workers,
-            envs_per_session,
-            worker_binary,
-            json,
-        } => {
-            let workers = workers.unwrap_or_else(cores).max(1);
-            return evaluate(
-                policy,
-                episodes,
-                seed,
-                workers,
-                envs_per_session.max(1),
-                worker_binary,
-                json,
-            )
-            .await;
-        }
+        Command::Evaluate(args) => return evaluate(args).await,
         Command::Collect(args) => args,
     };
     let catalog = Catalog::embedded()?;

@@ -13,8 +13,7 @@ use std::path::Path;
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
-use crate::gaussian::GaussianActor;
-use crate::mlp::{Activation, Mlp};
+use crate::mlp::Activation;
 use crate::{PolicyError, Result};
 
 pub const WEIGHTS_FILE: &str = "policy.safetensors";
@@ -54,12 +53,42 @@ pub enum Conditioning {
     Unconditioned,
     /// Trained for one cost threshold (BC-Safe, the Lagrangian learners): scored at that threshold only.
     PerThreshold { cost_threshold: f64 },
+    /// One policy for every threshold, told the threshold it is scored at: the network reads it as one more input
+    /// after the observation (OSRL BC's multi-task mode appends the target cost the same way).
+    TargetCost,
+    /// A return-conditioned sequence model (`cdt`): for each threshold, the reward and cost return an episode starts
+    /// out aiming for (OSRL's CDT `target_returns`); one policy for every threshold.
+    ReturnsToGo { targets: Vec<ReturnTarget> },
+}
+
+/// What a return-conditioned policy aims for when it is scored at `cost_threshold` (unscaled returns).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReturnTarget {
+    pub cost_threshold: f64,
+    pub reward_return: f64,
+    pub cost_return: f64,
+}
+
+impl Conditioning {
+    /// The threshold a per-threshold checkpoint is for; `None` for one scored at every threshold.
+    pub fn cost_threshold(&self) -> Option<f64> {
+        match self {
+            Conditioning::PerThreshold { cost_threshold } => Some(*cost_threshold),
+            _ => None,
+        }
+    }
+
+    /// Whether the network reads the threshold (so one checkpoint serves them all).
+    pub fn is_conditioned(&self) -> bool {
+        matches!(self, Conditioning::TargetCost | Conditioning::ReturnsToGo { .. })
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "name", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Architecture {
-    /// [`GaussianActor`]: `actor.mu.<i>.weight|bias` and `actor.log_std`; evaluated at its mean.
+    /// [`crate::gaussian::GaussianActor`]: `actor.mu.<i>.weight|bias` and `actor.log_std`; evaluated at its mean.
     GaussianMlp {
         hidden_sizes: Vec<usize>,
         activation: Activation,
@@ -79,6 +108,33 @@ pub enum Architecture {
         activation: Activation,
         max_action: f64,
     },
+    /// OSRL's BCQ-Lag actor ([`crate::bcq`]): the VAE decoder `vae.decoder.<i>` (`[obs + latent, decoder hidden..,
+    /// act]`, ReLU) proposes, the perturbation network `actor.pi.<i>` (`[obs + act, hidden.., act]`, OSRL uses
+    /// tanh) nudges by at most `phi · max_action`; the latent is drawn per step from a generator seeded with the
+    /// episode's seed.
+    BcqActor {
+        hidden_sizes: Vec<usize>,
+        activation: Activation,
+        decoder_hidden_sizes: Vec<usize>,
+        latent_dim: usize,
+        phi: f64,
+        max_action: f64,
+    },
+    /// OSRL's Constrained Decision Transformer ([`crate::cdt`]), tensors `cdt.<OSRL state_dict name>`, conditioned
+    /// on returns-to-go. Reward- and cost-to-go enter the model multiplied by `reward_scale` and `cost_scale`
+    /// (OSRL: 0.1 and 1); `episode_len` must cover the task's horizon.
+    Cdt {
+        embedding_dim: usize,
+        num_layers: usize,
+        num_heads: usize,
+        seq_len: usize,
+        episode_len: usize,
+        max_action: f64,
+        reward_scale: f64,
+        cost_scale: f64,
+        /// Embed `50 − Ĉ` instead of `Ĉ` (OSRL's configs turn this on).
+        cost_transform: bool,
+    },
 }
 
 impl Architecture {
@@ -88,6 +144,8 @@ impl Architecture {
             Architecture::GaussianMlp { .. } => "gaussian_mlp",
             Architecture::MlpActor { .. } => "mlp_actor",
             Architecture::SquashedGaussianMlp { .. } => "squashed_gaussian_mlp",
+            Architecture::BcqActor { .. } => "bcq_actor",
+            Architecture::Cdt { .. } => "cdt",
         }
     }
 }
@@ -175,181 +233,11 @@ pub fn read(dir: &Path) -> Result<(PolicyConfig, HashMap<String, Tensor>)> {
     Ok((config, tensors))
 }
 
-/// The network of a loaded policy.
-pub enum Network {
-    Gaussian(GaussianActor),
-    /// `max_action · tanh(net(obs))`.
-    Mlp {
-        net: Mlp,
-        max_action: f64,
-    },
-    /// `max_action · tanh(mu(activation(trunk(obs))))`.
-    Squashed {
-        trunk: Mlp,
-        mu: Mlp,
-        activation: Activation,
-        max_action: f64,
-    },
-}
-
-/// Checks that an MLP's layer sizes are `[obs_dim, hidden.., out]`.
-fn check_sizes(name: &str, net: &Mlp, want: Vec<usize>) -> Result<()> {
-    let sizes = net.sizes();
-    if sizes != want {
-        return Err(PolicyError::Format(format!(
-            "{name} has layer sizes {sizes:?}, but {CONFIG_FILE} declares {want:?}"
-        )));
-    }
-    Ok(())
-}
-
-fn layer_sizes(obs_dim: usize, hidden: &[usize], out: usize) -> Vec<usize> {
-    std::iter::once(obs_dim)
-        .chain(hidden.iter().copied())
-        .chain([out])
-        .collect()
-}
-
-/// A loaded policy, ready to act: its network and the observation normalization it declares.
-pub struct Policy {
-    pub network: Network,
-    /// `(mean, std)` as `[1, obs_dim]` rows.
-    normalization: Option<(Tensor, Tensor)>,
-}
-
-impl Policy {
-    /// Builds the architecture the config declares from the weights, checking names and shapes against it.
-    pub fn load(config: &PolicyConfig, tensors: &HashMap<String, Tensor>) -> Result<Policy> {
-        let normalization = match &config.observation_normalization {
-            None => None,
-            Some(n) => {
-                if n.mean.len() != config.obs_dim || n.std.len() != config.obs_dim {
-                    return Err(PolicyError::Format(format!(
-                        "observation_normalization needs {} means and stds, got {} and {}",
-                        config.obs_dim,
-                        n.mean.len(),
-                        n.std.len()
-                    )));
-                }
-                if n.std.iter().any(|s| !(s.is_finite() && *s > 0.0)) || n.mean.iter().any(|m| !m.is_finite()) {
-                    return Err(PolicyError::Format(
-                        "observation_normalization: every std must be positive and finite, every mean finite".into(),
-                    ));
-                }
-                let row = |v: &[f32]| Tensor::from_slice(v, (1, v.len()), &Device::Cpu);
-                Some((row(&n.mean)?, row(&n.std)?))
-            }
-        };
-        Ok(Policy {
-            network: Network::load(config, tensors)?,
-            normalization,
-        })
-    }
-
-    /// Deterministic actions (the mean for stochastic actors), row-major `[batch, act_dim]`.
-    pub fn act(&self, obs: &Tensor) -> Result<Vec<f32>> {
-        match &self.normalization {
-            None => self.network.act(obs),
-            Some((mean, std)) => self.network.act(&obs.broadcast_sub(mean)?.broadcast_div(std)?),
-        }
-    }
-}
-
-impl Network {
-    fn load(config: &PolicyConfig, tensors: &HashMap<String, Tensor>) -> Result<Network> {
-        match &config.architecture {
-            Architecture::GaussianMlp {
-                hidden_sizes,
-                activation,
-                max_action,
-            } => {
-                let mean_net = Mlp::from_tensors("actor.mu", tensors, *activation)?;
-                check_sizes(
-                    "actor.mu",
-                    &mean_net,
-                    layer_sizes(config.obs_dim, hidden_sizes, config.act_dim),
-                )?;
-                let log_std = tensors
-                    .get("actor.log_std")
-                    .ok_or_else(|| PolicyError::Format("actor.log_std is missing".into()))?;
-                if log_std.dims() != [config.act_dim] {
-                    return Err(PolicyError::Format(format!(
-                        "actor.log_std has shape {:?}, expected [{}]",
-                        log_std.dims(),
-                        config.act_dim
-                    )));
-                }
-                Ok(Network::Gaussian(GaussianActor {
-                    mean_net,
-                    log_std: candle_core::Var::from_tensor(&log_std.copy()?)?,
-                    max_action: *max_action,
-                }))
-            }
-            Architecture::MlpActor {
-                hidden_sizes,
-                activation,
-                max_action,
-            } => {
-                let net = Mlp::from_tensors("actor.net", tensors, *activation)?;
-                check_sizes(
-                    "actor.net",
-                    &net,
-                    layer_sizes(config.obs_dim, hidden_sizes, config.act_dim),
-                )?;
-                Ok(Network::Mlp {
-                    net,
-                    max_action: *max_action,
-                })
-            }
-            Architecture::SquashedGaussianMlp {
-                hidden_sizes,
-                activation,
-                max_action,
-            } => {
-                let (Some(&last), false) = (hidden_sizes.last(), hidden_sizes.is_empty()) else {
-                    return Err(PolicyError::Format(
-                        "squashed_gaussian_mlp needs at least one hidden layer".into(),
-                    ));
-                };
-                let trunk = Mlp::from_tensors("actor.trunk", tensors, *activation)?;
-                let mut trunk_sizes = vec![config.obs_dim];
-                trunk_sizes.extend(hidden_sizes);
-                check_sizes("actor.trunk", &trunk, trunk_sizes)?;
-                let mu = Mlp::from_tensors("actor.mu", tensors, *activation)?;
-                check_sizes("actor.mu", &mu, vec![last, config.act_dim])?;
-                Ok(Network::Squashed {
-                    trunk,
-                    mu,
-                    activation: *activation,
-                    max_action: *max_action,
-                })
-            }
-        }
-    }
-
-    fn act(&self, obs: &Tensor) -> Result<Vec<f32>> {
-        let out = match self {
-            Network::Gaussian(actor) => actor.mean(obs)?,
-            Network::Mlp { net, max_action } => net.forward(obs)?.tanh()?.affine(*max_action, 0.0)?,
-            Network::Squashed {
-                trunk,
-                mu,
-                activation,
-                max_action,
-            } => {
-                // The trunk's activation also follows its last layer.
-                let h = activation.apply(&trunk.forward(obs)?)?;
-                mu.forward(&h)?.tanh()?.affine(*max_action, 0.0)?
-            }
-        };
-        Ok(out.flatten_all()?.to_vec1::<f32>()?)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gaussian::matrix;
+    use crate::Policy;
+    use crate::gaussian::{GaussianActor, matrix};
     use crate::noise::Noise;
 
     fn config() -> PolicyConfig {
@@ -457,93 +345,5 @@ mod tests {
         let err = read_limited(&big, 1024).err().unwrap().to_string();
         assert!(err.contains("larger than the 1024-byte limit"), "{err}");
         assert_eq!(read_limited(&big, 4096).unwrap().len(), 2048);
-    }
-
-    #[test]
-    fn every_architecture_acts_as_its_definition_and_applies_the_declared_normalization() {
-        let mut noise = Noise::seeded(3);
-        let obs = matrix(&[0.5, -1.0, 2.0, 0.1, 0.2, 0.3], 2, 3).unwrap();
-        let with = |architecture: Architecture, normalization: Option<ObservationNormalization>| PolicyConfig {
-            format: FORMAT.into(),
-            task: "OfflineCarRun-v0".into(),
-            obs_dim: 3,
-            act_dim: 2,
-            architecture,
-            observation_normalization: normalization,
-            conditioning: Conditioning::Unconditioned,
-            training: None,
-        };
-
-        // mlp_actor: 2·tanh(net(obs)).
-        let net = Mlp::orthogonal("actor.net", &[3, 8, 2], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
-        let config = with(
-            Architecture::MlpActor {
-                hidden_sizes: vec![8],
-                activation: Activation::Relu,
-                max_action: 2.0,
-            },
-            None,
-        );
-        let tensors: HashMap<String, Tensor> = crate::tensors_of(net.named_vars()).into_iter().collect();
-        let policy = Policy::load(&config, &tensors).unwrap();
-        let want = net.forward(&obs).unwrap().tanh().unwrap().affine(2.0, 0.0).unwrap();
-        assert_eq!(
-            policy.act(&obs).unwrap(),
-            want.flatten_all().unwrap().to_vec1::<f32>().unwrap()
-        );
-
-        // The declared normalization is applied before the network.
-        let normalization = ObservationNormalization {
-            mean: vec![1.0, 0.0, -1.0],
-            std: vec![2.0, 1.0, 0.5],
-        };
-        let normalized = Policy::load(&with(config.architecture.clone(), Some(normalization)), &tensors).unwrap();
-        let by_hand = matrix(&[-0.25, -1.0, 6.0, -0.45, 0.2, 2.6], 2, 3).unwrap();
-        let got = normalized.act(&obs).unwrap();
-        for (a, b) in got.iter().zip(policy.act(&by_hand).unwrap()) {
-            assert!((a - b).abs() < 1e-6, "{got:?}");
-        }
-        let bad = ObservationNormalization {
-            mean: vec![0.0; 3],
-            std: vec![1.0, 0.0, 1.0],
-        };
-        let err = Policy::load(&with(config.architecture.clone(), Some(bad)), &tensors)
-            .err()
-            .unwrap();
-        assert!(err.to_string().contains("every std must be positive"), "{err}");
-
-        // squashed_gaussian_mlp: tanh(mu(relu(trunk(obs)))), the trunk's activation after its last layer too.
-        let trunk = Mlp::orthogonal("actor.trunk", &[3, 8, 8], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
-        let mu = Mlp::orthogonal("actor.mu", &[8, 2], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
-        let log_std = Mlp::orthogonal("actor.log_std", &[8, 2], Activation::Relu, 1.0, 1.0, &mut noise).unwrap();
-        let mut all = crate::tensors_of(trunk.named_vars());
-        all.extend(crate::tensors_of(mu.named_vars()));
-        all.extend(crate::tensors_of(log_std.named_vars()));
-        let tensors: HashMap<String, Tensor> = all.into_iter().collect();
-        let config = with(
-            Architecture::SquashedGaussianMlp {
-                hidden_sizes: vec![8, 8],
-                activation: Activation::Relu,
-                max_action: 1.0,
-            },
-            None,
-        );
-        let policy = Policy::load(&config, &tensors).unwrap();
-        let h = trunk.forward(&obs).unwrap().relu().unwrap();
-        let want = mu.forward(&h).unwrap().tanh().unwrap();
-        assert_eq!(
-            policy.act(&obs).unwrap(),
-            want.flatten_all().unwrap().to_vec1::<f32>().unwrap()
-        );
-        let wrong = with(
-            Architecture::SquashedGaussianMlp {
-                hidden_sizes: vec![8, 4],
-                activation: Activation::Relu,
-                max_action: 1.0,
-            },
-            None,
-        );
-        let err = Policy::load(&wrong, &tensors).err().unwrap().to_string();
-        assert!(err.contains("actor.trunk has layer sizes [3, 8, 8]"), "{err}");
     }
 }

@@ -1,16 +1,21 @@
-//! Policy networks in candle, shared by the expert trainer (`dsrl-admin collect`) and, later, the evaluator, with
+//! Policy networks in candle, shared by the expert trainer (`dsrl-admin collect`), the reference learners and the evaluator, with
 //! their checkpoint format: `policy.safetensors` (the weights) beside `policy.json` (what the weights are).
 //!
 //! Everything random takes an explicit seed ([`noise::Noise`]): weight initialisation, exploration noise and
 //! minibatch order, so a training run is a function of its recipe. Candle's matrix products are pinned to one
 //! thread by the binaries (two threads were slower on this machine, and one thread keeps sums in a fixed order).
 
+pub mod acting;
 pub mod adam;
+pub mod bcq;
+pub mod cdt;
 pub mod checkpoint;
 pub mod gaussian;
+pub mod layers;
 pub mod mlp;
 pub mod noise;
 
+pub use acting::{Policy, Rollout};
 pub use candle_core::{DType, Device, Tensor, Var};
 
 #[derive(Debug, thiserror::Error)]

@@ -5,8 +5,8 @@
 //! This is the core the leaderboard's evaluator builds on (submissions, the durable queue and held seeds come
 //! with it); `dsrl-admin evaluate` uses it to score the pipeline's experts.
 
-use dsrl_policy::Tensor;
-use dsrl_policy::checkpoint::{Policy, PolicyConfig};
+use dsrl_policy::Policy;
+use dsrl_policy::checkpoint::{Architecture, Conditioning, PolicyConfig};
 use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
@@ -37,6 +37,29 @@ pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> 
             task.id, task.obs_dim, task.act_dim, config.obs_dim, config.act_dim
         )));
     }
+    if let Architecture::Cdt { episode_len, .. } = config.architecture
+        && episode_len < task.max_episode_steps as usize
+    {
+        return Err(ApiError::InvalidArgument(format!(
+            "{}'s episodes last up to {} steps; the cdt's timestep embedding covers episode_len = {episode_len}",
+            task.id, task.max_episode_steps
+        )));
+    }
+    if let Conditioning::ReturnsToGo { targets } = &config.conditioning {
+        let missing: Vec<String> = task
+            .cost_thresholds
+            .iter()
+            .filter(|k| !targets.iter().any(|t| t.cost_threshold == **k))
+            .map(|k| k.to_string())
+            .collect();
+        if !missing.is_empty() {
+            return Err(ApiError::InvalidArgument(format!(
+                "returns_to_go declares no target for cost threshold {} of {}",
+                missing.join(", "),
+                task.id
+            )));
+        }
+    }
     Ok(())
 }
 
@@ -44,7 +67,8 @@ fn policy_error(e: dsrl_policy::PolicyError) -> ApiError {
     ApiError::Internal(format!("evaluating the policy: {e}"))
 }
 
-/// Plays one episode per seed with `policy`'s deterministic actions; results come back in seed order.
+/// Plays one episode per seed with `policy`'s deterministic actions at `cost_threshold` (which a conditioned policy
+/// reads; others ignore it); results come back in seed order.
 ///
 /// The seeds are split into `sessions` contiguous runs, played concurrently, each in one session of at most
 /// `envs_per_session` environments; an environment that finishes an episode is reset with its session's next
@@ -56,6 +80,7 @@ pub async fn play_episodes(
     pool: &SimulatorPool,
     task: &Task,
     policy: &Policy,
+    cost_threshold: f64,
     seeds: &[u64],
     envs_per_session: usize,
     sessions: usize,
@@ -63,21 +88,27 @@ pub async fn play_episodes(
     let run = seeds.len().div_ceil(sessions.max(1)).max(1);
     let groups = seeds
         .chunks(run)
-        .map(|group| play_group(pool, task, policy, group, envs_per_session.max(1)));
+        .map(|group| play_group(pool, task, policy, cost_threshold, group, envs_per_session.max(1)));
     let results = futures::future::try_join_all(groups).await?;
     Ok(results.into_iter().flatten().collect())
 }
 
 /// One session of up to `envs` environments playing `seeds` in order: environment `i` starts with seed `i`, and
-/// each finished environment takes the next unplayed seed.
+/// each finished environment takes the next unplayed seed. The policy's rollout is told of every episode start
+/// (its seed seeds the policy's own draws) and of every step's reward and cost.
 async fn play_group(
     pool: &SimulatorPool,
     task: &Task,
     policy: &Policy,
+    cost_threshold: f64,
     seeds: &[u64],
     envs: usize,
 ) -> Result<Vec<EpisodeScore>, ApiError> {
     let k = seeds.len().min(envs);
+    let mut rollout = policy.rollout(cost_threshold, k).map_err(policy_error)?;
+    for (env, &seed) in seeds[..k].iter().enumerate() {
+        rollout.start_episode(env, seed).map_err(policy_error)?;
+    }
     let mut session = pool
         .open(Open {
             task: task.id.to_string(),
@@ -87,7 +118,7 @@ async fn play_group(
             controller: None,
         })
         .await?;
-    let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
+    let obs_dim = session.spec().obs_dim as usize;
     let mut obs = session.initial_observations().to_vec();
     let mut scores: Vec<EpisodeScore> = seeds
         .iter()
@@ -107,17 +138,11 @@ async fn play_group(
             .iter()
             .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
             .collect();
-        let input = Tensor::from_slice(&batch, (active.len(), obs_dim), &dsrl_policy::Device::Cpu)
-            .map_err(|e| policy_error(e.into()))?;
-        let actions = policy.act(&input).map_err(policy_error)?;
-        if actions.len() != active.len() * act_dim {
-            return Err(ApiError::Internal(format!(
-                "the policy produced {} action values for {} environments of action dim {act_dim}",
-                actions.len(),
-                active.len()
-            )));
-        }
+        let actions = rollout.act(&active, &batch).map_err(policy_error)?;
         let step = session.step(&active, &actions).await?;
+        rollout
+            .observe(&active, &step.rewards, &step.costs)
+            .map_err(policy_error)?;
         let mut still = Vec::with_capacity(active.len());
         let (mut reset_envs, mut reset_seeds) = (Vec::new(), Vec::new());
         for (row, &i) in active.iter().enumerate() {
@@ -134,6 +159,7 @@ async fn play_group(
                 playing[i as usize] = next;
                 reset_envs.push(i);
                 reset_seeds.push(seeds[next]);
+                rollout.start_episode(i as usize, seeds[next]).map_err(policy_error)?;
                 next += 1;
             }
         }

@@ -251,7 +251,7 @@ mod tests {
             )
             .unwrap();
         let (config, tensors) = checkpoint::read(dir.path()).unwrap();
-        let policy = checkpoint::Policy::load(&config, &tensors).unwrap();
+        let policy = dsrl_policy::Policy::load(&config, &tensors).unwrap();
         assert_eq!(policy.act(&probe).unwrap(), got);
     }
 }

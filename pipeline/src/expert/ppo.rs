@@ -378,7 +378,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         original.write_policy(dir.path(), "OfflineBallRun-v0").unwrap();
         let (config, weights) = dsrl_policy::checkpoint::read(dir.path()).unwrap();
-        let policy = dsrl_policy::checkpoint::Policy::load(&config, &weights).unwrap();
+        let policy = dsrl_policy::Policy::load(&config, &weights).unwrap();
         assert_eq!(
             policy.act(&matrix(&[0.0], 1, 1).unwrap()).unwrap(),
             vec![mean_action(&original)]

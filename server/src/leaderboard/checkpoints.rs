@@ -10,7 +10,8 @@
 use std::collections::BTreeMap;
 
 use bytes::Bytes;
-use dsrl_policy::checkpoint::{self, Conditioning, Policy, PolicyConfig};
+use dsrl_policy::Policy;
+use dsrl_policy::checkpoint::{self, Conditioning, PolicyConfig};
 use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -153,19 +154,26 @@ pub fn check(task: &Task, files: Vec<(String, Bytes)>) -> Result<CheckedSubmissi
 fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Result<(), ApiError> {
     let thresholds = &task.cost_thresholds;
     let listed = thresholds.iter().map(|t| t.to_string()).collect::<Vec<_>>().join(", ");
+    // One checkpoint scored at every threshold: unconditioned, or conditioned on the threshold it is scored at
+    // (`check_policy` has checked that a returns-to-go policy has a target for each).
     if let [only] = checkpoints
-        && only.config.conditioning == Conditioning::Unconditioned
+        && only.config.conditioning.cost_threshold().is_none()
     {
         return Ok(());
     }
     let mut declared = Vec::new();
     for c in checkpoints.iter() {
         match c.config.conditioning {
-            Conditioning::Unconditioned => {
+            Conditioning::Unconditioned | Conditioning::TargetCost | Conditioning::ReturnsToGo { .. } => {
                 return Err(ApiError::InvalidArgument(format!(
-                    "{}: an unconditioned checkpoint must be the submission's only one; per-threshold checkpoints \
-                     declare conditioning {{\"kind\": \"per_threshold\", \"cost_threshold\": K}} for K in {listed}",
-                    c.slot
+                    "{}: a checkpoint scored at every threshold ({} conditioning) must be the submission's only \
+                     one; per-threshold checkpoints declare conditioning {{\"kind\": \"per_threshold\", \
+                     \"cost_threshold\": K}} for K in {listed}",
+                    c.slot,
+                    serde_json::to_value(&c.config.conditioning)
+                        .ok()
+                        .and_then(|v| v["kind"].as_str().map(str::to_owned))
+                        .unwrap_or_default()
                 )));
             }
             Conditioning::PerThreshold { cost_threshold } => {
@@ -205,10 +213,7 @@ fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Resul
 
 impl CheckedCheckpoint {
     pub fn cost_threshold(&self) -> Option<f64> {
-        match self.config.conditioning {
-            Conditioning::PerThreshold { cost_threshold } => Some(cost_threshold),
-            Conditioning::Unconditioned => None,
-        }
+        self.config.conditioning.cost_threshold()
     }
 }
 

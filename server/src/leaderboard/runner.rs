@@ -6,7 +6,8 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use dsrl_policy::checkpoint::{self, Policy};
+use dsrl_policy::Policy;
+use dsrl_policy::checkpoint;
 
 use super::Leaderboard;
 use super::queue::{self, EpisodeRow, Job};
@@ -152,6 +153,7 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
                 &leaderboard.simulators,
                 task,
                 policy,
+                threshold,
                 &seeds,
                 leaderboard.config.envs_per_session as usize,
                 1,

@@ -1,0 +1,245 @@
+//! The building blocks of the sequence and BCQ architectures, named like their PyTorch modules (`<name>.weight`,
+//! `<name>.bias`) so a `state_dict` exported from PyTorch loads as is, and [`Weights`]: reading named tensors out of
+//! a checkpoint with a shape check for each and a record of which were used.
+
+use std::collections::{BTreeSet, HashMap};
+
+use candle_core::{DType, Device, Tensor, Var};
+
+use crate::mlp::Mlp;
+use crate::noise::Noise;
+use crate::{PolicyError, Result};
+
+/// `nn.Linear`: `x · Wᵀ + b` over the last dimension of `x` (any leading dimensions).
+pub struct Linear {
+    pub weight: Var,
+    pub bias: Var,
+}
+
+impl Linear {
+    /// Weights `N(0, std²)` and zero biases (the Decision Transformer's initialisation, std 0.02).
+    pub fn normal(inputs: usize, outputs: usize, std: f64, noise: &mut Noise) -> Result<Linear> {
+        Ok(Linear {
+            weight: normal_var(&[outputs, inputs], std, noise)?,
+            bias: Var::zeros(outputs, DType::F32, &Device::Cpu)?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims().to_vec();
+        let inputs = *dims
+            .last()
+            .ok_or_else(|| PolicyError::Format("a linear layer needs an input axis".into()))?;
+        let rows = x.elem_count() / inputs.max(1);
+        let y = x
+            .reshape((rows, inputs))?
+            .matmul(&self.weight.as_tensor().t()?)?
+            .broadcast_add(self.bias.as_tensor())?;
+        let mut out = dims;
+        *out.last_mut().expect("checked above") = self.weight.dims()[0];
+        Ok(y.reshape(out)?)
+    }
+
+    pub fn named_vars(&self, name: &str) -> Vec<(String, Var)> {
+        vec![
+            (format!("{name}.weight"), self.weight.clone()),
+            (format!("{name}.bias"), self.bias.clone()),
+        ]
+    }
+}
+
+/// `nn.LayerNorm` over the last dimension (PyTorch's ε = 1e-5, biased variance).
+pub struct LayerNorm {
+    pub weight: Var,
+    pub bias: Var,
+}
+
+impl LayerNorm {
+    pub const EPS: f64 = 1e-5;
+
+    /// Weight one, bias zero.
+    pub fn new(dim: usize) -> Result<LayerNorm> {
+        Ok(LayerNorm {
+            weight: Var::ones(dim, DType::F32, &Device::Cpu)?,
+            bias: Var::zeros(dim, DType::F32, &Device::Cpu)?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let last = x.rank() - 1;
+        let centred = x.broadcast_sub(&x.mean_keepdim(last)?)?;
+        let variance = centred.sqr()?.mean_keepdim(last)?;
+        let normed = centred.broadcast_div(&variance.affine(1.0, Self::EPS)?.sqrt()?)?;
+        Ok(normed
+            .broadcast_mul(self.weight.as_tensor())?
+            .broadcast_add(self.bias.as_tensor())?)
+    }
+
+    pub fn named_vars(&self, name: &str) -> Vec<(String, Var)> {
+        vec![
+            (format!("{name}.weight"), self.weight.clone()),
+            (format!("{name}.bias"), self.bias.clone()),
+        ]
+    }
+}
+
+/// A float32 variable of the given shape with `N(0, std²)` entries.
+pub fn normal_var(shape: &[usize], std: f64, noise: &mut Noise) -> Result<Var> {
+    let n = shape.iter().product();
+    let values: Vec<f32> = (0..n).map(|_| (noise.normal() * std) as f32).collect();
+    Ok(Var::from_vec(values, shape, &Device::Cpu)?)
+}
+
+/// Named tensors being read into a network: each read checks presence, dtype and shape, and is remembered, so
+/// [`Weights::finish`] can refuse tensors the declared architecture has no place for (a misnamed or surplus layer
+/// would otherwise be ignored silently, and the network scored would not be the one trained).
+pub struct Weights<'a> {
+    tensors: &'a HashMap<String, Tensor>,
+    used: BTreeSet<String>,
+}
+
+impl<'a> Weights<'a> {
+    pub fn new(tensors: &'a HashMap<String, Tensor>) -> Weights<'a> {
+        Weights {
+            tensors,
+            used: BTreeSet::new(),
+        }
+    }
+
+    /// The float32 tensor `name` of exactly `shape`, as a fresh variable.
+    pub fn var(&mut self, name: &str, shape: &[usize]) -> Result<Var> {
+        let t = self
+            .tensors
+            .get(name)
+            .ok_or_else(|| PolicyError::Format(format!("{name} is missing")))?;
+        if t.dims() != shape {
+            return Err(PolicyError::Format(format!(
+                "{name} has shape {:?}, expected {shape:?}",
+                t.dims()
+            )));
+        }
+        if t.dtype() != DType::F32 {
+            return Err(PolicyError::Format(format!(
+                "{name} must be float32, not {:?}",
+                t.dtype()
+            )));
+        }
+        self.used.insert(name.to_owned());
+        // A copy: `Var::from_tensor` of a tensor that is already a variable would share its storage.
+        Ok(Var::from_tensor(&t.copy()?)?)
+    }
+
+    pub fn linear(&mut self, name: &str, inputs: usize, outputs: usize) -> Result<Linear> {
+        Ok(Linear {
+            weight: self.var(&format!("{name}.weight"), &[outputs, inputs])?,
+            bias: self.var(&format!("{name}.bias"), &[outputs])?,
+        })
+    }
+
+    /// A linear layer that only training uses (a prediction head): read and checked when present.
+    pub fn optional_linear(&mut self, name: &str, inputs: usize, outputs: usize) -> Result<Option<Linear>> {
+        if self.tensors.contains_key(&format!("{name}.weight")) || self.tensors.contains_key(&format!("{name}.bias")) {
+            return self.linear(name, inputs, outputs).map(Some);
+        }
+        Ok(None)
+    }
+
+    pub fn layer_norm(&mut self, name: &str, dim: usize) -> Result<LayerNorm> {
+        Ok(LayerNorm {
+            weight: self.var(&format!("{name}.weight"), &[dim])?,
+            bias: self.var(&format!("{name}.bias"), &[dim])?,
+        })
+    }
+
+    /// The MLP `<prefix>.<i>` with layer sizes exactly `sizes`.
+    pub fn mlp(&mut self, prefix: &str, sizes: &[usize], activation: crate::mlp::Activation) -> Result<Mlp> {
+        let net = Mlp::from_tensors(prefix, self.tensors, activation)?;
+        if net.sizes() != sizes {
+            return Err(PolicyError::Format(format!(
+                "{prefix} has layer sizes {:?}, but {} declares {sizes:?}",
+                net.sizes(),
+                crate::checkpoint::CONFIG_FILE
+            )));
+        }
+        self.used.extend(net.named_vars().into_iter().map(|(name, _)| name));
+        Ok(net)
+    }
+
+    /// Refuses the tensors nothing read, except those under `training_only` prefixes (parts of the module that only
+    /// training uses, such as a VAE's encoder or a transformer's prediction heads).
+    pub fn finish(self, training_only: &[&str]) -> Result<()> {
+        let surplus: Vec<&String> = self
+            .tensors
+            .keys()
+            .filter(|name| !self.used.contains(*name))
+            .filter(|name| !training_only.iter().any(|p| name.starts_with(p)))
+            .collect::<BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        if surplus.is_empty() {
+            return Ok(());
+        }
+        let shown: Vec<&str> = surplus.iter().take(5).map(|s| s.as_str()).collect();
+        Err(PolicyError::Format(format!(
+            "{} tensor(s) have no place in the declared architecture: {}{}",
+            surplus.len(),
+            shown.join(", "),
+            if surplus.len() > shown.len() { ", ..." } else { "" }
+        )))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn layer_norm_and_linear_match_their_definitions_over_leading_axes() {
+        let x = Tensor::from_vec(vec![1f32, 2.0, 4.0, -1.0, 0.0, 1.0], (1, 2, 3), &Device::Cpu).unwrap();
+        let norm = LayerNorm::new(3).unwrap();
+        let got = norm
+            .forward(&x)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        for (row, values) in [[1f64, 2.0, 4.0], [-1.0, 0.0, 1.0]].iter().enumerate() {
+            let mean = values.iter().sum::<f64>() / 3.0;
+            let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / 3.0;
+            for (j, v) in values.iter().enumerate() {
+                let want = (v - mean) / (var + LayerNorm::EPS).sqrt();
+                assert!((f64::from(got[row * 3 + j]) - want).abs() < 1e-5, "{got:?}");
+            }
+        }
+        let linear = Linear::normal(3, 2, 1.0, &mut Noise::seeded(4)).unwrap();
+        let y = linear.forward(&x).unwrap();
+        assert_eq!(y.dims(), [1, 2, 2]);
+        let w = linear.weight.as_tensor().to_vec2::<f32>().unwrap();
+        let y = y.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let want = -w[1][0] + w[1][2];
+        assert!((y[3] - want).abs() < 1e-6);
+    }
+
+    #[test]
+    fn weights_refuse_wrong_shapes_and_tensors_without_a_place() {
+        let t = |shape: &[usize]| Tensor::zeros(shape, DType::F32, &Device::Cpu).unwrap();
+        let tensors: HashMap<String, Tensor> = [
+            ("a.weight".to_owned(), t(&[2, 3])),
+            ("a.bias".to_owned(), t(&[2])),
+            ("head.weight".to_owned(), t(&[1, 2])),
+            ("stray".to_owned(), t(&[1])),
+        ]
+        .into_iter()
+        .collect();
+        let mut w = Weights::new(&tensors);
+        let err = w.linear("a", 4, 2).err().unwrap().to_string();
+        assert!(err.contains("a.weight has shape [2, 3], expected [2, 4]"), "{err}");
+        w.linear("a", 3, 2).unwrap();
+        let err = w.finish(&["head."]).err().unwrap().to_string();
+        assert!(
+            err.contains("1 tensor(s) have no place") && err.contains("stray"),
+            "{err}"
+        );
+    }
+}
