@@ -1,7 +1,8 @@
 //! The leaderboard end to end: users and tokens, submissions checked and deduped and held to quotas (a server
-//! without simulator workers, so submissions stay queued), and a BC-All / BC-Safe pair trained by `dsrl-train` on
-//! the committed BallRun starter, submitted, scored on real simulator workers with held seeds and ranked; a server
-//! killed in the middle of an evaluation re-runs the job after restart to exactly the same episodes.
+//! without simulator workers, so submissions stay queued), malformed CDT declarations refused with the reason, and a
+//! BC-All / BC-Safe pair trained by `dsrl-train` on the committed BallRun starter plus an (untrained) CDT, submitted,
+//! scored on real simulator workers with held seeds and ranked; a server killed in the middle of an evaluation
+//! re-runs the job after restart to exactly the same episodes.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -38,6 +39,17 @@ fn train_bc(out: &Path, mode: &str, seed: u64) {
         .status()
         .unwrap();
     assert!(status.success(), "dsrl-train bc --mode {mode} failed");
+}
+
+/// A freshly initialised checkpoint of `arch` for the task (`dsrl-make-policy`).
+fn make_policy(out: &Path, arch: &str) -> PathBuf {
+    let status = Command::new(dsrl_e2e::bin("dsrl-make-policy"))
+        .args(["--task", TASK, "--arch", arch, "--seed", "3"])
+        .arg(out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "dsrl-make-policy --arch {arch} failed");
+    out.to_owned()
 }
 
 /// Creates a user through the CLI and returns its token.
@@ -256,6 +268,47 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     assert_eq!(run.code, 6, "{run:?}");
     assert!(run.stdout.contains("no checkpoint for cost threshold 40"), "{run:?}");
 
+    // A CDT (conditioned on returns-to-go) whose declaration disagrees with the task or with its weights is refused
+    // with the reason.
+    let cdt = make_policy(&env.path("cdt"), "cdt");
+    type Edit = Box<dyn Fn(&mut serde_json::Value)>;
+    let cdt_cases: Vec<(&str, Edit, &str)> = vec![
+        (
+            "a timestep embedding shorter than the task's episodes",
+            Box::new(|c| c["architecture"]["episode_len"] = 50.into()),
+            "covers episode_len = 50",
+        ),
+        (
+            "a threshold without a target",
+            Box::new(|c| {
+                c["conditioning"]["targets"].as_array_mut().unwrap().pop();
+            }),
+            "no target for cost threshold 40",
+        ),
+        (
+            "no returns-to-go",
+            Box::new(|c| c["conditioning"] = serde_json::json!({"kind": "unconditioned"})),
+            "conditioned on returns-to-go",
+        ),
+        (
+            "layers the weights do not have",
+            Box::new(|c| c["architecture"]["num_layers"] = 3.into()),
+            "cdt.blocks.2.norm1.weight is missing",
+        ),
+        (
+            "fewer layers than the weights have",
+            Box::new(|c| c["architecture"]["num_layers"] = 1.into()),
+            "have no place in the declared architecture",
+        ),
+    ];
+    for (what, edit, message) in cdt_cases {
+        let dir = env.path(&format!("cdt-{}", what.len()));
+        variant(&cdt, &dir, edit);
+        let run = submit(&env, &bob, &dir, "CDT");
+        assert_eq!(run.code, 6, "{what}: {run:?}");
+        assert!(run.stdout.contains(message), "{what}: {run:?}");
+    }
+
     grpc_submissions(&env.server.url, &alice, &bc_all, first_id);
 
     // Nothing was scored (this server has no simulator workers): the queue holds the live submission.
@@ -364,8 +417,20 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
             .ok()
             .json();
         assert_eq!(safe["checkpoints"].as_array().unwrap().len(), 3);
+        // A CDT (not trained here: a fixture) is scored at each threshold from its own returns-to-go target; bob
+        // submits it, since alice has the default two submissions in flight.
+        let bob = create_user(&env, "bob");
+        let cdt = submit(
+            &env,
+            &bob,
+            &make_policy(&models.path().join("cdt"), "cdt"),
+            "CDT-untrained",
+        )
+        .ok()
+        .json();
+        assert_eq!(cdt["checkpoints"][0]["architecture"], "cdt");
         let mut finished = Vec::new();
-        for s in [&all, &safe] {
+        for s in [&all, &safe, &cdt] {
             let run = client(&env, &alice, &["--json", "status", &s["id"].to_string(), "--wait"]).ok();
             let done = run.json();
             assert_eq!(done["state"], "finished", "{done}");
@@ -401,12 +466,14 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
         // The task's table ranks safe entries first; the family table aggregates them.
         let board = get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
         let entries = board["tasks"][0]["entries"].as_array().unwrap().clone();
-        assert_eq!(entries.len(), 2);
+        assert_eq!(entries.len(), 3);
         assert_eq!(entries[0]["rank"], 1);
         let safe_first = entries.iter().map(|e| e["safe"] == true).collect::<Vec<_>>();
         assert!(safe_first.windows(2).all(|w| w[0] >= w[1]), "{entries:?}");
-        if entries.iter().all(|e| e["safe"] == true) {
-            assert!(entries[0]["normalized_reward"].as_f64() >= entries[1]["normalized_reward"].as_f64());
+        for pair in entries.windows(2).filter(|w| w[0]["safe"] == w[1]["safe"]) {
+            if pair[0]["safe"] == true {
+                assert!(pair[0]["normalized_reward"].as_f64() >= pair[1]["normalized_reward"].as_f64());
+            }
         }
         let family = &board["families"][0];
         assert_eq!(family["family"], "bullet");

@@ -5,11 +5,17 @@ header, raw little-endian tensors), the network is evaluated in float32 NumPy as
 episodes are stepped on the simulator objects the workers host (dsrl_sim.tasks.Env, which carries the seeding fixes
 the workers apply). Prints one JSON object with every episode's returns, like `dsrl-admin evaluate --json`.
 
+Every architecture of the format is written out here independently of the Rust code: the MLP actors, the BCQ
+actor (VAE decoder + perturbation; its latents drawn from SplitMix64 + Box-Muller seeded with the episode seed, as
+the evaluator does) and the CDT (OSRL's rollout: one episode, the last seq_len timesteps unpadded, reward- and
+cost-to-go kept in float32). Conditioned policies play at --cost-threshold.
+
 Usage: .venv-sim/bin/python tests/parity/evaluate_in_python.py POLICY_DIR --sim-id SafetyBallRun-v0 \
-           [--episodes 20] [--seed 1000000]
+           [--episodes 20] [--seed 1000000] [--cost-threshold 10]
 """
 import argparse
 import json
+import math
 import struct
 import sys
 from pathlib import Path
@@ -47,17 +53,99 @@ def mlp(weights, prefix, x, activation, activate_last=False):
     return x
 
 
-def policy_fn(policy_dir):
+class SplitMix64:
+    """The evaluator's per-episode generator (dsrl-policy noise.rs): SplitMix64, uniforms in (0, 1), Box-Muller."""
+
+    MASK = (1 << 64) - 1
+
+    def __init__(self, seed):
+        self.state = seed & self.MASK
+
+    def next_u64(self):
+        self.state = (self.state + 0x9E3779B97F4A7C15) & self.MASK
+        z = self.state
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & self.MASK
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & self.MASK
+        return z ^ (z >> 31)
+
+    def uniform(self):
+        return ((self.next_u64() >> 11) + 0.5) / float(1 << 53)
+
+    def normal(self):
+        u1, u2 = self.uniform(), self.uniform()
+        return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+def linear(w, name, x):
+    return x @ w[f"{name}.weight"].T + w[f"{name}.bias"]
+
+
+def layer_norm(w, name, x):
+    mean = x.mean(-1, keepdims=True)
+    var = ((x - mean) ** 2).mean(-1, keepdims=True)
+    return (x - mean) / np.sqrt(var + np.float32(1e-5)) * w[f"{name}.weight"] + w[f"{name}.bias"]
+
+
+_erf = np.vectorize(math.erf, otypes=[np.float64])
+
+
+def gelu(x):
+    return (0.5 * x * (1.0 + _erf(x.astype(np.float64) / math.sqrt(2.0)))).astype(np.float32)
+
+
+def softmax(x):
+    e = np.exp(x - x.max(-1, keepdims=True))
+    return e / e.sum(-1, keepdims=True)
+
+
+def cdt_action(w, arch, states, actions, rtg, ctg, steps):
+    """OSRL CDT.forward for one unpadded sequence of T timesteps; the action head's mean at the last one."""
+    t = len(steps)
+    d, heads = arch["embedding_dim"], arch["num_heads"]
+    time = w["cdt.timestep_emb.weight"][steps]
+    if arch["cost_transform"]:
+        ctg = np.float32(50.0) - ctg
+    tokens = [
+        linear(w, "cdt.return_emb", rtg[:, None]) + time,
+        linear(w, "cdt.cost_emb", ctg[:, None]) + time,
+        linear(w, "cdt.state_emb", states) + time,
+        linear(w, "cdt.action_emb", actions) + time,
+    ]
+    x = np.stack(tokens, axis=1).reshape(4 * t, d)
+    x = layer_norm(w, "cdt.emb_norm", x)
+    hd = d // heads
+    causal = np.triu(np.full((4 * t, 4 * t), -np.inf, np.float32), 1)
+    for i in range(arch["num_layers"]):
+        p = f"cdt.blocks.{i}"
+        h = layer_norm(w, f"{p}.norm1", x)
+        qkv = h @ w[f"{p}.attention.in_proj_weight"].T + w[f"{p}.attention.in_proj_bias"]
+        q, k, v = (qkv[:, j * d : (j + 1) * d].reshape(4 * t, heads, hd).transpose(1, 0, 2) for j in range(3))
+        att = softmax((q / np.float32(math.sqrt(hd))) @ k.transpose(0, 2, 1) + causal) @ v
+        x = x + linear(w, f"{p}.attention.out_proj", att.transpose(1, 0, 2).reshape(4 * t, d))
+        x = x + linear(w, f"{p}.mlp.2", gelu(linear(w, f"{p}.mlp.0", layer_norm(w, f"{p}.norm2", x))))
+    x = layer_norm(w, "cdt.out_norm", x)
+    state_out = x.reshape(t, 4, d)[:, 2]
+    return linear(w, "cdt.action_head.mu", state_out)[-1]
+
+
+def policy_fn(policy_dir, cost_threshold):
+    """Returns (config, new_episode(seed) -> (act(obs) -> action, observe(reward, cost)))."""
     config = json.loads((Path(policy_dir) / "policy.json").read_text())
     w = read_safetensors(Path(policy_dir) / "policy.safetensors")
     arch = config["architecture"]
     scale = np.float32(arch["max_action"])
     norm = config.get("observation_normalization")
+    conditioning = config.get("conditioning", {"kind": "unconditioned"})
 
-    def act(obs):
+    def prepare(obs):
         x = obs.astype(np.float32)[None, :]
         if norm:
             x = (x - np.asarray(norm["mean"], np.float32)) / np.asarray(norm["std"], np.float32)
+        if conditioning["kind"] == "target_cost":
+            x = np.concatenate([x, np.full((1, 1), cost_threshold, np.float32)], axis=1)
+        return x
+
+    def memoryless(x, _state):
         if arch["name"] == "gaussian_mlp":
             y = np.tanh(mlp(w, "actor.mu", x, arch["activation"])) * scale
         elif arch["name"] == "mlp_actor":
@@ -69,7 +157,60 @@ def policy_fn(policy_dir):
             raise SystemExit(f"unknown architecture {arch['name']}")
         return y[0]
 
-    return config, act
+    def bcq(x, state):
+        z = np.array(
+            [[min(max(state["noise"].normal(), -0.5), 0.5) for _ in range(arch["latent_dim"])]], np.float32
+        )
+        proposal = np.tanh(mlp(w, "vae.decoder", np.concatenate([x, z], 1), "relu")) * scale
+        nudge = np.float32(arch["phi"]) * scale * np.tanh(
+            mlp(w, "actor.pi", np.concatenate([x, proposal], 1), arch["activation"])
+        )
+        return np.clip(proposal + nudge, -scale, scale)[0]
+
+    def cdt(x, state):
+        state["states"].append(x[0])
+        state["actions"].append(np.zeros(config["act_dim"], np.float32))
+        k = arch["seq_len"]
+        n = len(state["states"])
+        lo = max(0, n - k)
+        a = cdt_action(
+            w,
+            arch,
+            np.stack(state["states"][lo:]),
+            np.stack(state["actions"][lo:]),
+            np.array(state["rtg"][lo:n], np.float32),
+            np.array(state["ctg"][lo:n], np.float32),
+            np.arange(lo, n),
+        )
+        a = np.clip(a, -scale, scale).astype(np.float32)
+        state["actions"][-1] = a
+        return a
+
+    if arch["name"] == "cdt":
+        target = next(t for t in conditioning["targets"] if t["cost_threshold"] == cost_threshold)
+        start = (
+            np.float32(target["reward_return"] * arch["reward_scale"]),
+            np.float32(target["cost_return"] * arch["cost_scale"]),
+        )
+
+    def new_episode(seed):
+        state = {"noise": SplitMix64(seed), "states": [], "actions": []}
+        if arch["name"] == "cdt":
+            state["rtg"], state["ctg"] = [start[0]], [start[1]]
+        step = {"bcq_actor": bcq, "cdt": cdt}.get(arch["name"], memoryless)
+
+        def act(obs):
+            return step(prepare(obs), state)
+
+        def observe(reward, cost):
+            if arch["name"] == "cdt":
+                # In float32, as OSRL's rollout tensors hold them.
+                state["rtg"].append(np.float32(state["rtg"][-1] - np.float32(reward * arch["reward_scale"])))
+                state["ctg"].append(np.float32(state["ctg"][-1] - np.float32(cost * arch["cost_scale"])))
+
+        return act, observe
+
+    return config, new_episode
 
 
 def main():
@@ -78,18 +219,21 @@ def main():
     p.add_argument("--sim-id", required=True)
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=1_000_000)
+    p.add_argument("--cost-threshold", type=float, default=None)
     args = p.parse_args()
     tasks.quiet()
-    config, act = policy_fn(args.policy)
+    config, new_episode = policy_fn(args.policy, args.cost_threshold)
     episodes = []
     for i in range(args.episodes):
         seed = args.seed + i
         env = tasks.make_env(args.sim_id)
         obs = env.reset(seed)
+        act, observe = new_episode(seed)
         reward = cost = 0.0
         length = 0
         while True:
             obs, r, c, terminated, truncated, _ = env.step(act(obs))
+            observe(r, c)
             # The returns sum float32 rewards and costs in float64, as the evaluator and the datasets do.
             reward += float(np.float32(r))
             cost += float(np.float32(c))

@@ -1,0 +1,96 @@
+//! The architectures this project scores but does not train (the BCQ actor, the CDT, an MLP conditioned on the
+//! target cost), as seeded, freshly initialised checkpoints from `dsrl-make-policy`: each plays on the real simulator
+//! through `dsrl-admin evaluate` and agrees episode by episode with `tests/parity/evaluate_in_python.py`, which
+//! implements every architecture again in NumPy (the CDT unbatched and unpadded, as OSRL's rollout feeds it; the
+//! BCQ latents from its own SplitMix64).
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+const TASK: &str = "OfflineBallRun-v0";
+
+fn make_policy(out: &Path, arch: &str) {
+    let status = Command::new(dsrl_e2e::bin("dsrl-make-policy"))
+        .args(["--task", TASK, "--arch", arch, "--seed", "5"])
+        .arg(out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "dsrl-make-policy --arch {arch} failed");
+}
+
+fn evaluate(dir: &Path, extra: &[&str]) -> serde_json::Value {
+    let out = Command::new(dsrl_e2e::bin("dsrl-admin"))
+        .args(["evaluate", "--episodes", "3", "--workers", "1", "--json"])
+        .args(extra)
+        .arg(dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+fn python_reference(dir: &Path, cost_threshold: &str) -> serde_json::Value {
+    let out = Command::new(dsrl_e2e::repo_root().join(".venv-sim/bin/python"))
+        .arg(dsrl_e2e::repo_root().join("tests/parity/evaluate_in_python.py"))
+        .arg(dir)
+        .args([
+            "--sim-id",
+            "SafetyBallRun-v0",
+            "--episodes",
+            "3",
+            "--cost-threshold",
+            cost_threshold,
+        ])
+        .stderr(Stdio::inherit())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "the Python reference failed");
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn bcq_cdt_and_target_cost_policies_play_as_the_python_reference_does() {
+    let dir = tempfile::tempdir().unwrap();
+    for arch in ["bcq-actor", "cdt", "target-cost-mlp"] {
+        let policy = dir.path().join(arch);
+        make_policy(&policy, arch);
+        let ours = evaluate(&policy, &["--cost-threshold", "20"]);
+        let theirs = python_reference(&policy, "20");
+        let (ours, theirs) = (
+            ours["episodes"].as_array().unwrap(),
+            theirs["episodes"].as_array().unwrap(),
+        );
+        assert_eq!(ours.len(), 3, "{arch}");
+        assert_eq!(ours.len(), theirs.len(), "{arch}");
+        // Costs and lengths are equal; reward returns agree to float32 rounding (BLAS and candle's gemm sum in
+        // different orders, and the evaluator batches and pads the CDT's contexts where the reference does not).
+        for (a, b) in ours.iter().zip(theirs) {
+            assert_eq!(
+                (&a["seed"], &a["length"], &a["cost_return"]),
+                (&b["seed"], &b["length"], &b["cost_return"]),
+                "{arch}"
+            );
+            let (ra, rb) = (
+                a["reward_return"].as_f64().unwrap(),
+                b["reward_return"].as_f64().unwrap(),
+            );
+            assert!((ra - rb).abs() <= 1e-4 * rb.abs().max(1.0), "{arch}: {ra} vs {rb}");
+        }
+    }
+
+    // Without --cost-threshold a conditioned policy plays at each of the task's thresholds; the target changes
+    // what it does.
+    let report = evaluate(&dir.path().join("cdt"), &[]);
+    let thresholds = report["thresholds"].as_array().unwrap();
+    assert_eq!(thresholds.len(), 3);
+    let rewards = |t: &serde_json::Value| {
+        t["episodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| e["reward_return"].as_f64().unwrap())
+            .collect::<Vec<_>>()
+    };
+    assert_ne!(rewards(&thresholds[0]), rewards(&thresholds[2]));
+    assert_eq!(thresholds[1]["cost_threshold"], 20.0);
+}

@@ -1,0 +1,134 @@
+//! `dsrl-make-policy`: writes a freshly initialised, seeded policy checkpoint for a task, in any architecture of the
+//! format, for end-to-end tests (scoring, parity with the Python reference) of the architectures this project does
+//! not train. Its scores mean nothing; its actions exercise every part of the network.
+
+use std::path::PathBuf;
+
+use clap::{Parser, ValueEnum};
+use dsrl_policy::cdt::{Cdt, CdtShape};
+use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig, ReturnTarget};
+use dsrl_policy::mlp::{Activation, Mlp};
+use dsrl_policy::noise::Noise;
+use dsrl_suite::catalog::Catalog;
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Arch {
+    /// OSRL's BCQ-Lag actor: hidden [64, 64] (tanh), decoder [64, 64], latent 2 x act_dim, phi 0.05.
+    BcqActor,
+    /// A CDT (embedding 32, 2 layers, 4 heads, K = 10) conditioned on (max reward, threshold) per threshold.
+    Cdt,
+    /// An MLP actor [64, 64] that reads the cost threshold after the observation (target_cost conditioning).
+    TargetCostMlp,
+}
+
+#[derive(Debug, Parser)]
+struct Args {
+    #[arg(long)]
+    task: String,
+    #[arg(long, value_enum)]
+    arch: Arch,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output folder (policy.json + policy.safetensors).
+    out: PathBuf,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let catalog = Catalog::embedded()?;
+    let task = catalog.get(&args.task)?;
+    let (obs_dim, act_dim) = (task.obs_dim as usize, task.act_dim as usize);
+    let mut noise = Noise::seeded(args.seed);
+    let (architecture, conditioning, vars) = match args.arch {
+        Arch::BcqActor => {
+            let latent_dim = 2 * act_dim;
+            let pi = Mlp::orthogonal(
+                "actor.pi",
+                &[obs_dim + act_dim, 64, 64, act_dim],
+                Activation::Tanh,
+                1.0,
+                1.0,
+                &mut noise,
+            )?;
+            let decoder = Mlp::orthogonal(
+                "vae.decoder",
+                &[obs_dim + latent_dim, 64, 64, act_dim],
+                Activation::Relu,
+                2f64.sqrt(),
+                1.0,
+                &mut noise,
+            )?;
+            let architecture = Architecture::BcqActor {
+                hidden_sizes: vec![64, 64],
+                activation: Activation::Tanh,
+                decoder_hidden_sizes: vec![64, 64],
+                latent_dim,
+                phi: 0.05,
+                max_action: 1.0,
+            };
+            let vars: Vec<_> = pi.named_vars().into_iter().chain(decoder.named_vars()).collect();
+            (architecture, Conditioning::Unconditioned, vars)
+        }
+        Arch::Cdt => {
+            let shape = CdtShape {
+                obs_dim,
+                act_dim,
+                embedding_dim: 32,
+                num_layers: 2,
+                num_heads: 4,
+                seq_len: 10,
+                episode_len: task.max_episode_steps as usize,
+            };
+            let model = Cdt::new(shape, true, &mut noise)?;
+            let architecture = Architecture::Cdt {
+                embedding_dim: 32,
+                num_layers: 2,
+                num_heads: 4,
+                seq_len: 10,
+                episode_len: shape.episode_len,
+                max_action: 1.0,
+                reward_scale: 0.1,
+                cost_scale: 1.0,
+                cost_transform: true,
+            };
+            let targets = task
+                .cost_thresholds
+                .iter()
+                .map(|&k| ReturnTarget {
+                    cost_threshold: k,
+                    reward_return: task.max_episode_reward,
+                    cost_return: k,
+                })
+                .collect();
+            (architecture, Conditioning::ReturnsToGo { targets }, model.named_vars())
+        }
+        Arch::TargetCostMlp => {
+            let net = Mlp::orthogonal(
+                "actor.net",
+                &[obs_dim + 1, 64, 64, act_dim],
+                Activation::Relu,
+                2f64.sqrt(),
+                1.0,
+                &mut noise,
+            )?;
+            let architecture = Architecture::MlpActor {
+                hidden_sizes: vec![64, 64],
+                activation: Activation::Relu,
+                max_action: 1.0,
+            };
+            (architecture, Conditioning::TargetCost, net.named_vars())
+        }
+    };
+    let config = PolicyConfig {
+        format: checkpoint::FORMAT.into(),
+        task: task.id.to_string(),
+        obs_dim,
+        act_dim,
+        architecture,
+        observation_normalization: None,
+        conditioning,
+        training: Some(serde_json::json!({"fixture": "dsrl-make-policy", "seed": args.seed})),
+    };
+    checkpoint::write(&args.out, &config, &dsrl_policy::tensors_of(vars))?;
+    Ok(())
+}
