@@ -1,12 +1,20 @@
 #!/usr/bin/env bash
-# Benchmark: one BC training step (batch 512, MLP [obs, 256, 256, act], MSE, Adam) in candle (`dsrl-train bc`,
-# release build, one thread) vs the same update by hand in NumPy/OpenBLAS (bench/bc_step_reference.py, a stand-in for
-# PyTorch on CPU, which cannot be installed here), on the same data: the committed OfflineCarRun-v0 starter.
-# Prints a Markdown table (also written to bench/out/bc_step.md). Usage: bench/bc_step.sh [STEPS=3000]
+# Benchmark: one BC training step (OSRL's BC: batch 512, MLP [obs, 256, 256, act], MSE, Adam) side by side in one
+# run, on the same data (the committed OfflineCarRun-v0 starter):
+#   - candle: `dsrl-train bc` (release build, one thread, the learner's own timer over all steps);
+#   - PyTorch on CPU (bench/bc_step_torch.py: OSRL's code path, torch.optim.Adam), one thread and all cores;
+#   - NumPy/OpenBLAS by hand (bench/bc_step_reference.py), one thread, for scale.
+# PyTorch lives in its own environment, .venv-bench (bench/requirements-torch.txt; the PyPI wheel pulls ~5 GB of
+# CUDA libraries that it loads at import even on a CPU-only machine), made on first use. Prints a Markdown table
+# (also bench/out/bc_step.md). Usage: bench/bc_step.sh [STEPS=3000]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 steps=${1:-3000}
 scripts/setup-python.sh >&2
+if [ ! -x .venv-bench/bin/python ]; then
+  python3 -m venv .venv-bench
+  .venv-bench/bin/pip install -q -r bench/requirements-torch.txt >&2
+fi
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
 cargo build --release --locked -p dsrl-train --bins >&2
 bin=${CARGO_TARGET_DIR:-target}/release
@@ -14,15 +22,19 @@ data=$(ls data/starter/OfflineCarRun-v0/*.parquet)
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-bc-bench.XXXXXX")
 trap 'rm -rf "$work"' EXIT
 mkdir -p bench/out
+ms() { python3 -c "import json,sys; print(json.load(sys.stdin)['ms_per_step'])"; }
 "$bin/dsrl-train" bc --task OfflineCarRun-v0 --mode all --dataset "$data" --steps "$steps" --out "$work" >&2
 candle=$(python3 -c "import json; t=json.load(open('$work/bc-all/policy.json'))['training']; print(1000*t['seconds']/t['steps'])")
-numpy=$(OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bc_step_reference.py "$data" --steps "$steps" | python3 -c "import json,sys; print(json.load(sys.stdin)['ms_per_step'])")
-numpy_mt=$(.venv/bin/python bench/bc_step_reference.py "$data" --steps "$steps" | python3 -c "import json,sys; print(json.load(sys.stdin)['ms_per_step'])")
+torch1=$(.venv-bench/bin/python bench/bc_step_torch.py "$data" --steps "$steps" --threads 1 | ms)
+torch_all=$(.venv-bench/bin/python bench/bc_step_torch.py "$data" --steps "$steps" --threads "$(nproc)" | ms)
+numpy=$(OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bc_step_reference.py "$data" --steps "$steps" | ms)
+torch_version=$(.venv-bench/bin/python -c "import torch; print(torch.__version__)")
 {
   echo "| implementation | ms per step (batch 512) |"
   echo "|---|---|"
   printf "| candle (dsrl-train bc, 1 thread) | %.2f |\n" "$candle"
+  printf "| PyTorch %s on CPU, 1 thread | %.2f |\n" "$torch_version" "$torch1"
+  printf "| PyTorch %s on CPU, %s threads | %.2f |\n" "$torch_version" "$(nproc)" "$torch_all"
   printf "| NumPy/OpenBLAS by hand, 1 thread | %.2f |\n" "$numpy"
-  printf "| NumPy/OpenBLAS by hand, all cores | %.2f |\n" "$numpy_mt"
 } > bench/out/bc_step.md
 cat bench/out/bc_step.md

@@ -1,6 +1,6 @@
 """NumPy reference for bench/bc_step.sh: OSRL's BC update (MLPActor [obs, 256, 256, act], ReLU, tanh output; MSE;
-Adam lr 1e-3; batches of 512 drawn uniformly with replacement) written by hand in float32 NumPy/OpenBLAS, as a
-stand-in for PyTorch on CPU (which cannot be installed usefully on this machine). Prints one JSON line.
+Adam lr 1e-3; batches of 512 drawn uniformly with replacement) written by hand in float32 NumPy/OpenBLAS: the
+arithmetic floor of the update without a framework, shown beside PyTorch for scale. Prints one JSON line.
 
 Usage: python bench/bc_step_reference.py DATASET.parquet --steps N
 """

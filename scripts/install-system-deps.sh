@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config.
+# Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config;
+# with --tests also what the tests need: chromium (the leaderboard page is checked in headless Chromium).
 # Idempotent: does nothing when they are present.
 set -euo pipefail
 "$(dirname "$0")/ensure-dev-null.sh"
 need=()
 dpkg -s libhdf5-dev >/dev/null 2>&1 || need+=(libhdf5-dev)
 dpkg -s pkg-config >/dev/null 2>&1 || need+=(pkg-config)
+if [ "${1:-}" = "--tests" ]; then
+  dpkg -s chromium >/dev/null 2>&1 || need+=(chromium)
+fi
 if [ ${#need[@]} -eq 0 ]; then
   exit 0
 fi

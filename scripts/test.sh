@@ -4,7 +4,7 @@
 # workspace (unit, per-crate integration, cross-process end-to-end).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-scripts/install-system-deps.sh
+scripts/install-system-deps.sh --tests
 scripts/setup-python.sh
 # The simulators (Bullet-Safety-Gym, Safety-Gymnasium, MetaDrive) in .venv-sim, with all 38 tasks checked.
 sim/setup.sh --check

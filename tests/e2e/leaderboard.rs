@@ -488,6 +488,7 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
             page.contains("BC-Safe") && page.contains("<svg") && page.contains(TASK),
             "{page}"
         );
+        page_in_chromium(&format!("{}/leaderboard", env.server.url), &["BC-All", "BC-Safe", "CDT-untrained"]);
         finished.swap_remove(0)
     };
 
@@ -514,6 +515,65 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
     assert_eq!(done["episodes"], reference["episodes"]);
     assert_eq!(done["normalized_reward"], reference["normalized_reward"]);
     assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
+}
+
+/// Headless Chromium (Debian's `chromium`, installed by `scripts/install-system-deps.sh`) with the flags this
+/// machine's closed network needs and a fresh profile.
+fn chromium(profile: &Path, args: &[&str]) -> std::process::Output {
+    let out = Command::new("chromium")
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--hide-scrollbars",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .args(args)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("chromium is installed by scripts/install-system-deps.sh");
+    assert!(out.status.success(), "chromium failed: {}", String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+/// The leaderboard page as a person sees it: Chromium loads it, the DOM it built has a table row and a plot marker
+/// for each entry, and its screenshot shows the markers in the plot's safe (blue) and unsafe (red) colours.
+fn page_in_chromium(url: &str, entries: &[&str]) {
+    let dir = tempfile::tempdir().unwrap();
+    let dom = String::from_utf8(chromium(&dir.path().join("profile-dom"), &["--dump-dom", url]).stdout).unwrap();
+    let rows: Vec<&str> = dom.split("<tr class=\"entry").skip(1).collect();
+    assert_eq!(rows.len(), entries.len(), "{dom}");
+    for name in entries {
+        assert!(rows.iter().any(|r| r.contains(&format!(">{name}<"))), "no row for {name}: {dom}");
+    }
+    let plot = &dom[dom.find("<svg").expect("the page has its plot")..];
+    assert!(plot.matches("<circle").count() >= entries.len(), "{plot}");
+
+    let shot = dir.path().join("page.png");
+    chromium(
+        &dir.path().join("profile-shot"),
+        &[&format!("--screenshot={}", shot.display()), "--window-size=1280,2400", url],
+    );
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&shot).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
+    let frame = reader.next_frame(&mut pixels).unwrap();
+    let channels = frame.color_type.samples();
+    assert!(channels >= 3, "{:?}", frame.color_type);
+    let marker = |rgb: [u8; 3]| {
+        pixels[..frame.buffer_size()]
+            .chunks(channels)
+            .filter(|p| p[..3] == rgb)
+            .count()
+    };
+    // Each marker is a filled circle of radius 5: dozens of pixels of its exact colour.
+    let (safe, unsafe_) = (marker([30, 144, 255]), marker([220, 60, 40]));
+    assert!(safe + unsafe_ >= 20 * entries.len(), "the plot's markers did not render: {safe} blue, {unsafe_} red pixels");
 }
 
 fn reqwest_text(url: &str) -> String {

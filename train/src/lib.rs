@@ -151,10 +151,13 @@ impl BcLearner {
             .map(|_| (self.noise.next_u64() % self.rows as u64) as u32)
             .collect();
         let idx = Tensor::from_slice(&idx, idx.len(), &Device::Cpu)?;
-        let predicted = self.act(&self.observations.index_select(&idx, 0)?)?;
-        let loss = predicted.sub(&self.actions.index_select(&idx, 0)?)?.sqr()?.mean_all()?;
-        self.optimizer.step(&loss.backward()?)?;
-        Ok(f64::from(loss.to_scalar::<f32>()?))
+        let (loss, grads) = self.net.tanh_mse_gradients(
+            &self.observations.index_select(&idx, 0)?,
+            &self.actions.index_select(&idx, 0)?,
+            MAX_ACTION,
+        )?;
+        self.optimizer.step(&grads)?;
+        Ok(f64::from(loss))
     }
 
     /// Writes the actor as an `mlp_actor` policy.

@@ -2,10 +2,10 @@
 //! format, the declared task and dimensions against the catalog, the weights against the declared architecture
 //! (by building the network), and which cost thresholds the checkpoints cover.
 //!
-//! A submission is either one unconditioned checkpoint (`policy.json` + `policy.safetensors`, scored at each of
-//! the task's three thresholds) or one checkpoint per threshold in folders (`<slot>/policy.json`, ...), each
-//! declaring `conditioning = {kind = "per_threshold", cost_threshold = K}`, together covering exactly the task's
-//! thresholds.
+//! A submission is either one checkpoint scored at each of the task's three thresholds (`policy.json` +
+//! `policy.safetensors`: unconditioned, or conditioned on the threshold — `target_cost`, `returns_to_go`) or one
+//! checkpoint per threshold in folders (`<slot>/policy.json`, ...), each declaring
+//! `conditioning = {kind = "per_threshold", cost_threshold = K}`, together covering exactly the task's thresholds.
 
 use std::collections::BTreeMap;
 
