@@ -118,9 +118,9 @@ impl Network {
                 phi,
                 max_action,
             } => {
-                if *latent_dim == 0 || !phi.is_finite() || *phi < 0.0 {
+                if *latent_dim == 0 || *latent_dim > 1 << 16 || !phi.is_finite() || *phi < 0.0 {
                     return Err(format_error(
-                        "bcq_actor: latent_dim must be positive and phi finite and >= 0",
+                        "bcq_actor: latent_dim must be in 1..=65536 and phi finite and >= 0",
                     ));
                 }
                 let shape = BcqShape {

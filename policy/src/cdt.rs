@@ -80,6 +80,19 @@ impl Cdt {
                  and episode_len positive"
             )));
         }
+        // Bounds far above any benchmark model, so that sizes computed from a declaration cannot overflow.
+        for (name, value, max) in [
+            ("embedding_dim", d, 1 << 14),
+            ("num_layers", shape.num_layers, 256),
+            ("seq_len", shape.seq_len, 1 << 12),
+            ("episode_len", shape.episode_len, 1 << 20),
+        ] {
+            if value > max {
+                return Err(PolicyError::Format(format!(
+                    "cdt: {name} = {value} is above the {max} this service reads"
+                )));
+            }
+        }
         Ok(())
     }
 

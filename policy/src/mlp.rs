@@ -163,7 +163,9 @@ impl Mlp {
         let n = diff.elem_count() as f64;
         let loss = diff.sqr()?.mean_all()?.to_scalar::<f32>()?;
         // ∂loss/∂z_L = 2/n · diff · max_action · (1 − tanh²).
-        let mut grad = diff.affine(2.0 * max_action / n, 0.0)?.mul(&out.sqr()?.affine(-1.0, 1.0)?)?;
+        let mut grad = diff
+            .affine(2.0 * max_action / n, 0.0)?
+            .mul(&out.sqr()?.affine(-1.0, 1.0)?)?;
         let mut grads = GradStore::default();
         for (i, (w, b)) in self.layers.iter().enumerate().rev() {
             let input = &inputs[i];
@@ -264,8 +266,20 @@ mod tests {
             assert!((loss - reference.to_scalar::<f32>().unwrap()).abs() < 1e-6);
             let theirs = reference.backward().unwrap();
             for (name, var) in net.named_vars() {
-                let a = ours.get(var.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
-                let b = theirs.get(var.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                let a = ours
+                    .get(var.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap();
+                let b = theirs
+                    .get(var.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap();
                 assert_eq!(a.len(), b.len(), "{name}");
                 let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
                 for (u, v) in a.iter().zip(&b) {

@@ -9,15 +9,6 @@ use std::process::{Command, Stdio};
 
 const TASK: &str = "OfflineBallRun-v0";
 
-fn make_policy(out: &Path, arch: &str) {
-    let status = Command::new(dsrl_e2e::bin("dsrl-make-policy"))
-        .args(["--task", TASK, "--arch", arch, "--seed", "5"])
-        .arg(out)
-        .status()
-        .unwrap();
-    assert!(status.success(), "dsrl-make-policy --arch {arch} failed");
-}
-
 fn evaluate(dir: &Path, extra: &[&str]) -> serde_json::Value {
     let out = Command::new(dsrl_e2e::bin("dsrl-admin"))
         .args(["evaluate", "--episodes", "3", "--workers", "1", "--json"])
@@ -53,7 +44,7 @@ fn bcq_cdt_and_target_cost_policies_play_as_the_python_reference_does() {
     let dir = tempfile::tempdir().unwrap();
     for arch in ["bcq-actor", "cdt", "target-cost-mlp"] {
         let policy = dir.path().join(arch);
-        make_policy(&policy, arch);
+        crate::make_policy(&policy, TASK, arch, 5);
         let ours = evaluate(&policy, &["--cost-threshold", "20"]);
         let theirs = python_reference(&policy, "20");
         let (ours, theirs) = (

@@ -41,17 +41,6 @@ fn train_bc(out: &Path, mode: &str, seed: u64) {
     assert!(status.success(), "dsrl-train bc --mode {mode} failed");
 }
 
-/// A freshly initialised checkpoint of `arch` for the task (`dsrl-make-policy`).
-fn make_policy(out: &Path, arch: &str) -> PathBuf {
-    let status = Command::new(dsrl_e2e::bin("dsrl-make-policy"))
-        .args(["--task", TASK, "--arch", arch, "--seed", "3"])
-        .arg(out)
-        .status()
-        .unwrap();
-    assert!(status.success(), "dsrl-make-policy --arch {arch} failed");
-    out.to_owned()
-}
-
 /// Creates a user through the CLI and returns its token.
 fn create_user(env: &Env, name: &str) -> String {
     let mut cli = env.cli.clone();
@@ -270,7 +259,7 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
 
     // A CDT (conditioned on returns-to-go) whose declaration disagrees with the task or with its weights is refused
     // with the reason.
-    let cdt = make_policy(&env.path("cdt"), "cdt");
+    let cdt = crate::make_policy(&env.path("cdt"), TASK, "cdt", 3);
     type Edit = Box<dyn Fn(&mut serde_json::Value)>;
     let cdt_cases: Vec<(&str, Edit, &str)> = vec![
         (
@@ -423,7 +412,7 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
         let cdt = submit(
             &env,
             &bob,
-            &make_policy(&models.path().join("cdt"), "cdt"),
+            &crate::make_policy(&models.path().join("cdt"), TASK, "cdt", 3),
             "CDT-untrained",
         )
         .ok()
@@ -488,7 +477,10 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
             page.contains("BC-Safe") && page.contains("<svg") && page.contains(TASK),
             "{page}"
         );
-        page_in_chromium(&format!("{}/leaderboard", env.server.url), &["BC-All", "BC-Safe", "CDT-untrained"]);
+        page_in_chromium(
+            &format!("{}/leaderboard", env.server.url),
+            &["BC-All", "BC-Safe", "CDT-untrained"],
+        );
         finished.swap_remove(0)
     };
 
@@ -537,7 +529,11 @@ fn chromium(profile: &Path, args: &[&str]) -> std::process::Output {
         .stdin(std::process::Stdio::null())
         .output()
         .expect("chromium is installed by scripts/install-system-deps.sh");
-    assert!(out.status.success(), "chromium failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "chromium failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     out
 }
 
@@ -549,7 +545,10 @@ fn page_in_chromium(url: &str, entries: &[&str]) {
     let rows: Vec<&str> = dom.split("<tr class=\"entry").skip(1).collect();
     assert_eq!(rows.len(), entries.len(), "{dom}");
     for name in entries {
-        assert!(rows.iter().any(|r| r.contains(&format!(">{name}<"))), "no row for {name}: {dom}");
+        assert!(
+            rows.iter().any(|r| r.contains(&format!(">{name}<"))),
+            "no row for {name}: {dom}"
+        );
     }
     let plot = &dom[dom.find("<svg").expect("the page has its plot")..];
     assert!(plot.matches("<circle").count() >= entries.len(), "{plot}");
@@ -557,7 +556,11 @@ fn page_in_chromium(url: &str, entries: &[&str]) {
     let shot = dir.path().join("page.png");
     chromium(
         &dir.path().join("profile-shot"),
-        &[&format!("--screenshot={}", shot.display()), "--window-size=1280,2400", url],
+        &[
+            &format!("--screenshot={}", shot.display()),
+            "--window-size=1280,2400",
+            url,
+        ],
     );
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&shot).unwrap()));
     let mut reader = decoder.read_info().unwrap();
@@ -573,7 +576,10 @@ fn page_in_chromium(url: &str, entries: &[&str]) {
     };
     // Each marker is a filled circle of radius 5: dozens of pixels of its exact colour.
     let (safe, unsafe_) = (marker([30, 144, 255]), marker([220, 60, 40]));
-    assert!(safe + unsafe_ >= 20 * entries.len(), "the plot's markers did not render: {safe} blue, {unsafe_} red pixels");
+    assert!(
+        safe + unsafe_ >= 20 * entries.len(),
+        "the plot's markers did not render: {safe} blue, {unsafe_} red pixels"
+    );
 }
 
 fn reqwest_text(url: &str) -> String {

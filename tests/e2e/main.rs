@@ -128,3 +128,14 @@ pub fn sha256_file(path: &Path) -> String {
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
 }
+
+/// A freshly initialised, seeded checkpoint of `arch` for `task`, written into `out` by `dsrl-make-policy`.
+pub fn make_policy(out: &Path, task: &str, arch: &str, seed: u64) -> PathBuf {
+    let status = std::process::Command::new(dsrl_e2e::bin("dsrl-make-policy"))
+        .args(["--task", task, "--arch", arch, "--seed", &seed.to_string()])
+        .arg(out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "dsrl-make-policy --arch {arch} failed");
+    out.to_owned()
+}
