@@ -265,21 +265,9 @@ mod tests {
             let reference = prediction.sub(&y).unwrap().sqr().unwrap().mean_all().unwrap();
             assert!((loss - reference.to_scalar::<f32>().unwrap()).abs() < 1e-6);
             let theirs = reference.backward().unwrap();
+            let flat = |t: Option<&Tensor>| t.unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
             for (name, var) in net.named_vars() {
-                let a = ours
-                    .get(var.as_tensor())
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1::<f32>()
-                    .unwrap();
-                let b = theirs
-                    .get(var.as_tensor())
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1::<f32>()
-                    .unwrap();
+                let (a, b) = (flat(ours.get(var.as_tensor())), flat(theirs.get(var.as_tensor())));
                 assert_eq!(a.len(), b.len(), "{name}");
                 let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
                 for (u, v) in a.iter().zip(&b) {
