@@ -152,12 +152,12 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     let seed = args.seed;
     let seeds: Vec<u64> = (0..u64::from(args.episodes)).map(|i| seed + i).collect();
     let envs_per_session = args.envs_per_session.max(1) as usize;
+    // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
+    let sessions = seeds.len().div_ceil(envs_per_session);
     let started = std::time::Instant::now();
     let mut thresholds = Vec::new();
     let mut all_episodes = Vec::new();
     for (played_at, scored_at) in &plays {
-        // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
-        let sessions = seeds.len().div_ceil(envs_per_session);
         let scores =
             evaluator::play_episodes(&pool, &task, &policy, *played_at, &seeds, envs_per_session, sessions).await?;
         let n = scores.len().max(1) as f64;

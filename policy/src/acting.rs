@@ -15,7 +15,7 @@ use crate::cdt::{self, Cdt, CdtContext, CdtShape};
 use crate::checkpoint::{Architecture, CONFIG_FILE, Conditioning, PolicyConfig};
 use crate::gaussian::GaussianActor;
 use crate::layers::Weights;
-use crate::mlp::{Activation, Mlp};
+use crate::mlp::{Activation, Mlp, layer_sizes};
 use crate::noise::Noise;
 use crate::{PolicyError, Result};
 
@@ -41,13 +41,6 @@ pub enum Network {
         reward_scale: f64,
         cost_scale: f64,
     },
-}
-
-fn layer_sizes(input: usize, hidden: &[usize], out: usize) -> Vec<usize> {
-    std::iter::once(input)
-        .chain(hidden.iter().copied())
-        .chain([out])
-        .collect()
 }
 
 fn format_error(message: impl Into<String>) -> PolicyError {

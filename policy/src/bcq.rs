@@ -15,7 +15,7 @@ use candle_core::{Device, Tensor};
 
 use crate::Result;
 use crate::layers::Weights;
-use crate::mlp::{Activation, Mlp};
+use crate::mlp::{Activation, Mlp, layer_sizes};
 use crate::noise::Noise;
 
 /// OSRL's latent clip in `VAE.decode`.
@@ -40,13 +40,6 @@ pub struct BcqShape<'a> {
     pub decoder_hidden_sizes: &'a [usize],
 }
 
-fn sizes(input: usize, hidden: &[usize], out: usize) -> Vec<usize> {
-    std::iter::once(input)
-        .chain(hidden.iter().copied())
-        .chain([out])
-        .collect()
-}
-
 impl BcqActor {
     pub fn from_weights(
         shape: &BcqShape,
@@ -57,12 +50,12 @@ impl BcqActor {
     ) -> Result<BcqActor> {
         let perturbation = w.mlp(
             "actor.pi",
-            &sizes(shape.input_dim + shape.act_dim, shape.hidden_sizes, shape.act_dim),
+            &layer_sizes(shape.input_dim + shape.act_dim, shape.hidden_sizes, shape.act_dim),
             activation,
         )?;
         let decoder = w.mlp(
             "vae.decoder",
-            &sizes(
+            &layer_sizes(
                 shape.input_dim + shape.latent_dim,
                 shape.decoder_hidden_sizes,
                 shape.act_dim,

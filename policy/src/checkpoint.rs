@@ -79,6 +79,16 @@ impl Conditioning {
         }
     }
 
+    /// The `kind` in `policy.json`.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Conditioning::Unconditioned => "unconditioned",
+            Conditioning::PerThreshold { .. } => "per_threshold",
+            Conditioning::TargetCost => "target_cost",
+            Conditioning::ReturnsToGo { .. } => "returns_to_go",
+        }
+    }
+
     /// Whether the network reads the threshold (so one checkpoint serves them all).
     pub fn is_conditioned(&self) -> bool {
         matches!(self, Conditioning::TargetCost | Conditioning::ReturnsToGo { .. })

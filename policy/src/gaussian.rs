@@ -28,10 +28,7 @@ impl GaussianActor {
         max_action: f64,
         noise: &mut Noise,
     ) -> Result<GaussianActor> {
-        let sizes: Vec<usize> = std::iter::once(obs_dim)
-            .chain(hidden.iter().copied())
-            .chain([act_dim])
-            .collect();
+        let sizes = crate::mlp::layer_sizes(obs_dim, hidden, act_dim);
         Ok(GaussianActor {
             mean_net: Mlp::orthogonal("actor.mu", &sizes, activation, 1.0, 1.0, noise)?,
             log_std: Var::from_vec(vec![Self::LOG_STD_INIT; act_dim], act_dim, &Device::Cpu)?,

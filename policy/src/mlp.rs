@@ -26,6 +26,14 @@ impl Activation {
     }
 }
 
+/// Layer sizes `[input, hidden.., out]` of an MLP.
+pub fn layer_sizes(input: usize, hidden: &[usize], out: usize) -> Vec<usize> {
+    std::iter::once(input)
+        .chain(hidden.iter().copied())
+        .chain([out])
+        .collect()
+}
+
 pub struct Mlp {
     prefix: String,
     /// (weight `[out, in]`, bias `[out]`) per layer.
@@ -149,12 +157,10 @@ impl Mlp {
         let mut out = x.clone();
         for (i, (w, b)) in self.layers.iter().enumerate() {
             let z = out.matmul(&w.as_tensor().t()?)?.broadcast_add(b.as_tensor())?;
-            out = if i + 1 < self.layers.len() {
-                self.activation.apply(&z)?
+            if i + 1 == self.layers.len() {
+                out = z.tanh()?;
             } else {
-                z.tanh()?
-            };
-            if i + 1 < self.layers.len() {
+                out = self.activation.apply(&z)?;
                 inputs.push(out.clone());
             }
         }

@@ -46,21 +46,26 @@ pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> 
         )));
     }
     if let Conditioning::ReturnsToGo { targets } = &config.conditioning {
-        let missing: Vec<String> = task
-            .cost_thresholds
-            .iter()
-            .filter(|k| !targets.iter().any(|t| t.cost_threshold == **k))
-            .map(|k| k.to_string())
-            .collect();
-        if !missing.is_empty() {
+        let covered: Vec<f64> = targets.iter().map(|t| t.cost_threshold).collect();
+        if let Some(missing) = uncovered_thresholds(task, &covered) {
             return Err(ApiError::InvalidArgument(format!(
-                "returns_to_go declares no target for cost threshold {} of {}",
-                missing.join(", "),
+                "returns_to_go declares no target for cost threshold {missing} of {}",
                 task.id
             )));
         }
     }
     Ok(())
+}
+
+/// The task's thresholds that `covered` lacks, listed (`"20, 40"`); `None` when it has them all.
+pub fn uncovered_thresholds(task: &Task, covered: &[f64]) -> Option<String> {
+    let missing: Vec<String> = task
+        .cost_thresholds
+        .iter()
+        .filter(|k| !covered.contains(k))
+        .map(|k| k.to_string())
+        .collect();
+    (!missing.is_empty()).then(|| missing.join(", "))
 }
 
 fn policy_error(e: dsrl_policy::PolicyError) -> ApiError {

@@ -123,10 +123,7 @@ impl BcLearner {
             "observations and actions disagree in length"
         );
         let mut noise = Noise::seeded(settings.seed);
-        let sizes: Vec<usize> = std::iter::once(obs_dim)
-            .chain(settings.hidden_sizes.iter().copied())
-            .chain([act_dim])
-            .collect();
+        let sizes = dsrl_policy::mlp::layer_sizes(obs_dim, &settings.hidden_sizes, act_dim);
         let net = Mlp::orthogonal("actor.net", &sizes, Activation::Relu, 2f64.sqrt(), 1.0, &mut noise)?;
         let optimizer = Adam::new(net.named_vars(), settings.lr, None)?;
         Ok(BcLearner {

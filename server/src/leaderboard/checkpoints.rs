@@ -170,10 +170,7 @@ fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Resul
                      one; per-threshold checkpoints declare conditioning {{\"kind\": \"per_threshold\", \
                      \"cost_threshold\": K}} for K in {listed}",
                     c.slot,
-                    serde_json::to_value(&c.config.conditioning)
-                        .ok()
-                        .and_then(|v| v["kind"].as_str().map(str::to_owned))
-                        .unwrap_or_default()
+                    c.config.conditioning.kind()
                 )));
             }
             Conditioning::PerThreshold { cost_threshold } => {
@@ -193,15 +190,9 @@ fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Resul
             }
         }
     }
-    let missing: Vec<String> = thresholds
-        .iter()
-        .filter(|t| !declared.contains(t))
-        .map(|t| t.to_string())
-        .collect();
-    if !missing.is_empty() {
+    if let Some(missing) = crate::evaluator::uncovered_thresholds(task, &declared) {
         return Err(ApiError::InvalidArgument(format!(
-            "no checkpoint for cost threshold {} of {} (per-threshold submissions cover {listed})",
-            missing.join(", "),
+            "no checkpoint for cost threshold {missing} of {} (per-threshold submissions cover {listed})",
             task.id
         )));
     }
