@@ -34,7 +34,7 @@ for _ in $(seq 100); do grep -q 'listening on' "$work/server.out" 2>/dev/null &&
 url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
 export DSRL_SERVER=$url
 for _ in $(seq 600); do
-  [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(sum(w["healthy"] for w in json.load(sys.stdin)["workers"]))')" = 2 ] && break
+  [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(json.load(sys.stdin)["healthy_workers"])')" = 2 ] && break
   sleep 0.2
 done
 export DSRL_TOKEN=$(DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin create-user bench)

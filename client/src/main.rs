@@ -210,6 +210,12 @@ fn parse_rate(s: &str) -> Result<u64, String> {
         "G" | "GB" => 1024.0 * 1024.0 * 1024.0,
         _ => return Err(format!("invalid rate unit {unit:?}: use K, M or G")),
     };
+    // A float-to-integer cast saturates: refuse what is not a finite positive number of at most 1 TB/s first.
+    if !(value.is_finite() && value > 0.0 && value * factor <= 1e12) {
+        return Err(format!(
+            "invalid rate {s:?}: expected a positive rate of at most 1T per second"
+        ));
+    }
     let rate = (value * factor) as u64;
     if rate == 0 {
         return Err("the rate must be positive".into());

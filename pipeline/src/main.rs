@@ -158,8 +158,16 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     let mut thresholds = Vec::new();
     let mut all_episodes = Vec::new();
     for (played_at, scored_at) in &plays {
-        let scores =
-            evaluator::play_episodes(&pool, &task, &policy, *played_at, &seeds, envs_per_session, sessions).await?;
+        let scores = evaluator::play_episodes(
+            &pool,
+            &task,
+            dsrl_server::inference::PolicySource::Local(&policy),
+            *played_at,
+            &seeds,
+            envs_per_session,
+            sessions,
+        )
+        .await?;
         let n = scores.len().max(1) as f64;
         let reward = scores.iter().map(|s| s.reward_return).sum::<f64>() / n;
         let cost = scores.iter().map(|s| s.cost_return).sum::<f64>() / n;

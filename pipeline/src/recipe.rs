@@ -82,7 +82,52 @@ pub struct ExpertSettings {
     /// from the last save and gives the same result as an uninterrupted one.
     pub checkpoint_every_collects: u32,
     pub cost_limit: PaperSchedule,
+    /// Walk the cost limit from its loose end to its tight end instead of following the paper's schedule
+    /// compressed (see [`LooseFirst`]); absent, the paper's schedule.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loose_first: Option<LooseFirst>,
     pub lagrangian: PidGains,
+}
+
+impl ExpertSettings {
+    /// The cost limit the expert trains against after `steps` of a `budget`-step run.
+    pub fn cost_limit_at(&self, steps: u64, budget: u64) -> f64 {
+        match &self.loose_first {
+            Some(walk) => walk.limit_at(&self.cost_limit, steps, budget),
+            None => self.cost_limit.limit_at(steps, budget),
+        }
+    }
+}
+
+/// A cost-limit walk for small budgets (issue: reach DSRL's tempting corner cheaply). The paper's schedule spends
+/// most of a compressed budget at a tight limit before the expert has learned to move, so a budget 30-300x smaller
+/// than the paper's never produces trajectories with high reward and high cost. This walk first trains with the
+/// schedule's loosest limit (the expert learns the task with lambda near 0: high reward, high cost), then lowers the
+/// limit linearly to the schedule's tightest (the constrained expert keeps much of its reward while its cost
+/// falls: the frontier), then holds there (the safe end). Every episode of all three phases goes to the buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LooseFirst {
+    /// Fraction of the budget trained at the loosest limit.
+    pub hold_loose: f64,
+    /// Fraction of the budget trained at the tightest limit, at the end.
+    pub hold_tight: f64,
+}
+
+impl LooseFirst {
+    pub fn limit_at(&self, schedule: &PaperSchedule, steps: u64, budget: u64) -> f64 {
+        let loose = schedule.cost_start.max(schedule.cost_end);
+        let tight = schedule.cost_start.min(schedule.cost_end);
+        let f = steps as f64 / budget.max(1) as f64;
+        let descent = 1.0 - self.hold_loose - self.hold_tight;
+        if f < self.hold_loose {
+            loose
+        } else if f >= 1.0 - self.hold_tight || descent <= 0.0 {
+            tight
+        } else {
+            loose - (f - self.hold_loose) / descent * (loose - tight)
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -211,6 +256,15 @@ impl Recipe {
                         expert.cost_limit.epochs > 0 && expert.cost_limit.steps_per_epoch > 0,
                         "expert.cost_limit needs epochs and steps_per_epoch"
                     );
+                    if let Some(walk) = &expert.loose_first {
+                        anyhow::ensure!(
+                            (0.0..=1.0).contains(&walk.hold_loose)
+                                && (0.0..=1.0).contains(&walk.hold_tight)
+                                && walk.hold_loose + walk.hold_tight <= 1.0,
+                            "expert.loose_first: hold_loose and hold_tight are fractions of the budget that sum to \
+                             at most 1"
+                        );
+                    }
                 }
                 None => anyhow::bail!(
                     "{}: the recipe names no collection method (idm_sweep for MetaDrive, expert otherwise)",
@@ -414,6 +468,46 @@ mod tests {
             schedule.limit_at(5_000_000, 10_000_000),
             schedule.limit_at(500_000, 1_000_000)
         );
+    }
+
+    #[test]
+    fn the_loose_first_walk_holds_descends_and_holds() {
+        // SafetyAntRun-v0's limits (5 -> 200 in the paper), walked loose first.
+        let schedule = PaperSchedule {
+            cost_start: 5.0,
+            cost_end: 200.0,
+            epoch_start: 400,
+            epoch_end: 2500,
+            epochs: 2600,
+            steps_per_epoch: 10_000,
+        };
+        let walk = LooseFirst {
+            hold_loose: 0.4,
+            hold_tight: 0.2,
+        };
+        let at = |steps| walk.limit_at(&schedule, steps, 1_000_000);
+        assert_eq!(at(0), 200.0);
+        assert_eq!(at(399_999), 200.0);
+        assert_eq!(at(400_000), 200.0);
+        // Halfway through the descent (40% .. 80%): halfway between the limits.
+        assert!((at(600_000) - 102.5).abs() < 1e-9);
+        assert_eq!(at(800_000), 5.0);
+        assert_eq!(at(999_999), 5.0);
+        // A descending paper schedule (navigation: 80 -> 5) is walked the same way.
+        let nav = PaperSchedule {
+            cost_start: 80.0,
+            cost_end: 5.0,
+            ..schedule
+        };
+        assert_eq!(walk.limit_at(&nav, 0, 100), 80.0);
+        assert_eq!(walk.limit_at(&nav, 90, 100), 5.0);
+        // No descent phase: loose, then tight.
+        let steps = LooseFirst {
+            hold_loose: 0.5,
+            hold_tight: 0.5,
+        };
+        assert_eq!(steps.limit_at(&nav, 49, 100), 80.0);
+        assert_eq!(steps.limit_at(&nav, 50, 100), 5.0);
     }
 
     #[test]

@@ -23,6 +23,12 @@ pub const FORMAT: &str = "dsrl-policy/1";
 pub const MAX_WEIGHTS_BYTES: u64 = 64 << 20;
 pub const MAX_CONFIG_BYTES: u64 = 64 << 10;
 pub const MAX_TENSORS: usize = 256;
+/// Largest safetensors JSON header read: 256 entries take a few tens of kilobytes.
+pub const MAX_HEADER_BYTES: u64 = 256 << 10;
+/// Longest tensor name.
+pub const MAX_TENSOR_NAME: usize = 256;
+/// Highest tensor rank any architecture uses (weights are 2-D; the CDT's position tables too).
+pub const MAX_TENSOR_RANK: usize = 4;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -160,6 +166,94 @@ impl Architecture {
     }
 }
 
+/// What one action costs one environment, computed from the declared sizes alone (before any weight is read).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepCost {
+    /// Multiply-adds of one forward pass.
+    pub multiply_adds: u64,
+    /// The largest intermediate the forward pass holds at once: a CDT's attention scores (`heads x (4 seq_len)^2`
+    /// floats per layer) or its MLP activations; an MLP's widest layer.
+    pub peak_bytes: u64,
+}
+
+/// The per-environment, per-step budget a submitted architecture must fit. OSRL's CDT (embedding 128, 3 layers,
+/// 8 heads, seq_len 10) needs ~25M multiply-adds and holds at most 82 kB at once (its MLP activations); the budget allows ten times the
+/// arithmetic (a seq_len up to ~64 at that width) and 16 MB of scores. The evaluator plays up to 15 environments at
+/// once, so a policy that fits stays within a few GFLOP per step and ~240 MB.
+pub const MAX_STEP_MULTIPLY_ADDS: u64 = 250_000_000;
+pub const MAX_STEP_PEAK_BYTES: u64 = 16 << 20;
+
+impl Architecture {
+    /// [`StepCost`] for a network reading `input_dim` features and producing `act_dim` actions.
+    pub fn step_cost(&self, input_dim: usize, act_dim: usize) -> StepCost {
+        // In f64: declared sizes are untrusted and the products of absurd ones must not overflow (they become
+        // large or infinite, and the cast back saturates).
+        let f = |x: usize| x as f64;
+        let chain = |first: usize, hidden: &[usize], last: usize| -> (f64, f64) {
+            let mut sizes = vec![first];
+            sizes.extend_from_slice(hidden);
+            sizes.push(last);
+            let macs = sizes.windows(2).map(|w| f(w[0]) * f(w[1])).sum();
+            let widest = sizes.iter().copied().max().map_or(0.0, f) * 4.0;
+            (macs, widest)
+        };
+        let (macs, peak) = match self {
+            Architecture::GaussianMlp { hidden_sizes, .. } | Architecture::MlpActor { hidden_sizes, .. } => {
+                chain(input_dim, hidden_sizes, act_dim)
+            }
+            Architecture::SquashedGaussianMlp { hidden_sizes, .. } => {
+                let (m, p) = chain(input_dim, hidden_sizes, act_dim);
+                (m + hidden_sizes.last().map_or(0.0, |&h| f(h) * f(act_dim)), p)
+            }
+            Architecture::BcqActor {
+                hidden_sizes,
+                decoder_hidden_sizes,
+                latent_dim,
+                ..
+            } => {
+                let (m1, p1) = chain(input_dim.saturating_add(*latent_dim), decoder_hidden_sizes, act_dim);
+                let (m2, p2) = chain(input_dim + act_dim, hidden_sizes, act_dim);
+                (m1 + m2, p1.max(p2))
+            }
+            Architecture::Cdt {
+                embedding_dim,
+                num_layers,
+                num_heads,
+                seq_len,
+                ..
+            } => {
+                let (d, n) = (f(*embedding_dim), 4.0 * f(*seq_len));
+                let embed = f(*seq_len) * d * (f(input_dim) + f(act_dim) + 2.0);
+                // Per layer: Q, K, V and the output projection (4 n d^2), the 4x MLP (8 n d^2), scores and mixing
+                // (2 n^2 d).
+                let layers = f(*num_layers) * (12.0 * n * d * d + 2.0 * n * n * d);
+                let scores = f(*num_heads) * n * n * 4.0;
+                (embed + layers + d * f(act_dim), scores.max(n * 4.0 * d * 4.0))
+            }
+        };
+        StepCost {
+            multiply_adds: macs as u64,
+            peak_bytes: peak as u64,
+        }
+    }
+
+    /// Refuses an architecture whose [`StepCost`] is over the budget, saying by how much.
+    pub fn check_step_cost(&self, input_dim: usize, act_dim: usize) -> Result<()> {
+        let cost = self.step_cost(input_dim, act_dim);
+        if cost.multiply_adds > MAX_STEP_MULTIPLY_ADDS || cost.peak_bytes > MAX_STEP_PEAK_BYTES {
+            return Err(PolicyError::Format(format!(
+                "{}: one action costs {} multiply-adds and holds {} bytes at once per environment; the evaluator's \
+                 budget is {MAX_STEP_MULTIPLY_ADDS} multiply-adds and {MAX_STEP_PEAK_BYTES} bytes (for a cdt: \
+                 lower seq_len, embedding_dim or num_heads)",
+                self.name(),
+                cost.multiply_adds,
+                cost.peak_bytes
+            )));
+        }
+        Ok(())
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ObservationNormalization {
@@ -205,8 +299,89 @@ fn read_limited(path: &Path, limit: u64) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
-/// Parses safetensors bytes into named tensors, with the tensor-count limit.
+/// Checks a safetensors file's header before any tensor is built: its length, the tensor count, names, dtypes
+/// (float32 only), ranks, and that each tensor's byte range holds exactly its declared shape inside the file. A
+/// hostile header (say 900,000 zero-size tensors) is refused after reading at most [`MAX_HEADER_BYTES`], in time
+/// proportional to that, instead of after building every tensor.
+pub fn check_header(bytes: &[u8]) -> Result<()> {
+    let bad = |why: String| PolicyError::Format(format!("{WEIGHTS_FILE} is not a valid safetensors file: {why}"));
+    let Some(length) = bytes.get(..8) else {
+        return Err(bad("shorter than its 8-byte header length".into()));
+    };
+    let length = u64::from_le_bytes(length.try_into().expect("8 bytes"));
+    if length > MAX_HEADER_BYTES {
+        return Err(bad(format!(
+            "its header declares {length} bytes, more than the {MAX_HEADER_BYTES} allowed"
+        )));
+    }
+    let header = bytes
+        .get(8..8 + length as usize)
+        .ok_or_else(|| bad(format!("the file ends inside its {length}-byte header")))?;
+    let data_len = (bytes.len() - 8 - length as usize) as u64;
+    // Count the entries before decoding them: a flat scan for the `"dtype"` keys bounds the work.
+    let declared = header.windows(7).filter(|w| w == b"\"dtype\"").count();
+    if declared > MAX_TENSORS {
+        return Err(PolicyError::Format(format!(
+            "{WEIGHTS_FILE} holds {declared} tensors, more than the {MAX_TENSORS} allowed"
+        )));
+    }
+    #[derive(Deserialize)]
+    struct Entry {
+        dtype: String,
+        shape: Vec<u64>,
+        data_offsets: [u64; 2],
+    }
+    let entries: serde_json::Map<String, serde_json::Value> =
+        serde_json::from_slice(header).map_err(|e| bad(format!("its header is not a JSON object: {e}")))?;
+    let tensors = entries.iter().filter(|(name, _)| *name != "__metadata__").count();
+    if tensors > MAX_TENSORS {
+        return Err(PolicyError::Format(format!(
+            "{WEIGHTS_FILE} holds {tensors} tensors, more than the {MAX_TENSORS} allowed"
+        )));
+    }
+    for (name, value) in entries {
+        if name == "__metadata__" {
+            continue;
+        }
+        if name.is_empty() || name.len() > MAX_TENSOR_NAME || name.chars().any(char::is_control) {
+            return Err(bad(format!(
+                "tensor name {:?} is empty, longer than {MAX_TENSOR_NAME} bytes or holds control characters",
+                name.chars().take(64).collect::<String>()
+            )));
+        }
+        let entry: Entry = serde_json::from_value(value).map_err(|e| bad(format!("tensor {name:?}: {e}")))?;
+        if entry.dtype != "F32" {
+            return Err(PolicyError::Format(format!(
+                "{WEIGHTS_FILE}: tensor {name:?} is {}, the policy format holds float32 (F32) tensors",
+                entry.dtype
+            )));
+        }
+        if entry.shape.len() > MAX_TENSOR_RANK {
+            return Err(bad(format!(
+                "tensor {name:?} has rank {}, more than {MAX_TENSOR_RANK}",
+                entry.shape.len()
+            )));
+        }
+        let bytes_needed = entry
+            .shape
+            .iter()
+            .try_fold(4u64, |acc, &d| acc.checked_mul(d))
+            .ok_or_else(|| bad(format!("tensor {name:?}: its shape overflows")))?;
+        let [start, end] = entry.data_offsets;
+        if start > end || end > data_len || end - start != bytes_needed {
+            return Err(bad(format!(
+                "tensor {name:?}: shape {:?} needs {bytes_needed} bytes, its offsets [{start}, {end}] do not hold \
+                 them inside the {data_len} data bytes",
+                entry.shape
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Parses safetensors bytes into named tensors: the header is checked first ([`check_header`]).
 pub fn parse_weights(bytes: &[u8]) -> Result<HashMap<String, Tensor>> {
+    check_header(bytes)?;
     let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)
         .map_err(|e| PolicyError::Format(format!("{WEIGHTS_FILE} is not a valid safetensors file: {e}")))?;
     if tensors.len() > MAX_TENSORS {
@@ -309,6 +484,52 @@ mod tests {
         bytes
     }
 
+    fn cdt(seq_len: usize, num_heads: usize) -> Architecture {
+        Architecture::Cdt {
+            embedding_dim: 128,
+            num_layers: 3,
+            num_heads,
+            seq_len,
+            episode_len: 1000,
+            max_action: 1.0,
+            reward_scale: 0.1,
+            cost_scale: 1.0,
+            cost_transform: true,
+        }
+    }
+
+    #[test]
+    fn the_step_budget_admits_osrls_networks_and_refuses_runaway_contexts() {
+        // OSRL's CDT defaults, worked by hand: 40 tokens, 3 x (12 x 40 x 128^2 + 2 x 40^2 x 128) plus embeddings
+        // 10 x 128 x (60 + 2 + 2) and the head 128 x 2.
+        let cost = cdt(10, 8).step_cost(60, 2);
+        assert_eq!(
+            cost.multiply_adds,
+            3 * (12 * 40 * 128 * 128 + 2 * 40 * 40 * 128) + 10 * 128 * 64 + 128 * 2
+        );
+        // Its widest activation (40 tokens x the 4x MLP's 512 floats) is larger than its 8 x 40 x 40 scores.
+        assert_eq!(cost.peak_bytes, 40 * 512 * 4);
+        cdt(10, 8).check_step_cost(60, 2).unwrap();
+        // The outside probe's submission: seq_len 1000 on a 1000-step task (tens of GB of scores at 8 heads).
+        let err = cdt(1000, 8).check_step_cost(60, 2).unwrap_err().to_string();
+        assert!(err.contains("lower seq_len"), "{err}");
+        // BC's MLP [256, 256] on the widest task.
+        let mlp = Architecture::MlpActor {
+            hidden_sizes: vec![256, 256],
+            activation: Activation::Relu,
+            max_action: 1.0,
+        };
+        assert_eq!(mlp.step_cost(259, 2).multiply_adds, 259 * 256 + 256 * 256 + 256 * 2);
+        mlp.check_step_cost(259, 2).unwrap();
+        // Declared sizes far past any weights file cannot overflow the arithmetic.
+        let absurd = Architecture::MlpActor {
+            hidden_sizes: vec![usize::MAX, usize::MAX],
+            activation: Activation::Relu,
+            max_action: 1.0,
+        };
+        assert!(absurd.check_step_cost(8, 2).is_err());
+    }
+
     #[test]
     fn hostile_weights_are_refused_without_allocating_what_they_declare() {
         // A header length of 2^60 bytes.
@@ -348,6 +569,55 @@ mod tests {
         let many = safetensors(&format!("{{{}}}", entries.join(",")), &vec![0; 4 * (MAX_TENSORS + 1)]);
         let err = parse_weights(&many).err().unwrap().to_string();
         assert!(err.contains("more than the 256 allowed"), "{err}");
+        // The outside probe's stall: 900,000 zero-size tensors (a 53 MB file) took ~4.8 s to refuse because
+        // every tensor was built first. Its header is refused by length before it is parsed; one that fits the
+        // header limit is refused by its count.
+        let zero: Vec<String> = (0..900_000)
+            .map(|i| format!(r#""z{i}":{{"dtype":"F32","shape":[0],"data_offsets":[0,0]}}"#))
+            .collect();
+        let stall = safetensors(&format!("{{{}}}", zero.join(",")), &[]);
+        let started = std::time::Instant::now();
+        let err = parse_weights(&stall).err().unwrap().to_string();
+        assert!(err.contains("more than the 262144 allowed"), "{err}");
+        assert!(
+            started.elapsed() < std::time::Duration::from_millis(100),
+            "{:?}",
+            started.elapsed()
+        );
+        let few_zero = safetensors(&format!("{{{}}}", zero[..3000].join(",")), &[]);
+        let err = parse_weights(&few_zero).err().unwrap().to_string();
+        assert!(err.contains("holds 3000 tensors, more than the 256 allowed"), "{err}");
+        // Other dtypes, names, ranks and inconsistent offsets are named.
+        for (header, data, expected) in [
+            (r#"{"w":{"dtype":"F64","shape":[1],"data_offsets":[0,8]}}"#, 8, "is F64"),
+            (
+                r#"{"w":{"dtype":"F32","shape":[1,1,1,1,1],"data_offsets":[0,4]}}"#,
+                4,
+                "rank 5",
+            ),
+            (
+                r#"{"w":{"dtype":"F32","shape":[2],"data_offsets":[0,4]}}"#,
+                4,
+                "needs 8 bytes",
+            ),
+            (
+                r#"{"":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}}"#,
+                4,
+                "is empty",
+            ),
+            (
+                r#"{"w":{"dtype":"F32","shape":[4294967296,4294967296,4],"data_offsets":[0,4]}}"#,
+                4,
+                "overflows",
+            ),
+            (r#"[1,2]"#, 0, "not a JSON object"),
+        ] {
+            let err = parse_weights(&safetensors(header, &vec![0; data]))
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(err.contains(expected), "{header}: {err}");
+        }
         // Files over the limit are not read whole.
         let dir = tempfile::tempdir().unwrap();
         let big = dir.path().join("big");

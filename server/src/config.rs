@@ -44,6 +44,10 @@ pub struct LeaderboardConfig {
     pub max_submission_bytes: u64,
     /// The secret the held episode seeds derive from. Unset: generated once into `<data_dir>/evaluation-secret`.
     pub seed_secret: Option<String>,
+    /// Address-space limit of the child process a submitted policy acts in (`dsrl-server play-policy`).
+    pub policy_memory_limit_bytes: u64,
+    /// Wall-clock budget of one evaluation (all thresholds); past it the submission fails with the reason.
+    pub max_evaluation_seconds: u64,
 }
 
 impl Default for LeaderboardConfig {
@@ -58,6 +62,8 @@ impl Default for LeaderboardConfig {
             concurrent_submissions: 2,
             max_submission_bytes: 3 * (64 << 20),
             seed_secret: None,
+            policy_memory_limit_bytes: 4 << 30,
+            max_evaluation_seconds: 3600,
         }
     }
 }

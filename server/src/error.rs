@@ -53,6 +53,19 @@ impl ErrorCode {
         }
     }
 
+    /// The code of a status some framework layer answered with (a 405, a 415 from an extractor): the table's
+    /// code for that status, else `invalid_argument` for other 4xx and `internal` for 5xx.
+    pub fn for_http_status(status: StatusCode) -> ErrorCode {
+        ErrorCode::ALL
+            .into_iter()
+            .find(|c| c.http_status() == status)
+            .unwrap_or(if status.is_server_error() {
+                ErrorCode::Internal
+            } else {
+                ErrorCode::InvalidArgument
+            })
+    }
+
     pub fn http_status(self) -> StatusCode {
         self.statuses().0
     }
@@ -98,6 +111,9 @@ pub enum ApiError {
     Unauthenticated,
     #[error("the bearer token is not valid for admin operations")]
     PermissionDenied,
+    /// A valid token that may not do this (e.g. cancel another user's submission); the message says why.
+    #[error("{0}")]
+    Forbidden(String),
     #[error("this operation needs a user bearer token (an admin issues one: dsrl-client admin create-user NAME)")]
     UserUnauthenticated,
     #[error("the bearer token belongs to no user")]
@@ -124,7 +140,7 @@ impl ApiError {
             }
             ApiError::AlreadyExists(_) => ErrorCode::AlreadyExists,
             ApiError::QuotaExceeded(_) => ErrorCode::ResourceExhausted,
-            ApiError::PermissionDenied => ErrorCode::PermissionDenied,
+            ApiError::PermissionDenied | ApiError::Forbidden(_) => ErrorCode::PermissionDenied,
             ApiError::Unavailable(_) => ErrorCode::Unavailable,
             ApiError::Internal(_) => ErrorCode::Internal,
         }

@@ -5,13 +5,13 @@
 //! This is the core the leaderboard's evaluator builds on (submissions, the durable queue and held seeds come
 //! with it); `dsrl-admin evaluate` uses it to score the pipeline's experts.
 
-use dsrl_policy::Policy;
 use dsrl_policy::checkpoint::{Architecture, Conditioning, PolicyConfig};
 use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
 
 use crate::error::ApiError;
+use crate::inference::{Player, PolicySource};
 use crate::simulators::SimulatorPool;
 
 /// One evaluated episode.
@@ -45,6 +45,13 @@ pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> 
             task.id, task.max_episode_steps
         )));
     }
+    // What one action may cost, from the declared sizes (a long CDT context once passed every other check and ate
+    // the server's memory while it was scored).
+    let input_dim = config.obs_dim + usize::from(matches!(config.conditioning, Conditioning::TargetCost));
+    config
+        .architecture
+        .check_step_cost(input_dim, config.act_dim)
+        .map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
     if let Conditioning::ReturnsToGo { targets } = &config.conditioning {
         let covered: Vec<f64> = targets.iter().map(|t| t.cost_threshold).collect();
         if let Some(missing) = uncovered_thresholds(task, &covered) {
@@ -68,10 +75,6 @@ pub fn uncovered_thresholds(task: &Task, covered: &[f64]) -> Option<String> {
     (!missing.is_empty()).then(|| missing.join(", "))
 }
 
-fn policy_error(e: dsrl_policy::PolicyError) -> ApiError {
-    ApiError::Internal(format!("evaluating the policy: {e}"))
-}
-
 /// Plays one episode per seed with `policy`'s deterministic actions at `cost_threshold` (which a conditioned policy
 /// reads; others ignore it); results come back in seed order.
 ///
@@ -84,7 +87,7 @@ fn policy_error(e: dsrl_policy::PolicyError) -> ApiError {
 pub async fn play_episodes(
     pool: &SimulatorPool,
     task: &Task,
-    policy: &Policy,
+    policy: PolicySource<'_>,
     cost_threshold: f64,
     seeds: &[u64],
     envs_per_session: usize,
@@ -104,15 +107,15 @@ pub async fn play_episodes(
 async fn play_group(
     pool: &SimulatorPool,
     task: &Task,
-    policy: &Policy,
+    policy: PolicySource<'_>,
     cost_threshold: f64,
     seeds: &[u64],
     envs: usize,
 ) -> Result<Vec<EpisodeScore>, ApiError> {
     let k = seeds.len().min(envs);
-    let mut rollout = policy.rollout(cost_threshold, k).map_err(policy_error)?;
+    let mut rollout = Player::new(policy, cost_threshold, k).await?;
     for (env, &seed) in seeds[..k].iter().enumerate() {
-        rollout.start_episode(env, seed).map_err(policy_error)?;
+        rollout.start_episode(env, seed).await?;
     }
     let mut session = pool
         .open(Open {
@@ -143,11 +146,9 @@ async fn play_group(
             .iter()
             .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
             .collect();
-        let actions = rollout.act(&active, &batch).map_err(policy_error)?;
+        let actions = rollout.act(&active, &batch).await?;
         let step = session.step(&active, &actions).await?;
-        rollout
-            .observe(&active, &step.rewards, &step.costs)
-            .map_err(policy_error)?;
+        rollout.observe(&active, &step.rewards, &step.costs).await?;
         let mut still = Vec::with_capacity(active.len());
         let (mut reset_envs, mut reset_seeds) = (Vec::new(), Vec::new());
         for (row, &i) in active.iter().enumerate() {
@@ -164,7 +165,7 @@ async fn play_group(
                 playing[i as usize] = next;
                 reset_envs.push(i);
                 reset_seeds.push(seeds[next]);
-                rollout.start_episode(i as usize, seeds[next]).map_err(policy_error)?;
+                rollout.start_episode(i as usize, seeds[next]).await?;
                 next += 1;
             }
         }

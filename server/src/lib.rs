@@ -9,6 +9,7 @@ pub mod error;
 pub mod evaluator;
 pub mod grpc;
 pub mod http;
+pub mod inference;
 pub mod leaderboard;
 pub mod metrics;
 pub mod simulators;
@@ -20,13 +21,10 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use axum::Router;
-use axum::http::StatusCode;
-use axum::response::IntoResponse;
 use dsrl_proto::datasets::v1::dataset_service_server::DatasetServiceServer;
 use dsrl_proto::leaderboard::v1::leaderboard_service_server::LeaderboardServiceServer;
 use dsrl_suite::Catalog;
 use tonic::server::NamedService;
-use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::trace::TraceLayer;
 
 use crate::config::Config;
@@ -67,6 +65,11 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     let leaderboard_store = store.clone();
     let metrics = Arc::new(Metrics::new());
     let local_objects = (config.storage.backend == config::StorageBackend::Local).then(|| data_dir.join("objects"));
+    // Submitted policies act in child processes of the same binary as uploads are converted in (see `inference`).
+    let converter_program = match &converter {
+        Converter::Subprocess { program, .. } => Some(program.clone()),
+        Converter::InProcess => None,
+    };
     let datasets = Datasets::new(DatasetsSetup {
         catalog: catalog.clone(),
         db,
@@ -97,6 +100,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         simulators.clone(),
         config.leaderboard.clone(),
         seed_secret,
+        converter_program,
     ));
     leaderboard::runner::spawn(leaderboard.clone());
     Ok(AppState {
@@ -120,19 +124,24 @@ pub fn app(state: AppState) -> Router {
         "/{}/{{*method}}",
         LeaderboardServiceServer::<leaderboard::grpc::LeaderboardGrpc>::NAME
     );
-    http::router(state.clone())
+    let routes = http::router(state.clone())
         .route_service(&grpc_path, grpc_service)
-        .route_service(&leaderboard_path, leaderboard_service)
+        .route_service(&leaderboard_path, leaderboard_service);
+    with_layers(routes, state)
+}
+
+/// What every route goes through: the JSON 404 fallback, failures in the one error shape and panics turned into
+/// counted 500s / INTERNAL (innermost, so the metrics middleware sees and counts the 500), metrics, tracing. Public so that a test can route
+/// a deliberately panicking handler through the same layers.
+pub fn with_layers(routes: Router, state: AppState) -> Router {
+    routes
         .fallback(http::not_found)
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            http::failures::catch,
+        ))
         .layer(axum::middleware::from_fn_with_state(state, http::metrics::track))
         .layer(TraceLayer::new_for_http())
-        .layer(CatchPanicLayer::custom(|_| {
-            (
-                StatusCode::INTERNAL_SERVER_ERROR,
-                "internal error: the request handler panicked\n",
-            )
-                .into_response()
-        }))
 }
 
 /// Serves until `shutdown` completes, then finishes the requests in flight. Uploads are converted in-process

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 use dsrl_server::config::{Config, Overrides};
-use dsrl_server::storage::converter::{ConvertReply, Converter, limit_memory};
+use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_closes, limit_memory};
 
 /// Serve offline safe-RL datasets: the 38-task catalog, versioned Parquet datasets, downloads with resume.
 ///
@@ -56,10 +56,21 @@ enum Internal {
         source: PathBuf,
         out: PathBuf,
     },
+    /// Play one submitted policy for the leaderboard in this (child) process (see `inference`).
+    #[command(hide = true)]
+    PlayPolicy {
+        #[arg(long)]
+        memory_limit: u64,
+    },
 }
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
+    if let Some(Internal::PlayPolicy { memory_limit }) = &args.command {
+        // SAFETY: first thing in this process, before any other thread exists.
+        unsafe { dsrl_policy::pin_candle_threads() };
+        return dsrl_server::inference::serve_child(*memory_limit);
+    }
     if let Some(Internal::Convert {
         task,
         observation_space,
@@ -82,6 +93,7 @@ fn convert(
     source: &std::path::Path,
     out: &std::path::Path,
 ) -> std::process::ExitCode {
+    exit_when_stdin_closes();
     limit_memory(memory_limit);
     let reply = match dsrl_suite::Catalog::embedded()
         .map_err(|e| e.to_string())

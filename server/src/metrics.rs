@@ -36,6 +36,8 @@ pub struct Metrics {
     pub filters: Family<OutcomeLabels, Counter>,
     pub filter_seconds: Histogram,
     pub dataset_versions: Gauge,
+    /// Request handlers that panicked, by route (each also counts as a 500 / INTERNAL in `requests`).
+    pub panics: Family<RouteLabels, Counter>,
 }
 
 impl Metrics {
@@ -81,7 +83,14 @@ impl Metrics {
         );
         let dataset_versions = Gauge::default();
         registry.register("dataset_versions", "Hosted dataset versions", dataset_versions.clone());
+        let panics = Family::<RouteLabels, Counter>::default();
+        registry.register(
+            "panics",
+            "Request handlers that panicked, by route (answered 500 / INTERNAL)",
+            panics.clone(),
+        );
         Metrics {
+            panics,
             registry,
             requests,
             latency,

@@ -37,6 +37,7 @@ pub fn interquartile_mean(values: &[f64]) -> Option<f64> {
 }
 
 /// An aggregate with its confidence interval and how it was drawn.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Interval {
     pub estimate: f64,

@@ -170,6 +170,10 @@ async fn bad_filters_get_400_over_rest_cli_and_grpc() {
         ("epsilon%3D0", "epsilon=0"),
         ("inpaint%3D0:0.5:0:1;0.5:1:0:1", "several inpaint ranges"),
         ("noise%3D0.1,target_cost%3D0.5", "target_cost >= 1"),
+        // An outside probe's unauthenticated panic: 1e19 saturated `target_cost as usize` (9.2e18 was a 400,
+        // 9.3e18 and above a 500 from a panic in the NumPy generator emulation).
+        ("noise%3D0.05,target_cost%3D1e19", "outside [0, 100000]"),
+        ("noise%3D0.05,target_cost%3D9.3e18", "outside [0, 100000]"),
     ] {
         for suffix in ["", "/download", "/plot.svg"] {
             let response = reqwest::get(format!("{base}{suffix}?filter={filter}")).await.unwrap();
@@ -203,7 +207,29 @@ async fn bad_filters_get_400_over_rest_cli_and_grpc() {
         .await
         .unwrap_err();
     assert_eq!(status.code(), tonic::Code::InvalidArgument);
-    assert!(filter_count(&env, "rejected").await >= 14);
+    // The probe's panic over gRPC answered UNKNOWN on both calls.
+    let status = grpc
+        .get_manifest(GetManifestRequest {
+            task: task.into(),
+            version: String::new(),
+            filter: "noise=0.05,target_cost=1e19".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    let status = match grpc
+        .stream_transitions(StreamTransitionsRequest {
+            task: task.into(),
+            version: String::new(),
+            filter: "noise=0.05,target_cost=1e19".into(),
+        })
+        .await
+    {
+        Err(status) => status,
+        Ok(stream) => stream.into_inner().next().await.unwrap().unwrap_err(),
+    };
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    assert!(filter_count(&env, "rejected").await >= 20);
     assert_eq!(filter_count(&env, "computed").await, 0);
 }
 

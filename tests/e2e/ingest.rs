@@ -442,3 +442,70 @@ fn a_dying_converter_fails_only_its_own_request() {
     assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0);
     env.cli.run(&["admin", "ingest", "--task", task, s(&file)]).ok();
 }
+
+/// A converter child dies with its parent. An outside probe killed the server with SIGKILL mid-ingest and its
+/// `dsrl-server convert` child kept running, holding the deleted upload, even across a restart. Here the child
+/// reads from a FIFO that nobody writes, so it blocks for ever on its own; closing its standard input (what the
+/// kernel does when the server dies) must end it.
+#[test]
+fn a_converter_exits_when_its_parent_goes_away() {
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("upload.fifo");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status().unwrap();
+    assert!(made.success());
+    let mut child = std::process::Command::new(dsrl_e2e::bin("dsrl-server"))
+        .args([
+            "convert",
+            "--task",
+            "OfflineBallRun-v0",
+            "--observation-space",
+            "simulator",
+        ])
+        .args(["--memory-limit", "4000000000"])
+        .arg(&fifo)
+        .arg(dir.path().join("out.parquet"))
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(child.try_wait().unwrap().is_none(), "the converter blocks on the FIFO");
+    drop(child.stdin.take());
+    assert!(
+        wait_for(Duration::from_secs(10), || child.try_wait().unwrap().is_some()),
+        "the converter outlived its parent's end of the pipe"
+    );
+
+    // And the probe's scenario: the server is SIGKILLed while a converter works for it.
+    let mut env = Env::new();
+    let task = "OfflineMetadrive-hardmean-v0";
+    let file = env.path("md.parquet");
+    dsrl_e2e::make_dataset(task, 12, 14, &file);
+    let mut ingest = env
+        .cli
+        .command(&["admin", "ingest", "--task", task, s(&file)])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut pid = None;
+    assert!(
+        wait_for(Duration::from_secs(60), || {
+            pid = converter_pid(&env.server.data_dir);
+            pid.is_some()
+        }),
+        "no converter process appeared"
+    );
+    env.server.kill();
+    assert!(
+        wait_for(Duration::from_secs(10), || !std::path::Path::new(&format!(
+            "/proc/{}/cmdline",
+            pid.unwrap()
+        ))
+        .exists()
+            || converter_pid(&env.server.data_dir).is_none()),
+        "the converter outlived the server"
+    );
+    let _ = ingest.wait();
+    env.restart();
+}

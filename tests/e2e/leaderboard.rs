@@ -10,15 +10,15 @@ use std::time::Duration;
 
 use crate::{Env, block_on, get_json, s};
 
-const TASK: &str = "OfflineBallRun-v0";
+pub(crate) const TASK: &str = "OfflineBallRun-v0";
 const SECRET: &str = "e2e-held-seed-secret";
 
-fn starter() -> PathBuf {
+pub(crate) fn starter() -> PathBuf {
     dsrl_e2e::repo_root().join("data/starter/OfflineBallRun-v0/SafetyBallRun-v0-80-1132.parquet")
 }
 
 /// Trains BC (a few hundred steps: the test needs real checkpoints, not good ones) into `out`.
-fn train_bc(out: &Path, mode: &str, seed: u64) {
+pub(crate) fn train_bc(out: &Path, mode: &str, seed: u64) {
     let status = Command::new(dsrl_e2e::bin("dsrl-train"))
         .args([
             "bc",
@@ -42,7 +42,7 @@ fn train_bc(out: &Path, mode: &str, seed: u64) {
 }
 
 /// Creates a user through the CLI and returns its token.
-fn create_user(env: &Env, name: &str) -> String {
+pub(crate) fn create_user(env: &Env, name: &str) -> String {
     let mut cli = env.cli.clone();
     cli.token = Some(env.server.token());
     let run = cli.run(&["admin", "create-user", name]).ok();
@@ -50,11 +50,11 @@ fn create_user(env: &Env, name: &str) -> String {
 }
 
 /// The CLI as the user holding `token`.
-fn client(env: &Env, token: &str, args: &[&str]) -> dsrl_e2e::Run {
+pub(crate) fn client(env: &Env, token: &str, args: &[&str]) -> dsrl_e2e::Run {
     dsrl_e2e::Run::from(env.cli.command(args).env("DSRL_TOKEN", token).output().unwrap())
 }
 
-fn submit(env: &Env, token: &str, dir: &Path, name: &str) -> dsrl_e2e::Run {
+pub(crate) fn submit(env: &Env, token: &str, dir: &Path, name: &str) -> dsrl_e2e::Run {
     client(
         env,
         token,
@@ -63,7 +63,7 @@ fn submit(env: &Env, token: &str, dir: &Path, name: &str) -> dsrl_e2e::Run {
 }
 
 /// A copy of a checkpoint folder with its policy.json changed by `edit`.
-fn variant(from: &Path, to: &Path, edit: impl Fn(&mut serde_json::Value)) {
+pub(crate) fn variant(from: &Path, to: &Path, edit: impl Fn(&mut serde_json::Value)) {
     std::fs::create_dir_all(to).unwrap();
     std::fs::copy(from.join("policy.safetensors"), to.join("policy.safetensors")).unwrap();
     let mut config: serde_json::Value =
@@ -172,7 +172,10 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     assert!(run.stdout.contains("24 hours"), "{run:?}");
     // Only the submitter cancels.
     let bob = create_user(&env, "bob");
-    assert_eq!(client(&env, &bob, &["cancel", &first_id.to_string()]).code, 7);
+    let run = client(&env, &bob, &["--json", "cancel", &first_id.to_string()]);
+    assert_eq!(run.code, 7, "{run:?}");
+    // It says what is wrong (it used to say the token was "not valid for admin operations").
+    assert!(run.stdout.contains("belongs to another user"), "{run:?}");
 
     // Malformed and hostile checkpoints are 400s (413 over a file's limit) that say what is wrong.
     let config = std::fs::read(bc_all.join("policy.json")).unwrap();
@@ -376,7 +379,7 @@ fn grpc_submissions(url: &str, token: &str, bc_all: &Path, first_id: i64) {
     });
 }
 
-fn scoring_env(lease_seconds: &str) -> Env {
+pub(crate) fn scoring_env(lease_seconds: &str) -> Env {
     let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
     Env::with(
         &[],

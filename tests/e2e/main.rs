@@ -8,6 +8,8 @@ mod collect;
 mod expert;
 mod fetch;
 mod filters;
+mod fuzz;
+mod hardening;
 mod http;
 mod ingest;
 mod leaderboard;
@@ -92,6 +94,22 @@ where
 pub fn get_json(url: &str) -> serde_json::Value {
     let url = url.to_owned();
     block_on(async move { reqwest::get(&url).await.unwrap().json().await.unwrap() })
+}
+
+/// `GET url` with `Authorization: Bearer <token>`, as JSON.
+pub fn get_json_with_token(url: &str, token: &str) -> serde_json::Value {
+    let (url, token) = (url.to_owned(), token.to_owned());
+    block_on(async move {
+        reqwest::Client::new()
+            .get(&url)
+            .bearer_auth(token)
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap()
+    })
 }
 
 /// Starts `cmd` quietly, SIGKILLs it as soon as `saved` exists, and checks it had not yet written `unfinished`

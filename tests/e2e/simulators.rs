@@ -7,7 +7,7 @@ use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_server::config::SimulatorsConfig;
 use dsrl_server::simulators::SimulatorPool;
 
-use crate::{Env, get_json};
+use crate::{Env, get_json, get_json_with_token};
 
 fn worker_binary() -> String {
     dsrl_e2e::bin("dsrl-sim-worker").display().to_string()
@@ -57,12 +57,22 @@ fn the_server_supervises_its_workers_and_takes_them_down_with_it() {
             ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
         ],
     );
-    let status = |env: &Env| get_json(&format!("{}/v1/simulators", env.server.url))["workers"][0].clone();
+    let status = |env: &Env| {
+        get_json_with_token(&format!("{}/v1/simulators", env.server.url), &env.server.token())["workers"][0].clone()
+    };
     assert!(
         dsrl_e2e::wait_for(Duration::from_secs(120), || status(&env)["healthy"] == true),
         "{}",
         status(&env)
     );
+    // Without the admin token: the summary only, no pids or addresses (an outside probe flagged them).
+    let public = get_json(&format!("{}/v1/simulators", env.server.url));
+    assert_eq!(public["healthy_workers"], 1, "{public}");
+    assert_eq!(public["workers_total"], 1, "{public}");
+    assert!(public["free_envs"].as_u64().unwrap() > 0, "{public}");
+    assert!(public.get("workers").is_none(), "{public}");
+    let wrong = get_json_with_token(&format!("{}/v1/simulators", env.server.url), "not-the-admin-token");
+    assert_eq!(wrong["error"]["code"], "permission_denied", "{wrong}");
     let first = status(&env);
     assert_eq!(first["kind"], "local");
     assert_eq!(first["restarts"], 0);
@@ -171,6 +181,19 @@ async fn sessions_spread_over_local_and_remote_workers_by_load() {
     let c = pool.open(open("SafetyCarRun-v0", 6)).await.unwrap();
     assert_eq!(c.worker(), "local-0");
     for s in [a, b, c] {
+        s.close().await.unwrap();
+    }
+
+    // Concurrent opens (an evaluation opens its three threshold sessions at once) spread over both workers:
+    // capacity is reserved at placement, not counted only after each open returns (before, all four saw the same
+    // load and went to one worker). The closes above reach the counts at the next health check.
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let opens = (0..4).map(|_| pool.open(open("SafetyCarRun-v0", 2)));
+    let sessions = futures::future::try_join_all(opens).await.unwrap();
+    let on_remote = sessions.iter().filter(|s| s.worker() != "local-0").count();
+    let placed: Vec<String> = sessions.iter().map(|s| s.worker().to_owned()).collect();
+    assert!((1..=3).contains(&on_remote), "all on one worker: {placed:?}");
+    for s in sessions {
         s.close().await.unwrap();
     }
 

@@ -488,7 +488,7 @@ pub async fn train(
                     payload: episode,
                 });
             }
-            let cost_limit = expert.cost_limit.limit_at(state.steps, budget);
+            let cost_limit = expert.cost_limit_at(state.steps, budget);
             let started = Instant::now();
             let stats: UpdateStats =
                 tokio::task::block_in_place(|| learner.update(&played.rollout, &costs, cost_limit, &mut state.noise))?;

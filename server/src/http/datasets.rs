@@ -78,7 +78,8 @@ pub struct ServerInfo {
 }
 
 #[utoipa::path(get, path = "/v1/server", tag = "server",
-    responses((status = 200, body = ServerInfo), (status = 403, description = "The bearer token presented is wrong")))]
+    responses((status = 200, body = ServerInfo), (status = 401, description = "An Authorization header that is not a bearer token"),
+        (status = 403, description = "The bearer token presented is wrong")))]
 pub async fn server_info(State(state): State<AppState>, headers: HeaderMap) -> Result<Json<ServerInfo>, ApiError> {
     let admin = match headers.get(header::AUTHORIZATION) {
         None => false,
@@ -148,7 +149,7 @@ pub async fn get_task(State(state): State<AppState>, Path(task): Path<String>) -
 
 #[utoipa::path(get, path = "/v1/datasets/{task}/versions", tag = "datasets",
     params(("task" = String, Path)),
-    responses((status = 200, body = VersionList), (status = 404)))]
+    responses((status = 200, body = VersionList), (status = 404, description = "Unknown task; nearest ids suggested")))]
 pub async fn list_versions(
     State(state): State<AppState>,
     Path(task): Path<String>,
@@ -163,7 +164,8 @@ pub async fn list_versions(
 #[utoipa::path(get, path = "/v1/datasets/{task}/versions/{version}", tag = "datasets",
     params(("task" = String, Path), ("version" = String, Path, description = "Version id (sha256) or tag such as latest"), VersionQuery),
     responses((status = 200, description = "The version's manifest (of the filtered version with ?filter=)", body = dsrl_suite::Manifest),
-        (status = 400, description = "Invalid filter, or one this dataset cannot satisfy"), (status = 404)))]
+        (status = 400, description = "An invalid version reference or filter, or a filter this dataset cannot satisfy"),
+        (status = 404, description = "Unknown task or version")))]
 pub async fn get_manifest(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
@@ -190,7 +192,7 @@ pub async fn get_manifest(
     params(("task" = String, Path), ("version" = String, Path), VersionQuery),
     responses((status = 200, description = "Cost-reward return scatter with the task's cost thresholds; with ?filter=, \
         removed trajectories in gray and relabelled outliers in red", content_type = "image/svg+xml"),
-        (status = 400), (status = 404)))]
+        (status = 400, description = "An invalid version reference or filter"), (status = 404, description = "Unknown task or version")))]
 pub async fn get_plot(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
@@ -212,7 +214,8 @@ pub async fn get_plot(
         (status = 201, description = "A new version was stored", body = IngestResponse),
         (status = 200, description = "Identical data was already hosted", body = IngestResponse),
         (status = 400, description = "The file is not a valid dataset for the task; the message names the first problem (row, column)"),
-        (status = 401), (status = 403), (status = 404), (status = 413)))]
+        (status = 401, description = "No admin token"), (status = 403, description = "Not the admin token"),
+        (status = 404, description = "Unknown task"), (status = 413, description = "Over the upload limit")))]
 pub async fn ingest(
     State(state): State<AppState>,
     Path(task): Path<String>,
@@ -379,7 +382,9 @@ async fn ingest_checked(
     params(("task" = String, Path), ("tag" = String, Path)),
     request_body = TagRequest,
     security(("admin_token" = [])),
-    responses((status = 200, body = VersionRecord), (status = 400), (status = 401), (status = 403), (status = 404)))]
+    responses((status = 200, body = VersionRecord), (status = 400, description = "An invalid tag name or body"),
+        (status = 401, description = "No admin token"), (status = 403, description = "Not the admin token"),
+        (status = 404, description = "Unknown task or version")))]
 pub async fn put_tag(
     State(state): State<AppState>,
     Path((task, tag)): Path<(String, String)>,

@@ -1,28 +1,40 @@
 //! REST routes of the leaderboard: users (admin), submissions (user tokens), the tables and the HTML page.
 
 use axum::Json;
-use axum::extract::{Multipart, Path, Query, State};
-use axum::http::{HeaderMap, StatusCode, header};
-use axum::response::{Html, IntoResponse};
+use axum::extract::{FromRequest, Multipart, Path, Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{Html, IntoResponse, Response};
 use bytes::{Bytes, BytesMut};
 use serde::Deserialize;
 
 use crate::AppState;
 use crate::error::ApiError;
-use crate::leaderboard::{checkpoints, page, users};
+use crate::leaderboard::{SubmissionView, checkpoints, page, users};
 
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::ToSchema)]
 pub struct NewUserRequest {
+    /// 1-64 letters, digits, `.`, `_`, `-`.
     name: String,
 }
 
-/// `POST /v1/users` (admin): creates a user and returns its bearer token, shown this once.
+/// `POST /v1/users` (admin): creates a user and returns its bearer token, shown this once. The token is checked
+/// before the body is read, so an anonymous request learns only that it needs one.
+#[utoipa::path(post, path = "/v1/users", tag = "leaderboard",
+    request_body = NewUserRequest,
+    security(("admin_token" = [])),
+    responses(
+        (status = 201, body = crate::leaderboard::users::NewUser, description = "The user and its bearer token, shown this once"),
+        (status = 400, description = "The body is not {\"name\": NAME} with a valid name"),
+        (status = 401, description = "No admin token"), (status = 403, description = "Not the admin token"),
+        (status = 409, description = "A user of that name exists")))]
 pub async fn create_user(
     State(state): State<AppState>,
     headers: HeaderMap,
-    Json(request): Json<NewUserRequest>,
+    body: Bytes,
 ) -> Result<impl IntoResponse, ApiError> {
     state.auth.check(&headers)?;
+    let request: NewUserRequest = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::InvalidArgument(format!("the body must be JSON {{\"name\": NAME}}: {e}")))?;
     let user = users::create(&state.leaderboard.pool, &request.name).await?;
     Ok((StatusCode::CREATED, Json(user)))
 }
@@ -37,12 +49,42 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
 
 /// `POST /v1/submissions` (user token): multipart form with text fields `task` and `name` and the checkpoint
 /// files, each a part named by its path (`policy.json`, `policy.safetensors`, or `<folder>/policy.json`, ...).
-pub async fn submit(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-    mut form: Multipart,
-) -> Result<impl IntoResponse, ApiError> {
-    let user = users::authenticate(&state.leaderboard.pool, &headers).await?;
+///
+/// The user is authenticated before the body is looked at. Any error answers `Connection: close`: the rest of an
+/// unread upload is not drained, and a client reusing the connection (Python `requests`) must know it is closed.
+#[utoipa::path(post, path = "/v1/submissions", tag = "leaderboard",
+    request_body(content = SubmissionForm, content_type = "multipart/form-data",
+        description = "Text fields task and name, and the checkpoint files as parts named by their paths"),
+    security(("user_token" = [])),
+    responses(
+        (status = 202, body = SubmissionView, description = "Checked, stored and queued"),
+        (status = 400, description = "The form or a checkpoint is malformed; the message names the problem"),
+        (status = 401, description = "No user token, or one that belongs to no user"),
+        (status = 404, description = "Unknown task"),
+        (status = 409, description = "The same network was submitted before (the message names that submission)"),
+        (status = 413, description = "A file is over its limit"),
+        (status = 429, description = "Over the daily or concurrent quota")))]
+pub async fn submit(State(state): State<AppState>, request: Request) -> Response {
+    match receive_submission(&state, request).await {
+        Ok(accepted) => accepted.into_response(),
+        Err(e) => {
+            let mut response = e.into_response();
+            response
+                .headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            response
+        }
+    }
+}
+
+async fn receive_submission(
+    state: &AppState,
+    request: Request,
+) -> Result<(StatusCode, Json<SubmissionView>), ApiError> {
+    let user = users::authenticate(&state.leaderboard.pool, request.headers()).await?;
+    let mut form = Multipart::from_request(request, state)
+        .await
+        .map_err(|e| ApiError::InvalidArgument(format!("the body must be multipart/form-data: {}", e.body_text())))?;
     let (mut task, mut name, mut files) = (None, None, Vec::<(String, Bytes)>::new());
     while let Some(mut field) = form.next_field().await.map_err(multipart_error)? {
         let field_name = field.name().unwrap_or_default().to_owned();
@@ -85,6 +127,12 @@ fn submission_id(id: &str) -> Result<i64, ApiError> {
 }
 
 /// `GET /v1/submissions/{id}`: state, reason, scores and every episode.
+#[utoipa::path(get, path = "/v1/submissions/{id}", tag = "leaderboard",
+    params(("id" = String, Path, description = "Submission id (a number)")),
+    responses(
+        (status = 200, body = SubmissionView),
+        (status = 400, description = "Not a submission id"),
+        (status = 404, description = "No such submission")))]
 pub async fn get_submission(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -93,6 +141,15 @@ pub async fn get_submission(
 }
 
 /// `POST /v1/submissions/{id}/cancel` (the submitter's token).
+#[utoipa::path(post, path = "/v1/submissions/{id}/cancel", tag = "leaderboard",
+    params(("id" = String, Path, description = "Submission id (a number)")),
+    security(("user_token" = [])),
+    responses(
+        (status = 200, body = SubmissionView, description = "Cancelled"),
+        (status = 400, description = "Not a submission id, or the submission already ended"),
+        (status = 401, description = "No user token, or one that belongs to no user"),
+        (status = 403, description = "The submission belongs to another user"),
+        (status = 404, description = "No such submission")))]
 pub async fn cancel_submission(
     State(state): State<AppState>,
     headers: HeaderMap,
@@ -102,12 +159,36 @@ pub async fn cancel_submission(
     Ok(Json(state.leaderboard.cancel(&user, submission_id(&id)?).await?))
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct BoardQuery {
+    /// Only this task's table (an offline task id).
     task: Option<String>,
 }
 
+/// The multipart form of a submission (documentation type).
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)]
+pub struct SubmissionForm {
+    /// Offline task id.
+    task: String,
+    /// The entry's name (1-64 letters, digits, `.`, `_`, `-`).
+    name: String,
+    /// `policy.json` (at the top, or `<folder>/policy.json` per threshold).
+    #[schema(rename = "policy.json", value_type = String, format = Binary)]
+    policy_json: Vec<u8>,
+    /// `policy.safetensors` (at the top, or `<folder>/policy.safetensors` per threshold).
+    #[schema(rename = "policy.safetensors", value_type = String, format = Binary)]
+    policy_safetensors: Vec<u8>,
+}
+
 /// `GET /v1/leaderboard[?task=T]`.
+#[utoipa::path(get, path = "/v1/leaderboard", tag = "leaderboard",
+    params(BoardQuery),
+    responses(
+        (status = 200, body = crate::leaderboard::Board, description = "Per-task tables and per-family aggregates"),
+        (status = 400, description = "A malformed query"),
+        (status = 404, description = "Unknown task")))]
 pub async fn get_leaderboard(
     State(state): State<AppState>,
     Query(query): Query<BoardQuery>,
@@ -116,6 +197,12 @@ pub async fn get_leaderboard(
 }
 
 /// `GET /leaderboard[?task=T]`: the HTML page.
+#[utoipa::path(get, path = "/leaderboard", tag = "leaderboard",
+    params(BoardQuery),
+    responses(
+        (status = 200, content_type = "text/html", body = String, description = "The leaderboard page"),
+        (status = 400, description = "A malformed query"),
+        (status = 404, description = "Unknown task")))]
 pub async fn leaderboard_page(
     State(state): State<AppState>,
     Query(query): Query<BoardQuery>,

@@ -50,7 +50,7 @@ pub async fn track(State(state): State<AppState>, request: Request, next: Next) 
     response
 }
 
-fn is_grpc(request: &Request) -> bool {
+pub(crate) fn is_grpc(request: &Request) -> bool {
     request
         .headers()
         .get(header::CONTENT_TYPE)
@@ -58,6 +58,9 @@ fn is_grpc(request: &Request) -> bool {
         .is_some_and(|v| v.starts_with("application/grpc"))
 }
 
+#[utoipa::path(get, path = "/metrics", tag = "operations",
+    responses((status = 200, content_type = "application/openmetrics-text", body = String,
+        description = "Prometheus metrics: requests by route and status, latency, panics, downloads, ingests, filters")))]
 pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     (
         [(

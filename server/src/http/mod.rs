@@ -3,6 +3,7 @@
 pub mod auth;
 pub mod datasets;
 pub mod download;
+pub mod failures;
 pub mod leaderboard;
 pub mod metrics;
 pub mod openapi;
@@ -56,7 +57,10 @@ pub fn router(state: AppState) -> Router {
 }
 
 /// 200 when the database answers, 503 otherwise.
-async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError> {
+#[utoipa::path(get, path = "/healthz", tag = "operations",
+    responses((status = 200, content_type = "text/plain", body = String, description = "ok"),
+        (status = 503, description = "The database does not answer")))]
+pub async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError> {
     state
         .datasets
         .db()
@@ -66,7 +70,9 @@ async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError
     Ok("ok\n")
 }
 
-async fn openapi_json() -> impl IntoResponse {
+#[utoipa::path(get, path = "/openapi.json", tag = "operations",
+    responses((status = 200, content_type = "application/json", body = Object, description = "This document")))]
+pub async fn openapi_json() -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "application/json")], openapi::json())
 }
 

@@ -3,7 +3,7 @@
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
-use super::{datasets, simulators};
+use super::{datasets, leaderboard, metrics, simulators};
 
 #[derive(OpenApi)]
 #[openapi(
@@ -24,21 +24,109 @@ use super::{datasets, simulators};
         datasets::put_tag,
         simulators::list_simulators,
         download_doc,
+        leaderboard::create_user,
+        leaderboard::submit,
+        leaderboard::get_submission,
+        leaderboard::cancel_submission,
+        leaderboard::get_leaderboard,
+        leaderboard::leaderboard_page,
+        super::healthz,
+        super::openapi_json,
+        metrics::metrics,
     ),
-    components(schemas(dsrl_suite::EpisodeSummary)),
-    modifiers(&AdminToken)
+    components(schemas(dsrl_suite::EpisodeSummary, ErrorDocument)),
+    modifiers(&AdminToken, &Conventions)
 )]
 pub struct ApiDoc;
+
+/// The one error shape of every REST failure (documentation type; `error.rs` renders it).
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)]
+pub struct ErrorDocument {
+    error: ErrorDetail,
+}
+
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)]
+struct ErrorDetail {
+    /// not_found, invalid_argument, payload_too_large, range_not_satisfiable, unauthenticated, permission_denied,
+    /// already_exists, resource_exhausted, unavailable or internal.
+    code: String,
+    message: String,
+    /// Nearest task ids, for an unknown task.
+    suggestions: Option<Vec<String>>,
+}
 
 struct AdminToken;
 
 impl Modify for AdminToken {
     fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
         let components = openapi.components.get_or_insert_with(Default::default);
-        components.add_security_scheme(
-            "admin_token",
-            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
-        );
+        for name in ["admin_token", "user_token"] {
+            components.add_security_scheme(
+                name,
+                SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+            );
+        }
+    }
+}
+
+/// What holds for every route, written once: each error response is the JSON error document, and the path
+/// parameters have the patterns the server accepts (anything else is a 404 for a task, a 400 otherwise).
+struct Conventions;
+
+/// Path parameter name → the pattern of a value the server may accept, and an example.
+const PATH_PATTERNS: [(&str, &str, &str); 4] = [
+    ("task", "^[A-Za-z0-9._-]{1,128}$", "OfflineBallRun-v0"),
+    // A version id (sha256) or a tag.
+    ("version", "^([0-9a-f]{64}|[a-z][a-z0-9._-]{0,63})$", "latest"),
+    ("tag", "^[a-z][a-z0-9._-]{0,63}$", "stable"),
+    ("id", "^[0-9]{1,18}$", "1"),
+];
+
+impl Modify for Conventions {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::schema::{ObjectBuilder, Type};
+        use utoipa::openapi::{Content, Ref, RefOr};
+        for item in openapi.paths.paths.values_mut() {
+            let operations = [
+                &mut item.get,
+                &mut item.put,
+                &mut item.post,
+                &mut item.delete,
+                &mut item.patch,
+                &mut item.head,
+            ];
+            for operation in operations.into_iter().flatten() {
+                for parameter in operation.parameters.iter_mut().flatten() {
+                    if parameter.parameter_in != utoipa::openapi::path::ParameterIn::Path {
+                        continue;
+                    }
+                    if let Some((_, pattern, example)) = PATH_PATTERNS.iter().find(|(name, ..)| *name == parameter.name)
+                    {
+                        parameter.schema = Some(RefOr::T(
+                            ObjectBuilder::new()
+                                .schema_type(Type::String)
+                                .pattern(Some(*pattern))
+                                .examples([*example])
+                                .into(),
+                        ));
+                    }
+                }
+                for (status, response) in operation.responses.responses.iter_mut() {
+                    let RefOr::T(response) = response else { continue };
+                    if status.as_str() >= "400" && response.content.is_empty() {
+                        response.content.insert(
+                            "application/json".into(),
+                            Content::new(Some(Ref::from_schema_name("ErrorDocument"))),
+                        );
+                    }
+                    if response.description.is_empty() {
+                        response.description = "See the error message".into();
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -56,7 +144,8 @@ impl Modify for AdminToken {
         (status = 200, description = "The Parquet file; ETag is its sha256", content_type = "application/vnd.apache.parquet"),
         (status = 206, description = "The requested byte range"),
         (status = 304, description = "Not modified"),
-        (status = 404), (status = 416, description = "Range not satisfiable")))]
+        (status = 400, description = "An invalid version reference or filter"),
+        (status = 404, description = "Unknown task or version"), (status = 416, description = "Range not satisfiable")))]
 #[allow(dead_code)]
 fn download_doc() {}
 

@@ -39,6 +39,9 @@ pub struct Leaderboard {
     pub(crate) simulators: Arc<SimulatorPool>,
     pub(crate) config: LeaderboardConfig,
     pub(crate) seeds: HeldSeeds,
+    /// The `dsrl-server` binary that plays submitted policies in child processes; `None`: in this process (tests
+    /// that embed the server).
+    pub(crate) policy_program: Option<std::path::PathBuf>,
     /// Wakes idle evaluators when a submission arrives.
     pub(crate) wake: tokio::sync::Notify,
 }
@@ -53,7 +56,7 @@ pub fn suite_of(family: Family) -> &'static str {
 }
 
 /// One threshold's result.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct ThresholdResult {
     pub cost_threshold: f64,
     pub episodes: usize,
@@ -65,7 +68,7 @@ pub struct ThresholdResult {
 }
 
 /// A submission as its submitter (and anyone) sees it; the episode seeds are never shown.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct SubmissionView {
     pub id: i64,
     pub task: String,
@@ -91,7 +94,7 @@ pub struct SubmissionView {
     pub episodes: Vec<EpisodeRow>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct CheckpointSummary {
     pub slot: String,
     pub cost_threshold: Option<f64>,
@@ -99,7 +102,8 @@ pub struct CheckpointSummary {
 }
 
 /// One entry in a task's table.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+#[schema(as = LeaderboardEntry)]
 pub struct TaskEntry {
     pub rank: usize,
     pub submission: i64,
@@ -111,7 +115,7 @@ pub struct TaskEntry {
     pub finished_at: Option<String>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct TaskTable {
     pub task: String,
     pub family: &'static str,
@@ -120,7 +124,7 @@ pub struct TaskTable {
 }
 
 /// One entry (a user's name for a method) across the tasks of a family.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct FamilyEntry {
     pub rank: usize,
     pub user: String,
@@ -133,13 +137,13 @@ pub struct FamilyEntry {
     pub normalized_cost: Interval,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct FamilyTable {
     pub family: &'static str,
     pub entries: Vec<FamilyEntry>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct Board {
     pub tasks: Vec<TaskTable>,
     pub families: Vec<FamilyTable>,
@@ -158,6 +162,7 @@ impl Leaderboard {
         simulators: Arc<SimulatorPool>,
         config: LeaderboardConfig,
         seed_secret: String,
+        policy_program: Option<std::path::PathBuf>,
     ) -> Leaderboard {
         Leaderboard {
             pool,
@@ -166,6 +171,7 @@ impl Leaderboard {
             simulators,
             config,
             seeds: HeldSeeds::new(seed_secret),
+            policy_program,
             wake: tokio::sync::Notify::new(),
         }
     }
@@ -184,7 +190,12 @@ impl Leaderboard {
     ) -> Result<SubmissionView, ApiError> {
         let task = self.task(task)?;
         users::check_name("entry name", name)?;
-        let checked = checkpoints::check(task, files)?;
+        // Parsing the weights and building the networks is CPU work: off the async runtime, so a hostile upload
+        // cannot stall other requests.
+        let owned = task.clone();
+        let checked = tokio::task::spawn_blocking(move || checkpoints::check(&owned, files))
+            .await
+            .map_err(ApiError::internal)??;
         let mut records = Vec::new();
         for (i, c) in checked.checkpoints.iter().enumerate() {
             // Content-addressed, so storing the same checkpoint again rewrites identical bytes.

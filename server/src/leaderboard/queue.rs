@@ -28,7 +28,7 @@ pub struct Job {
 }
 
 /// One evaluated episode.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct EpisodeRow {
     pub cost_threshold: f64,
     pub episode: u32,
@@ -245,7 +245,9 @@ pub async fn cancel(pool: &SqlitePool, id: i64, user_id: i64) -> Result<(), ApiE
         .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))?;
     let (owner, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
     if owner != user_id {
-        return Err(ApiError::PermissionDenied);
+        return Err(ApiError::Forbidden(format!(
+            "submission {id} belongs to another user; only its submitter can cancel it"
+        )));
     }
     let done = sqlx::query(
         "UPDATE submissions SET state = 'cancelled', lease_owner = NULL, finished_at = ?2,

@@ -9,6 +9,8 @@ use std::time::Duration;
 use dsrl_policy::Policy;
 use dsrl_policy::checkpoint;
 
+use crate::inference::{IsolatedPolicy, PolicySource};
+
 use super::Leaderboard;
 use super::queue::{self, EpisodeRow, Job};
 use crate::error::{ApiError, ErrorCode};
@@ -61,8 +63,16 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
         };
         tracing::info!(id = job.id, task = %job.task, attempt = job.attempts, %owner, "evaluation started");
         let started = std::time::Instant::now();
+        // A wall-clock budget per evaluation: a policy that is legal but slow fails with the reason instead of
+        // holding an evaluator for ever.
+        let budget = Duration::from_secs(leaderboard.config.max_evaluation_seconds.max(1));
         let outcome = tokio::select! {
-            outcome = evaluate(&leaderboard, &job) => Some(outcome),
+            outcome = tokio::time::timeout(budget, evaluate(&leaderboard, &job)) => Some(outcome.unwrap_or_else(|_| {
+                Outcome::Failed(format!(
+                    "the evaluation ran past its wall-clock budget of {} s (leaderboard.max_evaluation_seconds)",
+                    budget.as_secs()
+                ))
+            })),
             () = keep_lease(&leaderboard, &job, &owner, lease_ms) => None,
         };
         let stored = match outcome {
@@ -123,16 +133,31 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
         Ok(task) => task,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
+    // Each checkpoint: built here (tests that embed the server) or handed to child processes (`inference`).
+    enum Loaded {
+        Local(Box<Policy>),
+        Isolated(IsolatedPolicy),
+    }
     let mut policies = Vec::new();
     for record in &job.checkpoints {
         let (config_bytes, weights_bytes) = match leaderboard.load(record).await {
             Ok(bytes) => bytes,
             Err(e) => return Outcome::Interrupted(format!("reading the checkpoint: {e}")),
         };
-        let loaded = checkpoint::parse_config(&config_bytes).and_then(|config| {
-            let tensors = checkpoint::parse_weights(&weights_bytes)?;
-            Policy::load(&config, &tensors)
-        });
+        let loaded = match &leaderboard.policy_program {
+            Some(program) => Ok(Loaded::Isolated(IsolatedPolicy {
+                program: program.clone(),
+                memory_limit_bytes: leaderboard.config.policy_memory_limit_bytes,
+                config: config_bytes,
+                weights: weights_bytes,
+            })),
+            None => checkpoint::parse_config(&config_bytes)
+                .and_then(|config| {
+                    let tensors = checkpoint::parse_weights(&weights_bytes)?;
+                    Policy::load(&config, &tensors)
+                })
+                .map(|p| Loaded::Local(Box::new(p))),
+        };
         match loaded {
             Ok(policy) => policies.push((record.cost_threshold, policy)),
             Err(e) => return Outcome::Failed(format!("loading the checkpoint {}: {e}", record.slot)),
@@ -142,7 +167,10 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
         let policy = policies
             .iter()
             .find(|(t, _)| t.is_none() || *t == Some(threshold))
-            .map(|(_, p)| p);
+            .map(|(_, p)| match p {
+                Loaded::Local(policy) => PolicySource::Local(policy),
+                Loaded::Isolated(isolated) => PolicySource::Isolated(isolated),
+            });
         let seeds = leaderboard
             .seeds
             .seeds(task.id.as_str(), index, job.episodes_per_threshold);

@@ -16,7 +16,7 @@ pub struct User {
 }
 
 /// A user just created, with the only copy of its token.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct NewUser {
     pub id: i64,
     pub name: String,

@@ -50,10 +50,15 @@ struct SlotState {
     channel: Option<Channel>,
     child: Option<Child>,
     failed_checks: u32,
+    /// Environments of sessions being opened here: counted from placement on, so that concurrent opens (an
+    /// evaluation's three threshold sessions) spread over the workers instead of all seeing equal load.
+    reserved: u32,
 }
 
 pub struct SimulatorPool {
     slots: Vec<Arc<Slot>>,
+    /// Held while a session is placed (see `place`).
+    placing: Mutex<()>,
     request_timeout: Duration,
     stop: watch::Sender<bool>,
 }
@@ -170,6 +175,7 @@ impl SimulatorPool {
         }
         SimulatorPool {
             slots,
+            placing: Mutex::new(()),
             request_timeout: Duration::from_secs(config.request_timeout_s.max(1)),
             stop,
         }
@@ -205,34 +211,45 @@ impl SimulatorPool {
                 self.request_timeout
             ))),
         };
-        let (session, observations) = result?;
-        // Count the envs at once so the next placement sees them before the next health check does.
+        // The reservation becomes the session's count (or is released when the open failed); counted at once
+        // so the next placement sees it before the next health check does.
         slot.update(|s| {
-            if let Some(status) = &mut s.status {
+            s.reserved = s.reserved.saturating_sub(num_envs);
+            if result.is_ok()
+                && let Some(status) = &mut s.status
+            {
                 status.envs += num_envs;
                 status.sessions += 1;
             }
         });
+        let (session, observations) = result?;
         Ok(PooledSession::new(session, observations, name, self.request_timeout))
     }
 
+    /// Chooses the healthy worker with the most free capacity and reserves `num_envs` there; one placement at a
+    /// time, so two concurrent opens never both see the same free capacity.
     fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), ApiError> {
+        let _one_at_a_time = self.placing.lock().expect("placement lock");
         let mut best: Option<(f64, Arc<Slot>, Channel, String)> = None;
         for slot in &self.slots {
             let state = slot.state.lock().expect("slot state");
             let (Some(status), Some(channel)) = (&state.status, &state.channel) else {
                 continue;
             };
-            if !status.healthy || status.envs + num_envs > status.max_envs {
+            let used = status.envs + state.reserved;
+            if !status.healthy || used + num_envs > status.max_envs {
                 continue;
             }
-            let load = f64::from(status.envs) / f64::from(status.max_envs.max(1));
+            let load = f64::from(used) / f64::from(status.max_envs.max(1));
             if best.as_ref().is_none_or(|(b, ..)| load < *b) {
                 best = Some((load, slot.clone(), channel.clone(), status.name.clone()));
             }
         }
         match best {
-            Some((_, slot, channel, name)) => Ok((slot, channel, name)),
+            Some((_, slot, channel, name)) => {
+                slot.update(|s| s.reserved += num_envs);
+                Ok((slot, channel, name))
+            }
             None => {
                 let workers = self.workers();
                 let detail: Vec<String> = workers

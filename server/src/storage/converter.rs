@@ -80,17 +80,27 @@ impl Converter {
                 program,
                 memory_limit_bytes,
             } => {
-                let output = tokio::process::Command::new(program)
+                // The child exits when its standard input closes (`exit_when_stdin_closes`): the pipe's write end
+                // is held here until the answer is read, and the kernel closes it when this process dies, even by
+                // SIGKILL, so no converter outlives the server.
+                let mut child = tokio::process::Command::new(program)
                     .arg("convert")
                     .args(["--task", task.id.as_str(), "--observation-space", space.as_str()])
                     .args(["--memory-limit", &memory_limit_bytes.to_string()])
                     .arg(source)
                     .arg(out)
-                    .stdin(std::process::Stdio::null())
+                    .stdin(std::process::Stdio::piped())
+                    .stdout(std::process::Stdio::piped())
+                    .stderr(std::process::Stdio::piped())
                     .kill_on_drop(true)
-                    .output()
-                    .await
+                    .spawn()
                     .map_err(|e| ApiError::Internal(format!("starting the converter {}: {e}", program.display())))?;
+                let lifeline = child.stdin.take();
+                let output = child
+                    .wait_with_output()
+                    .await
+                    .map_err(|e| ApiError::Internal(format!("waiting for the converter: {e}")))?;
+                drop(lifeline);
                 if !output.status.success() {
                     let stderr = String::from_utf8_lossy(&output.stderr);
                     tracing::warn!(status = %output.status, stderr = %stderr.trim(), "converter process died");
@@ -105,6 +115,16 @@ impl Converter {
             }
         }
     }
+}
+
+/// In a child process: exits as soon as standard input reaches end of file, which happens when the parent closes
+/// its end of the pipe or dies (the kernel closes a killed process's descriptors). A watcher thread does it, so
+/// the exit happens even while the main thread is blocked in a read of the upload.
+pub fn exit_when_stdin_closes() {
+    std::thread::spawn(|| {
+        let _ = std::io::copy(&mut std::io::stdin().lock(), &mut std::io::sink());
+        std::process::exit(3);
+    });
 }
 
 /// Caps the address space of the current process (Linux; a no-op elsewhere). Called first thing in the child,

@@ -125,3 +125,63 @@ async fn grpc_and_rest_share_the_port_and_unknown_routes_are_json_404s() {
     assert_eq!(response.status(), StatusCode::OK);
     assert_eq!(response.headers()["content-type"], "application/grpc");
 }
+
+/// A panicking handler answers the JSON error shape (REST) or INTERNAL (gRPC), and `/metrics` counts it both as a
+/// 500 by route and in `dsrl_panics_total` (before, the catch-panic layer sat outside the metrics middleware and a
+/// panic's 500 was never counted).
+#[tokio::test]
+async fn a_panicking_handler_is_a_counted_json_500_and_a_grpc_internal() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dsrl_server::build_state(&config(dir.path()), Converter::InProcess)
+        .await
+        .unwrap();
+    async fn boom() -> &'static str {
+        panic!("deliberate test panic")
+    }
+    let routes = axum::Router::new()
+        .route("/test/panic", axum::routing::get(boom))
+        .route("/test.Grpc/Panic", axum::routing::post(boom))
+        .route("/metrics", axum::routing::get(dsrl_server::http::metrics::metrics))
+        .with_state(state.clone());
+    let app = dsrl_server::with_layers(routes, state);
+    let response = app
+        .clone()
+        .oneshot(Request::get("/test/panic").body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::INTERNAL_SERVER_ERROR);
+    let body = json(response).await;
+    assert_eq!(body["error"]["code"], "internal", "{body}");
+    let response = app
+        .clone()
+        .oneshot(
+            Request::post("/test.Grpc/Panic")
+                .header("content-type", "application/grpc")
+                .body(Body::empty())
+                .unwrap(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    assert_eq!(response.headers()["grpc-status"], "13", "INTERNAL");
+    let metrics = app
+        .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    let text = String::from_utf8(
+        axum::body::to_bytes(metrics.into_body(), 1 << 20)
+            .await
+            .unwrap()
+            .to_vec(),
+    )
+    .unwrap();
+    assert!(
+        text.contains(r#"dsrl_requests_total{method="GET",route="/test/panic",status="500"} 1"#),
+        "{text}"
+    );
+    assert!(
+        text.contains(r#"dsrl_requests_total{method="POST",route="/test.Grpc/Panic",status="13"} 1"#),
+        "{text}"
+    );
+    assert!(text.contains(r#"dsrl_panics_total{route="/test/panic"} 1"#), "{text}");
+}

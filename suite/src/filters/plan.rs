@@ -247,7 +247,17 @@ pub fn plan(spec: &FilterSpec, task: &Task, episodes: &[EpisodeSummary]) -> Resu
         }
         let picks = generator.choice_without_replacement(candidates.len(), wanted);
         outlier_positions = picks.iter().map(|&i| candidates[i]).collect();
-        let cost_values = generator.choice_with_replacement(spec.target_cost as usize, wanted);
+        // DSRL's `int(target_cost)`; the spec bounds target_cost to [1, MAX_TARGET_COST] for outliers, checked
+        // again here because a saturating cast would hand the generator an empty or absurd range.
+        let cost_population = spec.target_cost.trunc();
+        if !(1.0..=super::spec::MAX_TARGET_COST).contains(&cost_population) {
+            return Err(reject(format!(
+                "outliers need 1 <= target_cost <= {}, got {}",
+                super::spec::MAX_TARGET_COST,
+                spec.target_cost
+            )));
+        }
+        let cost_values = generator.choice_with_replacement(cost_population as usize, wanted);
         for (&p, &c) in outlier_positions.iter().zip(&cost_values) {
             let length = episodes[current[p]].length as usize;
             if c > length {

@@ -74,7 +74,14 @@ pub fn discard_preset(name: &str) -> Option<InpaintRange> {
 pub const VALID_KEYS: &str = "valid keys: noise|outliers_percent (0 < p <= 1), obs_noise|noise_scale (0 < s <= 100), \
 density (0 < d < 1; the task's preset grid) with optional cbins|rbins (1..=1000), max_npb (>= 1), min_npb (>= 0), \
 inpaint|inpaint_ranges (pcmin:pcmax:prmin:prmax, each in [0, 1], min <= max; one range), \
-discard (tempting|low-reward), epsilon (finite, not 0), target_cost (>= 0; >= 1 with outliers), seed (0..2^64)";
+discard (tempting|low-reward), epsilon (finite, not 0, |e| <= 1e9), target_cost (0..=100000; >= 1 with outliers), seed (0..2^64)";
+
+/// The largest `target_cost` accepted. An episode's cost return is at most its number of steps (unit costs; the
+/// longest horizon is 1000) and relabelled outliers draw that many unit costs, so anything above this is a
+/// mistake, and an unbounded value would saturate DSRL's `int(target_cost)`.
+pub const MAX_TARGET_COST: f64 = 100_000.0;
+/// The largest `|epsilon|` accepted: returns are at most a few thousand.
+pub const MAX_EPSILON: f64 = 1e9;
 
 /// A filter that cannot be applied: a malformed request (the message lists the valid keys), or a request that
 /// this dataset cannot satisfy (for example too few outlier candidates), where DSRL's reference would fail.
@@ -203,6 +210,9 @@ impl FilterSpec {
                 0.0 => {
                     return Err(err("epsilon=0 removes nothing and crashes DSRL's reference; omit it"));
                 }
+                e if e.abs() > MAX_EPSILON => {
+                    return Err(err(format!("epsilon={v} is outside [-1e9, 1e9]")));
+                }
                 e => Some(e),
             },
         };
@@ -307,8 +317,12 @@ impl FilterSpec {
             Some(v) => number("target_cost", v)?,
             None => task.lowest_cost_threshold(),
         };
-        if target_cost < 0.0 {
-            return Err(err("target_cost must be >= 0"));
+        if !(0.0..=MAX_TARGET_COST).contains(&target_cost) {
+            return Err(err(format!(
+                "target_cost={} is outside [0, {MAX_TARGET_COST}] (an episode's cost return is at most \
+                 its number of steps)",
+                get("target_cost").unwrap_or_default()
+            )));
         }
         if outliers_percent.is_some() && target_cost < 1.0 {
             return Err(err(
@@ -435,6 +449,12 @@ mod tests {
             ("noise=0.1,outliers_percent=0.2", "given twice"),
             ("seed=-1,density=0.5", "non-negative integer"),
             ("obs_noise=nan", "not a finite number"),
+            // Found by an outside probe: 1e19 saturated `int(target_cost)` and panicked in the generator.
+            ("noise=0.05,target_cost=1e19", "target_cost=1e19 is outside [0, 100000]"),
+            ("noise=0.05,target_cost=9.3e18", "outside [0, 100000]"),
+            ("epsilon=1,target_cost=100001", "outside [0, 100000]"),
+            ("target_cost=-1", "outside [0, 100000]"),
+            ("epsilon=1e300", "epsilon=1e300 is outside"),
         ] {
             let e = FilterSpec::parse(text, &t).unwrap_err().to_string();
             assert!(e.contains(expected), "{text}: {e}");

@@ -1,0 +1,339 @@
+//! Where a submitted policy computes its actions while it is scored. A submission is weights plus a declared
+//! architecture, checked before it is queued; still, a network that is legal but expensive (a CDT with a long
+//! context) could take the CPU or the memory of the API process. So the leaderboard plays submissions in a child
+//! process (`dsrl-server play-policy`, hidden) under an address-space limit and at a lower scheduling priority: the
+//! worst a policy can do is fail its own evaluation. `dsrl-admin evaluate` and tests that embed the server act in
+//! process.
+//!
+//! The child speaks a small binary protocol on its standard input and output. Each request is
+//! `[op: u8][length: u32 LE][payload]`, each answer `[status: u8][length: u32 LE][payload]` (status 0: the
+//! payload is the result, 1: a UTF-8 error message). Numbers are little-endian.
+//! - `LOAD` = config length (u32), `policy.json`, `policy.safetensors`, cost threshold (f64), slots (u32);
+//! - `START` = slot (u32), episode seed (u64);
+//! - `ACT` = n (u32), n slots (u32), observations (f32, row-major) → actions (f32, row-major);
+//! - `OBSERVE` = n (u32), n slots (u32), n rewards (f64), n costs (f64).
+
+use std::io::{Read, Write};
+use std::path::PathBuf;
+use std::process::Stdio;
+
+use bytes::{Buf, BufMut, Bytes, BytesMut};
+use dsrl_policy::{Policy, Rollout, checkpoint};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+use crate::error::ApiError;
+
+const LOAD: u8 = 1;
+const START: u8 = 2;
+const ACT: u8 = 3;
+const OBSERVE: u8 = 4;
+/// Largest frame either side accepts: a load carries at most the weights limit plus the config limit.
+const MAX_FRAME: u32 = (checkpoint::MAX_WEIGHTS_BYTES + checkpoint::MAX_CONFIG_BYTES + 64) as u32;
+
+/// A submitted checkpoint to be played in a child process.
+#[derive(Debug, Clone)]
+pub struct IsolatedPolicy {
+    /// The `dsrl-server` binary.
+    pub program: PathBuf,
+    pub memory_limit_bytes: u64,
+    pub config: Bytes,
+    pub weights: Bytes,
+}
+
+/// The policy an evaluation plays: built in this process, or a checkpoint played in a child process.
+#[derive(Clone, Copy)]
+pub enum PolicySource<'a> {
+    Local(&'a Policy),
+    Isolated(&'a IsolatedPolicy),
+}
+
+/// A policy playing episodes in a fixed number of environment slots at one cost threshold, wherever it runs.
+pub enum Player<'a> {
+    Local(Rollout<'a>),
+    Child(Box<ChildPlayer>),
+}
+
+fn policy_error(e: impl std::fmt::Display) -> ApiError {
+    ApiError::Internal(format!("evaluating the policy: {e}"))
+}
+
+impl<'a> Player<'a> {
+    pub async fn new(source: PolicySource<'a>, cost_threshold: f64, slots: usize) -> Result<Player<'a>, ApiError> {
+        match source {
+            PolicySource::Local(policy) => Ok(Player::Local(
+                policy.rollout(cost_threshold, slots).map_err(policy_error)?,
+            )),
+            PolicySource::Isolated(isolated) => Ok(Player::Child(Box::new(
+                ChildPlayer::spawn(isolated, cost_threshold, slots).await?,
+            ))),
+        }
+    }
+
+    pub async fn start_episode(&mut self, slot: usize, seed: u64) -> Result<(), ApiError> {
+        match self {
+            Player::Local(rollout) => rollout.start_episode(slot, seed).map_err(policy_error),
+            Player::Child(child) => {
+                let mut payload = BytesMut::with_capacity(12);
+                payload.put_u32_le(slot as u32);
+                payload.put_u64_le(seed);
+                child.call(START, &payload).await.map(drop)
+            }
+        }
+    }
+
+    pub async fn act(&mut self, slots: &[u32], observations: &[f32]) -> Result<Vec<f32>, ApiError> {
+        match self {
+            Player::Local(rollout) => rollout.act(slots, observations).map_err(policy_error),
+            Player::Child(child) => {
+                let mut payload = BytesMut::with_capacity(4 + 4 * slots.len() + 4 * observations.len());
+                put_slots(&mut payload, slots);
+                observations.iter().for_each(|&x| payload.put_f32_le(x));
+                let answer = child.call(ACT, &payload).await?;
+                Ok(answer
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
+                    .collect())
+            }
+        }
+    }
+
+    pub async fn observe(&mut self, slots: &[u32], rewards: &[f64], costs: &[f64]) -> Result<(), ApiError> {
+        match self {
+            Player::Local(rollout) => rollout.observe(slots, rewards, costs).map_err(policy_error),
+            Player::Child(child) => {
+                let mut payload = BytesMut::with_capacity(4 + 20 * slots.len());
+                put_slots(&mut payload, slots);
+                rewards.iter().for_each(|&x| payload.put_f64_le(x));
+                costs.iter().for_each(|&x| payload.put_f64_le(x));
+                child.call(OBSERVE, &payload).await.map(drop)
+            }
+        }
+    }
+}
+
+fn put_slots(payload: &mut BytesMut, slots: &[u32]) {
+    payload.put_u32_le(slots.len() as u32);
+    slots.iter().for_each(|&s| payload.put_u32_le(s));
+}
+
+/// The parent's side of one child process.
+pub struct ChildPlayer {
+    child: tokio::process::Child,
+    stdin: tokio::process::ChildStdin,
+    stdout: tokio::process::ChildStdout,
+    memory_limit_bytes: u64,
+}
+
+impl ChildPlayer {
+    async fn spawn(policy: &IsolatedPolicy, cost_threshold: f64, slots: usize) -> Result<ChildPlayer, ApiError> {
+        let mut child = tokio::process::Command::new(&policy.program)
+            .arg("play-policy")
+            .args(["--memory-limit", &policy.memory_limit_bytes.to_string()])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .kill_on_drop(true)
+            .spawn()
+            .map_err(|e| ApiError::Internal(format!("starting {} play-policy: {e}", policy.program.display())))?;
+        let stdin = child.stdin.take().expect("piped");
+        let stdout = child.stdout.take().expect("piped");
+        let mut player = ChildPlayer {
+            child,
+            stdin,
+            stdout,
+            memory_limit_bytes: policy.memory_limit_bytes,
+        };
+        let mut payload = BytesMut::with_capacity(policy.config.len() + policy.weights.len() + 16);
+        payload.put_u32_le(policy.config.len() as u32);
+        payload.put_slice(&policy.config);
+        payload.put_slice(&policy.weights);
+        payload.put_f64_le(cost_threshold);
+        payload.put_u32_le(slots as u32);
+        player.call(LOAD, &payload).await?;
+        Ok(player)
+    }
+
+    async fn call(&mut self, op: u8, payload: &[u8]) -> Result<Bytes, ApiError> {
+        match self.exchange(op, payload).await {
+            Ok(Ok(answer)) => Ok(answer),
+            // The policy itself failed (a shape it cannot handle): not worth a retry.
+            Ok(Err(message)) => Err(policy_error(message)),
+            Err(_) => {
+                // The pipe broke: the child died, most likely at its memory limit.
+                let status = match tokio::time::timeout(std::time::Duration::from_secs(5), self.child.wait()).await {
+                    Ok(Ok(status)) => status.to_string(),
+                    _ => "no exit status".to_owned(),
+                };
+                Err(ApiError::InvalidArgument(format!(
+                    "the policy process died while acting ({status}); a network that needs more than the \
+                     {} MB memory limit cannot be scored",
+                    self.memory_limit_bytes >> 20
+                )))
+            }
+        }
+    }
+
+    async fn exchange(&mut self, op: u8, payload: &[u8]) -> std::io::Result<Result<Bytes, String>> {
+        let mut head = [0u8; 5];
+        head[0] = op;
+        head[1..].copy_from_slice(&(payload.len() as u32).to_le_bytes());
+        self.stdin.write_all(&head).await?;
+        self.stdin.write_all(payload).await?;
+        self.stdin.flush().await?;
+        self.stdout.read_exact(&mut head).await?;
+        let len = u32::from_le_bytes(head[1..].try_into().expect("4 bytes"));
+        if len > MAX_FRAME {
+            return Err(std::io::Error::other("oversized answer"));
+        }
+        let mut body = vec![0u8; len as usize];
+        self.stdout.read_exact(&mut body).await?;
+        Ok(match head[0] {
+            0 => Ok(Bytes::from(body)),
+            _ => Err(String::from_utf8_lossy(&body).into_owned()),
+        })
+    }
+}
+
+/// The child's side: lowers its priority, caps its memory, dies with its parent, then answers requests on
+/// stdin/stdout until stdin closes. Returns the process exit code.
+pub fn serve_child(memory_limit_bytes: u64) -> std::process::ExitCode {
+    #[cfg(target_os = "linux")]
+    // SAFETY: plain system calls with constant arguments. PR_SET_PDEATHSIG kills this process when the thread
+    // that spawned it (an async worker thread of the server, alive as long as the server) goes away; the
+    // getppid check covers a parent that died before the prctl.
+    unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+        if libc::getppid() == 1 {
+            return std::process::ExitCode::FAILURE;
+        }
+        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+    }
+    crate::storage::converter::limit_memory(memory_limit_bytes);
+    let mut input = std::io::stdin().lock();
+    let mut output = std::io::stdout().lock();
+    // The first request loads the policy; every later one plays it.
+    let Some((op, payload)) = read_frame(&mut input) else {
+        return std::process::ExitCode::FAILURE;
+    };
+    let loaded = match op {
+        LOAD => decode_load(&payload),
+        op => Err(format!("request {op} before the policy was loaded")),
+    };
+    let (policy, threshold, slots) = match loaded {
+        Ok(loaded) => loaded,
+        Err(message) => {
+            let _ = reply(&mut output, Err(message));
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let mut rollout = match policy.rollout(threshold, slots) {
+        Ok(rollout) => rollout,
+        Err(e) => {
+            let _ = reply(&mut output, Err(e.to_string()));
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    if reply(&mut output, Ok(Vec::new())).is_err() {
+        return std::process::ExitCode::FAILURE;
+    }
+    // Until the parent closes the pipe.
+    while let Some((op, payload)) = read_frame(&mut input) {
+        if reply(&mut output, handle(&mut rollout, op, &payload)).is_err() {
+            return std::process::ExitCode::FAILURE;
+        }
+    }
+    std::process::ExitCode::SUCCESS
+}
+
+fn read_frame(input: &mut impl Read) -> Option<(u8, Vec<u8>)> {
+    let mut head = [0u8; 5];
+    input.read_exact(&mut head).ok()?;
+    let len = u32::from_le_bytes(head[1..].try_into().expect("4 bytes"));
+    if len > MAX_FRAME {
+        return None;
+    }
+    let mut payload = vec![0u8; len as usize];
+    input.read_exact(&mut payload).ok()?;
+    Some((head[0], payload))
+}
+
+fn reply(output: &mut impl Write, answer: Result<Vec<u8>, String>) -> std::io::Result<()> {
+    let (status, body) = match answer {
+        Ok(body) => (0u8, body),
+        Err(message) => (1u8, message.into_bytes()),
+    };
+    output.write_all(&[status])?;
+    output.write_all(&(body.len() as u32).to_le_bytes())?;
+    output.write_all(&body)?;
+    output.flush()
+}
+
+fn decode_load(payload: &[u8]) -> Result<(Policy, f64, usize), String> {
+    let mut buf = payload;
+    let short = || "a truncated LOAD request".to_owned();
+    if buf.remaining() < 4 {
+        return Err(short());
+    }
+    let config_len = buf.get_u32_le() as usize;
+    if buf.remaining() < config_len + 12 {
+        return Err(short());
+    }
+    let config = checkpoint::parse_config(&buf[..config_len]).map_err(|e| e.to_string())?;
+    let weights = &buf[config_len..buf.len() - 12];
+    let tensors = checkpoint::parse_weights(weights).map_err(|e| e.to_string())?;
+    let policy = Policy::load(&config, &tensors).map_err(|e| e.to_string())?;
+    let mut tail = &buf[buf.len() - 12..];
+    let threshold = tail.get_f64_le();
+    let slots = tail.get_u32_le() as usize;
+    Ok((policy, threshold, slots))
+}
+
+fn slots_of(buf: &mut &[u8]) -> Result<Vec<u32>, String> {
+    if buf.remaining() < 4 {
+        return Err("a truncated request".into());
+    }
+    let n = buf.get_u32_le() as usize;
+    if buf.remaining() < 4 * n {
+        return Err("a truncated request".into());
+    }
+    Ok((0..n).map(|_| buf.get_u32_le()).collect())
+}
+
+fn handle(rollout: &mut Rollout<'_>, op: u8, payload: &[u8]) -> Result<Vec<u8>, String> {
+    let mut buf = payload;
+    match op {
+        START => {
+            if buf.remaining() != 12 {
+                return Err("a malformed START request".into());
+            }
+            let slot = buf.get_u32_le() as usize;
+            let seed = buf.get_u64_le();
+            rollout.start_episode(slot, seed).map_err(|e| e.to_string())?;
+            Ok(Vec::new())
+        }
+        ACT => {
+            let slots = slots_of(&mut buf)?;
+            if !buf.remaining().is_multiple_of(4) {
+                return Err("a malformed ACT request".into());
+            }
+            let observations: Vec<f32> = buf
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes(b.try_into().expect("4")))
+                .collect();
+            let actions = rollout.act(&slots, &observations).map_err(|e| e.to_string())?;
+            Ok(actions.iter().flat_map(|a| a.to_le_bytes()).collect())
+        }
+        OBSERVE => {
+            let slots = slots_of(&mut buf)?;
+            let n = slots.len();
+            if buf.remaining() != 16 * n {
+                return Err("a malformed OBSERVE request".into());
+            }
+            let rewards: Vec<f64> = (0..n).map(|_| buf.get_f64_le()).collect();
+            let costs: Vec<f64> = (0..n).map(|_| buf.get_f64_le()).collect();
+            rollout.observe(&slots, &rewards, &costs).map_err(|e| e.to_string())?;
+            Ok(Vec::new())
+        }
+        other => Err(format!("unknown request {other}")),
+    }
+}
