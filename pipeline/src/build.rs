@@ -41,6 +41,8 @@ pub struct Run {
     pub max_episodes: Option<usize>,
     /// Where the output goes (default: the state folder).
     pub out_dir: Option<PathBuf>,
+    /// Write the output in the compact form (committed starters; the ingested version is the canonical one).
+    pub compact: bool,
 }
 
 /// What a run produced.
@@ -341,6 +343,16 @@ impl Run {
             })
             .await??
         };
+        if self.compact {
+            // The committed form of a starter: ingested, it gives the canonical file and its version id.
+            let (task, canonical, compact) = (task.clone(), part.clone(), path.with_extension("parquet.compact"));
+            let target = compact.clone();
+            tokio::task::spawn_blocking(move || {
+                dsrl_suite::convert::compact_copy(&task, ObservationSpace::Simulator, &canonical, &target)
+            })
+            .await??;
+            std::fs::rename(&compact, &part)?;
+        }
         std::fs::rename(&part, &path)?;
         let mut details = serde_json::json!({
             "recipe": self.recipe,

@@ -97,6 +97,11 @@ struct CollectArgs {
     /// Output folder (default: the state folder).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Write the output in the compact form: `next_observations` left out (null) wherever the next row of the
+    /// episode starts from it, about half the size. Ingest fills it back in, so the version id is the canonical
+    /// one. For committed starter files.
+    #[arg(long)]
+    compact: bool,
     /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
     #[arg(long)]
     worker_binary: Option<PathBuf>,
@@ -254,6 +259,7 @@ async fn run() -> anyhow::Result<()> {
         worker_binary,
         max_episodes,
         out,
+        compact,
         server,
         token,
         tag,
@@ -288,6 +294,7 @@ async fn run() -> anyhow::Result<()> {
         progress: !json,
         max_episodes,
         out_dir: out,
+        compact,
     };
     let built = run.execute(&catalog).await?;
     let mut report = serde_json::json!({

@@ -14,6 +14,8 @@ pub mod gaussian;
 pub mod layers;
 pub mod mlp;
 pub mod noise;
+pub mod offline;
+pub mod vae;
 
 pub use acting::{Policy, Rollout};
 pub use candle_core::{DType, Device, Tensor, Var};

@@ -74,6 +74,47 @@ impl Mlp {
         })
     }
 
+    /// Layer sizes `[in, hidden.., out]` initialised as PyTorch's `nn.Linear` default: weights and biases uniform
+    /// in ±1/√fan_in (kaiming-uniform with a = √5), which OSRL's critics and VAEs keep.
+    pub fn pytorch_default(prefix: &str, sizes: &[usize], activation: Activation, noise: &mut Noise) -> Result<Mlp> {
+        if sizes.len() < 2 || sizes.contains(&0) {
+            return Err(PolicyError::Format(format!("bad layer sizes {sizes:?}")));
+        }
+        let mut layers = Vec::new();
+        for pair in sizes.windows(2) {
+            let (fan_in, fan_out) = (pair[0], pair[1]);
+            let bound = 1.0 / (fan_in as f64).sqrt();
+            let mut uniform =
+                |n: usize| -> Vec<f32> { (0..n).map(|_| ((noise.uniform() * 2.0 - 1.0) * bound) as f32).collect() };
+            let weight = Var::from_vec(uniform(fan_out * fan_in), (fan_out, fan_in), &Device::Cpu)?;
+            let bias = Var::from_vec(uniform(fan_out), fan_out, &Device::Cpu)?;
+            layers.push((weight, bias));
+        }
+        Ok(Mlp {
+            prefix: prefix.to_owned(),
+            layers,
+            activation,
+        })
+    }
+
+    /// A copy whose variables are its own (a target network starts as one).
+    pub fn copy(&self) -> Result<Mlp> {
+        Ok(Mlp {
+            prefix: self.prefix.clone(),
+            layers: self
+                .layers
+                .iter()
+                .map(|(w, b)| {
+                    Ok((
+                        Var::from_tensor(&w.as_tensor().copy()?)?,
+                        Var::from_tensor(&b.as_tensor().copy()?)?,
+                    ))
+                })
+                .collect::<Result<_>>()?,
+            activation: self.activation,
+        })
+    }
+
     /// The layers stored under `prefix` in `tensors` (checked: consecutive, matching shapes, f32).
     pub fn from_tensors(prefix: &str, tensors: &HashMap<String, Tensor>, activation: Activation) -> Result<Mlp> {
         let mut layers = Vec::new();

@@ -142,6 +142,37 @@ pub fn write_canonical(
     dropped_columns: Vec<String>,
     out: &Path,
 ) -> Result<Converted, ImportError> {
+    write_form(task, space, chunks, dropped_columns, out, false)
+}
+
+/// Writes the compact form of a dataset (see `parquet_file`): what a committed starter file holds. Ingesting it
+/// gives the canonical file of the same rows, so the version id is the canonical one; returns the compact file's
+/// size in bytes.
+pub fn write_compact(
+    task: &Task,
+    space: ObservationSpace,
+    chunks: impl Iterator<Item = Result<TransitionChunk, ImportError>>,
+    out: &Path,
+) -> Result<u64, ImportError> {
+    Ok(write_form(task, space, chunks, Vec::new(), out, true)?.byte_size)
+}
+
+/// The compact form of the canonical file `canonical`, written to `out`; returns its size in bytes.
+pub fn compact_copy(task: &Task, space: ObservationSpace, canonical: &Path, out: &Path) -> Result<u64, ImportError> {
+    let chunks = ParquetTransitions::open(File::open(canonical)?)
+        .map_err(|e| ImportError::Io(io::Error::other(e)))?
+        .map(|chunk| chunk.map_err(|e| ImportError::Io(io::Error::other(e))));
+    write_compact(task, space, chunks, out)
+}
+
+fn write_form(
+    task: &Task,
+    space: ObservationSpace,
+    chunks: impl Iterator<Item = Result<TransitionChunk, ImportError>>,
+    dropped_columns: Vec<String>,
+    out: &Path,
+    compact: bool,
+) -> Result<Converted, ImportError> {
     let expect = Expectation {
         obs_dim: task.observation_dim(space) as usize,
         act_dim: task.act_dim as usize,
@@ -165,7 +196,8 @@ pub fn write_canonical(
     ];
     let file = File::create(out)?;
     let sink = HashingWriter::new(BufWriter::with_capacity(8 << 20, file));
-    let mut writer = DatasetWriter::new(sink, expect.obs_dim, expect.act_dim, metadata).map_err(parquet_io)?;
+    let mut writer =
+        DatasetWriter::with_form(sink, expect.obs_dim, expect.act_dim, metadata, compact).map_err(parquet_io)?;
     let mut tracker = EpisodeTracker::new(expect);
     for chunk in chunks {
         let chunk = chunk?;

@@ -5,6 +5,11 @@
 //! `rewards`, `costs` (f32), `terminals`, `timeouts` (bool). Float columns use BYTE_STREAM_SPLIT + zstd, the
 //! counters delta encoding; every row group holds whole episodes, so one episode is one row-group read.
 //! The writer is deterministic: the same rows always give the same bytes, hence the same version id.
+//!
+//! **Compact form** (committed starter files): the same layout, except that `next_observations` is null wherever
+//! it equals the next row's `observations` in the same episode, which is every step but an episode's last in
+//! collected data. Parquet stores nothing for a null list, so the file is about half the size. The reader fills
+//! the nulls back in, so ingesting a compact file gives exactly the canonical rows, hence the same version id.
 
 use std::io::Write;
 use std::sync::Arc;
@@ -52,13 +57,18 @@ const READ_BATCH_TARGET_BYTES: usize = 16 << 20;
 
 /// The Arrow schema of a dataset with these widths.
 pub fn dataset_schema(obs_dim: usize, act_dim: usize) -> SchemaRef {
+    schema_of(obs_dim, act_dim, false)
+}
+
+/// The schema, with `next_observations` nullable in the compact form.
+fn schema_of(obs_dim: usize, act_dim: usize, compact: bool) -> SchemaRef {
     let list =
         |dim: usize| DataType::FixedSizeList(Arc::new(Field::new_list_field(DataType::Float32, false)), dim as i32);
     Arc::new(Schema::new(vec![
         Field::new(EPISODE, DataType::UInt32, false),
         Field::new(STEP, DataType::UInt32, false),
         Field::new(OBSERVATIONS, list(obs_dim), false),
-        Field::new(NEXT_OBSERVATIONS, list(obs_dim), false),
+        Field::new(NEXT_OBSERVATIONS, list(obs_dim), compact),
         Field::new(ACTIONS, list(act_dim), false),
         Field::new(REWARDS, DataType::Float32, false),
         Field::new(COSTS, DataType::Float32, false),
@@ -79,12 +89,24 @@ pub struct DatasetWriter<W: Write + Send> {
     pending: TransitionChunk,
     pending_numbering: Numbering,
     target_rows: usize,
+    compact: bool,
 }
 
 impl<W: Write + Send> DatasetWriter<W> {
     /// `metadata` is stored in the Parquet footer's key-value metadata (e.g. the task id).
     pub fn new(out: W, obs_dim: usize, act_dim: usize, metadata: Vec<(String, String)>) -> Result<Self, ParquetError> {
-        let schema = dataset_schema(obs_dim, act_dim);
+        Self::with_form(out, obs_dim, act_dim, metadata, false)
+    }
+
+    /// A writer of the compact form (see the module's documentation) when `compact`, else the canonical one.
+    pub fn with_form(
+        out: W,
+        obs_dim: usize,
+        act_dim: usize,
+        metadata: Vec<(String, String)>,
+        compact: bool,
+    ) -> Result<Self, ParquetError> {
+        let schema = schema_of(obs_dim, act_dim, compact);
         let parquet_schema = ArrowSchemaConverter::new().convert(&schema)?;
         let mut props = WriterProperties::builder()
             .set_compression(Compression::ZSTD(ZstdLevel::try_new(3)?))
@@ -110,6 +132,7 @@ impl<W: Write + Send> DatasetWriter<W> {
             pending: TransitionChunk::empty(obs_dim, act_dim),
             pending_numbering: Numbering::default(),
             target_rows,
+            compact,
         })
     }
 
@@ -151,7 +174,7 @@ impl<W: Write + Send> DatasetWriter<W> {
         let rest_step = self.pending_numbering.step.split_off(rows);
         let episode = std::mem::replace(&mut self.pending_numbering.episode, rest_episode);
         let step = std::mem::replace(&mut self.pending_numbering.step, rest_step);
-        let batch = record_batch(&self.schema, chunk, episode, step)?;
+        let batch = record_batch(&self.schema, chunk, episode, step, self.compact)?;
         self.writer.write(&batch)?;
         self.writer.flush()
     }
@@ -175,18 +198,36 @@ fn record_batch(
     chunk: TransitionChunk,
     episode: Vec<u32>,
     step: Vec<u32>,
+    compact: bool,
 ) -> Result<RecordBatch, ParquetError> {
-    let list = |values: Vec<f32>, dim: usize| -> Result<ArrayRef, ParquetError> {
+    let list = |values: Vec<f32>, dim: usize, valid: Option<Vec<bool>>| -> Result<ArrayRef, ParquetError> {
         let field = Arc::new(Field::new_list_field(DataType::Float32, false));
-        let array = FixedSizeListArray::try_new(field, dim as i32, Arc::new(Float32Array::from(values)), None)?;
+        let nulls = valid.map(arrow_buffer::NullBuffer::from);
+        let array = FixedSizeListArray::try_new(field, dim as i32, Arc::new(Float32Array::from(values)), nulls)?;
         Ok(Arc::new(array))
     };
+    // Compact: a row's next observation is left out (null) where the next row of its episode starts from it.
+    let derivable = compact.then(|| {
+        let d = chunk.obs_dim;
+        (0..chunk.len())
+            .map(|i| {
+                let derivable = i + 1 < chunk.len()
+                    && !chunk.is_done(i)
+                    && episode[i] == episode[i + 1]
+                    && chunk.next_observations[i * d..(i + 1) * d]
+                        .iter()
+                        .zip(&chunk.observations[(i + 1) * d..(i + 2) * d])
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                !derivable
+            })
+            .collect::<Vec<bool>>()
+    });
     let columns: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from(episode)),
         Arc::new(UInt32Array::from(step)),
-        list(chunk.observations, chunk.obs_dim)?,
-        list(chunk.next_observations, chunk.obs_dim)?,
-        list(chunk.actions, chunk.act_dim)?,
+        list(chunk.observations, chunk.obs_dim, None)?,
+        list(chunk.next_observations, chunk.obs_dim, derivable)?,
+        list(chunk.actions, chunk.act_dim, None)?,
         Arc::new(Float32Array::from(chunk.rewards)),
         Arc::new(Float32Array::from(chunk.costs)),
         Arc::new(BooleanArray::from(chunk.terminals)),
@@ -227,6 +268,8 @@ pub struct ParquetTransitions {
     ignored_columns: Vec<String>,
     rows: u64,
     next_row: u64,
+    /// Compact form: the last row read, whose next observation is the following batch's first observation.
+    held: Option<(u64, TransitionChunk)>,
 }
 
 impl ParquetTransitions {
@@ -290,6 +333,7 @@ impl ParquetTransitions {
             ignored_columns,
             rows,
             next_row: 0,
+            held: None,
         })
     }
 
@@ -303,11 +347,11 @@ impl ParquetTransitions {
         &self.ignored_columns
     }
 
-    fn convert(&mut self, batch: RecordBatch) -> Result<TransitionChunk, ReadError> {
+    fn convert(&mut self, batch: RecordBatch) -> Result<(TransitionChunk, bool), ReadError> {
         let base = self.next_row;
         let col = |name: &str| batch.column_by_name(name).expect("projected column").clone();
         let (observations, obs_dim) = float_matrix(base, OBSERVATIONS, &col(OBSERVATIONS), self.obs_dim)?;
-        let (next_observations, _) = float_matrix(base, NEXT_OBSERVATIONS, &col(NEXT_OBSERVATIONS), obs_dim)?;
+        let (next_observations, left_out) = next_observation_matrix(base, &col(NEXT_OBSERVATIONS), obs_dim)?;
         let (actions, act_dim) = float_matrix(base, ACTIONS, &col(ACTIONS), self.act_dim)?;
         self.obs_dim = obs_dim;
         self.act_dim = act_dim;
@@ -333,18 +377,154 @@ impl ParquetTransitions {
             },
         };
         self.next_row += batch.num_rows() as u64;
-        Ok(chunk)
+        fill_left_out(base, chunk, &left_out)
     }
+
+    /// The next rows with every next observation in place: a compact file's last row of a batch waits for the
+    /// next batch's first observation.
+    fn next_filled(&mut self) -> Option<Result<TransitionChunk, ReadError>> {
+        loop {
+            let batch = match self.reader.next() {
+                Some(Ok(batch)) => batch,
+                Some(Err(e)) => return Some(Err(e.into())),
+                None => {
+                    return self.held.take().map(|(row, _)| {
+                        Err(ReadError::Value(ValidationError::at(
+                            row,
+                            NEXT_OBSERVATIONS,
+                            "null at the last row: a next observation can be left out only where the next row \
+                             of the same episode starts from it",
+                        )))
+                    });
+                }
+            };
+            let (mut chunk, last_left_out) = match self.convert(batch) {
+                Ok(converted) => converted,
+                Err(e) => return Some(Err(e)),
+            };
+            if let Some((row, mut held)) = self.held.take() {
+                if let Err(e) = complete_from(row, &mut held, &chunk, 0) {
+                    return Some(Err(e));
+                }
+                // `append` drops the source's numbering; carry it over by hand.
+                let numbering = |a: Option<Vec<u32>>, b: Option<Vec<u32>>| {
+                    a.zip(b).map(|(mut a, b)| {
+                        a.extend(b);
+                        a
+                    })
+                };
+                let (episode, step) = (held.episode.take(), held.step.take());
+                held.append(&chunk);
+                held.episode = numbering(episode, chunk.episode.take());
+                held.step = numbering(step, chunk.step.take());
+                chunk = held;
+            }
+            if last_left_out {
+                let n = chunk.len();
+                let last = chunk.rows(n - 1, 1);
+                chunk = chunk.rows(0, n - 1);
+                self.held = Some((self.next_row - 1, last));
+            }
+            if !chunk.is_empty() {
+                return Some(Ok(chunk));
+            }
+        }
+    }
+}
+
+/// Fills `rows`' left-out next observation (its only row) from row `at` of `from`, which must continue its
+/// episode.
+fn complete_from(row: u64, rows: &mut TransitionChunk, from: &TransitionChunk, at: usize) -> Result<(), ReadError> {
+    let d = rows.obs_dim;
+    let same_episode = match (&rows.episode, &from.episode) {
+        (Some(a), Some(b)) => a[0] == b[at],
+        _ => true,
+    };
+    if rows.is_done(0) || !same_episode {
+        return Err(ReadError::Value(ValidationError::at(
+            row,
+            NEXT_OBSERVATIONS,
+            "null at an episode's last step: its next observation cannot come from the next row",
+        )));
+    }
+    rows.next_observations[..d].copy_from_slice(&from.observations[at * d..(at + 1) * d]);
+    Ok(())
+}
+
+/// Fills the left-out next observations of `chunk` from the following rows; returns the chunk and whether its
+/// last row is still left out (to be filled from the next batch).
+fn fill_left_out(
+    base: u64,
+    mut chunk: TransitionChunk,
+    left_out: &[bool],
+) -> Result<(TransitionChunk, bool), ReadError> {
+    let d = chunk.obs_dim;
+    let n = chunk.len();
+    for i in (0..n.saturating_sub(1)).filter(|&i| left_out[i]) {
+        let same_episode = chunk.episode.as_ref().is_none_or(|e| e[i] == e[i + 1]);
+        if chunk.is_done(i) || !same_episode {
+            return Err(ReadError::Value(ValidationError::at(
+                base + i as u64,
+                NEXT_OBSERVATIONS,
+                "null at an episode's last step: its next observation cannot come from the next row",
+            )));
+        }
+        chunk.next_observations[i * d..(i + 1) * d].copy_from_slice(&chunk.observations[(i + 1) * d..(i + 2) * d]);
+    }
+    Ok((chunk, n > 0 && left_out[n - 1]))
+}
+
+/// The `next_observations` column: values and which rows are null (left out in the compact form). Only the
+/// fixed-size list form may hold nulls; other forms are read as any float matrix.
+fn next_observation_matrix(base: u64, array: &ArrayRef, width: usize) -> Result<(Vec<f32>, Vec<bool>), ReadError> {
+    if let DataType::FixedSizeList(_, _) = array.data_type()
+        && array.null_count() > 0
+    {
+        let list = array.as_fixed_size_list();
+        let w = list.value_length() as usize;
+        let values = list.values();
+        let floats = match values.data_type() {
+            DataType::Float32 => values.as_primitive::<Float32Type>().values().to_vec(),
+            DataType::Float64 => values
+                .as_primitive::<Float64Type>()
+                .values()
+                .iter()
+                .map(|&v| v as f32)
+                .collect(),
+            other => {
+                return Err(ReadError::Layout(format!(
+                    "column {NEXT_OBSERVATIONS} holds {other}; expected float32 or float64"
+                )));
+            }
+        };
+        let left_out: Vec<bool> = (0..list.len()).map(|i| list.is_null(i)).collect();
+        // Values of present rows must themselves be present.
+        if let Some(nulls) = values.logical_nulls()
+            && let Some(i) = (0..list.len()).find(|&i| !left_out[i] && (i * w..(i + 1) * w).any(|j| nulls.is_null(j)))
+        {
+            return Err(ReadError::Value(ValidationError::at(
+                base + i as u64,
+                NEXT_OBSERVATIONS,
+                "null value",
+            )));
+        }
+        if width != 0 && w != width {
+            return Err(ReadError::Value(ValidationError::column(
+                NEXT_OBSERVATIONS,
+                format!("{w} features per observation but observations has {width}"),
+            )));
+        }
+        return Ok((floats, left_out));
+    }
+    let (values, _) = float_matrix(base, NEXT_OBSERVATIONS, array, width)?;
+    let rows = values.len().checked_div(width).unwrap_or(0);
+    Ok((values, vec![false; rows]))
 }
 
 impl Iterator for ParquetTransitions {
     type Item = Result<TransitionChunk, ReadError>;
     fn next(&mut self) -> Option<Self::Item> {
-        let batch = match self.reader.next()? {
-            Ok(b) => b,
-            Err(e) => return Some(Err(e.into())),
-        };
-        Some(self.convert(batch))
+        self.next_filled()
     }
 }
 

@@ -10,6 +10,7 @@ mod fetch;
 mod filters;
 mod fuzz;
 mod hardening;
+mod hosted;
 mod http;
 mod ingest;
 mod leaderboard;

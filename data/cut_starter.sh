@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# Cuts the committed starter of a task from its finished build (state folder from data/build_datasets.sh): the
+# build's episodes thinned to at most N (default 100) spread over the (reward, cost) plane by the trajectory
+# buffer's seeded grid thinning, written in the compact form (`dsrl-admin collect --compact`). A starter file must
+# stay within 8 MB: when the cut is larger, N is lowered in proportion and the cut is made again in a scratch
+# folder, so only the final file reaches data/starter/<task>. Nothing is simulated again.
+#
+#   data/cut_starter.sh OfflineCarGoal1Gymnasium-v0 [N] [extra dsrl-admin collect flags, e.g. --episodes-per-setting 2]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+task=$1
+n=${2:-100}
+shift $(( $# >= 2 ? 2 : 1 ))
+root=${DSRL_COLLECT_DIR:-$HOME/.dsrl/collect}
+admin=${DSRL_ADMIN:-$(command -v dsrl-admin || echo "${CARGO_TARGET_DIR:-target}/release/dsrl-admin")}
+limit=$((8 * 1000 * 1000 - 200 * 1000))
+scratch=$(mktemp -d)
+trap 'rm -rf "$scratch"' EXIT
+while :; do
+  rm -rf "${scratch:?}"/*
+  echo "$task: cutting $n episodes" >&2
+  "$admin" collect --task "$task" --state "$root/$task" --max-episodes "$n" --compact --out "$scratch" --json "$@" \
+    > "$scratch/report.json"
+  file=$(ls "$scratch"/*.parquet)
+  size=$(stat -c %s "$file")
+  if [ "$size" -le "$limit" ]; then
+    break
+  fi
+  n=$(( n * limit / size * 95 / 100 ))
+  echo "$task: $size bytes is over the budget; trying $n episodes" >&2
+done
+mkdir -p "data/starter/$task"
+rm -f "data/starter/$task"/*
+mv "$file" "$file.provenance.json" "data/starter/$task/"
+echo "$task: $(basename "$file") ($size bytes), version $(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["version"])' "$scratch/report.json")" >&2
