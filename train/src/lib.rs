@@ -3,6 +3,11 @@
 //! BC-All and BC-Safe (OSRL `bc.py`, spec 5.5): an `MLPActor` (`[256, 256]`, ReLU, `tanh · max_action`) regressing
 //! the dataset's actions with MSE, Adam lr 1e-3, batches of 512 drawn uniformly with replacement. BC-Safe keeps only
 //! the episodes whose (undiscounted) cost return is at most the threshold and is trained once per threshold.
+//!
+//! The Q-learning baselines have a module each (`bcql`), built on what `dsrl_policy::offline` and
+//! `dsrl_policy::vae` share.
+
+pub mod bcql;
 
 use std::path::Path;
 
@@ -26,6 +31,11 @@ pub struct Demonstrations {
     pub actions: Vec<f32>,
     /// (first row, rows, reward return, cost return) per episode.
     pub episodes: Vec<(usize, usize, f64, f64)>,
+    pub next_observations: Vec<f32>,
+    pub rewards: Vec<f32>,
+    pub costs: Vec<f32>,
+    /// 1 where the episode ends (a terminal or a time limit: OSRL's `TransitionDataset` treats both as terminal).
+    pub dones: Vec<f32>,
 }
 
 impl Demonstrations {
@@ -41,9 +51,18 @@ impl Demonstrations {
                 observations: Vec::new(),
                 actions: Vec::new(),
                 episodes: Vec::new(),
+                next_observations: Vec::new(),
+                rewards: Vec::new(),
+                costs: Vec::new(),
+                dones: Vec::new(),
             });
             d.observations.extend_from_slice(&chunk.observations);
             d.actions.extend_from_slice(&chunk.actions);
+            d.next_observations.extend_from_slice(&chunk.next_observations);
+            d.rewards.extend_from_slice(&chunk.rewards);
+            d.costs.extend_from_slice(&chunk.costs);
+            d.dones
+                .extend((0..chunk.len()).map(|i| if chunk.is_done(i) { 1.0 } else { 0.0 }));
             for i in 0..chunk.len() {
                 rows += 1;
                 reward += f64::from(chunk.rewards[i]);
@@ -58,6 +77,11 @@ impl Demonstrations {
         let d = out.context("the dataset holds no transitions")?;
         anyhow::ensure!(rows == 0, "the dataset ends in the middle of an episode");
         Ok(d)
+    }
+
+    /// Transitions in the dataset.
+    pub fn rows(&self) -> usize {
+        self.rewards.len()
     }
 
     /// The rows of the episodes whose cost return is at most `cost_threshold` (all rows for `None`).
@@ -199,6 +223,10 @@ mod tests {
             observations: Vec::new(),
             actions: Vec::new(),
             episodes: Vec::new(),
+            next_observations: Vec::new(),
+            rewards: Vec::new(),
+            costs: Vec::new(),
+            dones: Vec::new(),
         };
         for e in 0..40 {
             for _ in 0..10 {
