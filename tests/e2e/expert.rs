@@ -10,10 +10,18 @@ use crate::Env;
 /// A task's committed recipe with fewer environments per collect and saves every `every` collects.
 fn small_recipe(dir: &Path, task: &str, envs: u32, every: u32) -> PathBuf {
     let text = std::fs::read_to_string(dsrl_e2e::repo_root().join(format!("data/recipes/{task}.toml"))).unwrap();
-    let small = text.replace("envs = 10 ", &format!("envs = {envs} ")).replace(
-        "checkpoint_every_collects = 25",
-        &format!("checkpoint_every_collects = {every}"),
-    );
+    // The save interval differs between recipes (25 collects; 5 for the 1000-step Safety-Gymnasium episodes).
+    let small: String = text
+        .replace("envs = 10 ", &format!("envs = {envs} "))
+        .lines()
+        .map(|line| {
+            if line.starts_with("checkpoint_every_collects = ") {
+                format!("checkpoint_every_collects = {every}\n")
+            } else {
+                format!("{line}\n")
+            }
+        })
+        .collect();
     assert!(
         small.contains(&format!("envs = {envs} ")) && small.contains(&format!("checkpoint_every_collects = {every}")),
         "{task}: the recipe's layout changed"
