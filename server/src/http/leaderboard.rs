@@ -50,8 +50,8 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
 /// `POST /v1/submissions` (user token): multipart form with text fields `task` and `name` and the checkpoint
 /// files, each a part named by its path (`policy.json`, `policy.safetensors`, or `<folder>/policy.json`, ...).
 ///
-/// The user is authenticated before the body is looked at. Any error answers `Connection: close`: the rest of an
-/// unread upload is not drained, and a client reusing the connection (Python `requests`) must know it is closed.
+/// The user is authenticated before the body is looked at. A file over its limit answers 413 with `Connection:
+/// close`: the rest of the upload is not read, and a client reusing the connection (Python `requests`) must know.
 #[utoipa::path(post, path = "/v1/submissions", tag = "leaderboard",
     request_body(content = SubmissionForm, content_type = "multipart/form-data",
         description = "Text fields task and name, and the checkpoint files as parts named by their paths"),
@@ -68,10 +68,15 @@ pub async fn submit(State(state): State<AppState>, request: Request) -> Response
     match receive_submission(&state, request).await {
         Ok(accepted) => accepted.into_response(),
         Err(e) => {
+            // An upload refused for its size is not read to its end: say the connection closes. (Other errors
+            // come before or after the body is read, and the connection stays usable.)
+            let too_large = e.code() == crate::error::ErrorCode::PayloadTooLarge;
             let mut response = e.into_response();
-            response
-                .headers_mut()
-                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            if too_large {
+                response
+                    .headers_mut()
+                    .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            }
             response
         }
     }
