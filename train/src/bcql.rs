@@ -343,17 +343,7 @@ mod tests {
     /// step costs 1 in the second half of the episodes.
     fn toy() -> Demonstrations {
         let mut noise = Noise::seeded(5);
-        let mut d = Demonstrations {
-            obs_dim: 2,
-            act_dim: 1,
-            observations: Vec::new(),
-            actions: Vec::new(),
-            episodes: Vec::new(),
-            next_observations: Vec::new(),
-            rewards: Vec::new(),
-            costs: Vec::new(),
-            dones: Vec::new(),
-        };
+        let mut d = Demonstrations::empty(2, 1);
         for e in 0..30 {
             let mut o = [noise.uniform() as f32, noise.uniform() as f32];
             for t in 0..10 {

@@ -45,17 +45,7 @@ impl Demonstrations {
         let (mut start, mut rows, mut reward, mut cost) = (0usize, 0usize, 0f64, 0f64);
         for chunk in ParquetTransitions::open(file).with_context(|| format!("reading {}", path.display()))? {
             let chunk = chunk.with_context(|| format!("reading {}", path.display()))?;
-            let d = out.get_or_insert_with(|| Demonstrations {
-                obs_dim: chunk.obs_dim,
-                act_dim: chunk.act_dim,
-                observations: Vec::new(),
-                actions: Vec::new(),
-                episodes: Vec::new(),
-                next_observations: Vec::new(),
-                rewards: Vec::new(),
-                costs: Vec::new(),
-                dones: Vec::new(),
-            });
+            let d = out.get_or_insert_with(|| Demonstrations::empty(chunk.obs_dim, chunk.act_dim));
             d.observations.extend_from_slice(&chunk.observations);
             d.actions.extend_from_slice(&chunk.actions);
             d.next_observations.extend_from_slice(&chunk.next_observations);
@@ -77,6 +67,21 @@ impl Demonstrations {
         let d = out.context("the dataset holds no transitions")?;
         anyhow::ensure!(rows == 0, "the dataset ends in the middle of an episode");
         Ok(d)
+    }
+
+    /// A dataset with no transitions yet, of these widths.
+    pub fn empty(obs_dim: usize, act_dim: usize) -> Demonstrations {
+        Demonstrations {
+            obs_dim,
+            act_dim,
+            observations: Vec::new(),
+            actions: Vec::new(),
+            episodes: Vec::new(),
+            next_observations: Vec::new(),
+            rewards: Vec::new(),
+            costs: Vec::new(),
+            dones: Vec::new(),
+        }
     }
 
     /// Transitions in the dataset.
@@ -217,17 +222,7 @@ mod tests {
     fn bc_learns_a_linear_expert_and_bc_safe_keeps_only_safe_episodes() {
         // 40 one-dimensional episodes of 10 steps; the expert's action is 0.5·obs; episode e costs e.
         let mut noise = Noise::seeded(1);
-        let mut d = Demonstrations {
-            obs_dim: 1,
-            act_dim: 1,
-            observations: Vec::new(),
-            actions: Vec::new(),
-            episodes: Vec::new(),
-            next_observations: Vec::new(),
-            rewards: Vec::new(),
-            costs: Vec::new(),
-            dones: Vec::new(),
-        };
+        let mut d = Demonstrations::empty(1, 1);
         for e in 0..40 {
             for _ in 0..10 {
                 let o = (noise.uniform() * 2.0 - 1.0) as f32;
