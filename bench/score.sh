@@ -5,7 +5,8 @@
 #     submitted with dsrl-client; timed from the submit call until the submission reads `finished` (polled every
 #     50 ms), so it includes the upload, the checks, the queue and storing all 60 episodes;
 #   - reference: a sequential in-process Python loop like OSRL's evaluation (tests/parity/evaluate_in_python.py:
-#     one env, one episode after another, NumPy forward pass per step) playing the same checkpoint for 60 episodes.
+#     one env, one episode after another, NumPy forward pass per step, one BLAS thread as the workers use) playing
+#     the same checkpoint for 60 episodes.
 # The checkpoint is BC-All trained by dsrl-train on the committed BallCircle starter (2000 steps; its quality does
 # not matter here, only that both sides play the same network). Prints a Markdown table (bench/out/score.md).
 # Usage: bench/score.sh [ROUNDS=3]
@@ -56,7 +57,7 @@ for round in $(seq "$rounds"); do
   end=$(date +%s.%N)
   dsrl_s+=("$(python3 -c "print($end - $start)")")
   start=$(date +%s.%N)
-  .venv-sim/bin/python tests/parity/evaluate_in_python.py "$dir" --sim-id SafetyBallCircle-v0 --episodes 60 > "$work/python.json"
+  OPENBLAS_NUM_THREADS=1 .venv-sim/bin/python tests/parity/evaluate_in_python.py "$dir" --sim-id SafetyBallCircle-v0 --episodes 60 > "$work/python.json"
   end=$(date +%s.%N)
   python_s+=("$(python3 -c "print($end - $start)")")
 done
