@@ -10,6 +10,22 @@ use crate::mlp::Mlp;
 use crate::noise::Noise;
 use crate::{PolicyError, Result};
 
+/// Softmax along `dim`, written with primitive operations so that candle's autograd differentiates it (candle-nn's
+/// fused `softmax_last_dim` has no backward pass). The maximum is subtracted for range and detached: softmax does
+/// not change when a constant is subtracted, so neither does its gradient.
+pub fn softmax(x: &Tensor, dim: usize) -> Result<Tensor> {
+    let shifted = x.broadcast_sub(&x.max_keepdim(dim)?.detach())?;
+    let exp = shifted.exp()?;
+    Ok(exp.broadcast_div(&exp.sum_keepdim(dim)?)?)
+}
+
+/// `log(softmax(x))` along `dim`, as `x − max − log Σ exp(x − max)` (finite where softmax underflows).
+pub fn log_softmax(x: &Tensor, dim: usize) -> Result<Tensor> {
+    let shifted = x.broadcast_sub(&x.max_keepdim(dim)?.detach())?;
+    let log_sum = shifted.exp()?.sum_keepdim(dim)?.log()?;
+    Ok(shifted.broadcast_sub(&log_sum)?)
+}
+
 /// `nn.Linear`: `x · Wᵀ + b` over the last dimension of `x` (any leading dimensions).
 pub struct Linear {
     pub weight: Var,
@@ -191,6 +207,49 @@ impl<'a> Weights<'a> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn softmax_matches_the_fused_kernel_and_its_gradient_matches_finite_differences() {
+        let x = Var::from_vec(vec![0.3f32, -1.0, 2.0, 0.5, 0.1, -0.2], (2, 3), &Device::Cpu).unwrap();
+        let ours: Vec<Vec<f32>> = softmax(x.as_tensor(), 1).unwrap().to_vec2().unwrap();
+        let fused: Vec<Vec<f32>> = candle_nn::ops::softmax_last_dim(x.as_tensor())
+            .unwrap()
+            .to_vec2()
+            .unwrap();
+        for (a, b) in ours.iter().flatten().zip(fused.iter().flatten()) {
+            assert!((a - b).abs() < 1e-6);
+        }
+        let logs: Vec<Vec<f32>> = log_softmax(x.as_tensor(), 1).unwrap().to_vec2().unwrap();
+        for (l, p) in logs.iter().flatten().zip(ours.iter().flatten()) {
+            assert!((l.exp() - p).abs() < 1e-6);
+        }
+        // d/dx of Σ w ⊙ softmax(x) and of Σ w ⊙ log_softmax(x) against central differences.
+        let w = Tensor::new(&[[1.0f32, -2.0, 0.5], [0.3, 0.7, -1.1]], &Device::Cpu).unwrap();
+        for f in [softmax, log_softmax] {
+            let loss = |x: &Tensor| f(x, 1).unwrap().mul(&w).unwrap().sum_all().unwrap();
+            let grads = loss(x.as_tensor()).backward().unwrap();
+            let g: Vec<f32> = grads
+                .get(x.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let base: Vec<f32> = x.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            let h = 1e-2f32;
+            for k in 0..6 {
+                let at = |d: f32| {
+                    let mut v = base.clone();
+                    v[k] += d;
+                    let t = Tensor::from_vec(v, (2, 3), &Device::Cpu).unwrap();
+                    loss(&t).to_scalar::<f32>().unwrap()
+                };
+                let numeric = (at(h) - at(-h)) / (2.0 * h);
+                assert!((numeric - g[k]).abs() < 2e-3, "{k}: {numeric} vs {}", g[k]);
+            }
+        }
+    }
+
     use super::*;
 
     #[test]

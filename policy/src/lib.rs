@@ -15,6 +15,7 @@ pub mod layers;
 pub mod mlp;
 pub mod noise;
 pub mod offline;
+pub mod squashed;
 pub mod vae;
 
 pub use acting::{Policy, Rollout};

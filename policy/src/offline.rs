@@ -111,6 +111,77 @@ impl Ensemble {
     }
 }
 
+/// OSRL's `EnsembleDoubleQCritic` (BCQ-L, BEAR-L): two ensembles `<prefix>.q1`, `<prefix>.q2` of `num` networks
+/// each (so `2·num` networks) read `[obs, act]`; each ensemble answers its element-wise minimum.
+pub struct DoubleCritic {
+    pub q1: Ensemble,
+    pub q2: Ensemble,
+}
+
+impl DoubleCritic {
+    pub fn new(prefix: &str, input_dim: usize, hidden: &[usize], num: usize, noise: &mut Noise) -> Result<Self> {
+        Ok(DoubleCritic {
+            q1: Ensemble::new(&format!("{prefix}.q1"), input_dim, hidden, num, noise)?,
+            q2: Ensemble::new(&format!("{prefix}.q2"), input_dim, hidden, num, noise)?,
+        })
+    }
+
+    /// Every network's values (the loss sums over all of them), and the two ensembles' minima.
+    pub fn predict(&self, input: &Tensor) -> Result<(Vec<Tensor>, Tensor, Tensor)> {
+        let (v1, v2) = (self.q1.values(input)?, self.q2.values(input)?);
+        let (m1, m2) = (Ensemble::min(&v1)?, Ensemble::min(&v2)?);
+        Ok((v1.into_iter().chain(v2).collect(), m1, m2))
+    }
+
+    /// BCQ-L's and BEAR-L's target value over `n` sampled actions per state: per sample
+    /// `λ·min(q1, q2) + (1 − λ)·max(q1, q2)`, then the maximum over each state's `n` samples (rows `i·n .. i·n + n`
+    /// belong to state `i`). Returns `[rows / n]`.
+    pub fn soft_clipped_max(q1: &Tensor, q2: &Tensor, lmbda: f64, n: usize) -> Result<Tensor> {
+        let q = q1
+            .minimum(q2)?
+            .affine(lmbda, 0.0)?
+            .add(&q1.maximum(q2)?.affine(1.0 - lmbda, 0.0)?)?;
+        let rows = q.dim(0)?;
+        Ok(q.reshape((rows / n, n))?.max(1)?)
+    }
+
+    pub fn named_vars(&self) -> Vec<(String, Var)> {
+        self.q1.named_vars().into_iter().chain(self.q2.named_vars()).collect()
+    }
+
+    /// A copy with the same weights and its own variables (a target network).
+    pub fn copy(&self) -> Result<Self> {
+        Ok(DoubleCritic {
+            q1: self.q1.copy()?,
+            q2: self.q2.copy()?,
+        })
+    }
+}
+
+/// Repeats each row of `x` `n` times in place (`torch.repeat_interleave(x, n, 0)`): row `i` becomes rows
+/// `i·n .. i·n + n`.
+pub fn repeat_rows(x: &Tensor, n: usize) -> Result<Tensor> {
+    let rows = x.dim(0)? as u32;
+    let index: Vec<u32> = (0..rows).flat_map(|i| std::iter::repeat_n(i, n)).collect();
+    let index = Tensor::from_vec(index, rows as usize * n, x.device())?;
+    Ok(x.index_select(&index, 0)?)
+}
+
+/// `log(1 + eˣ)`, written to stay finite for large |x|: `max(x, 0) + log(1 + e^{−|x|})`.
+pub fn softplus(x: &Tensor) -> Result<Tensor> {
+    Ok(x.relu()?.add(&x.abs()?.neg()?.exp()?.affine(1.0, 1.0)?.log()?)?)
+}
+
+/// The `q`-quantile of `values` with linear interpolation between order statistics (NumPy's and PyTorch's default).
+pub fn quantile(values: &[f32], q: f64) -> f32 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f32::total_cmp);
+    let position = q * (sorted.len() - 1) as f64;
+    let (lo, hi) = (position.floor() as usize, position.ceil() as usize);
+    let weight = (position - lo as f64) as f32;
+    sorted[lo] + (sorted[hi] - sorted[lo]) * weight
+}
+
 /// Polyak averaging of a target network towards its source: `target ← τ·source + (1 − τ)·target`, variable by
 /// variable in order (both lists come from the same architecture's `named_vars`).
 pub fn soft_update(target: &[(String, Var)], source: &[(String, Var)], tau: f64) -> Result<()> {
@@ -160,6 +231,56 @@ mod tests {
         // Far below: λ is 0 and the integral never goes negative.
         assert_eq!(pid.control(&[-100.0]), 0.0);
         assert_eq!(pid.error_integral, 0.0);
+    }
+
+    #[test]
+    fn quantiles_interpolate_as_numpy_and_torch() {
+        // numpy.quantile([1, 2, 3, 4], 0.75) = 3.25; [5, 1, 3] at 0.75 = 4.0; a single value is itself.
+        assert_eq!(quantile(&[4.0, 1.0, 3.0, 2.0], 0.75), 3.25);
+        assert_eq!(quantile(&[5.0, 1.0, 3.0], 0.75), 4.0);
+        assert_eq!(quantile(&[7.0], 0.75), 7.0);
+    }
+
+    #[test]
+    fn softplus_is_finite_and_exact_at_the_extremes() {
+        let x = Tensor::new(&[-100.0f32, -1.0, 0.0, 2.0, 100.0], &Device::Cpu).unwrap();
+        let y: Vec<f32> = softplus(&x).unwrap().to_vec1().unwrap();
+        let want = [
+            0.0f32,
+            (1.0 + (-1.0f32).exp()).ln(),
+            2.0f32.ln(),
+            (1.0 + 2.0f32.exp()).ln(),
+            100.0,
+        ];
+        for (a, b) in y.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-6, "{y:?}");
+        }
+    }
+
+    #[test]
+    fn repeated_rows_and_the_soft_clipped_maximum_follow_osrl_by_hand() {
+        let x = rows(vec![1.0, 2.0, 3.0, 4.0], 2, 2).unwrap();
+        let r: Vec<Vec<f32>> = repeat_rows(&x, 3).unwrap().to_vec2().unwrap();
+        assert_eq!(
+            r,
+            vec![
+                vec![1.0, 2.0],
+                vec![1.0, 2.0],
+                vec![1.0, 2.0],
+                vec![3.0, 4.0],
+                vec![3.0, 4.0],
+                vec![3.0, 4.0]
+            ]
+        );
+        // Two states, two samples each: 0.75·min + 0.25·max per sample, then the max per state.
+        let q1 = Tensor::new(&[1.0f32, 4.0, -2.0, 0.0], &Device::Cpu).unwrap();
+        let q2 = Tensor::new(&[3.0f32, 2.0, -1.0, -4.0], &Device::Cpu).unwrap();
+        let v: Vec<f32> = DoubleCritic::soft_clipped_max(&q1, &q2, 0.75, 2)
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        // state 0: samples 0.75·1 + 0.25·3 = 1.5 and 0.75·2 + 0.25·4 = 2.5; state 1: −1.75 and −3.
+        assert_eq!(v, vec![2.5, -1.75]);
     }
 
     #[test]

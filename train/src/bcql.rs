@@ -13,10 +13,11 @@ use dsrl_policy::adam::Adam;
 use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig};
 use dsrl_policy::mlp::{Activation, Mlp, layer_sizes};
 use dsrl_policy::noise::Noise;
-use dsrl_policy::offline::{Ensemble, PidLagrangian, qc_threshold, soft_update};
+use dsrl_policy::offline::{DoubleCritic, Ensemble, PidLagrangian, qc_threshold, repeat_rows, soft_update};
 use dsrl_policy::vae::Vae;
 use dsrl_policy::{Device, Tensor, Var};
 
+use crate::offline::{Figures, ThresholdLearner, Transitions};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// OSRL's BCQ-L configuration (spec 5.6).
@@ -64,49 +65,6 @@ impl Default for BcqlSettings {
     }
 }
 
-/// OSRL's `EnsembleDoubleQCritic`: two ensembles read `[obs, act]`; each answers its minimum.
-pub struct DoubleCritic {
-    pub q1: Ensemble,
-    pub q2: Ensemble,
-}
-
-impl DoubleCritic {
-    fn new(prefix: &str, input: usize, hidden: &[usize], num: usize, noise: &mut Noise) -> anyhow::Result<Self> {
-        Ok(DoubleCritic {
-            q1: Ensemble::new(&format!("{prefix}.q1"), input, hidden, num, noise)?,
-            q2: Ensemble::new(&format!("{prefix}.q2"), input, hidden, num, noise)?,
-        })
-    }
-
-    /// Every network's values, and the two ensembles' minima.
-    fn predict(&self, input: &Tensor) -> anyhow::Result<(Vec<Tensor>, Tensor, Tensor)> {
-        let (v1, v2) = (self.q1.values(input)?, self.q2.values(input)?);
-        let (m1, m2) = (Ensemble::min(&v1)?, Ensemble::min(&v2)?);
-        Ok((v1.into_iter().chain(v2).collect(), m1, m2))
-    }
-
-    fn named_vars(&self) -> Vec<(String, Var)> {
-        self.q1.named_vars().into_iter().chain(self.q2.named_vars()).collect()
-    }
-
-    fn copy(&self) -> anyhow::Result<Self> {
-        Ok(DoubleCritic {
-            q1: self.q1.copy()?,
-            q2: self.q2.copy()?,
-        })
-    }
-}
-
-/// What one step measured.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct BcqlStats {
-    pub vae_loss: f32,
-    pub critic_loss: f32,
-    pub cost_critic_loss: f32,
-    pub actor_loss: f32,
-    pub lagrangian: f64,
-}
-
 pub struct BcqlLearner {
     pub settings: BcqlSettings,
     pub vae: Vae,
@@ -122,27 +80,15 @@ pub struct BcqlLearner {
     cost_critic_optim: Adam,
     pid: PidLagrangian,
     noise: Noise,
-    data: Tensors,
-    rows: usize,
+    data: Transitions,
     obs_dim: usize,
     act_dim: usize,
-}
-
-/// The transitions as tensors, sampled by index.
-struct Tensors {
-    obs: Tensor,
-    next_obs: Tensor,
-    act: Tensor,
-    reward: Tensor,
-    cost: Tensor,
-    done: Tensor,
 }
 
 impl BcqlLearner {
     /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps.
     pub fn new(settings: BcqlSettings, data: &Demonstrations, kappa: f64, episode_len: usize) -> anyhow::Result<Self> {
-        let (o, a, rows) = (data.obs_dim, data.act_dim, data.rows());
-        anyhow::ensure!(rows > 0, "no transitions to learn from");
+        let (o, a) = (data.obs_dim, data.act_dim);
         let mut noise = Noise::seeded(settings.seed);
         let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?;
         let actor = Mlp::pytorch_default(
@@ -153,16 +99,6 @@ impl BcqlLearner {
         )?;
         let critic = DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
         let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
-        let m = |v: &[f32], cols: usize| Tensor::from_vec(v.to_vec(), (rows, cols), &Device::Cpu);
-        let column = |v: &[f32]| Tensor::from_vec(v.to_vec(), rows, &Device::Cpu);
-        let tensors = Tensors {
-            obs: m(&data.observations, o)?,
-            next_obs: m(&data.next_observations, o)?,
-            act: m(&data.actions, a)?,
-            reward: column(&data.rewards)?,
-            cost: column(&data.costs)?,
-            done: column(&data.dones)?,
-        };
         let (kp, ki, kd) = settings.pid;
         let threshold = qc_threshold(kappa, settings.gamma, episode_len);
         Ok(BcqlLearner {
@@ -179,17 +115,11 @@ impl BcqlLearner {
             critic,
             cost_critic,
             noise,
-            data: tensors,
-            rows,
+            data: Transitions::new(data)?,
             obs_dim: o,
             act_dim: a,
             settings,
         })
-    }
-
-    /// The per-step cost-Q threshold the Lagrangian holds the actor to.
-    pub fn qc_threshold(&self) -> f64 {
-        self.pid.threshold
     }
 
     /// `clamp(action + φ·max_action·tanh(actor([obs, action])), ±max_action)`.
@@ -213,46 +143,36 @@ impl BcqlLearner {
             .collect();
         Ok(Tensor::from_vec(values, (rows, latent), &Device::Cpu)?)
     }
+}
 
+impl ThresholdLearner for BcqlLearner {
     /// One training step on a uniformly drawn batch (with replacement, as OSRL's `TransitionDataset`).
-    pub fn step(&mut self) -> anyhow::Result<BcqlStats> {
+    fn step(&mut self) -> anyhow::Result<Figures> {
         let b = self.settings.batch_size;
-        let idx: Vec<u32> = (0..b)
-            .map(|_| (self.noise.next_u64() % self.rows as u64) as u32)
-            .collect();
-        let idx = Tensor::from_slice(&idx, b, &Device::Cpu)?;
-        let pick = |t: &Tensor| t.index_select(&idx, 0);
-        let (obs, next_obs, act) = (pick(&self.data.obs)?, pick(&self.data.next_obs)?, pick(&self.data.act)?);
-        let reward = pick(&self.data.reward)?.affine(self.settings.reward_scale, 0.0)?;
-        let cost = pick(&self.data.cost)?.affine(self.settings.cost_scale, 0.0)?;
-        let done = pick(&self.data.done)?;
-        let mut stats = BcqlStats::default();
+        let batch = self
+            .data
+            .sample(b, self.settings.reward_scale, self.settings.cost_scale, &mut self.noise)?;
+        let (obs, next_obs, act) = (&batch.obs, &batch.next_obs, &batch.act);
+        let (reward, cost, done) = (&batch.reward, &batch.cost, &batch.done);
+        let mut stats = Vec::new();
 
         // VAE.
         let eps_values = self.noise.normals_f32(b * self.vae.latent_dim);
         let eps = Tensor::from_vec(eps_values, (b, self.vae.latent_dim), &Device::Cpu)?;
-        let out = self.vae.forward(&obs, &act, &eps)?;
-        let (loss, _, _) = Vae::loss(&out, &act, self.settings.beta)?;
-        stats.vae_loss = loss.to_scalar()?;
+        let out = self.vae.forward(obs, act, &eps)?;
+        let (loss, _, _) = Vae::loss(&out, act, self.settings.beta)?;
+        stats.push(("vae", f64::from(loss.to_scalar::<f32>()?)));
         self.vae_optim.step(&loss.backward()?)?;
 
         // Targets: each next state repeated `n` times with a perturbed decoded action.
         let n = self.settings.sample_action_num;
-        let repeat: Vec<u32> = (0..b as u32).flat_map(|i| std::iter::repeat_n(i, n)).collect();
-        let repeat = Tensor::from_slice(&repeat, b * n, &Device::Cpu)?;
-        let next_rep = next_obs.index_select(&repeat, 0)?;
+        let next_rep = repeat_rows(next_obs, n)?;
         let z = self.latents(b * n)?;
         let decoded = self.vae.decode(&next_rep, &z)?.detach();
         let next_act = self.perturb(&self.actor_target, &next_rep, &decoded)?.detach();
         let next_input = Tensor::cat(&[&next_rep, &next_act], 1)?;
-        let mix = |q1: &Tensor, q2: &Tensor| -> anyhow::Result<Tensor> {
-            let lo = q1.minimum(q2)?;
-            let hi = q1.maximum(q2)?;
-            let q = lo
-                .affine(self.settings.lmbda, 0.0)?
-                .add(&hi.affine(1.0 - self.settings.lmbda, 0.0)?)?;
-            Ok(q.reshape((b, n))?.max(1)?)
-        };
+        let lmbda = self.settings.lmbda;
+        let mix = |q1: &Tensor, q2: &Tensor| DoubleCritic::soft_clipped_max(q1, q2, lmbda, n);
         let gamma = self.settings.gamma;
         let (_, t1, t2) = self.critic_target.predict(&next_input)?;
         let target_q = reward.add(&done.affine(-gamma, gamma)?.mul(&mix(&t1, &t2)?)?)?.detach();
@@ -260,21 +180,21 @@ impl BcqlLearner {
         // OSRL's cost target has no (1 − done).
         let target_qc = cost.add(&mix(&c1, &c2)?.affine(gamma, 0.0)?)?.detach();
 
-        let input = Tensor::cat(&[&obs, &act], 1)?;
+        let input = Tensor::cat(&[obs, act], 1)?;
         let (values, _, _) = self.critic.predict(&input)?;
         let loss = Ensemble::loss(&values, &target_q)?;
-        stats.critic_loss = loss.to_scalar()?;
+        stats.push(("critic", f64::from(loss.to_scalar::<f32>()?)));
         self.critic_optim.step(&loss.backward()?)?;
         let (values, _, _) = self.cost_critic.predict(&input)?;
         let loss = Ensemble::loss(&values, &target_qc)?;
-        stats.cost_critic_loss = loss.to_scalar()?;
+        stats.push(("cost_critic", f64::from(loss.to_scalar::<f32>()?)));
         self.cost_critic_optim.step(&loss.backward()?)?;
 
         // Actor.
         let z = self.latents(b)?;
-        let decoded = self.vae.decode(&obs, &z)?.detach();
-        let action = self.perturb(&self.actor, &obs, &decoded)?;
-        let input = Tensor::cat(&[&obs, &action], 1)?;
+        let decoded = self.vae.decode(obs, &z)?.detach();
+        let action = self.perturb(&self.actor, obs, &decoded)?;
+        let input = Tensor::cat(&[obs, &action], 1)?;
         let (_, q1, q2) = self.critic.predict(&input)?;
         let (_, qc1, qc2) = self.cost_critic.predict(&input)?;
         let qc = qc1.minimum(&qc2)?;
@@ -284,8 +204,8 @@ impl BcqlLearner {
                 .affine(lagrangian, 0.0)?
                 .mean_all()?,
         )?;
-        stats.actor_loss = loss.to_scalar()?;
-        stats.lagrangian = lagrangian;
+        stats.push(("actor", f64::from(loss.to_scalar::<f32>()?)));
+        stats.push(("lagrangian", lagrangian));
         self.actor_optim.step(&loss.backward()?)?;
 
         let tau = self.settings.tau;
@@ -300,7 +220,15 @@ impl BcqlLearner {
     }
 
     /// Writes the actor and the VAE's decoder as a per-threshold `bcq_actor` policy.
-    pub fn write(&self, dir: &Path, task: &str, kappa: f64, training: serde_json::Value) -> anyhow::Result<()> {
+    fn qc_threshold(&self) -> f64 {
+        self.pid.threshold
+    }
+
+    fn settings(&self) -> String {
+        format!("{:?}", self.settings)
+    }
+
+    fn write(&self, dir: &Path, task: &str, kappa: f64, training: serde_json::Value) -> anyhow::Result<()> {
         let config = PolicyConfig {
             format: checkpoint::FORMAT.into(),
             task: task.to_owned(),
@@ -327,7 +255,9 @@ impl BcqlLearner {
         checkpoint::write(dir, &config, &dsrl_policy::tensors_of(vars))?;
         Ok(())
     }
+}
 
+impl BcqlLearner {
     /// The actor's action for `obs` rows with the given latents (what the evaluator computes).
     pub fn act(&self, obs: &Tensor, z: &Tensor) -> anyhow::Result<Tensor> {
         let decoded = self.vae.decode(obs, z)?;
@@ -338,29 +268,7 @@ impl BcqlLearner {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// 30 two-dimensional episodes of 10 steps: the behaviour action is 0.5·obs, reward 1 − |a − 0.5·o|, and every
-    /// step costs 1 in the second half of the episodes.
-    fn toy() -> Demonstrations {
-        let mut noise = Noise::seeded(5);
-        let mut d = Demonstrations::empty(2, 1);
-        for e in 0..30 {
-            let mut o = [noise.uniform() as f32, noise.uniform() as f32];
-            for t in 0..10 {
-                let a = 0.5 * o[0];
-                let next = [(o[0] + 0.1).min(1.0), o[1]];
-                d.observations.extend_from_slice(&o);
-                d.next_observations.extend_from_slice(&next);
-                d.actions.push(a);
-                d.rewards.push(1.0);
-                d.costs.push(if e >= 15 { 1.0 } else { 0.0 });
-                d.dones.push(if t == 9 { 1.0 } else { 0.0 });
-                o = next;
-            }
-            d.episodes.push((e * 10, 10, 10.0, if e >= 15 { 10.0 } else { 0.0 }));
-        }
-        d
-    }
+    use crate::offline::tests::{figure, run, toy};
 
     fn small(seed: u64) -> BcqlSettings {
         BcqlSettings {
@@ -377,25 +285,17 @@ mod tests {
     fn a_few_steps_train_every_part_deterministically_and_write_what_the_evaluator_plays() {
         let data = toy();
         let mut learner = BcqlLearner::new(small(3), &data, 2.0, 10).unwrap();
-        // κ = 2 over 10 steps with γ = 0.99: the per-step threshold.
+        // κ = 2 over 10 steps with γ = 0.99: the per-step threshold (~1.9).
         assert!((learner.qc_threshold() - 2.0 * (1.0 - 0.99f64.powi(10)) / 0.01 / 10.0).abs() < 1e-12);
-        let first = learner.step().unwrap();
-        let mut last = first;
-        for _ in 1..60 {
-            last = learner.step().unwrap();
-        }
-        for v in [last.vae_loss, last.critic_loss, last.cost_critic_loss, last.actor_loss] {
-            assert!(v.is_finite(), "{last:?}");
-        }
-        assert!(last.vae_loss < first.vae_loss, "{first:?} -> {last:?}");
-        // Half the data costs 1 per step, far over a threshold of ~0.19 per step: λ rises.
-        assert!(last.lagrangian > 0.0, "{last:?}");
+        let (first, last) = run(&mut learner, 60);
+        assert!(figure(&last, "vae") < figure(&first, "vae"), "{first:?} -> {last:?}");
+        // Half the data costs 1 per step (a discounted cost value up to ~9.6), over the per-step threshold of ~1.9:
+        // λ rises.
+        assert!(figure(&last, "lagrangian") > 0.0, "{last:?}");
 
         // The same seed gives the same weights.
         let mut again = BcqlLearner::new(small(3), &data, 2.0, 10).unwrap();
-        for _ in 0..60 {
-            again.step().unwrap();
-        }
+        run(&mut again, 60);
         let weights = |l: &BcqlLearner| -> Vec<f32> {
             l.actor.named_vars()[0]
                 .1

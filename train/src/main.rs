@@ -9,6 +9,10 @@ use dsrl_client::cache::{Cache, FetchOptions};
 use dsrl_policy::checkpoint::Conditioning;
 use dsrl_suite::Catalog;
 use dsrl_train::bcql::{BcqlLearner, BcqlSettings};
+use dsrl_train::bearl::{BearlLearner, BearlSettings};
+use dsrl_train::coptidice::{CoptidiceLearner, CoptidiceSettings};
+use dsrl_train::cpq::{CpqLearner, CpqSettings};
+use dsrl_train::offline::ThresholdLearner;
 use dsrl_train::{BcLearner, BcSettings, Demonstrations};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -87,6 +91,29 @@ enum Command {
         #[command(flatten)]
         data: DataArgs,
     },
+    /// BEAR-Lag (OSRL's bearl, spec 5.7): a squashed Gaussian actor held to the data by an MMD constraint (Gaussian
+    /// kernel, σ 50, target 0.05) against a VAE of the actions, double-ensemble critics, a PID Lagrangian on the
+    /// cost-Q; batch 512, lr 1e-3. OSRL trains 300000 steps (200000 MetaDrive). One model per threshold:
+    /// <out>/bearl/threshold-<K>, each a `squashed_gaussian_mlp` played at tanh(mean).
+    Bearl {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// CPQ (OSRL's cpq, spec 5.8): constraint-penalized Q-learning — the reward backup is cut where the cost-Q of
+    /// the next action passes the threshold, and the actor maximises reward-Q only where its cost-Q is within it;
+    /// a VAE flags out-of-distribution actions. Actor lr 1e-4, critics and VAE 1e-3, batch 512. One model per
+    /// threshold: <out>/cpq/threshold-<K>.
+    Cpq {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// COptiDICE (OSRL's coptidice, spec 5.8): stationary-distribution correction with the soft-χ² divergence
+    /// (α 0.5), a cost upper bound (ε 0.01), a Lagrange multiplier, and a policy extracted by weighted behaviour
+    /// cloning; lrs 1e-4, batch 512. One model per threshold: <out>/coptidice/threshold-<K>.
+    Coptidice {
+        #[command(flatten)]
+        data: DataArgs,
+    },
 }
 
 /// The dataset named by `data`: read from its file, or fetched into the cache; with the fetched version id.
@@ -143,8 +170,12 @@ fn submit(server: &str, dir: &std::path::Path, task: &str, name: &str) -> anyhow
     Ok(())
 }
 
-/// BCQ-Lag, one model per threshold.
-fn train_bcql(data: DataArgs) -> anyhow::Result<()> {
+/// A per-threshold offline algorithm: its name (the output folder) and how to build its learner for one
+/// threshold (`kappa`, the task's episode length, the seed).
+type MakeLearner = dyn Fn(&Demonstrations, f64, usize, u64) -> anyhow::Result<Box<dyn ThresholdLearner>>;
+
+/// Trains one model per threshold with `make`, writes `<out>/<algorithm>/threshold-<K>` and optionally submits.
+fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> anyhow::Result<()> {
     let catalog = Catalog::embedded()?;
     let task = catalog.get(&data.task)?.clone();
     let (path, dataset_version, demonstrations) = load_data(&data, &task)?;
@@ -157,59 +188,54 @@ fn train_bcql(data: DataArgs) -> anyhow::Result<()> {
     } else {
         data.cost_thresholds.clone()
     };
-    let settings = BcqlSettings {
-        steps: data.steps,
-        seed: data.seed,
-        ..BcqlSettings::default()
-    };
+    let episode_len = task.max_episode_steps as usize;
     for kappa in thresholds {
-        let name = format!("bcql/threshold-{kappa}");
-        let episode_len = task.max_episode_steps as usize;
-        let mut learner = BcqlLearner::new(settings.clone(), &demonstrations, kappa, episode_len)?;
+        let name = format!("{algorithm}/threshold-{kappa}");
+        let mut learner = make(&demonstrations, kappa, episode_len, data.seed)?;
         let bar = progress(data.steps);
         let started = std::time::Instant::now();
-        let mut stats = Default::default();
+        let mut figures = Vec::new();
         for step in 0..data.steps {
-            stats = learner.step()?;
+            figures = learner.step()?;
             if step % 100 == 0 {
                 bar.set_position(step);
-                bar.set_message(format!(
-                    "{name} critic {:.4} λ {:.3}",
-                    stats.critic_loss, stats.lagrangian
-                ));
+                let shown: Vec<String> = figures.iter().take(4).map(|(n, v)| format!("{n} {v:.4}")).collect();
+                bar.set_message(format!("{name} {}", shown.join(" ")));
             }
         }
         bar.finish_and_clear();
         let seconds = started.elapsed().as_secs_f64();
-        let stats: dsrl_train::bcql::BcqlStats = stats;
+        let last: serde_json::Map<String, serde_json::Value> = figures
+            .iter()
+            .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
+            .collect();
         let training = serde_json::json!({
-            "algorithm": "bcql",
+            "algorithm": algorithm,
             "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
             "dataset_version": dataset_version,
             "filter": data.filter,
             "transitions": demonstrations.rows(),
             "steps": data.steps,
-            "batch_size": settings.batch_size,
-            "settings": format!("{settings:?}"),
+            "settings": learner.settings(),
             "qc_threshold": learner.qc_threshold(),
             "seed": data.seed,
-            "final": {"vae": stats.vae_loss, "critic": stats.critic_loss, "cost_critic": stats.cost_critic_loss,
-                      "actor": stats.actor_loss, "lagrangian": stats.lagrangian},
+            "final": last,
             "seconds": seconds,
         });
         let dir = out.join(&name);
         learner
             .write(&dir, task.id.as_str(), kappa, training)
             .with_context(|| format!("writing {}", dir.display()))?;
+        let shown: Vec<String> = figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
         println!(
-            "{name}: {} steps in {seconds:.0} s, final λ {:.3} -> {}",
+            "{name}: {} steps in {seconds:.0} s ({}) -> {}",
             data.steps,
-            stats.lagrangian,
+            shown.join(", "),
             dir.display()
         );
     }
     if let (Some(name), Some(server)) = (&data.submit, &data.server) {
-        submit(server, &out.join("bcql"), task.id.as_str(), name)?;
+        submit(server, &out.join(algorithm), task.id.as_str(), name)?;
     }
     Ok(())
 }
@@ -219,7 +245,44 @@ fn main() -> anyhow::Result<()> {
     unsafe { dsrl_policy::pin_candle_threads() };
     let (mode, data) = match Args::parse().command {
         Command::Bc { mode, data } => (mode, data),
-        Command::Bcql { data } => return train_bcql(data),
+        Command::Bcql { data } => {
+            let steps = data.steps;
+            return train_per_threshold("bcql", data, &move |d, kappa, len, seed| {
+                let settings = BcqlSettings {
+                    steps,
+                    seed,
+                    ..BcqlSettings::default()
+                };
+                Ok(Box::new(BcqlLearner::new(settings, d, kappa, len)?))
+            });
+        }
+        Command::Bearl { data } => {
+            return train_per_threshold("bearl", data, &|d, kappa, len, seed| {
+                let settings = BearlSettings {
+                    seed,
+                    ..BearlSettings::default()
+                };
+                Ok(Box::new(BearlLearner::new(settings, d, kappa, len)?))
+            });
+        }
+        Command::Cpq { data } => {
+            return train_per_threshold("cpq", data, &|d, kappa, len, seed| {
+                let settings = CpqSettings {
+                    seed,
+                    ..CpqSettings::default()
+                };
+                Ok(Box::new(CpqLearner::new(settings, d, kappa, len)?))
+            });
+        }
+        Command::Coptidice { data } => {
+            return train_per_threshold("coptidice", data, &|d, kappa, len, seed| {
+                let settings = CoptidiceSettings {
+                    seed,
+                    ..CoptidiceSettings::default()
+                };
+                Ok(Box::new(CoptidiceLearner::new(settings, d, kappa, len)?))
+            });
+        }
     };
     let DataArgs {
         task,

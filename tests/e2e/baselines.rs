@@ -1,0 +1,98 @@
+//! The per-threshold offline baselines end to end: `dsrl-train bcql|bearl|cpq|coptidice` train a few steps each on
+//! the committed BallRun starter (real checkpoints, not good ones: the scores are not the point), write one model per
+//! benchmark threshold with the training recorded, and the leaderboard scores each on real simulator workers with
+//! the paper's protocol (3 thresholds × 20 episodes).
+
+use std::path::Path;
+use std::process::Command;
+
+use crate::leaderboard::{TASK, client, create_user, scoring_env, starter, submit};
+
+/// Trains `algorithm` for `steps` steps per threshold into `out/<algorithm>`.
+fn train(algorithm: &str, out: &Path, steps: u64) {
+    let output = Command::new(dsrl_e2e::bin("dsrl-train"))
+        .args([algorithm, "--task", TASK, "--steps", &steps.to_string(), "--seed", "1"])
+        .arg("--dataset")
+        .arg(starter())
+        .arg("--out")
+        .arg(out)
+        .env_remove("DSRL_SERVER")
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "dsrl-train {algorithm} failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    // One line per threshold, naming its folder.
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    for k in [10, 20, 40] {
+        assert!(
+            stdout.contains(&format!("{algorithm}/threshold-{k}: {steps} steps")),
+            "{stdout}"
+        );
+    }
+}
+
+#[test]
+fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderboard() {
+    let models = tempfile::tempdir().unwrap();
+    let algorithms = [
+        ("bcql", "bcq_actor"),
+        ("bearl", "squashed_gaussian_mlp"),
+        ("cpq", "squashed_gaussian_mlp"),
+        ("coptidice", "squashed_gaussian_mlp"),
+    ];
+    for (algorithm, _) in algorithms {
+        train(algorithm, models.path(), 3);
+        // The record names the algorithm, the budget, the seed and the per-step cost threshold it trained for.
+        let config: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(models.path().join(algorithm).join("threshold-20/policy.json")).unwrap(),
+        )
+        .unwrap();
+        let training = &config["training"];
+        assert_eq!(training["algorithm"], algorithm, "{config}");
+        assert_eq!(training["steps"], 3);
+        assert_eq!(training["seed"], 1);
+        assert!(training["qc_threshold"].as_f64().unwrap() > 0.0);
+        assert!(
+            training["settings"].as_str().unwrap().contains("batch_size: 512"),
+            "{training}"
+        );
+        assert_eq!(config["conditioning"]["cost_threshold"], 20.0);
+    }
+    // The same seed trains the same weights.
+    let again = tempfile::tempdir().unwrap();
+    train("cpq", again.path(), 3);
+    let weights = |root: &Path| std::fs::read(root.join("cpq/threshold-10/policy.safetensors")).unwrap();
+    assert_eq!(weights(models.path()), weights(again.path()));
+
+    let env = scoring_env("60");
+    // Two users, since a user has at most two submissions in flight.
+    let users = [create_user(&env, "alice"), create_user(&env, "bob")];
+    let mut submitted = Vec::new();
+    for (i, (algorithm, architecture)) in algorithms.iter().enumerate() {
+        let token = &users[i % 2];
+        let entry = submit(&env, token, &models.path().join(algorithm), algorithm)
+            .ok()
+            .json();
+        let checkpoints = entry["checkpoints"].as_array().unwrap();
+        assert_eq!(checkpoints.len(), 3, "{entry}");
+        assert!(
+            checkpoints.iter().all(|c| c["architecture"] == *architecture),
+            "{entry}"
+        );
+        submitted.push((token.clone(), entry["id"].to_string()));
+    }
+    for (token, id) in submitted {
+        let done = client(&env, &token, &["--json", "status", &id, "--wait"]).ok().json();
+        assert_eq!(done["state"], "finished", "{done}");
+        let episodes = done["episodes"].as_array().unwrap();
+        assert_eq!(episodes.len(), 60, "3 thresholds x 20 episodes");
+        assert!(episodes.iter().all(|e| e["length"].as_u64().unwrap() > 0));
+        assert!(done["normalized_reward"].as_f64().unwrap().is_finite());
+        assert!(done["normalized_cost"].as_f64().unwrap() >= 0.0);
+    }
+    let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
+    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 4, "{board}");
+}
