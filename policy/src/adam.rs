@@ -14,6 +14,9 @@ pub struct Adam {
     pub beta2: f64,
     pub eps: f64,
     pub max_grad_norm: Option<f64>,
+    /// Decoupled weight decay (AdamW, Loshchilov & Hutter; PyTorch's `AdamW`): each parameter is first multiplied by
+    /// `1 − lr·weight_decay`, then takes the Adam step. 0 is plain Adam.
+    pub weight_decay: f64,
     steps: u64,
     params: Vec<Param>,
 }
@@ -46,9 +49,22 @@ impl Adam {
             beta2: 0.999,
             eps: 1e-8,
             max_grad_norm,
+            weight_decay: 0.0,
             steps: 0,
             params,
         })
+    }
+
+    /// AdamW: Adam with decoupled weight decay (see [`Adam::weight_decay`]).
+    pub fn adamw(
+        named_vars: Vec<(String, Var)>,
+        lr: f64,
+        weight_decay: f64,
+        max_grad_norm: Option<f64>,
+    ) -> Result<Adam> {
+        let mut adam = Adam::new(named_vars, lr, max_grad_norm)?;
+        adam.weight_decay = weight_decay;
+        Ok(adam)
     }
 
     /// One update from the gradients of a loss; returns the gradient norm before clipping.
@@ -92,12 +108,16 @@ impl Adam {
         let (b1, one_minus_b1, b2, one_minus_b2) =
             (f(self.beta1), f(1.0 - self.beta1), f(self.beta2), f(1.0 - self.beta2));
         let (inv_c1, inv_c2, eps, lr, scale32) = (f(1.0 / c1), f(1.0 / c2), f(self.eps), f(self.lr), f(scale));
+        let decay = f(1.0 - self.lr * self.weight_decay);
         for (p, g) in self.params.iter_mut().zip(gs) {
             let Some(mut g) = g else { continue };
             if scale != 1.0 {
                 g.iter_mut().for_each(|x| *x *= scale32);
             }
             let mut values = p.var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+            if self.weight_decay != 0.0 {
+                values.iter_mut().for_each(|x| *x *= decay);
+            }
             for (((x, m), v), g) in values.iter_mut().zip(&mut p.m).zip(&mut p.v).zip(&g) {
                 *m = *m * b1 + *g * one_minus_b1;
                 *v = *v * b2 + (*g * *g) * one_minus_b2;
@@ -175,6 +195,19 @@ mod tests {
             state["opt.w.m"].to_vec1::<f32>().unwrap(),
             again.state("opt")[0].1.to_vec1::<f32>().unwrap()
         );
+    }
+
+    #[test]
+    fn adamw_decays_each_weight_before_the_adam_step_as_pytorch() {
+        // PyTorch AdamW: w ← w·(1 − lr·wd), then w ← w − lr·m̂/(√v̂ + eps); the first step's Adam part is lr·sign(g).
+        let w = Var::from_vec(vec![1.0f32, -2.0], 2, &Device::Cpu).unwrap();
+        let mut adam = Adam::adamw(vec![("w".into(), w.clone())], 0.1, 0.5, None).unwrap();
+        let grads = w.as_tensor().sqr().unwrap().sum_all().unwrap().backward().unwrap();
+        adam.step(&grads).unwrap();
+        let got = w.as_tensor().to_vec1::<f32>().unwrap();
+        for (g, want) in got.iter().zip([1.0f32 * 0.95 - 0.1, -2.0 * 0.95 + 0.1]) {
+            assert!((g - want).abs() < 1e-6, "{got:?}");
+        }
     }
 
     /// The update as the chain of candle tensor operations it replaced.

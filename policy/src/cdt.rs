@@ -6,7 +6,8 @@
 //!
 //! Tensors are named as OSRL's `CDT.state_dict()` under `cdt.` (`cdt.blocks.0.attention.in_proj_weight`, ...), so a
 //! PyTorch model exports by adding the prefix. The prediction heads used only in training (`cost_pred_head`,
-//! `state_pred_head`) are accepted and checked when present. Dropout is not applied: this module evaluates.
+//! `state_pred_head`) are accepted and checked when present. Evaluation applies no dropout; training
+//! ([`Cdt::training_heads`]) applies OSRL's, with masks from a seeded generator.
 
 use candle_core::{DType, Device, Tensor, Var};
 
@@ -215,6 +216,48 @@ impl Cdt {
         costs_to_go: &Tensor,
         timesteps: &Tensor,
     ) -> Result<Tensor> {
+        let x = self.encode(states, actions, returns_to_go, costs_to_go, timesteps, None)?;
+        self.action_mu.forward(&x.narrow(2, STATE_TOKEN, 1)?.squeeze(2)?)
+    }
+
+    /// What training reads, with dropout drawn from `training`: the action head's mean and log σ at every
+    /// state token (`[B, T, act]` each) and the cost head's logits at every action token (`[B, T, 2]`).
+    ///
+    /// OSRL also masks padded keys; padding sits at the end of each window and attention is causal, so no valid
+    /// position ever attends to a padded one and the losses (over valid positions) are the same without it.
+    pub fn training_heads(
+        &self,
+        states: &Tensor,
+        actions: &Tensor,
+        returns_to_go: &Tensor,
+        costs_to_go: &Tensor,
+        timesteps: &Tensor,
+        training: &mut Training,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        let x = self.encode(states, actions, returns_to_go, costs_to_go, timesteps, Some(training))?;
+        let state_out = x.narrow(2, STATE_TOKEN, 1)?.squeeze(2)?;
+        let action_out = x.narrow(2, STATE_TOKEN + 1, 1)?.squeeze(2)?;
+        let cost_head = self
+            .cost_pred_head
+            .as_ref()
+            .ok_or_else(|| PolicyError::Format("cdt: training needs the cost prediction head".into()))?;
+        Ok((
+            self.action_mu.forward(&state_out)?,
+            self.action_log_std.forward(&state_out)?,
+            cost_head.forward(&action_out)?,
+        ))
+    }
+
+    /// The token sequence through the transformer: `[B, T, 4, d]` after the final layer norm.
+    fn encode(
+        &self,
+        states: &Tensor,
+        actions: &Tensor,
+        returns_to_go: &Tensor,
+        costs_to_go: &Tensor,
+        timesteps: &Tensor,
+        mut training: Option<&mut Training>,
+    ) -> Result<Tensor> {
         let (b, t, _) = states.dims3()?;
         let d = self.shape.embedding_dim;
         let time = self
@@ -239,13 +282,15 @@ impl Cdt {
         // [B, T, 4, d] → [B, 4T, d]: R̂_0, Ĉ_0, s_0, a_0, R̂_1, ...
         let mut x = Tensor::stack(&tokens, 2)?.reshape((b, TOKENS * t, d))?;
         x = self.emb_norm.forward(&x)?;
+        if let Some(training) = training.as_deref_mut() {
+            x = training.dropout(&x)?;
+        }
         let mask = causal_mask(TOKENS * t)?;
         for block in &self.blocks {
-            x = block.forward(&x, &mask, self.shape.num_heads)?;
+            x = block.forward(&x, &mask, self.shape.num_heads, training.as_deref_mut())?;
         }
         x = self.out_norm.forward(&x)?;
-        let state_out = x.reshape((b, t, TOKENS, d))?.narrow(2, STATE_TOKEN, 1)?.squeeze(2)?;
-        self.action_mu.forward(&state_out)
+        Ok(x.reshape((b, t, TOKENS, d))?)
     }
 
     /// The action head's log standard deviations (training's likelihood; unused when evaluating at the mean).
@@ -263,8 +308,9 @@ fn causal_mask(len: usize) -> Result<Tensor> {
 }
 
 impl Block {
-    /// Pre-LN: `x + Attention(LN(x))`, then `x + MLP(LN(x))`.
-    fn forward(&self, x: &Tensor, mask: &Tensor, heads: usize) -> Result<Tensor> {
+    /// Pre-LN: `x + Dropout(Attention(LN(x)))`, then `x + Dropout(MLP(LN(x)))`; attention weights drop out too
+    /// when training (PyTorch's `nn.MultiheadAttention` dropout).
+    fn forward(&self, x: &Tensor, mask: &Tensor, heads: usize, mut training: Option<&mut Training>) -> Result<Tensor> {
         let (b, l, d) = x.dims3()?;
         let head_dim = d / heads;
         let h = self.norm1.forward(x)?;
@@ -280,11 +326,45 @@ impl Block {
             .affine(1.0 / (head_dim as f64).sqrt(), 0.0)?
             .matmul(&k.transpose(2, 3)?.contiguous()?)?
             .broadcast_add(mask)?;
-        let weights = candle_nn::ops::softmax_last_dim(&scores)?;
+        let weights = match training.as_deref_mut() {
+            // candle-nn's fused softmax has no backward pass.
+            Some(training) => training.dropout(&crate::layers::softmax(&scores, 3)?)?,
+            None => candle_nn::ops::softmax_last_dim(&scores)?,
+        };
         let attended = weights.matmul(&v)?.transpose(1, 2)?.contiguous()?.reshape((b, l, d))?;
-        let x = x.add(&self.out_proj.forward(&attended)?)?;
+        let mut attention_out = self.out_proj.forward(&attended)?;
+        if let Some(training) = training.as_deref_mut() {
+            attention_out = training.dropout(&attention_out)?;
+        }
+        let x = x.add(&attention_out)?;
         let hidden = self.mlp_in.forward(&self.norm2.forward(&x)?)?.gelu_erf()?;
-        Ok(x.add(&self.mlp_out.forward(&hidden)?)?)
+        let mut mlp_out = self.mlp_out.forward(&hidden)?;
+        if let Some(training) = training {
+            mlp_out = training.dropout(&mlp_out)?;
+        }
+        Ok(x.add(&mlp_out)?)
+    }
+}
+
+/// Training mode: dropout with probability `p` (OSRL: 0.1 everywhere), its masks drawn from a seeded generator so
+/// that a training run is reproducible.
+pub struct Training<'a> {
+    pub p: f64,
+    pub noise: &'a mut Noise,
+}
+
+impl Training<'_> {
+    /// Zeroes each element with probability `p` and scales the rest by `1/(1 − p)`, as `nn.Dropout` in training.
+    pub fn dropout(&mut self, x: &Tensor) -> Result<Tensor> {
+        if self.p <= 0.0 {
+            return Ok(x.clone());
+        }
+        let keep = (1.0 / (1.0 - self.p)) as f32;
+        let p = self.p;
+        let mask: Vec<f32> = (0..x.elem_count())
+            .map(|_| if self.noise.uniform() < p { 0.0 } else { keep })
+            .collect();
+        Ok(x.mul(&Tensor::from_vec(mask, x.shape(), x.device())?)?)
     }
 }
 
@@ -397,6 +477,73 @@ impl Cdt {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn training_gradients_through_attention_layer_norm_and_gelu_match_finite_differences() {
+        let cdt = Cdt::new(shape(), true, &mut Noise::seeded(3)).unwrap();
+        let mut noise = Noise::seeded(4);
+        let cpu = &Device::Cpu;
+        let (b, t) = (2, 3);
+        let states = Tensor::from_vec(noise.normals_f32(b * t * 3), (b, t, 3), cpu).unwrap();
+        let actions = Tensor::from_vec(noise.normals_f32(b * t * 2), (b, t, 2), cpu).unwrap();
+        let rtg = Tensor::from_vec(noise.normals_f32(b * t), (b, t), cpu).unwrap();
+        let ctg = Tensor::from_vec(noise.normals_f32(b * t), (b, t), cpu).unwrap();
+        let steps = Tensor::from_vec(vec![0u32, 1, 2, 5, 6, 7], (b, t), cpu).unwrap();
+        let weights = Tensor::from_vec(noise.normals_f32(b * t * 2), (b, t, 2), cpu).unwrap();
+        // A scalar reading all three heads; dropout 0 so that it is a plain function of the weights.
+        let loss = || {
+            let mut quiet = Noise::seeded(0);
+            let mut training = Training {
+                p: 0.0,
+                noise: &mut quiet,
+            };
+            let (mu, log_std, cost) = cdt
+                .training_heads(&states, &actions, &rtg, &ctg, &steps, &mut training)
+                .unwrap();
+            mu.mul(&weights)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .add(&log_std.sqr().unwrap().sum_all().unwrap())
+                .unwrap()
+                .add(&cost.tanh().unwrap().sum_all().unwrap())
+                .unwrap()
+        };
+        let grads = loss().backward().unwrap();
+        // The packed attention projection (softmax, scaling), the MLP's first layer (GELU) and a layer norm's gain.
+        for (var, picks) in [
+            (&cdt.blocks[0].in_proj_weight, [0usize, 17, 300]),
+            (&cdt.blocks[1].mlp_in.weight, [3, 40, 200]),
+            (&cdt.blocks[0].norm1.weight, [0, 5, 11]),
+        ] {
+            let analytic: Vec<f32> = grads
+                .get(var.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let base: Vec<f32> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            let h = 1e-2f32;
+            for k in picks {
+                let at = |d: f32| {
+                    let mut v = base.clone();
+                    v[k] += d;
+                    var.set(&Tensor::from_vec(v, var.as_tensor().dims(), cpu).unwrap())
+                        .unwrap();
+                    loss().to_scalar::<f32>().unwrap()
+                };
+                let numeric = (at(h) - at(-h)) / (2.0 * h);
+                var.set(&Tensor::from_vec(base.clone(), var.as_tensor().dims(), cpu).unwrap())
+                    .unwrap();
+                assert!(
+                    (numeric - analytic[k]).abs() < 2e-2 * (1.0 + analytic[k].abs()),
+                    "{k}: {numeric} vs {}",
+                    analytic[k]
+                );
+            }
+        }
+    }
 
     fn shape() -> CdtShape {
         CdtShape {

@@ -1,17 +1,19 @@
-//! The per-threshold offline baselines end to end: `dsrl-train bcql|bearl|cpq|coptidice` train a few steps each on
-//! the committed BallRun starter (real checkpoints, not good ones: the scores are not the point), write one model per
-//! benchmark threshold with the training recorded, and the leaderboard scores each on real simulator workers with
-//! the paper's protocol (3 thresholds × 20 episodes).
+//! The offline baselines end to end: `dsrl-train bcql|bearl|cpq|coptidice` train a few steps each on the committed
+//! BallRun starter (real checkpoints, not good ones: the scores are not the point) and write one model per benchmark
+//! threshold with the training recorded; `dsrl-train cdt` trains one model (at a small batch: OSRL's 2048 takes tens
+//! of seconds a step) with OSRL's return targets; the leaderboard scores each on real simulator workers with the
+//! paper's protocol (3 thresholds × 20 episodes).
 
 use std::path::Path;
 use std::process::Command;
 
 use crate::leaderboard::{TASK, client, create_user, scoring_env, starter, submit};
 
-/// Trains `algorithm` for `steps` steps per threshold into `out/<algorithm>`.
-fn train(algorithm: &str, out: &Path, steps: u64) {
+/// Trains `algorithm` for `steps` steps (per threshold, except CDT) into `out/<algorithm>`.
+fn train(algorithm: &str, out: &Path, steps: u64, extra: &[&str]) -> String {
     let output = Command::new(dsrl_e2e::bin("dsrl-train"))
         .args([algorithm, "--task", TASK, "--steps", &steps.to_string(), "--seed", "1"])
+        .args(extra)
         .arg("--dataset")
         .arg(starter())
         .arg("--out")
@@ -24,8 +26,12 @@ fn train(algorithm: &str, out: &Path, steps: u64) {
         "dsrl-train {algorithm} failed: {}",
         String::from_utf8_lossy(&output.stderr)
     );
-    // One line per threshold, naming its folder.
-    let stdout = String::from_utf8_lossy(&output.stdout);
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// Trains a per-threshold algorithm and checks its one line per threshold.
+fn train_per_threshold(algorithm: &str, out: &Path, steps: u64) {
+    let stdout = train(algorithm, out, steps, &[]);
     for k in [10, 20, 40] {
         assert!(
             stdout.contains(&format!("{algorithm}/threshold-{k}: {steps} steps")),
@@ -44,7 +50,7 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
         ("coptidice", "squashed_gaussian_mlp"),
     ];
     for (algorithm, _) in algorithms {
-        train(algorithm, models.path(), 3);
+        train_per_threshold(algorithm, models.path(), 3);
         // The record names the algorithm, the budget, the seed and the per-step cost threshold it trained for.
         let config: serde_json::Value = serde_json::from_slice(
             &std::fs::read(models.path().join(algorithm).join("threshold-20/policy.json")).unwrap(),
@@ -63,16 +69,40 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
     }
     // The same seed trains the same weights.
     let again = tempfile::tempdir().unwrap();
-    train("cpq", again.path(), 3);
+    train_per_threshold("cpq", again.path(), 3);
     let weights = |root: &Path| std::fs::read(root.join("cpq/threshold-10/policy.safetensors")).unwrap();
     assert_eq!(weights(models.path()), weights(again.path()));
 
+    // CDT: one model, scored at each threshold from OSRL's BallRun targets (500; 10), (500; 20), (700; 40).
+    let stdout = train("cdt", models.path(), 2, &["--batch-size", "64"]);
+    assert!(stdout.contains("cdt: 2 steps"), "{stdout}");
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(models.path().join("cdt/policy.json")).unwrap()).unwrap();
+    assert_eq!(config["architecture"]["name"], "cdt", "{config}");
+    assert_eq!(config["conditioning"]["targets"][2]["reward_return"], 700.0, "{config}");
+    assert!(
+        config["training"]["settings"]
+            .as_str()
+            .unwrap()
+            .contains("batch_size: 64")
+    );
+    assert!(
+        config["training"]["departures"]
+            .as_str()
+            .unwrap()
+            .contains("augmentation")
+    );
+
     let env = scoring_env("60");
-    // Two users, since a user has at most two submissions in flight.
-    let users = [create_user(&env, "alice"), create_user(&env, "bob")];
+    // Three users, since a user has at most two submissions in flight.
+    let users = [
+        create_user(&env, "alice"),
+        create_user(&env, "bob"),
+        create_user(&env, "carol"),
+    ];
     let mut submitted = Vec::new();
     for (i, (algorithm, architecture)) in algorithms.iter().enumerate() {
-        let token = &users[i % 2];
+        let token = &users[i % 3];
         let entry = submit(&env, token, &models.path().join(algorithm), algorithm)
             .ok()
             .json();
@@ -84,6 +114,9 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
         );
         submitted.push((token.clone(), entry["id"].to_string()));
     }
+    let cdt = submit(&env, &users[2], &models.path().join("cdt"), "cdt").ok().json();
+    assert_eq!(cdt["checkpoints"][0]["architecture"], "cdt", "{cdt}");
+    submitted.push((users[2].clone(), cdt["id"].to_string()));
     for (token, id) in submitted {
         let done = client(&env, &token, &["--json", "status", &id, "--wait"]).ok().json();
         assert_eq!(done["state"], "finished", "{done}");
@@ -94,5 +127,5 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
         assert!(done["normalized_cost"].as_f64().unwrap() >= 0.0);
     }
     let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
-    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 4, "{board}");
+    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 5, "{board}");
 }

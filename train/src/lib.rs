@@ -4,12 +4,13 @@
 //! the dataset's actions with MSE, Adam lr 1e-3, batches of 512 drawn uniformly with replacement. BC-Safe keeps only
 //! the episodes whose (undiscounted) cost return is at most the threshold and is trained once per threshold.
 //!
-//! The per-threshold offline baselines have a module each (`bcql`, `bearl`, `cpq`, `coptidice`), built on what
+//! CDT (`cdt`) is trained once and conditioned on return targets. The per-threshold offline baselines have a module each (`bcql`, `bearl`, `cpq`, `coptidice`), built on what
 //! `dsrl_policy::offline`, `dsrl_policy::squashed` and `dsrl_policy::vae` share, with the sampler and learner
 //! interface in `offline`.
 
 pub mod bcql;
 pub mod bearl;
+pub mod cdt;
 pub mod coptidice;
 pub mod cpq;
 pub mod offline;

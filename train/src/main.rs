@@ -10,6 +10,7 @@ use dsrl_policy::checkpoint::Conditioning;
 use dsrl_suite::Catalog;
 use dsrl_train::bcql::{BcqlLearner, BcqlSettings};
 use dsrl_train::bearl::{BearlLearner, BearlSettings};
+use dsrl_train::cdt::{CdtLearner, CdtSettings, return_targets};
 use dsrl_train::coptidice::{CoptidiceLearner, CoptidiceSettings};
 use dsrl_train::cpq::{CpqLearner, CpqSettings};
 use dsrl_train::offline::ThresholdLearner;
@@ -59,6 +60,10 @@ struct DataArgs {
     /// Gradient steps per model (OSRL: 100000; 200000 for MetaDrive). Recorded in policy.json.
     #[arg(long, default_value_t = 100_000)]
     steps: u64,
+    /// Batch size instead of OSRL's for the algorithm (512; CDT 2048), e.g. to try a pipeline on a small machine;
+    /// recorded in policy.json.
+    #[arg(long)]
+    batch_size: Option<usize>,
     /// Seed of initialization and batch sampling; recorded in policy.json.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -88,6 +93,15 @@ enum Command {
     /// and cost critics with target copies, a PID Lagrangian on the cost-Q (0.1, 0.003, 0.001); batch 512, lr 1e-3,
     /// reward scale 0.1. One model per threshold: <out>/bcql/threshold-<K>, each a `bcq_actor` checkpoint.
     Bcql {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// CDT (OSRL's cdt, spec 5.4): the Constrained Decision Transformer (embedding 128, 3 blocks of 8 heads,
+    /// context 10, dropout 0.1; batch 2048, AdamW lr 1e-4 with weight decay 1e-4, warm-up 500 steps, gradient
+    /// clip 0.25). Trained once; <out>/cdt is scored at each benchmark threshold from OSRL's (reward, cost) target
+    /// for it (data/cdt_targets.csv). OSRL trains 100000 steps (200000 MetaDrive). No return augmentation (OSRL's
+    /// 20%); recorded in policy.json.
+    Cdt {
         #[command(flatten)]
         data: DataArgs,
     },
@@ -170,9 +184,9 @@ fn submit(server: &str, dir: &std::path::Path, task: &str, name: &str) -> anyhow
     Ok(())
 }
 
-/// A per-threshold offline algorithm: its name (the output folder) and how to build its learner for one
-/// threshold (`kappa`, the task's episode length, the seed).
-type MakeLearner = dyn Fn(&Demonstrations, f64, usize, u64) -> anyhow::Result<Box<dyn ThresholdLearner>>;
+/// How to build a per-threshold algorithm's learner for one threshold (`kappa`, the task's episode length, the
+/// seed, a batch size other than OSRL's).
+type MakeLearner = dyn Fn(&Demonstrations, f64, usize, u64, Option<usize>) -> anyhow::Result<Box<dyn ThresholdLearner>>;
 
 /// Trains one model per threshold with `make`, writes `<out>/<algorithm>/threshold-<K>` and optionally submits.
 fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> anyhow::Result<()> {
@@ -191,7 +205,7 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
     let episode_len = task.max_episode_steps as usize;
     for kappa in thresholds {
         let name = format!("{algorithm}/threshold-{kappa}");
-        let mut learner = make(&demonstrations, kappa, episode_len, data.seed)?;
+        let mut learner = make(&demonstrations, kappa, episode_len, data.seed, data.batch_size)?;
         let bar = progress(data.steps);
         let started = std::time::Instant::now();
         let mut figures = Vec::new();
@@ -240,45 +254,142 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
     Ok(())
 }
 
+/// CDT: one model for every threshold.
+fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        data.cost_thresholds.is_empty(),
+        "CDT is trained once and scored at the task's benchmark thresholds from OSRL's targets; drop --cost-threshold"
+    );
+    let catalog = Catalog::embedded()?;
+    let task = catalog.get(&data.task)?.clone();
+    let targets = return_targets(task.id.as_str())?;
+    let (path, dataset_version, demonstrations) = load_data(&data, &task)?;
+    let out = data
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
+    let default = CdtSettings::default();
+    let settings = CdtSettings {
+        seed: data.seed,
+        batch_size: data.batch_size.unwrap_or(default.batch_size),
+        ..default
+    };
+    let transitions = demonstrations.rows();
+    let episodes = demonstrations.episodes.len();
+    let mut learner = CdtLearner::new(settings.clone(), demonstrations, task.max_episode_steps as usize)?;
+    let bar = progress(data.steps);
+    let started = std::time::Instant::now();
+    let mut figures = Vec::new();
+    for step in 0..data.steps {
+        figures = learner.step()?;
+        if step % 10 == 0 {
+            bar.set_position(step);
+            let shown: Vec<String> = figures.iter().take(3).map(|(n, v)| format!("{n} {v:.4}")).collect();
+            bar.set_message(format!("cdt {}", shown.join(" ")));
+        }
+    }
+    bar.finish_and_clear();
+    let seconds = started.elapsed().as_secs_f64();
+    let last: serde_json::Map<String, serde_json::Value> = figures
+        .iter()
+        .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
+        .collect();
+    let training = serde_json::json!({
+        "algorithm": "cdt",
+        "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
+        "dataset_version": dataset_version,
+        "filter": data.filter,
+        "episodes": episodes,
+        "transitions": transitions,
+        "steps": data.steps,
+        "settings": format!("{settings:?}"),
+        "sampling": learner.sampling,
+        "departures": "no return augmentation (OSRL relabels 20% extra trajectories); the state head is not decayed",
+        "seed": data.seed,
+        "final": last,
+        "seconds": seconds,
+    });
+    let dir = out.join("cdt");
+    learner
+        .write(&dir, task.id.as_str(), &task.cost_thresholds, &targets, training)
+        .with_context(|| format!("writing {}", dir.display()))?;
+    let shown: Vec<String> = figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
+    println!(
+        "cdt: {} steps in {seconds:.0} s ({}) -> {}",
+        data.steps,
+        shown.join(", "),
+        dir.display()
+    );
+    if let (Some(name), Some(server)) = (&data.submit, &data.server) {
+        submit(server, &dir, task.id.as_str(), name)?;
+    }
+    Ok(())
+}
+
+/// Training allocates and frees tensors of up to hundreds of megabytes every step (CDT's attention at batch 2048
+/// is 105 MB per tensor). glibc serves each from a fresh `mmap` and unmaps it on free, so every step faults all of
+/// that memory in again: measured on CDT, 2 minutes of kernel time over 3 steps. Keeping freed memory in the heap
+/// (no mmap, no trimming below 2 GB, growth in 1 GB steps) cut a step from ~100 s to ~35 s on the same loaded
+/// machine (BENCHMARKS.md).
+fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only changes allocator tuning; called before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_MAX, 0);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+        libc::mallopt(libc::M_TOP_PAD, 1 << 30);
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     // SAFETY: first thing in main, before the runtime or any other thread exists.
     unsafe { dsrl_policy::pin_candle_threads() };
+    keep_freed_memory();
     let (mode, data) = match Args::parse().command {
         Command::Bc { mode, data } => (mode, data),
         Command::Bcql { data } => {
             let steps = data.steps;
-            return train_per_threshold("bcql", data, &move |d, kappa, len, seed| {
+            return train_per_threshold("bcql", data, &move |d, kappa, len, seed, batch| {
+                let default = BcqlSettings::default();
                 let settings = BcqlSettings {
                     steps,
                     seed,
-                    ..BcqlSettings::default()
+                    batch_size: batch.unwrap_or(default.batch_size),
+                    ..default
                 };
                 Ok(Box::new(BcqlLearner::new(settings, d, kappa, len)?))
             });
         }
+        Command::Cdt { data } => return train_cdt(data),
         Command::Bearl { data } => {
-            return train_per_threshold("bearl", data, &|d, kappa, len, seed| {
+            return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch| {
+                let default = BearlSettings::default();
                 let settings = BearlSettings {
                     seed,
-                    ..BearlSettings::default()
+                    batch_size: batch.unwrap_or(default.batch_size),
+                    ..default
                 };
                 Ok(Box::new(BearlLearner::new(settings, d, kappa, len)?))
             });
         }
         Command::Cpq { data } => {
-            return train_per_threshold("cpq", data, &|d, kappa, len, seed| {
+            return train_per_threshold("cpq", data, &|d, kappa, len, seed, batch| {
+                let default = CpqSettings::default();
                 let settings = CpqSettings {
                     seed,
-                    ..CpqSettings::default()
+                    batch_size: batch.unwrap_or(default.batch_size),
+                    ..default
                 };
                 Ok(Box::new(CpqLearner::new(settings, d, kappa, len)?))
             });
         }
         Command::Coptidice { data } => {
-            return train_per_threshold("coptidice", data, &|d, kappa, len, seed| {
+            return train_per_threshold("coptidice", data, &|d, kappa, len, seed, batch| {
+                let default = CoptidiceSettings::default();
                 let settings = CoptidiceSettings {
                     seed,
-                    ..CoptidiceSettings::default()
+                    batch_size: batch.unwrap_or(default.batch_size),
+                    ..default
                 };
                 Ok(Box::new(CoptidiceLearner::new(settings, d, kappa, len)?))
             });
@@ -291,9 +402,10 @@ fn main() -> anyhow::Result<()> {
         seed,
         out,
         submit: submit_as,
+        batch_size,
         ..
     } = &data;
-    let (cost_thresholds, steps, seed) = (cost_thresholds.clone(), *steps, *seed);
+    let (cost_thresholds, steps, seed, batch_size) = (cost_thresholds.clone(), *steps, *seed, *batch_size);
     let catalog = Catalog::embedded()?;
     let task = catalog.get(task)?.clone();
     let (path, dataset_version, data_read) = load_data(&data, &task)?;
@@ -302,10 +414,12 @@ fn main() -> anyhow::Result<()> {
     let out = out
         .clone()
         .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
+    let default = BcSettings::default();
     let settings = BcSettings {
         steps,
         seed,
-        ..BcSettings::default()
+        batch_size: batch_size.unwrap_or(default.batch_size),
+        ..default
     };
     let models: Vec<Option<f64>> = match mode {
         Mode::All => vec![None],
