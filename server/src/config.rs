@@ -95,6 +95,11 @@ pub struct DatasetsConfig {
     pub default_license: String,
     /// Address-space limit of the child process that parses an upload.
     pub converter_memory_limit_bytes: u64,
+    /// Serve this server's MetaDrive data (the pinned simulator's 259 observation features) under DSRL's MetaDrive
+    /// file names on `/download/{file}`, although DSRL's MetaDrive environments expect the paper's 261. Off: those
+    /// names answer 404 with the reason.
+    #[serde(default)]
+    pub dsrl_download_metadrive: bool,
 }
 
 /// The simulator worker pool (`dsrl-sim-worker` processes) that evaluation and data collection step.
@@ -177,6 +182,7 @@ impl Default for Config {
                 max_upload_bytes: 16 << 30,
                 default_license: "CC-BY-4.0".to_owned(),
                 converter_memory_limit_bytes: 8 << 30,
+                dsrl_download_metadrive: false,
             },
             auth: AuthConfig::default(),
             storage: StorageConfig {

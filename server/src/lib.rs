@@ -43,6 +43,8 @@ pub struct AppState {
     pub auth: Arc<AdminAuth>,
     pub metrics: Arc<Metrics>,
     pub max_upload_bytes: u64,
+    /// Serve the 259-feature MetaDrive data under DSRL's 261-feature file names (`/download/{file}`).
+    pub dsrl_download_metadrive: bool,
     pub simulators: Arc<SimulatorPool>,
     pub leaderboard: Arc<Leaderboard>,
 }
@@ -110,6 +112,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         auth: Arc::new(auth),
         metrics,
         max_upload_bytes: config.datasets.max_upload_bytes,
+        dsrl_download_metadrive: config.datasets.dsrl_download_metadrive,
     })
 }
 

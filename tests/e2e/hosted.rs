@@ -84,7 +84,10 @@ fn every_task_is_hosted_with_the_papers_filter_presets_or_its_gap_is_recorded() 
                 assert_eq!(manifest["action_space"]["dim"], task.act_dim, "{id}");
                 let episodes = manifest["episodes"].as_u64().unwrap();
                 if episodes < MIN_TRAJECTORIES {
-                    failed.insert("trajectories", format!("{episodes} trajectories, under {MIN_TRAJECTORIES}"));
+                    failed.insert(
+                        "trajectories",
+                        format!("{episodes} trajectories, under {MIN_TRAJECTORIES}"),
+                    );
                 }
                 for p in ["0.01", "0.05", "0.1"] {
                     if let Err(e) = applies(&http, &url, id, &format!("noise={p}")).await {

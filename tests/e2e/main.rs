@@ -6,6 +6,7 @@ mod architectures;
 mod baselines;
 mod catalog;
 mod collect;
+mod dsrl_download;
 mod expert;
 mod fetch;
 mod filters;

@@ -62,7 +62,7 @@ pub fn parse_range(header: &str, size: u64) -> RangeRequest {
 }
 
 /// Whether an `If-None-Match` value matches the strong `etag` (weak comparison, as RFC 9110 requires here).
-fn none_match(value: &HeaderValue, etag: &str) -> bool {
+pub(crate) fn none_match(value: &HeaderValue, etag: &str) -> bool {
     value.to_str().is_ok_and(|v| {
         v.split(',')
             .map(str::trim)

@@ -3,6 +3,7 @@
 pub mod auth;
 pub mod datasets;
 pub mod download;
+pub mod dsrl_download;
 pub mod failures;
 pub mod leaderboard;
 pub mod metrics;
@@ -42,6 +43,8 @@ pub fn router(state: AppState) -> Router {
             get(datasets::get_plot),
         )
         .route("/v1/datasets/{task}/tags/{tag}", put(datasets::put_tag))
+        // DSRL's own download URLs (`http://data.offline-saferl.org/download/{file}` in dsrl 0.1.0).
+        .route("/download/{file}", get(dsrl_download::dsrl_download))
         .route("/v1/users", post(leaderboard::create_user))
         .route(
             "/v1/submissions",

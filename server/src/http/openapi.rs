@@ -24,6 +24,7 @@ use super::{datasets, leaderboard, metrics, simulators};
         datasets::put_tag,
         simulators::list_simulators,
         download_doc,
+        super::dsrl_download::dsrl_download,
         leaderboard::create_user,
         leaderboard::submit,
         leaderboard::get_submission,

@@ -369,6 +369,81 @@ impl Datasets {
             .ok_or_else(|| ApiError::Internal("filtered version row vanished after commit".into()))
     }
 
+    /// The DSRL-layout HDF5 export of a version: (sha256 of its bytes, size). Converted from the Parquet once, on
+    /// the first request (concurrent first requests convert once), stored content-addressed under
+    /// `hdf5/<sha256>.hdf5` and recorded; later requests are a lookup.
+    pub async fn hdf5_export(&self, record: &VersionRecord) -> Result<(String, u64), ApiError> {
+        if let Some(found) = self.db.hdf5_export(&record.task, &record.version).await? {
+            return Ok(found);
+        }
+        let key = format!("hdf5/{}/{}", record.task, record.version);
+        let gate = self
+            .in_flight
+            .lock()
+            .expect("in-flight map")
+            .entry(key.clone())
+            .or_default()
+            .clone();
+        let turn = gate.lock().await;
+        let result = async {
+            if let Some(found) = self.db.hdf5_export(&record.task, &record.version).await? {
+                return Ok(found);
+            }
+            let started = std::time::Instant::now();
+            let (source, _download) = self.readable_copy(record).await?;
+            let out = self.temp_file("hdf5");
+            let out_path = out.path().to_owned();
+            let (digest, size) = tokio::task::spawn_blocking(move || -> Result<(String, u64), String> {
+                let file = std::fs::File::open(&source).map_err(|e| e.to_string())?;
+                let transitions =
+                    dsrl_suite::parquet_file::ParquetTransitions::open(file).map_err(|e| e.to_string())?;
+                dsrl_suite::hdf5_file::write_dsrl_hdf5(transitions, &out_path).map_err(|e| e.to_string())?;
+                let mut hasher = <sha2::Sha256 as sha2::Digest>::new();
+                let mut file = std::fs::File::open(&out_path).map_err(|e| e.to_string())?;
+                let size = std::io::copy(&mut file, &mut hasher).map_err(|e| e.to_string())?;
+                Ok((hex::encode(sha2::Digest::finalize(hasher)), size))
+            })
+            .await
+            .map_err(ApiError::internal)?
+            .map_err(|e| ApiError::Internal(format!("converting {} to HDF5: {e}", record.version)))?;
+            let object = objects::hdf5_key(&digest);
+            let renamed = match &self.local_objects {
+                Some(root) => objects::rename_into(root, out.path(), &object)
+                    .await
+                    .map_err(ApiError::internal)?,
+                None => None,
+            };
+            let stored = match renamed {
+                Some(stored) => stored,
+                None => objects::upload_file(self.store.as_ref(), out.path(), &object).await?,
+            };
+            if stored != size {
+                return Err(ApiError::Internal(format!(
+                    "stored {object} has {stored} bytes, expected {size}"
+                )));
+            }
+            self.db
+                .insert_hdf5_export(&record.task, &record.version, &digest, size, &now_rfc3339())
+                .await?;
+            tracing::info!(task = %record.task, version = %record.version, digest, bytes = size,
+                seconds = started.elapsed().as_secs_f64(), "exported a version as DSRL HDF5");
+            Ok((digest, size))
+        }
+        .await;
+        self.in_flight.lock().expect("in-flight map").remove(&key);
+        drop(turn);
+        result
+    }
+
+    /// The bytes of a stored HDF5 export, or a byte range of them.
+    pub async fn read_hdf5(
+        &self,
+        digest: &str,
+        range: Option<Range<u64>>,
+    ) -> Result<BoxStream<'static, std::io::Result<Bytes>>, ApiError> {
+        Ok(objects::read(self.store.as_ref(), &objects::hdf5_key(digest), range).await?)
+    }
+
     /// A local file with the version's bytes: the object itself for the local backend, else a downloaded copy
     /// (returned too, so it lives as long as the caller needs it).
     async fn readable_copy(&self, record: &VersionRecord) -> Result<(PathBuf, Option<TempFile>), ApiError> {

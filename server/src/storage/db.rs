@@ -74,6 +74,40 @@ impl Db {
         version_id(row)
     }
 
+    /// The HDF5 export of a version, if it was made before: (sha256 of its bytes, size).
+    pub async fn hdf5_export(&self, task: &str, version: &str) -> Result<Option<(String, u64)>, sqlx::Error> {
+        let row = sqlx::query("SELECT digest, byte_size FROM dataset_hdf5_exports WHERE task = ?1 AND version = ?2")
+            .bind(task)
+            .bind(version)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.map(|r| Ok((r.try_get(0)?, r.try_get::<i64, _>(1)? as u64)))
+            .transpose()
+    }
+
+    /// Records a version's HDF5 export (a second record of the same version keeps the first).
+    pub async fn insert_hdf5_export(
+        &self,
+        task: &str,
+        version: &str,
+        digest: &str,
+        byte_size: u64,
+        now: &str,
+    ) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "INSERT INTO dataset_hdf5_exports (task, version, digest, byte_size, created_at) VALUES (?1, ?2, ?3, ?4, ?5)
+             ON CONFLICT (task, version) DO NOTHING",
+        )
+        .bind(task)
+        .bind(version)
+        .bind(digest)
+        .bind(byte_size as i64)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
     pub async fn version(&self, task: &TaskId, version: &VersionId) -> Result<Option<VersionRecord>, sqlx::Error> {
         Ok(self.select_versions(Some(task), Some(version)).await?.pop())
     }
@@ -134,6 +168,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         20261122000003,
         "leaderboard",
         include_str!("../../../migrations/20261122000003_leaderboard.sql"),
+    ),
+    (
+        20261123000001,
+        "hdf5_exports",
+        include_str!("../../../migrations/20261123000001_hdf5_exports.sql"),
     ),
 ];
 

@@ -65,6 +65,11 @@ pub fn dataset_key(task: &str, version: &str) -> Path {
     Path::from(format!("datasets/{task}/{version}.parquet"))
 }
 
+/// A DSRL-layout HDF5 export, by the sha256 of its bytes.
+pub fn hdf5_key(digest: &str) -> Path {
+    Path::from(format!("hdf5/{digest}.hdf5"))
+}
+
 pub fn manifest_key(task: &str, version: &str) -> Path {
     Path::from(format!("datasets/{task}/{version}.manifest.json"))
 }
