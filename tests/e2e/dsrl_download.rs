@@ -8,7 +8,7 @@
 use crate::{Env, block_on, s};
 
 /// A starter folder holding only the named tasks' committed starters (the server ingests it at start).
-fn starters(dir: &std::path::Path, tasks: &[&str]) -> std::path::PathBuf {
+pub(crate) fn starters(dir: &std::path::Path, tasks: &[&str]) -> std::path::PathBuf {
     let root = dir.join("starters");
     for task in tasks {
         let from = dsrl_e2e::repo_root().join("data/starter").join(task);

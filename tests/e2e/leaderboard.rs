@@ -514,7 +514,7 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
 
 /// Headless Chromium (Debian's `chromium`, installed by `scripts/install-system-deps.sh`) with the flags this
 /// machine's closed network needs and a fresh profile.
-fn chromium(profile: &Path, args: &[&str]) -> std::process::Output {
+pub(crate) fn chromium(profile: &Path, args: &[&str]) -> std::process::Output {
     let out = Command::new("chromium")
         .args([
             "--headless",

@@ -4,6 +4,7 @@
 
 mod architectures;
 mod baselines;
+mod browser;
 mod catalog;
 mod collect;
 mod dsrl_download;

@@ -1,6 +1,7 @@
 //! The REST side of the server: routes, the admin check, downloads, metrics and the OpenAPI document.
 
 pub mod auth;
+pub mod browser;
 pub mod datasets;
 pub mod download;
 pub mod dsrl_download;
@@ -22,6 +23,8 @@ use crate::error::ApiError;
 
 pub fn router(state: AppState) -> Router {
     Router::new()
+        .route("/", get(browser::index))
+        .route("/tasks/{task}", get(browser::card))
         .route("/healthz", get(healthz))
         .route("/metrics", get(metrics::metrics))
         .route("/openapi.json", get(openapi_json))

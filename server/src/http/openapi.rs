@@ -25,6 +25,8 @@ use super::{datasets, leaderboard, metrics, simulators};
         simulators::list_simulators,
         download_doc,
         super::dsrl_download::dsrl_download,
+        super::browser::index,
+        super::browser::card,
         leaderboard::create_user,
         leaderboard::submit,
         leaderboard::get_submission,
