@@ -9,8 +9,10 @@
 //! AdamW (lr 1e-4, weight decay 1e-4, gradient norm clipped to 0.25) with a linear warm-up over 500 steps; the
 //! entropy temperature τ (from 0.1) follows `log τ ← Adam(τ·(H − (−act_dim)))`, lr 1e-4.
 //!
-//! Departures from OSRL, recorded with every trained model: no return augmentation (OSRL relabels 20% extra
-//! trajectories towards its Pareto front), and the state-prediction head (weight 0 in OSRL's loss) is not decayed.
+//! The data: every trajectory plus OSRL's return augmentation (`cdt_augment`: 20% more, relabelled towards the
+//! Pareto frontier). Departures from OSRL, recorded with every trained model: the augmentation's draws come from
+//! the seeded generator (not Python's and NumPy's), and the state-prediction head (weight 0 in OSRL's loss) is not
+//! decayed.
 
 use std::path::Path;
 
@@ -21,6 +23,7 @@ use dsrl_policy::layers::log_softmax;
 use dsrl_policy::noise::Noise;
 use dsrl_policy::{Device, Tensor, Var};
 
+use crate::cdt_augment::{Augmentation, augment};
 use crate::offline::Figures;
 use crate::{Demonstrations, MAX_ACTION};
 
@@ -71,17 +74,32 @@ impl Default for CdtSettings {
     }
 }
 
-/// OSRL's per-task `target_returns` (reward; cost), in threshold order (`data/cdt_targets.csv`).
-pub fn return_targets(task: &str) -> anyhow::Result<Vec<(f64, f64)>> {
+/// OSRL's per-task CDT config line of `data/cdt_targets.csv`, split.
+fn task_config(task: &str) -> anyhow::Result<Vec<&'static str>> {
     let csv = include_str!("../../data/cdt_targets.csv");
     let line = csv
         .lines()
         .find(|l| l.split(',').next() == Some(task))
-        .ok_or_else(|| anyhow::anyhow!("data/cdt_targets.csv has no CDT targets for {task}"))?;
-    let field = line
-        .split(',')
-        .nth(4)
-        .ok_or_else(|| anyhow::anyhow!("malformed CDT targets line: {line}"))?;
+        .ok_or_else(|| anyhow::anyhow!("data/cdt_targets.csv has no CDT config for {task}"))?;
+    let fields: Vec<&str> = line.split(',').collect();
+    anyhow::ensure!(fields.len() == 9, "malformed CDT config line: {line}");
+    Ok(fields)
+}
+
+/// OSRL's per-task augmentation constants (`deg`, `max_reward`, `min_reward`, `max_rew_decrease`).
+pub fn task_augmentation(task: &str) -> anyhow::Result<Augmentation> {
+    let f = task_config(task)?;
+    Ok(Augmentation::osrl(
+        f[5].parse()?,
+        f[6].parse()?,
+        f[7].parse()?,
+        f[8].parse()?,
+    ))
+}
+
+/// OSRL's per-task `target_returns` (reward; cost), in threshold order (`data/cdt_targets.csv`).
+pub fn return_targets(task: &str) -> anyhow::Result<Vec<(f64, f64)>> {
+    let field = task_config(task)?[4];
     field
         .split_whitespace()
         .map(|pair| {
@@ -94,6 +112,16 @@ pub fn return_targets(task: &str) -> anyhow::Result<Vec<(f64, f64)>> {
         .collect()
 }
 
+/// A trajectory as training sees it: an episode of the data, its reward- and cost-to-go shifted by a relabelling
+/// (0 for the original).
+#[derive(Debug, Clone, Copy)]
+struct Trajectory {
+    episode: usize,
+    reward_shift: f32,
+    cost_shift: f32,
+    cost_return: f64,
+}
+
 pub struct CdtLearner {
     pub settings: CdtSettings,
     pub model: Cdt,
@@ -104,6 +132,10 @@ pub struct CdtLearner {
     /// Per row: reward- and cost-to-go (undiscounted) within its trajectory.
     returns_to_go: Vec<f32>,
     costs_to_go: Vec<f32>,
+    /// The trajectories windows are drawn from: every episode of the data, then the relabelled copies.
+    trajectories: Vec<Trajectory>,
+    /// How many of them are relabelled copies (recorded).
+    pub augmented: usize,
     /// Cumulative sampling weights over the trajectories.
     cumulative: Vec<f64>,
     /// How trajectories are drawn (recorded: uniform when no trajectory is below the cap).
@@ -113,8 +145,14 @@ pub struct CdtLearner {
 }
 
 impl CdtLearner {
-    /// A learner for a task whose episodes last at most `episode_len` steps.
-    pub fn new(settings: CdtSettings, data: Demonstrations, episode_len: usize) -> anyhow::Result<Self> {
+    /// A learner for a task whose episodes last at most `episode_len` steps, with OSRL's return augmentation when
+    /// `augmentation` is given.
+    pub fn new(
+        settings: CdtSettings,
+        data: Demonstrations,
+        episode_len: usize,
+        augmentation: Option<&Augmentation>,
+    ) -> anyhow::Result<Self> {
         anyhow::ensure!(!data.episodes.is_empty(), "no trajectories to learn from");
         if let Some(&(_, len, _, _)) = data.episodes.iter().find(|e| e.1 > episode_len) {
             anyhow::bail!("a trajectory of {len} steps is longer than the task's {episode_len}-step episodes");
@@ -140,10 +178,29 @@ impl CdtLearner {
                 costs_to_go[row] = c as f32;
             }
         }
-        let weights: Vec<f64> = data
+        let mut trajectories: Vec<Trajectory> = data
             .episodes
             .iter()
-            .map(|e| (settings.cost_sample_cap - e.3).max(0.0))
+            .enumerate()
+            .map(|(episode, e)| Trajectory {
+                episode,
+                reward_shift: 0.0,
+                cost_shift: 0.0,
+                cost_return: e.3,
+            })
+            .collect();
+        let points: Vec<(f64, f64)> = data.episodes.iter().map(|e| (e.3, e.2)).collect();
+        let relabelled = augmentation.map_or_else(Vec::new, |a| augment(&points, a, &mut noise));
+        let augmented = relabelled.len();
+        trajectories.extend(relabelled.iter().map(|r| Trajectory {
+            episode: r.trajectory,
+            reward_shift: (r.reward_return - points[r.trajectory].1) as f32,
+            cost_shift: (r.cost_return - points[r.trajectory].0) as f32,
+            cost_return: r.cost_return,
+        }));
+        let weights: Vec<f64> = trajectories
+            .iter()
+            .map(|t| (settings.cost_sample_cap - t.cost_return).max(0.0))
             .collect();
         let uniform = weights.iter().all(|&w| w == 0.0);
         let sampling = if uniform {
@@ -176,6 +233,8 @@ impl CdtLearner {
             data,
             returns_to_go,
             costs_to_go,
+            trajectories,
+            augmented,
             cumulative,
             sampling,
             steps: 0,
@@ -208,8 +267,9 @@ impl CdtLearner {
         );
         let mut timesteps = vec![0u32; b * k];
         for i in 0..b {
-            let trajectory = self.draw_trajectory();
-            let (first, len, _, _) = self.data.episodes[trajectory];
+            let drawn = self.draw_trajectory();
+            let trajectory = self.trajectories[drawn];
+            let (first, len, _, _) = self.data.episodes[trajectory.episode];
             let start = (self.noise.next_u64() % len as u64) as usize;
             for j in 0..k {
                 let at = i * k + j;
@@ -220,8 +280,8 @@ impl CdtLearner {
                 let row = first + start + j;
                 states[at * o..(at + 1) * o].copy_from_slice(&self.data.observations[row * o..(row + 1) * o]);
                 actions[at * a..(at + 1) * a].copy_from_slice(&self.data.actions[row * a..(row + 1) * a]);
-                rtg[at] = self.returns_to_go[row] * s.reward_scale as f32;
-                ctg[at] = self.costs_to_go[row] * s.cost_scale as f32;
+                rtg[at] = (self.returns_to_go[row] + trajectory.reward_shift) * s.reward_scale as f32;
+                ctg[at] = (self.costs_to_go[row] + trajectory.cost_shift) * s.cost_scale as f32;
                 mask[at] = 1.0;
                 // OSRL's `cost.long()`: the class is the step's cost truncated (0 or 1 on every task's per-step costs;
                 // clamped to the head's two classes for MetaDrive's fractional ones).
@@ -377,8 +437,9 @@ mod tests {
 
     #[test]
     fn training_lowers_the_loss_deterministically_warms_up_and_writes_what_the_evaluator_plays() {
-        let mut learner = CdtLearner::new(small(2), toy(), 10).unwrap();
+        let mut learner = CdtLearner::new(small(2), toy(), 10, Some(&Augmentation::osrl(1, 12.0, 1.0, 5.0))).unwrap();
         assert!(learner.sampling.starts_with('∝'), "{}", learner.sampling);
+        assert!(learner.augmented > 0, "relabelled copies join the data");
         let first = learner.step().unwrap();
         // The warm-up: the first step runs at 1/5 of the rate.
         assert!((figure(&first, "lr") - 2e-4).abs() < 1e-12);
@@ -394,7 +455,7 @@ mod tests {
         // The temperature moved from 0.1.
         assert!((figure(&last, "temperature") - 0.1).abs() > 1e-6);
 
-        let mut again = CdtLearner::new(small(2), toy(), 10).unwrap();
+        let mut again = CdtLearner::new(small(2), toy(), 10, Some(&Augmentation::osrl(1, 12.0, 1.0, 5.0))).unwrap();
         for _ in 0..41 {
             again.step().unwrap();
         }

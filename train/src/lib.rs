@@ -11,6 +11,7 @@
 pub mod bcql;
 pub mod bearl;
 pub mod cdt;
+pub mod cdt_augment;
 pub mod coptidice;
 pub mod cpq;
 pub mod offline;

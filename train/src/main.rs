@@ -10,7 +10,7 @@ use dsrl_policy::checkpoint::Conditioning;
 use dsrl_suite::Catalog;
 use dsrl_train::bcql::{BcqlLearner, BcqlSettings};
 use dsrl_train::bearl::{BearlLearner, BearlSettings};
-use dsrl_train::cdt::{CdtLearner, CdtSettings, return_targets};
+use dsrl_train::cdt::{CdtLearner, CdtSettings, return_targets, task_augmentation};
 use dsrl_train::coptidice::{CoptidiceLearner, CoptidiceSettings};
 use dsrl_train::cpq::{CpqLearner, CpqSettings};
 use dsrl_train::offline::ThresholdLearner;
@@ -99,8 +99,8 @@ enum Command {
     /// CDT (OSRL's cdt, spec 5.4): the Constrained Decision Transformer (embedding 128, 3 blocks of 8 heads,
     /// context 10, dropout 0.1; batch 2048, AdamW lr 1e-4 with weight decay 1e-4, warm-up 500 steps, gradient
     /// clip 0.25). Trained once; <out>/cdt is scored at each benchmark threshold from OSRL's (reward, cost) target
-    /// for it (data/cdt_targets.csv). OSRL trains 100000 steps (200000 MetaDrive). No return augmentation (OSRL's
-    /// 20%); recorded in policy.json.
+    /// for it (data/cdt_targets.csv), with OSRL's return augmentation (20% relabelled copies). OSRL trains
+    /// 100000 steps (200000 MetaDrive).
     Cdt {
         #[command(flatten)]
         data: DataArgs,
@@ -276,7 +276,13 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
     };
     let transitions = demonstrations.rows();
     let episodes = demonstrations.episodes.len();
-    let mut learner = CdtLearner::new(settings.clone(), demonstrations, task.max_episode_steps as usize)?;
+    let augmentation = task_augmentation(task.id.as_str())?;
+    let mut learner = CdtLearner::new(
+        settings.clone(),
+        demonstrations,
+        task.max_episode_steps as usize,
+        Some(&augmentation),
+    )?;
     let bar = progress(data.steps);
     let started = std::time::Instant::now();
     let mut figures = Vec::new();
@@ -304,7 +310,9 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         "steps": data.steps,
         "settings": format!("{settings:?}"),
         "sampling": learner.sampling,
-        "departures": "no return augmentation (OSRL relabels 20% extra trajectories); the state head is not decayed",
+        "augmentation": format!("{augmentation:?}"),
+        "augmented_trajectories": learner.augmented,
+        "departures": "augmentation draws from the seeded generator, not Python's and NumPy's; the state head is not decayed",
         "seed": data.seed,
         "final": last,
         "seconds": seconds,
