@@ -23,7 +23,7 @@ fn recorded_gaps() -> BTreeMap<String, BTreeSet<String>> {
     {
         let fields: Vec<&str> = line.splitn(3, ',').collect();
         assert!(
-            ["hosted", "noise", "density"].contains(&fields[1]),
+            ["hosted", "trajectories", "noise", "density"].contains(&fields[1]),
             "unknown gap {line:?}"
         );
         gaps.entry(fields[0].to_owned())
