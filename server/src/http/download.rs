@@ -62,12 +62,52 @@ pub fn parse_range(header: &str, size: u64) -> RangeRequest {
 }
 
 /// Whether an `If-None-Match` value matches the strong `etag` (weak comparison, as RFC 9110 requires here).
-pub(crate) fn none_match(value: &HeaderValue, etag: &str) -> bool {
+fn none_match(value: &HeaderValue, etag: &str) -> bool {
     value.to_str().is_ok_and(|v| {
         v.split(',')
             .map(str::trim)
             .any(|t| t == "*" || t.trim_start_matches("W/") == etag)
     })
+}
+
+/// The status to answer with and the byte range to send (`None`: the whole file).
+pub(crate) type Answer = (StatusCode, Option<Range<u64>>);
+
+/// The conditional and range part of serving `size` bytes whose strong ETag is `etag`: `None` when
+/// `If-None-Match` matches (answer 304 with `response`'s headers); otherwise the status and the byte range to send,
+/// with `Content-Range` and `Content-Length` added to `response`. `If-Range` resumes only if the file is still the one
+/// the client has part of; otherwise it is sent whole.
+pub(crate) fn conditional_range(
+    headers: &HeaderMap,
+    etag: &str,
+    size: u64,
+    response: &mut HeaderMap,
+) -> Result<Option<Answer>, ApiError> {
+    if headers.get(header::IF_NONE_MATCH).is_some_and(|v| none_match(v, etag)) {
+        return Ok(None);
+    }
+    let if_range_ok = headers
+        .get(header::IF_RANGE)
+        .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
+    let range = match headers.get(header::RANGE).and_then(|v| v.to_str().ok()) {
+        Some(value) if if_range_ok => parse_range(value, size),
+        _ => RangeRequest::Full,
+    };
+    let (status, byte_range) = match range {
+        RangeRequest::Full => (StatusCode::OK, None),
+        RangeRequest::Partial(r) => (StatusCode::PARTIAL_CONTENT, Some(r)),
+        RangeRequest::Unsatisfiable => return Err(ApiError::RangeNotSatisfiable { size }),
+    };
+    if let Some(r) = &byte_range {
+        let value = format!("bytes {}-{}/{size}", r.start, r.end - 1);
+        response.insert(
+            header::CONTENT_RANGE,
+            HeaderValue::from_str(&value).map_err(ApiError::internal)?,
+        );
+    }
+    let length = byte_range.as_ref().map_or(size, |r| r.end - r.start);
+    response.insert(header::CONTENT_LENGTH, HeaderValue::from(length));
+    Ok(Some((status, byte_range)))
 }
 
 pub async fn download(
@@ -97,31 +137,9 @@ pub async fn download(
             "no-cache"
         }),
     );
-    if headers.get(header::IF_NONE_MATCH).is_some_and(|v| none_match(v, &etag)) {
+    let Some((status, byte_range)) = conditional_range(&headers, &etag, size, &mut response_headers)? else {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
-    }
-    // If-Range: resume only if the file is still the one the client has part of; otherwise send it whole.
-    let if_range_ok = headers
-        .get(header::IF_RANGE)
-        .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
-    let range = match headers.get(header::RANGE).and_then(|v| v.to_str().ok()) {
-        Some(value) if if_range_ok => parse_range(value, size),
-        _ => RangeRequest::Full,
     };
-    let (status, byte_range) = match range {
-        RangeRequest::Full => (StatusCode::OK, None),
-        RangeRequest::Partial(r) => (StatusCode::PARTIAL_CONTENT, Some(r)),
-        RangeRequest::Unsatisfiable => return Err(ApiError::RangeNotSatisfiable { size }),
-    };
-    let length = byte_range.as_ref().map_or(size, |r| r.end - r.start);
-    if let Some(r) = &byte_range {
-        let value = format!("bytes {}-{}/{size}", r.start, r.end - 1);
-        response_headers.insert(
-            header::CONTENT_RANGE,
-            HeaderValue::from_str(&value).map_err(ApiError::internal)?,
-        );
-    }
-    response_headers.insert(header::CONTENT_LENGTH, HeaderValue::from(length));
     response_headers.insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static("application/vnd.apache.parquet"),

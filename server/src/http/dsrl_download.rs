@@ -20,7 +20,7 @@ use futures::StreamExt;
 
 use crate::AppState;
 use crate::error::ApiError;
-use crate::http::download::{RangeRequest, none_match, parse_range};
+use crate::http::download::conditional_range;
 
 /// DSRL's file name for a task: `{prefix}-{cap}-{n}.hdf5` with the paper's cap and trajectory count.
 pub fn dsrl_file_name(task: &Task) -> String {
@@ -77,29 +77,9 @@ pub async fn dsrl_download(
     response_headers.insert("x-dsrl-version", value(&record.version)?);
     response_headers.insert("x-dsrl-task", value(task.id.as_str())?);
     response_headers.insert("x-dsrl-episodes", HeaderValue::from(record.episodes));
-    if headers.get(header::IF_NONE_MATCH).is_some_and(|v| none_match(v, &etag)) {
+    let Some((status, byte_range)) = conditional_range(&headers, &etag, size, &mut response_headers)? else {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
-    }
-    let if_range_ok = headers
-        .get(header::IF_RANGE)
-        .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
-    let range = match headers.get(header::RANGE).and_then(|v| v.to_str().ok()) {
-        Some(v) if if_range_ok => parse_range(v, size),
-        _ => RangeRequest::Full,
     };
-    let (status, byte_range) = match range {
-        RangeRequest::Full => (StatusCode::OK, None),
-        RangeRequest::Partial(r) => (StatusCode::PARTIAL_CONTENT, Some(r)),
-        RangeRequest::Unsatisfiable => return Err(ApiError::RangeNotSatisfiable { size }),
-    };
-    if let Some(r) = &byte_range {
-        response_headers.insert(
-            header::CONTENT_RANGE,
-            value(&format!("bytes {}-{}/{size}", r.start, r.end - 1))?,
-        );
-    }
-    let length = byte_range.as_ref().map_or(size, |r| r.end - r.start);
-    response_headers.insert(header::CONTENT_LENGTH, HeaderValue::from(length));
     response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/x-hdf5"));
     response_headers.insert(
         header::CONTENT_DISPOSITION,

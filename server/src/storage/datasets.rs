@@ -202,16 +202,7 @@ impl Datasets {
     async fn store_objects(&self, manifest: &Manifest, json: &str, file: &Path) -> Result<(), ApiError> {
         let (task, version) = (manifest.task.as_str(), manifest.version.as_str());
         let data_key = objects::dataset_key(task, version);
-        let renamed = match &self.local_objects {
-            Some(root) => objects::rename_into(root, file, &data_key)
-                .await
-                .map_err(ApiError::internal)?,
-            None => None,
-        };
-        let stored = match renamed {
-            Some(size) => size,
-            None => objects::upload_file(self.store.as_ref(), file, &data_key).await?,
-        };
+        let stored = self.store_file(file, &data_key).await?;
         if stored != manifest.byte_size {
             return Err(ApiError::Internal(format!(
                 "stored {data_key} has {stored} bytes, expected {}",
@@ -269,15 +260,7 @@ impl Datasets {
             return Ok(found);
         }
         let key = format!("{}/{}/{canonical}", task.id, parent.version);
-        let gate = self
-            .in_flight
-            .lock()
-            .expect("in-flight map")
-            .entry(key.clone())
-            .or_default()
-            .clone();
-        let turn = gate.lock().await;
-        let result = async {
+        self.one_at_a_time(key, async {
             // Whoever held the gate before us has committed its result.
             if let Some(found) = self.derivation(task, parent, &canonical).await? {
                 self.count_filter("cached");
@@ -288,11 +271,44 @@ impl Datasets {
             self.count_filter("computed");
             self.metrics.filter_seconds.observe(started.elapsed().as_secs_f64());
             Ok(record)
-        }
-        .await;
+        })
+        .await
+    }
+
+    /// Runs `work` while holding the gate named `key`, so that concurrent requests for the same derived object
+    /// (a filtered version, an HDF5 export) compute it once: a later holder finds the first one's result.
+    async fn one_at_a_time<T>(
+        &self,
+        key: String,
+        work: impl std::future::Future<Output = Result<T, ApiError>>,
+    ) -> Result<T, ApiError> {
+        let gate = self
+            .in_flight
+            .lock()
+            .expect("in-flight map")
+            .entry(key.clone())
+            .or_default()
+            .clone();
+        let turn = gate.lock().await;
+        let result = work.await;
         self.in_flight.lock().expect("in-flight map").remove(&key);
         drop(turn);
         result
+    }
+
+    /// Puts a synced temporary file at `key` (renamed into place with the local backend, uploaded otherwise) and
+    /// returns the stored size.
+    async fn store_file(&self, file: &Path, key: &object_store::path::Path) -> Result<u64, ApiError> {
+        let renamed = match &self.local_objects {
+            Some(root) => objects::rename_into(root, file, key)
+                .await
+                .map_err(ApiError::internal)?,
+            None => None,
+        };
+        match renamed {
+            Some(size) => Ok(size),
+            None => Ok(objects::upload_file(self.store.as_ref(), file, key).await?),
+        }
     }
 
     async fn derivation(
@@ -377,15 +393,7 @@ impl Datasets {
             return Ok(found);
         }
         let key = format!("hdf5/{}/{}", record.task, record.version);
-        let gate = self
-            .in_flight
-            .lock()
-            .expect("in-flight map")
-            .entry(key.clone())
-            .or_default()
-            .clone();
-        let turn = gate.lock().await;
-        let result = async {
+        self.one_at_a_time(key, async {
             if let Some(found) = self.db.hdf5_export(&record.task, &record.version).await? {
                 return Ok(found);
             }
@@ -407,16 +415,7 @@ impl Datasets {
             .map_err(ApiError::internal)?
             .map_err(|e| ApiError::Internal(format!("converting {} to HDF5: {e}", record.version)))?;
             let object = objects::hdf5_key(&digest);
-            let renamed = match &self.local_objects {
-                Some(root) => objects::rename_into(root, out.path(), &object)
-                    .await
-                    .map_err(ApiError::internal)?,
-                None => None,
-            };
-            let stored = match renamed {
-                Some(stored) => stored,
-                None => objects::upload_file(self.store.as_ref(), out.path(), &object).await?,
-            };
+            let stored = self.store_file(out.path(), &object).await?;
             if stored != size {
                 return Err(ApiError::Internal(format!(
                     "stored {object} has {stored} bytes, expected {size}"
@@ -428,11 +427,8 @@ impl Datasets {
             tracing::info!(task = %record.task, version = %record.version, digest, bytes = size,
                 seconds = started.elapsed().as_secs_f64(), "exported a version as DSRL HDF5");
             Ok((digest, size))
-        }
-        .await;
-        self.in_flight.lock().expect("in-flight map").remove(&key);
-        drop(turn);
-        result
+        })
+        .await
     }
 
     /// The bytes of a stored HDF5 export, or a byte range of them.
