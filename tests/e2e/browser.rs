@@ -5,7 +5,7 @@
 //! page.
 
 use crate::dsrl_download::starters;
-use crate::leaderboard::chromium;
+use crate::leaderboard::{chromium, pixels_of_colour};
 use crate::{Env, block_on, s};
 
 fn dom(url: &str) -> String {
@@ -63,18 +63,10 @@ fn the_dataset_browser_lists_every_task_and_its_card_plans_filters() {
             &card_url,
         ],
     );
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&shot).unwrap()));
-    let mut reader = decoder.read_info().unwrap();
-    let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
-    let frame = reader.next_frame(&mut pixels).unwrap();
-    let channels = frame.color_type.samples();
-    let count = |rgb: [u8; 3]| {
-        pixels[..frame.buffer_size()]
-            .chunks(channels)
-            .filter(|p| p[..3] == rgb)
-            .count()
-    };
-    let (kept, outliers) = (count([30, 144, 255]), count([255, 99, 71]));
+    let (kept, outliers) = (
+        pixels_of_colour(&shot, [30, 144, 255]),
+        pixels_of_colour(&shot, [255, 99, 71]),
+    );
     assert!(
         kept > 100 && outliers > 10,
         "the plot did not render: {kept} blue, {outliers} red pixels"

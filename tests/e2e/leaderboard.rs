@@ -565,24 +565,29 @@ fn page_in_chromium(url: &str, entries: &[&str]) {
             url,
         ],
     );
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&shot).unwrap()));
+    // Each marker is a filled circle of radius 5: dozens of pixels of its exact colour.
+    let (safe, unsafe_) = (
+        pixels_of_colour(&shot, [30, 144, 255]),
+        pixels_of_colour(&shot, [220, 60, 40]),
+    );
+    assert!(
+        safe + unsafe_ >= 20 * entries.len(),
+        "the plot's markers did not render: {safe} blue, {unsafe_} red pixels"
+    );
+}
+
+/// How many pixels of a PNG screenshot have exactly the colour `rgb`.
+pub(crate) fn pixels_of_colour(png_file: &Path, rgb: [u8; 3]) -> usize {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(png_file).unwrap()));
     let mut reader = decoder.read_info().unwrap();
     let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
     let frame = reader.next_frame(&mut pixels).unwrap();
     let channels = frame.color_type.samples();
     assert!(channels >= 3, "{:?}", frame.color_type);
-    let marker = |rgb: [u8; 3]| {
-        pixels[..frame.buffer_size()]
-            .chunks(channels)
-            .filter(|p| p[..3] == rgb)
-            .count()
-    };
-    // Each marker is a filled circle of radius 5: dozens of pixels of its exact colour.
-    let (safe, unsafe_) = (marker([30, 144, 255]), marker([220, 60, 40]));
-    assert!(
-        safe + unsafe_ >= 20 * entries.len(),
-        "the plot's markers did not render: {safe} blue, {unsafe_} red pixels"
-    );
+    pixels[..frame.buffer_size()]
+        .chunks(channels)
+        .filter(|p| p[..3] == rgb)
+        .count()
 }
 
 fn reqwest_text(url: &str) -> String {

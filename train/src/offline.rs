@@ -183,6 +183,11 @@ pub(crate) mod tests {
         (first, last)
     }
 
+    /// The values of the first variable of `vars` (a network's first weight matrix): what determinism tests compare.
+    pub(crate) fn first_weights(vars: Vec<(String, dsrl_policy::Var)>) -> Vec<f32> {
+        vars[0].1.as_tensor().flatten_all().unwrap().to_vec1().unwrap()
+    }
+
     pub(crate) fn figure(figures: &[(&'static str, f64)], name: &str) -> f64 {
         figures
             .iter()
