@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Creates the pinned Python environment the tests use (.venv at the repository root) from nothing.
-# Idempotent: re-running only installs what tests/python/requirements*.txt add or change.
+# Creates the pinned Python environments the tests use from nothing: .venv (tests/python/requirements*.txt) and
+# .venv-numpy2 (tests/python/requirements-numpy2.txt: the Python package under NumPy 2.x).
+# Idempotent: re-running only installs what those files add or change.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python=${PYTHON:-python3}
@@ -13,5 +14,15 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setting up the test Python environment (.venv) from tests/python/requirements*.txt" >&2
   .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
   .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r tests/python/requirements-nodeps.txt
+  echo "$want" > "$stamp"
+fi
+if [ ! -x .venv-numpy2/bin/python ]; then
+  "$python" -m venv .venv-numpy2
+fi
+stamp=.venv-numpy2/.requirements.sha256
+want=$(sha256sum < tests/python/requirements-numpy2.txt | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "setting up .venv-numpy2 from tests/python/requirements-numpy2.txt" >&2
+  .venv-numpy2/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements-numpy2.txt
   echo "$want" > "$stamp"
 fi

@@ -17,6 +17,7 @@ mod hosted;
 mod http;
 mod ingest;
 mod leaderboard;
+mod python_package;
 mod s3;
 mod simulators;
 mod starter;

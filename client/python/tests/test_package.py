@@ -1,0 +1,153 @@
+"""The Python package against a real dsrl-server process (started by tests/e2e/python_package.rs, which passes
+it in the environment):
+
+    DSRL_SERVER          the server, with the golden datasets of suite/tests/it/golden/filters.json ingested
+    DSRL_DATASET_DIR     an empty cache for this run
+    DSRL_TEST_VERSIONS   JSON {golden dataset name: {"task", "version"}}
+    DSRL_GOLDEN          suite/tests/it/golden/filters.json: DSRL's own pre_process_data outputs (sha256 per array)
+"""
+import hashlib
+import json
+import os
+import random
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import dsrl_client
+from dsrl_client import DsrlError
+
+VERSIONS = json.loads(os.environ["DSRL_TEST_VERSIONS"])
+GOLDEN = json.load(open(os.environ["DSRL_GOLDEN"]))
+KEYS = ["observations", "next_observations", "actions", "rewards", "costs", "terminals", "timeouts"]
+
+
+def digest(array):
+    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
+
+
+def test_load_dataset_has_dsrls_keys_dtypes_and_shapes_and_equals_the_parquet_file():
+    pq = pytest.importorskip("pyarrow.parquet")
+    ball = VERSIONS["ball"]
+    data = dsrl_client.load_dataset(ball["task"], ball["version"], progress=False)
+    info = dsrl_client.task(ball["task"])
+    rows = len(data["rewards"])
+    assert sorted(data) == sorted(KEYS)
+    assert data["observations"].shape == (rows, info["obs_dim"]) and data["observations"].dtype == np.float32
+    assert data["next_observations"].shape == (rows, info["obs_dim"])
+    assert data["actions"].shape == (rows, info["act_dim"]) and data["actions"].dtype == np.float32
+    for key in ["rewards", "costs"]:
+        assert data[key].shape == (rows,) and data[key].dtype == np.float32
+    for key in ["terminals", "timeouts"]:
+        assert data[key].shape == (rows,) and data[key].dtype == np.bool_
+    assert data["observations"].flags.writeable
+    # The file in the shared cache, read independently with pyarrow.
+    assert data.path.startswith(os.environ["DSRL_DATASET_DIR"])
+    table = pq.read_table(data.path)
+    for key, width in [("observations", info["obs_dim"]), ("next_observations", info["obs_dim"]),
+                       ("actions", info["act_dim"])]:
+        expected = table.column(key).combine_chunks().flatten().to_numpy().reshape(-1, width)
+        np.testing.assert_array_equal(data[key], expected)
+    for key in ["rewards", "costs", "terminals", "timeouts"]:
+        np.testing.assert_array_equal(data[key], table.column(key).to_numpy(zero_copy_only=False))
+    assert data.version == ball["version"] and data.task == ball["task"]
+
+
+def test_a_cached_version_loads_without_any_request():
+    car = VERSIONS["car"]
+    first = dsrl_client.load_dataset(car["task"], car["version"], progress=False)
+    # Nothing listens on port 9: any request would fail with DsrlError("unreachable").
+    report = dsrl_client.fetch(car["task"], car["version"], server="http://127.0.0.1:9", progress=False)
+    assert report["cache_hit"] and report["downloaded_bytes"] == 0
+    again = dsrl_client.load_dataset(car["task"], car["version"], server="http://127.0.0.1:9", progress=False)
+    for key in KEYS:
+        np.testing.assert_array_equal(first[key], again[key])
+    with pytest.raises(DsrlError) as e:
+        dsrl_client.load_dataset(car["task"], "latest", server="http://127.0.0.1:9", progress=False)
+    assert e.value.code == "unreachable" and e.value.status is None
+
+
+def test_a_bad_filter_raises_with_the_servers_code_and_message():
+    ball = VERSIONS["ball"]
+    with pytest.raises(DsrlError) as e:
+        dsrl_client.load_dataset(ball["task"], ball["version"], filter="noise=2", progress=False)
+    assert e.value.status == 400, vars(e.value)
+    assert "outliers_percent=2 is outside (0, 1]" in e.value.message
+    assert "valid keys" in str(e.value)
+    with pytest.raises(DsrlError) as e:
+        dsrl_client.load_dataset("OfflineNoSuchTask-v0", progress=False)
+    assert e.value.status == 404 and e.value.exit_code == 4
+
+
+def test_gym_make_gives_dsrls_env_interface():
+    ball = VERSIONS["ball"]
+    env = gym.make(ball["task"], version=ball["version"])
+    assert isinstance(env, dsrl_client.OfflineEnv)
+    data = env.get_dataset()
+    assert data.version == ball["version"]
+    env.set_target_cost(20)
+    info = dsrl_client.task(ball["task"])
+    r, c = env.get_normalized_score(info["max_episode_reward"], 10.0)
+    assert (r, c) == (1.0, 0.5)
+    env.set_target_cost(0)
+    assert env.get_normalized_score(0.0, 1.0)[1] == 2.0  # DSRL adds one to both when the target is 0
+    # No filter: the same arrays back, as DSRL's reassembly gives equal arrays.
+    same = env.pre_process_data(data)
+    for key in KEYS:
+        np.testing.assert_array_equal(same[key], data[key])
+
+
+def test_pre_process_data_refuses_what_the_server_cannot_have_served():
+    ball = VERSIONS["ball"]
+    env = gym.make(ball["task"], version=ball["version"])
+    data = env.get_dataset()
+    with pytest.raises(TypeError, match="get_dataset"):
+        env.pre_process_data(dict(data), density=0.5)
+    data["rewards"] = data["rewards"] * 2
+    with pytest.raises(ValueError, match="changed after it was served"):
+        env.pre_process_data(data, density=0.5)
+    with pytest.raises(AssertionError, match="set_target_cost"):
+        env.pre_process_data(env.get_dataset(), outliers_percent=0.05)
+
+
+def test_the_env_without_its_simulator_names_the_pip_packages():
+    pytest.importorskip("dsrl_client")
+    try:
+        import dsrl_sim  # noqa: F401
+        pytest.skip("the simulator adapter is installed here")
+    except ImportError:
+        pass
+    env = gym.make("OfflineCarCircle1Gymnasium-v0")
+    with pytest.raises(dsrl_client.SimulatorMissing, match="safety-gymnasium==1.0.0"):
+        env.reset(seed=0)
+    with pytest.raises(dsrl_client.SimulatorMissing, match="metadrive-simulator==0.4.3"):
+        gym.make("OfflineMetadrive-easysparse-v0").reset(seed=0)
+
+
+CASES = [c for c in GOLDEN["cases"] if c["dataset"] in VERSIONS]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[f"{c['dataset']}:{c['filter']}" for c in CASES])
+def test_pre_process_data_equals_dsrls_own_output(case):
+    """DSRL's `pre_process_data` (0.1.0 with the current bounds, tests/golden/make_golden.py) on the same dataset,
+    called the way DSRL users call it; the server's filtered version must be its output bit for bit."""
+    source = VERSIONS[case["dataset"]]
+    env = gym.make(source["task"], version=source["version"])
+    data = env.get_dataset()
+    target = case["target_cost"]
+    env.set_target_cost(target if target is not None else env.cost_thresholds[0])
+    expected = case["expected"]
+    random.seed(12345)  # the package never draws from Python's global random: `seed` is explicit
+    kwargs = dict(case["kwargs"])
+    if "inpaint_ranges" in kwargs:
+        kwargs["inpaint_ranges"] = [tuple(r) for r in kwargs["inpaint_ranges"]]
+    if "error" in expected:
+        with pytest.raises((DsrlError, AssertionError)):
+            env.pre_process_data(data, **kwargs, seed=case["seed"])
+        return
+    out = env.pre_process_data(data, **kwargs, seed=case["seed"])
+    assert len(out["rewards"]) == expected["rows"]
+    assert int(np.sum(out["terminals"] | out["timeouts"])) == expected["episodes"]
+    for key in KEYS:
+        assert digest(out[key]) == expected["sha256"][key], key

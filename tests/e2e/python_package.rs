@@ -1,0 +1,189 @@
+//! The Python package (`client/python`, maturin + pyo3) against a real server process: the wheel is built here
+//! with maturin as `pip install ./client/python` builds it, installed into a scratch folder, and its pytest suite
+//! (`client/python/tests`) runs under two interpreters of the repository:
+//! - `.venv` (CPython 3.11, NumPy 1.24, gymnasium 0.29, DSRL's pins): the whole suite, including `pre_process_data`
+//!   against DSRL's own golden outputs (`suite/tests/it/golden/filters.json`) on the same synthetic datasets;
+//! - `.venv-numpy2` (NumPy 2.x, gymnasium 1.x): the loading, caching and error tests.
+//!
+//! The real simulator behind `gym.make` is checked in `.venv-sim` (the workers' simulators) against the workers'
+//! adapter stepped directly. Only CPython 3.11 exists on this machine: the wheel targets the stable ABI from 3.9
+//! (`abi3-py39`), but 3.9, 3.10 and 3.12 are not exercised here.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use crate::Env;
+
+/// The golden datasets of the filter fixtures: (name, task, episodes, seed), as `tests/golden/make_golden.py`.
+const GOLDEN_DATASETS: [(&str, &str, usize, u64); 5] = [
+    ("ball", "OfflineBallRun-v0", 600, 11),
+    ("car", "OfflineCarCircle-v0", 400, 12),
+    ("ant", "OfflineAntRun-v0", 250, 13),
+    ("goal", "OfflinePointGoal1Gymnasium-v0", 40, 14),
+    ("drive", "OfflineMetadrive-easydense-v0", 20, 15),
+];
+
+/// Builds the wheel in the test's own profile (sharing the workspace's target folder) and unpacks it into `site`.
+fn install_wheel(dir: &Path) -> PathBuf {
+    let root = dsrl_e2e::repo_root();
+    let maturin = root.join(".venv/bin/maturin");
+    assert!(
+        maturin.exists(),
+        "{} missing: run scripts/setup-python.sh",
+        maturin.display()
+    );
+    let wheels = dir.join("wheels");
+    let release = std::env::current_exe()
+        .unwrap()
+        .ancestors()
+        .any(|p| p.file_name().is_some_and(|n| n == "release"));
+    let mut build = Command::new(&maturin);
+    build
+        .args(["build", "--quiet", "-m", "client/python/Cargo.toml", "-o"])
+        .arg(&wheels)
+        .arg("-i")
+        .arg(dsrl_e2e::python())
+        .current_dir(&root);
+    if release {
+        build.arg("--release");
+    } else {
+        build.args(["--profile", "dev"]);
+    }
+    run(&mut build, "maturin build");
+    let wheel = std::fs::read_dir(&wheels)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e == "whl"))
+        .expect("a wheel");
+    assert!(
+        wheel.to_str().unwrap().contains("abi3"),
+        "the wheel targets the stable ABI: {}",
+        wheel.display()
+    );
+    let site = dir.join("site");
+    let mut install = Command::new(dsrl_e2e::python());
+    install
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "--no-deps",
+            "--target",
+        ])
+        .arg(&site)
+        .arg(&wheel);
+    run(&mut install, "pip install");
+    site
+}
+
+/// The `N passed` count of pytest's summary line.
+fn passed(out: &str) -> usize {
+    let words: Vec<&str> = out.split_whitespace().collect();
+    words
+        .windows(2)
+        .rev()
+        .find(|w| w[1].trim_end_matches(',') == "passed")
+        .and_then(|w| w[0].parse().ok())
+        .unwrap_or_else(|| panic!("no pytest summary in:\n{out}"))
+}
+
+fn run(command: &mut Command, what: &str) -> String {
+    let out = command.output().unwrap_or_else(|e| panic!("{what}: {e}"));
+    let text = format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{what} failed:\n{text}");
+    text
+}
+
+#[test]
+fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
+    let env = Env::new();
+    let site = install_wheel(env.dir.path());
+    let mut versions = serde_json::Map::new();
+    for (name, task, episodes, seed) in GOLDEN_DATASETS {
+        let version = env.ingest_synthetic(task, episodes, seed);
+        versions.insert(name.into(), serde_json::json!({"task": task, "version": version}));
+    }
+    let versions = serde_json::Value::Object(versions).to_string();
+    let root = dsrl_e2e::repo_root();
+    let golden = root.join("suite/tests/it/golden/filters.json");
+    let pytest = |python: &Path, cache: &str, select: Option<&str>| {
+        let mut command = Command::new(python);
+        command
+            .args([
+                "-m",
+                "pytest",
+                "-q",
+                "-p",
+                "no:cacheprovider",
+                "client/python/tests/test_package.py",
+            ])
+            .args(select.map(|s| vec!["-k", s]).unwrap_or_default())
+            .env("PYTHONPATH", &site)
+            .env("DSRL_SERVER", &env.server.url)
+            .env("DSRL_DATASET_DIR", env.path(cache))
+            .env("DSRL_TEST_VERSIONS", &versions)
+            .env("DSRL_GOLDEN", &golden)
+            .current_dir(&root);
+        run(&mut command, &format!("pytest with {}", python.display()))
+    };
+    let out = pytest(&dsrl_e2e::python(), "cache-numpy1", None);
+    // Every test ran, one per golden case among them: none skipped.
+    let golden_cases = serde_json::from_slice::<serde_json::Value>(&std::fs::read(&golden).unwrap()).unwrap()["cases"]
+        .as_array()
+        .unwrap()
+        .len();
+    assert_eq!(passed(&out), 6 + golden_cases, "{out}");
+    assert!(!out.contains("skipped"), "{out}");
+
+    let numpy2 = root.join(".venv-numpy2/bin/python");
+    assert!(
+        numpy2.exists(),
+        "{} missing: run scripts/setup-python.sh",
+        numpy2.display()
+    );
+    let out = pytest(
+        &numpy2,
+        "cache-numpy2",
+        Some("load_dataset or cached or bad_filter or gym_make or refuses or simulator"),
+    );
+    assert_eq!(passed(&out), 6, "{out}");
+
+    // The same cache serves the CLI: what Python fetched is a cache hit for `dsrl-client fetch`.
+    let ball = serde_json::from_str::<serde_json::Value>(&versions).unwrap()["ball"]["version"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let cli = env.server.cli(&env.path("cache-numpy1"));
+    let fetched = cli
+        .run(&["--json", "fetch", "OfflineBallRun-v0", "--version", &ball])
+        .ok()
+        .json();
+    assert_eq!(fetched["cache_hit"], true, "{fetched}");
+}
+
+#[test]
+fn gym_make_steps_the_same_simulator_the_workers_host() {
+    let dir = tempfile::tempdir().unwrap();
+    let site = install_wheel(dir.path());
+    let root = dsrl_e2e::repo_root();
+    let python = root.join(".venv-sim/bin/python");
+    assert!(python.exists(), "{} missing: run sim/setup.sh", python.display());
+    let path = std::env::join_paths([site, root.join("sim/python")]).unwrap();
+    let mut command = Command::new(python);
+    command
+        .arg("client/python/tests/simulator_check.py")
+        .env("PYTHONPATH", path)
+        .env("PYTHONWARNINGS", "ignore")
+        .current_dir(&root);
+    let out = run(&mut command, "simulator_check.py");
+    let report: serde_json::Value = serde_json::from_str(out.lines().find(|l| l.starts_with('{')).unwrap()).unwrap();
+    assert_eq!(report["steps"], 25, "{report}");
+    assert_eq!(report["same_as_worker_adapter"], true, "{report}");
+    assert_eq!(report["truncated_at"], report["horizon"], "{report}");
+}
