@@ -11,6 +11,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::OnceLock;
 
 use crate::Env;
 
@@ -22,6 +23,17 @@ const GOLDEN_DATASETS: [(&str, &str, usize, u64); 5] = [
     ("goal", "OfflinePointGoal1Gymnasium-v0", 40, 14),
     ("drive", "OfflineMetadrive-easydense-v0", 20, 15),
 ];
+
+/// The wheel, built once per test process and unpacked into a scratch `site` folder both tests put on PYTHONPATH.
+fn installed_wheel() -> &'static Path {
+    static SITE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    let (_, site) = SITE.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let site = install_wheel(dir.path());
+        (dir, site)
+    });
+    site
+}
 
 /// Builds the wheel in the test's own profile (sharing the workspace's target folder) and unpacks it into `site`.
 fn install_wheel(dir: &Path) -> PathBuf {
@@ -103,7 +115,7 @@ fn run(command: &mut Command, what: &str) -> String {
 #[test]
 fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
     let env = Env::new();
-    let site = install_wheel(env.dir.path());
+    let site = installed_wheel();
     let mut versions = serde_json::Map::new();
     for (name, task, episodes, seed) in GOLDEN_DATASETS {
         let version = env.ingest_synthetic(task, episodes, seed);
@@ -124,7 +136,7 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
                 "client/python/tests/test_package.py",
             ])
             .args(select.map(|s| vec!["-k", s]).unwrap_or_default())
-            .env("PYTHONPATH", &site)
+            .env("PYTHONPATH", site)
             .env("DSRL_SERVER", &env.server.url)
             .env("DSRL_DATASET_DIR", env.path(cache))
             .env("DSRL_TEST_VERSIONS", &versions)
@@ -169,12 +181,11 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
 
 #[test]
 fn gym_make_steps_the_same_simulator_the_workers_host() {
-    let dir = tempfile::tempdir().unwrap();
-    let site = install_wheel(dir.path());
+    let site = installed_wheel();
     let root = dsrl_e2e::repo_root();
     let python = root.join(".venv-sim/bin/python");
     assert!(python.exists(), "{} missing: run sim/setup.sh", python.display());
-    let path = std::env::join_paths([site, root.join("sim/python")]).unwrap();
+    let path = std::env::join_paths([site, &root.join("sim/python")]).unwrap();
     let mut command = Command::new(python);
     command
         .arg("client/python/tests/simulator_check.py")

@@ -101,6 +101,16 @@ fn catalog_json() -> PyResult<String> {
     serde_json::to_string(catalog.tasks()).map_err(|e| PyException::new_err(e.to_string()))
 }
 
+/// One task of the embedded catalog, as JSON; an unknown id raises `KeyError` with the catalog's nearest ids.
+#[pyfunction]
+fn task_json(id: &str) -> PyResult<String> {
+    let catalog = Catalog::embedded().map_err(|e| PyException::new_err(e.to_string()))?;
+    let task = catalog
+        .get(id)
+        .map_err(|e| pyo3::exceptions::PyKeyError::new_err(e.to_string()))?;
+    serde_json::to_string(task).map_err(|e| PyException::new_err(e.to_string()))
+}
+
 /// Makes `task`'s version (id or tag; with a DSRL filter, the filtered version the server derives) complete and
 /// verified in the cache, downloading or resuming only what is missing. Returns the fetch outcome and the
 /// version's manifest as JSON.
@@ -216,6 +226,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(default_server, m)?)?;
     m.add_function(wrap_pyfunction!(default_cache_dir, m)?)?;
     m.add_function(wrap_pyfunction!(catalog_json, m)?)?;
+    m.add_function(wrap_pyfunction!(task_json, m)?)?;
     m.add_function(wrap_pyfunction!(fetch, m)?)?;
     m.add_function(wrap_pyfunction!(read_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(submit, m)?)?;

@@ -112,7 +112,6 @@ def test_pre_process_data_refuses_what_the_server_cannot_have_served():
 
 
 def test_the_env_without_its_simulator_names_the_pip_packages():
-    pytest.importorskip("dsrl_client")
     try:
         import dsrl_sim  # noqa: F401
         pytest.skip("the simulator adapter is installed here")

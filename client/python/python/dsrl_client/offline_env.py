@@ -104,12 +104,8 @@ class OfflineEnv(gym.Env):
         if outliers_percent is not None:
             parts.append(f"outliers_percent={_number(outliers_percent)}")
         if inpaint_ranges is not None:
-            ranges = [tuple(r) for r in inpaint_ranges]
-            if len(ranges) != 1 or len(ranges[0]) != 4:
-                # The server explains why it takes exactly one range.
-                parts.append("inpaint=" + ";".join(":".join(_number(v) for v in r) for r in ranges))
-            else:
-                parts.append("inpaint=" + ":".join(_number(v) for v in ranges[0]))
+            # Several ranges are sent as given: the server explains why it takes exactly one.
+            parts.append("inpaint=" + ";".join(":".join(_number(v) for v in r) for r in inpaint_ranges))
         if epsilon is not None:
             parts.append(f"epsilon={_number(epsilon)}")
         if outliers_percent is not None or epsilon is not None:
