@@ -9,8 +9,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Context;
-use dsrl_server::config::SimulatorsConfig;
-use dsrl_server::simulators::SimulatorPool;
+use dsrl_evaluation::SimulatorsConfig;
+use dsrl_evaluation::simulators::SimulatorPool;
 use dsrl_suite::catalog::{ObservationSpace, Task};
 use dsrl_suite::collection::{Stored, TrajectoryBuffer, filter_points};
 use dsrl_suite::convert::{Converted, ImportError, write_canonical};

@@ -1,7 +1,7 @@
 //! Episodes of one sweep setting, stepped through a pooled simulator session.
 
+use dsrl_evaluation::simulators::SimulatorPool;
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
-use dsrl_server::simulators::SimulatorPool;
 use dsrl_suite::transitions::TransitionChunk;
 
 use crate::recipe::{Recipe, Setting};

@@ -4,9 +4,9 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 use dsrl_client::api::{Client, IngestOptions};
+use dsrl_evaluation::SimulatorsConfig;
 use dsrl_pipeline::build::Run;
 use dsrl_pipeline::recipe::Recipe;
-use dsrl_server::config::SimulatorsConfig;
 use dsrl_suite::Catalog;
 
 #[derive(Parser, Debug)]
@@ -125,8 +125,8 @@ fn cores() -> u32 {
 }
 
 async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
+    use dsrl_evaluation::evaluator;
     use dsrl_policy::{Policy, checkpoint};
-    use dsrl_server::evaluator;
     let catalog = Catalog::embedded()?;
     let (config, tensors) = checkpoint::read(&args.policy)?;
     let task = catalog.get(&config.task)?.clone();
@@ -143,7 +143,7 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
         _ => vec![(task.cost_thresholds[0], task.cost_thresholds.clone())],
     };
     let workers = args.workers.unwrap_or_else(cores).max(1);
-    let pool = dsrl_server::simulators::SimulatorPool::start(&SimulatorsConfig {
+    let pool = dsrl_evaluation::simulators::SimulatorPool::start(&SimulatorsConfig {
         local_workers: workers,
         worker_binary: args.worker_binary.clone(),
         ..SimulatorsConfig::default()
@@ -166,7 +166,7 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
         let scores = evaluator::play_episodes(
             &pool,
             &task,
-            dsrl_server::inference::PolicySource::Local(&policy),
+            dsrl_evaluation::inference::PolicySource::Local(&policy),
             *played_at,
             &seeds,
             envs_per_session,

@@ -4,6 +4,7 @@
 
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use dsrl_evaluation::EvaluationError;
 use dsrl_suite::UnknownTask;
 use serde::Serialize;
 
@@ -192,6 +193,17 @@ impl From<sqlx::Error> for ApiError {
 impl From<object_store::Error> for ApiError {
     fn from(e: object_store::Error) -> Self {
         ApiError::Unavailable(format!("object store: {e}"))
+    }
+}
+
+impl From<EvaluationError> for ApiError {
+    fn from(e: EvaluationError) -> Self {
+        match e {
+            EvaluationError::NotFound(m) => ApiError::NotFound(m),
+            EvaluationError::InvalidArgument(m) => ApiError::InvalidArgument(m),
+            EvaluationError::Unavailable(m) => ApiError::Unavailable(m),
+            EvaluationError::Internal(m) => ApiError::Internal(m),
+        }
     }
 }
 

@@ -2,17 +2,16 @@
 //! with metadata in SQLite. `run(listener, config, shutdown)` is the whole server, so tests run it on port 0.
 //!
 //! Layout: `config` (layered settings), `error` (one error type, one status table), `storage` (object store,
-//! SQLite, the dataset service), `http` (REST routes), `grpc` (gRPC service), `starter` (datasets loaded at start).
+//! SQLite, the dataset service), `http` (REST routes), `grpc` (gRPC service), `starter` (datasets loaded at start),
+//! `leaderboard` (submissions, the job queue and its runner). Playing policies on the simulators is
+//! `dsrl-evaluation`'s.
 
 pub mod config;
 pub mod error;
-pub mod evaluator;
 pub mod grpc;
 pub mod http;
-pub mod inference;
 pub mod leaderboard;
 pub mod metrics;
-pub mod simulators;
 pub mod starter;
 pub mod storage;
 
@@ -31,10 +30,10 @@ use crate::config::Config;
 use crate::http::auth::AdminAuth;
 use crate::leaderboard::Leaderboard;
 use crate::metrics::Metrics;
-use crate::simulators::SimulatorPool;
 use crate::storage::converter::Converter;
 use crate::storage::datasets::{Datasets, DatasetsSetup};
 use crate::storage::db::Db;
+use dsrl_evaluation::simulators::SimulatorPool;
 
 /// What every handler shares.
 #[derive(Clone)]

@@ -4,8 +4,9 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
+use dsrl_evaluation::limit_memory;
 use dsrl_server::config::{Config, Overrides};
-use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_closes, limit_memory};
+use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_closes};
 
 /// Serve offline safe-RL datasets: the 38-task catalog, versioned Parquet datasets, downloads with resume.
 ///
@@ -69,7 +70,7 @@ fn main() -> std::process::ExitCode {
     if let Some(Internal::PlayPolicy { memory_limit }) = &args.command {
         // SAFETY: first thing in this process, before any other thread exists.
         unsafe { dsrl_policy::pin_candle_threads() };
-        return dsrl_server::inference::serve_child(*memory_limit);
+        return dsrl_evaluation::inference::serve_child(*memory_limit);
     }
     if let Some(Internal::Convert {
         task,

@@ -13,9 +13,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
+use dsrl_evaluation::simulators::{PooledSession, SimulatorPool};
 use dsrl_policy::noise::Noise;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
-use dsrl_server::simulators::{PooledSession, SimulatorPool};
 use dsrl_suite::catalog::{ObservationSpace, Task};
 use dsrl_suite::collection::{BufferSnapshot, Stored, TrajectoryBuffer};
 use dsrl_suite::convert::{ImportError, write_canonical};

@@ -120,7 +120,7 @@ pub fn check(task: &Task, files: Vec<(String, Bytes)>) -> Result<CheckedSubmissi
         let weights_bytes = weights_bytes.ok_or_else(|| bad(format!("{at}policy.safetensors is missing")))?;
         let in_slot = |e: String| bad(if slot.is_empty() { e } else { format!("{slot}: {e}") });
         let config = checkpoint::parse_config(&config_bytes).map_err(|e| in_slot(e.to_string()))?;
-        crate::evaluator::check_policy(task, &config).map_err(|e| in_slot(e.to_string()))?;
+        dsrl_evaluation::evaluator::check_policy(task, &config).map_err(|e| in_slot(e.to_string()))?;
         let tensors = checkpoint::parse_weights(&weights_bytes).map_err(|e| in_slot(e.to_string()))?;
         // Building the network checks every tensor's presence and shape against the declared architecture.
         Policy::load(&config, &tensors).map_err(|e| in_slot(e.to_string()))?;
@@ -190,7 +190,7 @@ fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Resul
             }
         }
     }
-    if let Some(missing) = crate::evaluator::uncovered_thresholds(task, &declared) {
+    if let Some(missing) = dsrl_evaluation::evaluator::uncovered_thresholds(task, &declared) {
         return Err(ApiError::InvalidArgument(format!(
             "no checkpoint for cost threshold {missing} of {} (per-threshold submissions cover {listed})",
             task.id

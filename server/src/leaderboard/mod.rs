@@ -30,7 +30,7 @@ use self::seeds::HeldSeeds;
 use self::users::User;
 use crate::config::LeaderboardConfig;
 use crate::error::ApiError;
-use crate::simulators::SimulatorPool;
+use dsrl_evaluation::simulators::SimulatorPool;
 
 pub struct Leaderboard {
     pub(crate) pool: SqlitePool,

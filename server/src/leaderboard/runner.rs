@@ -9,12 +9,12 @@ use std::time::Duration;
 use dsrl_policy::Policy;
 use dsrl_policy::checkpoint;
 
-use crate::inference::{IsolatedPolicy, PolicySource};
+use dsrl_evaluation::inference::{IsolatedPolicy, PolicySource};
 
 use super::Leaderboard;
 use super::queue::{self, EpisodeRow, Job};
 use crate::error::{ApiError, ErrorCode};
-use crate::evaluator::play_episodes;
+use dsrl_evaluation::evaluator::play_episodes;
 
 /// How a job ended.
 enum Outcome {

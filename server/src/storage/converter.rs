@@ -126,22 +126,3 @@ pub fn exit_when_stdin_closes() {
         std::process::exit(3);
     });
 }
-
-/// Caps the address space of the current process (Linux; a no-op elsewhere). Called first thing in the child,
-/// so an upload that makes the parser allocate without bound fails that child, not the machine.
-pub fn limit_memory(bytes: u64) {
-    #[cfg(target_os = "linux")]
-    {
-        let limit = libc::rlimit {
-            rlim_cur: bytes as libc::rlim_t,
-            rlim_max: bytes as libc::rlim_t,
-        };
-        // SAFETY: setrlimit with a valid pointer to an initialized struct.
-        let rc = unsafe { libc::setrlimit(libc::RLIMIT_AS, &limit) };
-        if rc != 0 {
-            eprintln!("converter: setrlimit failed: {}", std::io::Error::last_os_error());
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = bytes;
-}

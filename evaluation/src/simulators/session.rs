@@ -4,7 +4,7 @@ use dsrl_proto::simulator::v1::TaskSpec;
 use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
 use tonic::{Code, Status};
 
-use crate::error::ApiError;
+use crate::error::EvaluationError;
 
 /// A session on one pool worker. Every call has a deadline, and errors name the worker, so a worker that dies or
 /// hangs fails its sessions quickly and clearly instead of stalling an evaluation.
@@ -27,14 +27,16 @@ impl PooledSession {
 
     /// A worker's status as this server's error: the worker's own verdicts keep their meaning; a broken stream
     /// means the worker died.
-    pub(super) fn error(worker: &str, status: Status) -> ApiError {
+    pub(super) fn error(worker: &str, status: Status) -> EvaluationError {
         let message = format!("simulator worker {worker}: {}", status.message());
         match status.code() {
-            Code::NotFound => ApiError::NotFound(message),
-            Code::InvalidArgument | Code::FailedPrecondition | Code::OutOfRange => ApiError::InvalidArgument(message),
-            Code::ResourceExhausted | Code::Unavailable => ApiError::Unavailable(message),
-            Code::Internal => ApiError::Internal(message),
-            _ => ApiError::Unavailable(format!(
+            Code::NotFound => EvaluationError::NotFound(message),
+            Code::InvalidArgument | Code::FailedPrecondition | Code::OutOfRange => {
+                EvaluationError::InvalidArgument(message)
+            }
+            Code::ResourceExhausted | Code::Unavailable => EvaluationError::Unavailable(message),
+            Code::Internal => EvaluationError::Internal(message),
+            _ => EvaluationError::Unavailable(format!(
                 "simulator worker {worker} failed during the session: {}",
                 status.message()
             )),
@@ -54,21 +56,21 @@ impl PooledSession {
         &self.initial_observations
     }
 
-    pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, ApiError> {
+    pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, EvaluationError> {
         let timeout = self.timeout;
         let worker = self.worker.clone();
         let call = self.session.step(envs, actions);
         deadline(&worker, timeout, "step", call).await
     }
 
-    pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, ApiError> {
+    pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, EvaluationError> {
         let timeout = self.timeout;
         let worker = self.worker.clone();
         let call = self.session.reset(envs, seeds);
         deadline(&worker, timeout, "reset", call).await
     }
 
-    pub async fn close(self) -> Result<(), ApiError> {
+    pub async fn close(self) -> Result<(), EvaluationError> {
         let (timeout, worker) = (self.timeout, self.worker.clone());
         deadline(&worker, timeout, "close", self.session.close()).await
     }
@@ -79,10 +81,10 @@ async fn deadline<T>(
     timeout: Duration,
     what: &str,
     call: impl Future<Output = Result<T, Status>>,
-) -> Result<T, ApiError> {
+) -> Result<T, EvaluationError> {
     match tokio::time::timeout(timeout, call).await {
         Ok(result) => result.map_err(|status| PooledSession::error(worker, status)),
-        Err(_) => Err(ApiError::Unavailable(format!(
+        Err(_) => Err(EvaluationError::Unavailable(format!(
             "simulator worker {worker} did not answer a {what} within {timeout:?}"
         ))),
     }

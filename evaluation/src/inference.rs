@@ -21,7 +21,7 @@ use bytes::{Buf, BufMut, Bytes, BytesMut};
 use dsrl_policy::{Policy, Rollout, checkpoint};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-use crate::error::ApiError;
+use crate::error::EvaluationError;
 
 const LOAD: u8 = 1;
 const START: u8 = 2;
@@ -53,12 +53,16 @@ pub enum Player<'a> {
     Child(Box<ChildPlayer>),
 }
 
-fn policy_error(e: impl std::fmt::Display) -> ApiError {
-    ApiError::Internal(format!("evaluating the policy: {e}"))
+fn policy_error(e: impl std::fmt::Display) -> EvaluationError {
+    EvaluationError::Internal(format!("evaluating the policy: {e}"))
 }
 
 impl<'a> Player<'a> {
-    pub async fn new(source: PolicySource<'a>, cost_threshold: f64, slots: usize) -> Result<Player<'a>, ApiError> {
+    pub async fn new(
+        source: PolicySource<'a>,
+        cost_threshold: f64,
+        slots: usize,
+    ) -> Result<Player<'a>, EvaluationError> {
         match source {
             PolicySource::Local(policy) => Ok(Player::Local(
                 policy.rollout(cost_threshold, slots).map_err(policy_error)?,
@@ -69,7 +73,7 @@ impl<'a> Player<'a> {
         }
     }
 
-    pub async fn start_episode(&mut self, slot: usize, seed: u64) -> Result<(), ApiError> {
+    pub async fn start_episode(&mut self, slot: usize, seed: u64) -> Result<(), EvaluationError> {
         match self {
             Player::Local(rollout) => rollout.start_episode(slot, seed).map_err(policy_error),
             Player::Child(child) => {
@@ -81,7 +85,7 @@ impl<'a> Player<'a> {
         }
     }
 
-    pub async fn act(&mut self, slots: &[u32], observations: &[f32]) -> Result<Vec<f32>, ApiError> {
+    pub async fn act(&mut self, slots: &[u32], observations: &[f32]) -> Result<Vec<f32>, EvaluationError> {
         match self {
             Player::Local(rollout) => rollout.act(slots, observations).map_err(policy_error),
             Player::Child(child) => {
@@ -97,7 +101,7 @@ impl<'a> Player<'a> {
         }
     }
 
-    pub async fn observe(&mut self, slots: &[u32], rewards: &[f64], costs: &[f64]) -> Result<(), ApiError> {
+    pub async fn observe(&mut self, slots: &[u32], rewards: &[f64], costs: &[f64]) -> Result<(), EvaluationError> {
         match self {
             Player::Local(rollout) => rollout.observe(slots, rewards, costs).map_err(policy_error),
             Player::Child(child) => {
@@ -125,7 +129,7 @@ pub struct ChildPlayer {
 }
 
 impl ChildPlayer {
-    async fn spawn(policy: &IsolatedPolicy, cost_threshold: f64, slots: usize) -> Result<ChildPlayer, ApiError> {
+    async fn spawn(policy: &IsolatedPolicy, cost_threshold: f64, slots: usize) -> Result<ChildPlayer, EvaluationError> {
         let mut child = tokio::process::Command::new(&policy.program)
             .arg("play-policy")
             .args(["--memory-limit", &policy.memory_limit_bytes.to_string()])
@@ -134,7 +138,9 @@ impl ChildPlayer {
             .stderr(Stdio::inherit())
             .kill_on_drop(true)
             .spawn()
-            .map_err(|e| ApiError::Internal(format!("starting {} play-policy: {e}", policy.program.display())))?;
+            .map_err(|e| {
+                EvaluationError::Internal(format!("starting {} play-policy: {e}", policy.program.display()))
+            })?;
         let stdin = child.stdin.take().expect("piped");
         let stdout = child.stdout.take().expect("piped");
         let mut player = ChildPlayer {
@@ -153,7 +159,7 @@ impl ChildPlayer {
         Ok(player)
     }
 
-    async fn call(&mut self, op: u8, payload: &[u8]) -> Result<Bytes, ApiError> {
+    async fn call(&mut self, op: u8, payload: &[u8]) -> Result<Bytes, EvaluationError> {
         match self.exchange(op, payload).await {
             Ok(Ok(answer)) => Ok(answer),
             // The policy itself failed (a shape it cannot handle): not worth a retry.
@@ -164,7 +170,7 @@ impl ChildPlayer {
                     Ok(Ok(status)) => status.to_string(),
                     _ => "no exit status".to_owned(),
                 };
-                Err(ApiError::InvalidArgument(format!(
+                Err(EvaluationError::InvalidArgument(format!(
                     "the policy process died while acting ({status}); a network that needs more than the \
                      {} MB memory limit cannot be scored",
                     self.memory_limit_bytes >> 20
@@ -208,7 +214,7 @@ pub fn serve_child(memory_limit_bytes: u64) -> std::process::ExitCode {
         }
         libc::setpriority(libc::PRIO_PROCESS, 0, 10);
     }
-    crate::storage::converter::limit_memory(memory_limit_bytes);
+    crate::limit_memory(memory_limit_bytes);
     let mut input = std::io::stdin().lock();
     let mut output = std::io::stdout().lock();
     // The first request loads the policy; every later one plays it.

@@ -14,10 +14,11 @@ use tonic::transport::{Channel, Endpoint};
 
 use super::session::PooledSession;
 use crate::config::SimulatorsConfig;
-use crate::error::ApiError;
+use crate::error::EvaluationError;
 
 /// A worker as `GET /v1/simulators` shows it.
-#[derive(Debug, Clone, Serialize, PartialEq, utoipa::ToSchema)]
+#[derive(Debug, Clone, Serialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct WorkerStatus {
     pub name: String,
     /// "local" (started and supervised by this server) or "remote".
@@ -200,13 +201,13 @@ impl SimulatorPool {
     }
 
     /// Opens a session on the healthy worker with the most free capacity.
-    pub async fn open(&self, open: Open) -> Result<PooledSession, ApiError> {
+    pub async fn open(&self, open: Open) -> Result<PooledSession, EvaluationError> {
         let num_envs = open.num_envs;
         let (slot, channel, name) = self.place(num_envs)?;
         let opened = tokio::time::timeout(self.request_timeout, SimulatorSession::open(channel, open)).await;
         let result = match opened {
             Ok(result) => result.map_err(|status| PooledSession::error(&name, status)),
-            Err(_) => Err(ApiError::Unavailable(format!(
+            Err(_) => Err(EvaluationError::Unavailable(format!(
                 "simulator worker {name} did not open a session within {:?}",
                 self.request_timeout
             ))),
@@ -228,7 +229,7 @@ impl SimulatorPool {
 
     /// Chooses the healthy worker with the most free capacity and reserves `num_envs` there; one placement at a
     /// time, so two concurrent opens never both see the same free capacity.
-    fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), ApiError> {
+    fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), EvaluationError> {
         let _one_at_a_time = self.placing.lock().expect("placement lock");
         let mut best: Option<(f64, Arc<Slot>, Channel, String)> = None;
         for slot in &self.slots {
@@ -260,7 +261,7 @@ impl SimulatorPool {
                         (None, false) => format!("{} starting", w.name),
                     })
                     .collect();
-                Err(ApiError::Unavailable(if workers.is_empty() {
+                Err(EvaluationError::Unavailable(if workers.is_empty() {
                     "no simulator workers are configured (simulators.local_workers / remote_workers)".to_owned()
                 } else {
                     format!(

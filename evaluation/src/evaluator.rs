@@ -10,7 +10,7 @@ use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
 
-use crate::error::ApiError;
+use crate::error::EvaluationError;
 use crate::inference::{Player, PolicySource};
 use crate::simulators::SimulatorPool;
 
@@ -24,15 +24,15 @@ pub struct EpisodeScore {
 }
 
 /// Checks a policy's declared task and dimensions against the catalog's task; the message says what differs.
-pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> {
+pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), EvaluationError> {
     if config.task != task.id.as_str() {
-        return Err(ApiError::InvalidArgument(format!(
+        return Err(EvaluationError::InvalidArgument(format!(
             "the policy was declared for {}, not {}",
             config.task, task.id
         )));
     }
     if (config.obs_dim, config.act_dim) != (task.obs_dim as usize, task.act_dim as usize) {
-        return Err(ApiError::InvalidArgument(format!(
+        return Err(EvaluationError::InvalidArgument(format!(
             "{} has observation dim {} and action dim {}; the policy declares {} and {}",
             task.id, task.obs_dim, task.act_dim, config.obs_dim, config.act_dim
         )));
@@ -40,7 +40,7 @@ pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> 
     if let Architecture::Cdt { episode_len, .. } = config.architecture
         && episode_len < task.max_episode_steps as usize
     {
-        return Err(ApiError::InvalidArgument(format!(
+        return Err(EvaluationError::InvalidArgument(format!(
             "{}'s episodes last up to {} steps; the cdt's timestep embedding covers episode_len = {episode_len}",
             task.id, task.max_episode_steps
         )));
@@ -51,11 +51,11 @@ pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), ApiError> 
     config
         .architecture
         .check_step_cost(input_dim, config.act_dim)
-        .map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+        .map_err(|e| EvaluationError::InvalidArgument(e.to_string()))?;
     if let Conditioning::ReturnsToGo { targets } = &config.conditioning {
         let covered: Vec<f64> = targets.iter().map(|t| t.cost_threshold).collect();
         if let Some(missing) = uncovered_thresholds(task, &covered) {
-            return Err(ApiError::InvalidArgument(format!(
+            return Err(EvaluationError::InvalidArgument(format!(
                 "returns_to_go declares no target for cost threshold {missing} of {}",
                 task.id
             )));
@@ -92,7 +92,7 @@ pub async fn play_episodes(
     seeds: &[u64],
     envs_per_session: usize,
     sessions: usize,
-) -> Result<Vec<EpisodeScore>, ApiError> {
+) -> Result<Vec<EpisodeScore>, EvaluationError> {
     let run = seeds.len().div_ceil(sessions.max(1)).max(1);
     let groups = seeds
         .chunks(run)
@@ -111,7 +111,7 @@ async fn play_group(
     cost_threshold: f64,
     seeds: &[u64],
     envs: usize,
-) -> Result<Vec<EpisodeScore>, ApiError> {
+) -> Result<Vec<EpisodeScore>, EvaluationError> {
     let k = seeds.len().min(envs);
     let mut rollout = Player::new(policy, cost_threshold, k).await?;
     for (env, &seed) in seeds[..k].iter().enumerate() {
