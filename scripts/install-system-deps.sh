@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config;
-# with --tests also what the tests need: chromium (the leaderboard page is checked in headless Chromium).
+# with --tests also what the tests need: chromium (the leaderboard page is checked in headless Chromium) and
+# postgresql (the replica tests start their own server in a temporary folder; the package's cluster is not used).
 # Idempotent: does nothing when they are present.
 set -euo pipefail
 "$(dirname "$0")/ensure-dev-null.sh"
@@ -9,6 +10,7 @@ dpkg -s libhdf5-dev >/dev/null 2>&1 || need+=(libhdf5-dev)
 dpkg -s pkg-config >/dev/null 2>&1 || need+=(pkg-config)
 if [ "${1:-}" = "--tests" ]; then
   dpkg -s chromium >/dev/null 2>&1 || need+=(chromium)
+  dpkg -s postgresql >/dev/null 2>&1 || need+=(postgresql)
 fi
 if [ ${#need[@]} -eq 0 ]; then
   exit 0

@@ -18,6 +18,7 @@ pub struct Config {
     pub datasets: DatasetsConfig,
     pub auth: AuthConfig,
     pub storage: StorageConfig,
+    pub database: DatabaseConfig,
     pub simulators: SimulatorsConfig,
     pub leaderboard: LeaderboardConfig,
 }
@@ -76,6 +77,40 @@ pub struct ServerConfig {
     pub listen: SocketAddr,
     /// SQLite database, temporary files and (for the local backend) the object store live here.
     pub data_dir: PathBuf,
+}
+
+/// Where the metadata (versions, tags, derivations, users, the leaderboard's job queue) lives.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatabaseConfig {
+    /// Unset: the embedded SQLite file `<data_dir>/dsrl.sqlite3`. `postgres://user:password@host/db`: a PostgreSQL
+    /// server, which several replicas (and evaluators) can share. `sqlite://PATH?mode=rwc` names another file.
+    pub url: Option<String>,
+    /// Connections this process keeps open.
+    pub max_connections: u32,
+}
+
+impl Default for DatabaseConfig {
+    fn default() -> Self {
+        DatabaseConfig {
+            url: None,
+            max_connections: 8,
+        }
+    }
+}
+
+/// `url` without its password, for logs and errors.
+pub fn redact_url(url: &str) -> String {
+    match (url.find("://"), url.rfind('@')) {
+        (Some(scheme), Some(at)) if at > scheme => {
+            let credentials = &url[scheme + 3..at];
+            match credentials.find(':') {
+                Some(colon) => format!("{}{}:***{}", &url[..scheme + 3], &credentials[..colon], &url[at..]),
+                None => url.to_owned(),
+            }
+        }
+        _ => url.to_owned(),
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -159,6 +194,7 @@ impl Default for Config {
                 backend: StorageBackend::Local,
                 s3: S3Config::default(),
             },
+            database: DatabaseConfig::default(),
             simulators: SimulatorsConfig::default(),
             leaderboard: LeaderboardConfig::default(),
         }

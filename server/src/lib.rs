@@ -53,15 +53,8 @@ pub struct AppState {
 pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Result<AppState> {
     let data_dir = &config.server.data_dir;
     std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
-    let catalog = match &config.catalog.tasks {
-        Some(path) => Catalog::load(path)?,
-        None => Catalog::embedded()?,
-    };
-    tracing::info!(tasks = catalog.tasks().len(), "task catalog loaded");
-    let catalog = Arc::new(catalog);
-    let db = Db::open(&data_dir.join("dsrl.sqlite3"))
-        .await
-        .context("opening the SQLite database")?;
+    let catalog = open_catalog(config)?;
+    let db = open_db(config).await?;
     let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
     let leaderboard_store = store.clone();
     let metrics = Arc::new(Metrics::new());
@@ -95,7 +88,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         None => http::auth::load_or_generate_secret(&data_dir.join("evaluation-secret"), "evaluation seed secret")?,
     };
     let leaderboard = Arc::new(Leaderboard::new(
-        datasets.db().pool().clone(),
+        datasets.db().clone(),
         leaderboard_store,
         catalog,
         simulators.clone(),
@@ -113,6 +106,100 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         max_upload_bytes: config.datasets.max_upload_bytes,
         dsrl_download_metadrive: config.datasets.dsrl_download_metadrive,
     })
+}
+
+fn open_catalog(config: &Config) -> anyhow::Result<Arc<Catalog>> {
+    let catalog = match &config.catalog.tasks {
+        Some(path) => Catalog::load(path)?,
+        None => Catalog::embedded()?,
+    };
+    tracing::info!(tasks = catalog.tasks().len(), "task catalog loaded");
+    Ok(Arc::new(catalog))
+}
+
+/// The metadata database: the embedded SQLite file, or the shared one `database.url` names. Processes that share
+/// a database must share their secrets too (the admin token, and the seed secret every evaluator derives the held
+/// episodes from), so those must be configured rather than generated into one process's data folder.
+async fn open_db(config: &Config) -> anyhow::Result<Db> {
+    let db = match &config.database.url {
+        None => Db::open(&config.server.data_dir.join("dsrl.sqlite3"))
+            .await
+            .context("opening the SQLite database")?,
+        Some(url) => Db::connect(url, config.database.max_connections)
+            .await
+            .with_context(|| format!("connecting to the database at {}", config::redact_url(url)))?,
+    };
+    if db.backend() == storage::db::Backend::Postgres {
+        anyhow::ensure!(
+            config.auth.admin_token.is_some() && config.leaderboard.seed_secret.is_some(),
+            "a shared PostgreSQL database needs auth.admin_token and leaderboard.seed_secret set \
+             (DSRL__AUTH__ADMIN_TOKEN, DSRL__LEADERBOARD__SEED_SECRET), the same in every replica and evaluator: \
+             generated ones would differ from process to process"
+        );
+    }
+    tracing::info!(backend = ?db.backend(), "metadata database open");
+    Ok(db)
+}
+
+/// The evaluator role (`dsrl-server evaluator`): a process that only claims leaderboard jobs from the shared
+/// database and plays them on its simulator workers (`leaderboard.evaluators` at once, at least one), scaled apart
+/// from the API replicas, which then run with `leaderboard.evaluators = 0`. It serves `/healthz` (database
+/// reachable) and `/metrics` (the queue depth) for its probes and nothing else; it ingests no starter datasets.
+/// `policy_program` is the `dsrl-server` binary submitted policies act in (`None`: in this process).
+pub async fn run_evaluator(
+    listener: tokio::net::TcpListener,
+    config: Config,
+    policy_program: Option<std::path::PathBuf>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    let data_dir = &config.server.data_dir;
+    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
+    let catalog = open_catalog(&config)?;
+    let db = open_db(&config).await?;
+    let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
+    let simulators = Arc::new(SimulatorPool::start(&config.simulators));
+    let seed_secret = match &config.leaderboard.seed_secret {
+        Some(secret) => secret.clone(),
+        None => http::auth::load_or_generate_secret(&data_dir.join("evaluation-secret"), "evaluation seed secret")?,
+    };
+    let mut leaderboard_config = config.leaderboard.clone();
+    leaderboard_config.evaluators = leaderboard_config.evaluators.max(1);
+    let leaderboard = Arc::new(Leaderboard::new(
+        db,
+        store,
+        catalog,
+        simulators,
+        leaderboard_config,
+        seed_secret,
+        policy_program,
+    ));
+    leaderboard::runner::spawn(leaderboard.clone());
+    let metrics = Arc::new(Metrics::new());
+    let probes = Router::new()
+        .route(
+            "/healthz",
+            axum::routing::get({
+                let leaderboard = leaderboard.clone();
+                move || async move {
+                    leaderboard
+                        .db
+                        .ping()
+                        .await
+                        .map(|()| "ok\n")
+                        .map_err(|e| error::ApiError::Unavailable(format!("database: {e}")))
+                }
+            }),
+        )
+        .route(
+            "/metrics",
+            axum::routing::get(move || async move {
+                http::metrics::refresh_queue_depth(&metrics, &leaderboard.db).await;
+                metrics.render()
+            }),
+        )
+        .fallback(http::not_found);
+    axum::serve(listener, probes).with_graceful_shutdown(shutdown).await?;
+    Ok(())
 }
 
 /// REST and gRPC routes with metrics, request tracing, and panics turned into 500s.

@@ -17,6 +17,9 @@ use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_c
 ///
 /// The admin token (for ingest and tags) is auth.admin_token, or else generated into <data_dir>/admin-token.
 /// On start the server prints one line "dsrl-server listening on http://ADDR" to stdout.
+///
+/// Several API replicas and evaluator processes can share one PostgreSQL database (database.url) and one S3
+/// bucket: see `dsrl-server evaluator --help` and deploy/README.md.
 #[derive(Debug, Parser)]
 #[command(version)]
 struct Args {
@@ -42,9 +45,14 @@ struct Args {
     command: Option<Internal>,
 }
 
-/// Internal commands the server runs itself.
+/// Roles other than the API, and internal commands the server runs itself.
 #[derive(Debug, Subcommand)]
 enum Internal {
+    /// Run as an evaluator only: claim leaderboard jobs from the shared database and play them on this process's
+    /// simulator workers, leaving the API to replicas started with DSRL__LEADERBOARD__EVALUATORS=0. Serves only
+    /// /healthz and /metrics on --listen. Takes the same configuration (database.url, storage, simulators,
+    /// leaderboard.seed_secret); prints "dsrl-server evaluator listening on http://ADDR".
+    Evaluator,
     /// Convert one upload to the canonical layout in this (child) process and answer with one JSON line.
     #[command(hide = true)]
     Convert {
@@ -139,6 +147,13 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     let config = Config::load(args.config.as_deref(), &overrides)?;
     let listener = tokio::net::TcpListener::bind(config.server.listen).await?;
     let addr = listener.local_addr()?;
+    if let Some(Internal::Evaluator) = args.command {
+        tracing::info!(%addr, "evaluator");
+        println!("dsrl-server evaluator listening on http://{addr}");
+        dsrl_server::run_evaluator(listener, config, Some(std::env::current_exe()?), shutdown_signal()).await?;
+        tracing::info!("stopped");
+        return Ok(());
+    }
     let converter = Converter::Subprocess {
         program: std::env::current_exe()?,
         memory_limit_bytes: config.datasets.converter_memory_limit_bytes,

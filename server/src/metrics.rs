@@ -36,6 +36,8 @@ pub struct Metrics {
     pub filters: Family<OutcomeLabels, Counter>,
     pub filter_seconds: Histogram,
     pub dataset_versions: Gauge,
+    /// Leaderboard jobs waiting for an evaluator (shared database: every replica reports the same number).
+    pub queue_depth: Gauge,
     /// Request handlers that panicked, by route (each also counts as a 500 / INTERNAL in `requests`).
     pub panics: Family<RouteLabels, Counter>,
 }
@@ -83,6 +85,12 @@ impl Metrics {
         );
         let dataset_versions = Gauge::default();
         registry.register("dataset_versions", "Hosted dataset versions", dataset_versions.clone());
+        let queue_depth = Gauge::default();
+        registry.register(
+            "evaluation_queue_depth",
+            "Leaderboard submissions waiting for an evaluator (queued, or running with a lapsed lease), read at scrape time",
+            queue_depth.clone(),
+        );
         let panics = Family::<RouteLabels, Counter>::default();
         registry.register(
             "panics",
@@ -99,6 +107,7 @@ impl Metrics {
             filters,
             filter_seconds,
             dataset_versions,
+            queue_depth,
         }
     }
 

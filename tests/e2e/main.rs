@@ -18,7 +18,9 @@ mod http;
 mod ingest;
 mod leaderboard;
 mod python_package;
+mod replicas;
 mod s3;
+mod services;
 mod simulators;
 mod starter;
 

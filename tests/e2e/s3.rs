@@ -1,49 +1,13 @@
 //! The S3 backend against a real S3-protocol server (moto, from the pinned Python environment) on loopback.
 
-use std::process::{Child, Command, Stdio};
-use std::time::Duration;
-
-use dsrl_e2e::{python, wait_for};
-
+use crate::services::Moto;
 use crate::{Env, sha256_file};
-
-struct Moto(Child);
-
-impl Drop for Moto {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 #[tokio::test]
 async fn datasets_live_in_s3_when_configured() {
-    let port = free_port();
-    let moto_server = python().with_file_name("moto_server");
-    let _moto = Moto(
-        Command::new(moto_server)
-            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("moto_server from the test environment"),
-    );
-    let endpoint = format!("http://127.0.0.1:{port}");
+    let moto = Moto::start("dsrl-datasets");
+    let endpoint = moto.endpoint.clone();
     let http = reqwest::Client::new();
-    let up = wait_for(Duration::from_secs(30), || {
-        std::net::TcpStream::connect(("127.0.0.1", port)).is_ok()
-    });
-    assert!(up, "moto did not start");
-    let created = http.put(format!("{endpoint}/dsrl-datasets")).send().await.unwrap();
-    assert!(created.status().is_success(), "{created:?}");
 
     let envs = [
         ("DSRL__STORAGE__BACKEND", "s3"),

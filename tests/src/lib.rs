@@ -176,9 +176,10 @@ fn spawn_server(data_dir: &Path, args: &[String], envs: &[(String, String)]) -> 
     BufReader::new(stdout)
         .read_line(&mut line)
         .expect("reading the server's first line");
-    let url = line
-        .trim()
-        .strip_prefix("dsrl-server listening on ")
+    // The API prints "dsrl-server listening on URL"; the evaluator role "dsrl-server evaluator listening on URL".
+    let url = ["dsrl-server listening on ", "dsrl-server evaluator listening on "]
+        .iter()
+        .find_map(|prefix| line.trim().strip_prefix(prefix))
         .unwrap_or_else(|| panic!("unexpected first line from dsrl-server: {line:?}"))
         .to_owned();
     (child, url)

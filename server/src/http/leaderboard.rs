@@ -35,7 +35,7 @@ pub async fn create_user(
     state.auth.check(&headers)?;
     let request: NewUserRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::InvalidArgument(format!("the body must be JSON {{\"name\": NAME}}: {e}")))?;
-    let user = users::create(&state.leaderboard.pool, &request.name).await?;
+    let user = users::create(&state.leaderboard.db, &request.name).await?;
     Ok((StatusCode::CREATED, Json(user)))
 }
 
@@ -86,7 +86,7 @@ async fn receive_submission(
     state: &AppState,
     request: Request,
 ) -> Result<(StatusCode, Json<SubmissionView>), ApiError> {
-    let user = users::authenticate(&state.leaderboard.pool, request.headers()).await?;
+    let user = users::authenticate(&state.leaderboard.db, request.headers()).await?;
     let mut form = Multipart::from_request(request, state)
         .await
         .map_err(|e| ApiError::InvalidArgument(format!("the body must be multipart/form-data: {}", e.body_text())))?;
@@ -160,7 +160,7 @@ pub async fn cancel_submission(
     headers: HeaderMap,
     Path(id): Path<String>,
 ) -> Result<impl IntoResponse, ApiError> {
-    let user = users::authenticate(&state.leaderboard.pool, &headers).await?;
+    let user = users::authenticate(&state.leaderboard.db, &headers).await?;
     Ok(Json(state.leaderboard.cancel(&user, submission_id(&id)?).await?))
 }
 

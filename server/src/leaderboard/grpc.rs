@@ -20,7 +20,7 @@ impl LeaderboardGrpc {
 
     async fn user<T>(&self, request: &Request<T>) -> Result<users::User, ApiError> {
         let headers = request.metadata().clone().into_headers();
-        users::authenticate(&self.state.leaderboard.pool, &headers).await
+        users::authenticate(&self.state.leaderboard.db, &headers).await
     }
 }
 

@@ -22,7 +22,6 @@ use dsrl_suite::score::NormalizedScore;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
 use serde::Serialize;
-use sqlx::SqlitePool;
 
 use self::checkpoints::CheckpointRecord;
 use self::queue::{EpisodeRow, Quotas};
@@ -30,10 +29,11 @@ use self::seeds::HeldSeeds;
 use self::users::User;
 use crate::config::LeaderboardConfig;
 use crate::error::ApiError;
+use crate::storage::db::Db;
 use dsrl_evaluation::simulators::SimulatorPool;
 
 pub struct Leaderboard {
-    pub(crate) pool: SqlitePool,
+    pub(crate) db: Db,
     pub(crate) store: Arc<dyn ObjectStore>,
     pub(crate) catalog: Arc<Catalog>,
     pub(crate) simulators: Arc<SimulatorPool>,
@@ -156,7 +156,7 @@ pub const BOOTSTRAP_SEED: u64 = 0;
 
 impl Leaderboard {
     pub fn new(
-        pool: SqlitePool,
+        db: Db,
         store: Arc<dyn ObjectStore>,
         catalog: Arc<Catalog>,
         simulators: Arc<SimulatorPool>,
@@ -165,7 +165,7 @@ impl Leaderboard {
         policy_program: Option<std::path::PathBuf>,
     ) -> Leaderboard {
         Leaderboard {
-            pool,
+            db,
             store,
             catalog,
             simulators,
@@ -217,7 +217,7 @@ impl Leaderboard {
             });
         }
         let id = queue::insert(
-            &self.pool,
+            &self.db,
             queue::NewSubmission {
                 user_id: user.id,
                 task: task.id.as_str(),
@@ -238,13 +238,13 @@ impl Leaderboard {
     }
 
     pub async fn cancel(&self, user: &User, id: i64) -> Result<SubmissionView, ApiError> {
-        queue::cancel(&self.pool, id, user.id).await?;
+        queue::cancel(&self.db, id, user.id).await?;
         self.view(id).await
     }
 
     pub async fn view(&self, id: i64) -> Result<SubmissionView, ApiError> {
-        let row = queue::get(&self.pool, id).await?;
-        let episodes = queue::episodes(&self.pool, id).await?;
+        let row = queue::get(&self.db, id).await?;
+        let episodes = queue::episodes(&self.db, id).await?;
         let task = self.task(&row.task)?;
         let thresholds = threshold_results(task, &episodes);
         Ok(SubmissionView {
@@ -282,7 +282,7 @@ impl Leaderboard {
         if let Some(task) = task {
             self.task(task)?;
         }
-        let standing = queue::standing(&self.pool).await?;
+        let standing = queue::standing(&self.db).await?;
         let mut tasks: Vec<TaskTable> = Vec::new();
         for t in self.catalog.tasks() {
             if task.is_some_and(|id| id != t.id.as_str()) {

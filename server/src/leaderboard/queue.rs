@@ -4,7 +4,9 @@
 //! so a job taken over by another evaluator is finished exactly once.
 
 use serde::{Deserialize, Serialize};
-use sqlx::{AssertSqlSafe, Row, SqlitePool};
+use sqlx::{AssertSqlSafe, Row};
+
+use crate::storage::db::Db;
 
 use super::checkpoints::CheckpointRecord;
 use crate::error::ApiError;
@@ -51,28 +53,23 @@ pub struct Quotas {
     pub concurrent: u32,
 }
 
-/// Inserts a queued submission after the dedupe and quota checks, in one transaction.
-pub async fn insert(pool: &SqlitePool, new: NewSubmission<'_>, quotas: &Quotas) -> Result<i64, ApiError> {
-    let mut tx = pool.begin().await?;
-    if let Some(row) = sqlx::query(
-        "SELECT id, state FROM submissions WHERE task = ?1 AND checkpoint_sha256 = ?2 AND state != 'cancelled'",
-    )
-    .bind(new.task)
-    .bind(new.checkpoint_sha256)
+/// Inserts a queued submission after the quota checks, in one transaction. The user's row is locked first, so
+/// two replicas inserting for one user check the quotas one after the other. Deduplication is the unique index
+/// `submissions_checkpoint`: a second live submission of a checkpoint fails the insert, whichever replica got it.
+pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<i64, ApiError> {
+    let mut tx = db.begin().await?;
+    sqlx::query(AssertSqlSafe(format!(
+        "SELECT id FROM users WHERE id = $1{}",
+        db.backend().for_update()
+    )))
+    .bind(new.user_id)
     .fetch_optional(&mut *tx)
-    .await?
-    {
-        let (id, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
-        return Err(ApiError::AlreadyExists(format!(
-            "this checkpoint (sha256 {}) was already submitted for {} as submission {id} ({state})",
-            new.checkpoint_sha256, new.task
-        )));
-    }
+    .await?;
     let now = now_ms();
     let row = sqlx::query(
         "SELECT
-            (SELECT COUNT(*) FROM submissions WHERE user_id = ?1 AND created_ms > ?2),
-            (SELECT COUNT(*) FROM submissions WHERE user_id = ?1 AND state IN ('queued', 'running'))",
+            (SELECT COUNT(*) FROM submissions WHERE user_id = $1 AND created_ms > $2),
+            (SELECT COUNT(*) FROM submissions WHERE user_id = $1 AND state IN ('queued', 'running'))",
     )
     .bind(new.user_id)
     .bind(now - 24 * 3600 * 1000)
@@ -91,10 +88,11 @@ pub async fn insert(pool: &SqlitePool, new: NewSubmission<'_>, quotas: &Quotas) 
             quotas.concurrent
         )));
     }
-    let id = sqlx::query(
+    let inserted = sqlx::query(
         "INSERT INTO submissions (user_id, task, name, checkpoint_sha256, checkpoints, state, created_at, created_ms,
                                   episodes_per_threshold)
-         VALUES (?1, ?2, ?3, ?4, ?5, 'queued', ?6, ?7, ?8)",
+         VALUES ($1, $2, $3, $4, $5, 'queued', $6, $7, $8)
+         RETURNING id",
     )
     .bind(new.user_id)
     .bind(new.task)
@@ -103,41 +101,73 @@ pub async fn insert(pool: &SqlitePool, new: NewSubmission<'_>, quotas: &Quotas) 
     .bind(serde_json::to_string(new.checkpoints).map_err(ApiError::internal)?)
     .bind(now_rfc3339())
     .bind(now)
-    .bind(new.episodes_per_threshold)
-    .execute(&mut *tx)
-    .await?
-    .last_insert_rowid();
+    .bind(i64::from(new.episodes_per_threshold))
+    .fetch_one(&mut *tx)
+    .await;
+    let id: i64 = match inserted {
+        Ok(row) => row.try_get(0)?,
+        Err(sqlx::Error::Database(e)) if e.is_unique_violation() => {
+            drop(tx);
+            return Err(already_submitted(db, &new).await);
+        }
+        Err(e) => return Err(e.into()),
+    };
     tx.commit().await?;
     Ok(id)
 }
 
+/// The error for a checkpoint the unique index refused: names the live submission that holds it.
+async fn already_submitted(db: &Db, new: &NewSubmission<'_>) -> ApiError {
+    let existing = sqlx::query(
+        "SELECT id, state FROM submissions WHERE task = $1 AND checkpoint_sha256 = $2 AND state != 'cancelled'",
+    )
+    .bind(new.task)
+    .bind(new.checkpoint_sha256)
+    .fetch_optional(db.pool())
+    .await;
+    let held_by = match existing {
+        Ok(Some(row)) => match (row.try_get::<i64, _>(0), row.try_get::<String, _>(1)) {
+            (Ok(id), Ok(state)) => format!(" as submission {id} ({state})"),
+            _ => String::new(),
+        },
+        _ => String::new(),
+    };
+    ApiError::AlreadyExists(format!(
+        "this checkpoint (sha256 {}) was already submitted for {}{held_by}",
+        new.checkpoint_sha256, new.task
+    ))
+}
+
 /// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the oldest runnable job.
-pub async fn claim(pool: &SqlitePool, owner: &str, lease_ms: i64, max_attempts: u32) -> Result<Option<Job>, ApiError> {
+/// On PostgreSQL the pick skips rows another evaluator is claiming (`FOR UPDATE SKIP LOCKED`), so concurrent claims
+/// neither wait for each other nor take the same job.
+pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Result<Option<Job>, ApiError> {
     let now = now_ms();
     sqlx::query(
-        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = ?3,
+        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = $3,
              reason = 'the evaluation was interrupted ' || attempts || ' times (evaluator or simulator lost)'
-         WHERE state = 'running' AND lease_expires_ms < ?1 AND attempts >= ?2",
+         WHERE state = 'running' AND lease_expires_ms < $1 AND attempts >= $2",
     )
     .bind(now)
-    .bind(max_attempts)
+    .bind(i64::from(max_attempts))
     .bind(now_rfc3339())
-    .execute(pool)
+    .execute(db.pool())
     .await?;
-    let row = sqlx::query(
+    let row = sqlx::query(AssertSqlSafe(format!(
         "UPDATE submissions
-         SET state = 'running', attempts = attempts + 1, lease_owner = ?1, lease_expires_ms = ?2,
-             started_at = COALESCE(started_at, ?3)
+         SET state = 'running', attempts = attempts + 1, lease_owner = $1, lease_expires_ms = $2,
+             started_at = COALESCE(started_at, $3)
          WHERE id = (SELECT id FROM submissions
-                     WHERE state = 'queued' OR (state = 'running' AND lease_expires_ms < ?4)
-                     ORDER BY id LIMIT 1)
+                     WHERE state = 'queued' OR (state = 'running' AND lease_expires_ms < $4)
+                     ORDER BY id LIMIT 1{})
          RETURNING id, task, checkpoints, episodes_per_threshold, attempts",
-    )
+        db.backend().skip_locked()
+    )))
     .bind(owner)
     .bind(now + lease_ms)
     .bind(now_rfc3339())
     .bind(now)
-    .fetch_optional(pool)
+    .fetch_optional(db.pool())
     .await?;
     let Some(row) = row else { return Ok(None) };
     let checkpoints: String = row.try_get(2)?;
@@ -150,33 +180,44 @@ pub async fn claim(pool: &SqlitePool, owner: &str, lease_ms: i64, max_attempts: 
     }))
 }
 
+/// Jobs waiting for an evaluator: queued, or running under a lease that ran out.
+pub async fn depth(db: &Db) -> Result<i64, ApiError> {
+    let row = sqlx::query(
+        "SELECT COUNT(*) FROM submissions WHERE state = 'queued' OR (state = 'running' AND lease_expires_ms < $1)",
+    )
+    .bind(now_ms())
+    .fetch_one(db.pool())
+    .await?;
+    Ok(row.try_get(0)?)
+}
+
 /// Extends the lease; `false` when the job is no longer this evaluator's (taken over, or cancelled).
-pub async fn heartbeat(pool: &SqlitePool, id: i64, owner: &str, lease_ms: i64) -> Result<bool, ApiError> {
+pub async fn heartbeat(db: &Db, id: i64, owner: &str, lease_ms: i64) -> Result<bool, ApiError> {
     let done = sqlx::query(
-        "UPDATE submissions SET lease_expires_ms = ?3 WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+        "UPDATE submissions SET lease_expires_ms = $3 WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
     .bind(now_ms() + lease_ms)
-    .execute(pool)
+    .execute(db.pool())
     .await?;
     Ok(done.rows_affected() == 1)
 }
 
 /// Stores every episode and the scores, if this evaluator still holds the job; returns whether it did.
 pub async fn finish(
-    pool: &SqlitePool,
+    db: &Db,
     id: i64,
     owner: &str,
     episodes: &[EpisodeRow],
     normalized_reward: f64,
     normalized_cost: f64,
 ) -> Result<bool, ApiError> {
-    let mut tx = pool.begin().await?;
+    let mut tx = db.begin().await?;
     let done = sqlx::query(
-        "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = ?3, reason = NULL,
-             normalized_reward = ?4, normalized_cost = ?5
-         WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+        "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = $3, reason = NULL,
+             normalized_reward = $4, normalized_cost = $5
+         WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
@@ -192,14 +233,14 @@ pub async fn finish(
         sqlx::query(
             "INSERT INTO evaluation_episodes
                 (submission_id, cost_threshold, episode, reward_return, cost_return, length)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+             VALUES ($1, $2, $3, $4, $5, $6)",
         )
         .bind(id)
         .bind(e.cost_threshold)
-        .bind(e.episode)
+        .bind(i64::from(e.episode))
         .bind(e.reward_return)
         .bind(e.cost_return)
-        .bind(e.length)
+        .bind(i64::from(e.length))
         .execute(&mut *tx)
         .await?;
     }
@@ -208,39 +249,39 @@ pub async fn finish(
 }
 
 /// Ends a job with the reason, if this evaluator still holds it.
-pub async fn fail(pool: &SqlitePool, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
+pub async fn fail(db: &Db, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
     sqlx::query(
-        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = ?3, reason = ?4
-         WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = $3, reason = $4
+         WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
     .bind(now_rfc3339())
     .bind(reason)
-    .execute(pool)
+    .execute(db.pool())
     .await?;
     Ok(())
 }
 
 /// Gives a job back to the queue (a transient failure, such as a simulator worker lost mid-episode).
-pub async fn release(pool: &SqlitePool, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
+pub async fn release(db: &Db, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
     sqlx::query(
-        "UPDATE submissions SET state = 'queued', lease_owner = NULL, reason = ?3
-         WHERE id = ?1 AND lease_owner = ?2 AND state = 'running'",
+        "UPDATE submissions SET state = 'queued', lease_owner = NULL, reason = $3
+         WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
     .bind(reason)
-    .execute(pool)
+    .execute(db.pool())
     .await?;
     Ok(())
 }
 
 /// Cancels a queued or running submission of `user_id`.
-pub async fn cancel(pool: &SqlitePool, id: i64, user_id: i64) -> Result<(), ApiError> {
-    let row = sqlx::query("SELECT user_id, state FROM submissions WHERE id = ?1")
+pub async fn cancel(db: &Db, id: i64, user_id: i64) -> Result<(), ApiError> {
+    let row = sqlx::query("SELECT user_id, state FROM submissions WHERE id = $1")
         .bind(id)
-        .fetch_optional(pool)
+        .fetch_optional(db.pool())
         .await?
         .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))?;
     let (owner, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
@@ -250,13 +291,13 @@ pub async fn cancel(pool: &SqlitePool, id: i64, user_id: i64) -> Result<(), ApiE
         )));
     }
     let done = sqlx::query(
-        "UPDATE submissions SET state = 'cancelled', lease_owner = NULL, finished_at = ?2,
+        "UPDATE submissions SET state = 'cancelled', lease_owner = NULL, finished_at = $2,
              reason = 'cancelled by its submitter'
-         WHERE id = ?1 AND state IN ('queued', 'running')",
+         WHERE id = $1 AND state IN ('queued', 'running')",
     )
     .bind(id)
     .bind(now_rfc3339())
-    .execute(pool)
+    .execute(db.pool())
     .await?;
     if done.rows_affected() == 0 {
         return Err(ApiError::InvalidArgument(format!(
@@ -286,16 +327,16 @@ pub struct SubmissionRow {
     pub normalized_cost: Option<f64>,
 }
 
-const SELECT_SUBMISSIONS: &str = "SELECT s.id, u.name AS user, s.task, s.name, s.checkpoint_sha256, s.checkpoints,
+const SELECT_SUBMISSIONS: &str = "SELECT s.id, u.name AS submitter, s.task, s.name, s.checkpoint_sha256, s.checkpoints,
         s.state, s.reason, s.attempts, s.created_at, s.started_at, s.finished_at, s.episodes_per_threshold,
         s.normalized_reward, s.normalized_cost
     FROM submissions s JOIN users u ON u.id = s.user_id";
 
-fn submission_row(row: &sqlx::sqlite::SqliteRow) -> Result<SubmissionRow, ApiError> {
+fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
     let checkpoints: String = row.try_get("checkpoints")?;
     Ok(SubmissionRow {
         id: row.try_get("id")?,
-        user: row.try_get("user")?,
+        user: row.try_get("submitter")?,
         task: row.try_get("task")?,
         name: row.try_get("name")?,
         checkpoint_sha256: row.try_get("checkpoint_sha256")?,
@@ -312,36 +353,36 @@ fn submission_row(row: &sqlx::sqlite::SqliteRow) -> Result<SubmissionRow, ApiErr
     })
 }
 
-pub async fn get(pool: &SqlitePool, id: i64) -> Result<SubmissionRow, ApiError> {
+pub async fn get(db: &Db, id: i64) -> Result<SubmissionRow, ApiError> {
     // Only constant text is interpolated; values are bound.
-    let row = sqlx::query(AssertSqlSafe(format!("{SELECT_SUBMISSIONS} WHERE s.id = ?1")))
+    let row = sqlx::query(AssertSqlSafe(format!("{SELECT_SUBMISSIONS} WHERE s.id = $1")))
         .bind(id)
-        .fetch_optional(pool)
+        .fetch_optional(db.pool())
         .await?
         .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))?;
     submission_row(&row)
 }
 
 /// The finished submissions that stand on the leaderboard: per (user, name, task) the latest one.
-pub async fn standing(pool: &SqlitePool) -> Result<Vec<SubmissionRow>, ApiError> {
+pub async fn standing(db: &Db) -> Result<Vec<SubmissionRow>, ApiError> {
     let rows = sqlx::query(AssertSqlSafe(format!(
         "{SELECT_SUBMISSIONS} WHERE s.state = 'finished' AND s.id = (
             SELECT MAX(t.id) FROM submissions t
             WHERE t.user_id = s.user_id AND t.name = s.name AND t.task = s.task AND t.state = 'finished')
          ORDER BY s.id"
     )))
-    .fetch_all(pool)
+    .fetch_all(db.pool())
     .await?;
     rows.iter().map(submission_row).collect()
 }
 
-pub async fn episodes(pool: &SqlitePool, id: i64) -> Result<Vec<EpisodeRow>, ApiError> {
+pub async fn episodes(db: &Db, id: i64) -> Result<Vec<EpisodeRow>, ApiError> {
     let rows = sqlx::query(
         "SELECT cost_threshold, episode, reward_return, cost_return, length FROM evaluation_episodes
-         WHERE submission_id = ?1 ORDER BY cost_threshold, episode",
+         WHERE submission_id = $1 ORDER BY cost_threshold, episode",
     )
     .bind(id)
-    .fetch_all(pool)
+    .fetch_all(db.pool())
     .await?;
     rows.iter()
         .map(|r| {

@@ -48,7 +48,7 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
             tokio::time::sleep(Duration::from_millis(500)).await;
             continue;
         }
-        let job = match queue::claim(&leaderboard.pool, &owner, lease_ms, leaderboard.config.max_attempts).await {
+        let job = match queue::claim(&leaderboard.db, &owner, lease_ms, leaderboard.config.max_attempts).await {
             Ok(Some(job)) => job,
             Ok(None) => {
                 // A new submission wakes us; a lapsed lease is noticed within a second.
@@ -90,11 +90,11 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
             }),
             Some(Outcome::Failed(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation failed");
-                queue::fail(&leaderboard.pool, job.id, &owner, &reason).await
+                queue::fail(&leaderboard.db, job.id, &owner, &reason).await
             }
             Some(Outcome::Interrupted(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation interrupted; the job goes back to the queue");
-                let released = queue::release(&leaderboard.pool, job.id, &owner, &reason).await;
+                let released = queue::release(&leaderboard.db, job.id, &owner, &reason).await;
                 tokio::time::sleep(Duration::from_secs(1)).await;
                 released
             }
@@ -109,7 +109,7 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
 async fn keep_lease(leaderboard: &Leaderboard, job: &Job, owner: &str, lease_ms: i64) {
     loop {
         tokio::time::sleep(Duration::from_millis((lease_ms / 3).max(100) as u64)).await;
-        match queue::heartbeat(&leaderboard.pool, job.id, owner, lease_ms).await {
+        match queue::heartbeat(&leaderboard.db, job.id, owner, lease_ms).await {
             Ok(true) => {}
             Ok(false) => return,
             // A database hiccup: the lease has two more beats before it runs out.
@@ -124,7 +124,7 @@ async fn store(leaderboard: &Leaderboard, job: &Job, owner: &str, episodes: &[Ep
     let n = results.len().max(1) as f64;
     let reward = results.iter().map(|r| r.normalized_reward).sum::<f64>() / n;
     let cost = results.iter().map(|r| r.normalized_cost).sum::<f64>() / n;
-    queue::finish(&leaderboard.pool, job.id, owner, episodes, reward, cost).await
+    queue::finish(&leaderboard.db, job.id, owner, episodes, reward, cost).await
 }
 
 /// Plays `episodes_per_threshold` held-seed episodes at each of the task's thresholds, all thresholds at once.

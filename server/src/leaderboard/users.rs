@@ -3,11 +3,12 @@
 use axum::http::HeaderMap;
 use serde::Serialize;
 use sha2::{Digest, Sha256};
-use sqlx::{Row, SqlitePool};
+use sqlx::Row;
 
 use crate::error::ApiError;
 use crate::http::auth::{bearer, random_hex};
 use crate::storage::datasets::now_rfc3339;
+use crate::storage::db::Db;
 
 #[derive(Debug, Clone, Serialize)]
 pub struct User {
@@ -43,33 +44,34 @@ pub fn check_name(kind: &str, name: &str) -> Result<(), ApiError> {
     }
 }
 
-pub async fn create(pool: &SqlitePool, name: &str) -> Result<NewUser, ApiError> {
+pub async fn create(db: &Db, name: &str) -> Result<NewUser, ApiError> {
     check_name("user name", name)?;
     let token = format!("dsrl_{}", random_hex().map_err(ApiError::internal)?);
-    let done = sqlx::query(
-        "INSERT INTO users (name, token_sha256, created_at) VALUES (?1, ?2, ?3) ON CONFLICT (name) DO NOTHING",
+    let row = sqlx::query(
+        "INSERT INTO users (name, token_sha256, created_at) VALUES ($1, $2, $3) ON CONFLICT (name) DO NOTHING
+         RETURNING id",
     )
     .bind(name)
     .bind(token_digest(&token))
     .bind(now_rfc3339())
-    .execute(pool)
+    .fetch_optional(db.pool())
     .await?;
-    if done.rows_affected() == 0 {
+    let Some(row) = row else {
         return Err(ApiError::AlreadyExists(format!("a user named {name} exists")));
-    }
+    };
     Ok(NewUser {
-        id: done.last_insert_rowid(),
+        id: row.try_get(0)?,
         name: name.to_owned(),
         token,
     })
 }
 
 /// The user whose token the request carries.
-pub async fn authenticate(pool: &SqlitePool, headers: &HeaderMap) -> Result<User, ApiError> {
+pub async fn authenticate(db: &Db, headers: &HeaderMap) -> Result<User, ApiError> {
     let token = bearer(headers).ok_or(ApiError::UserUnauthenticated)?;
-    let row = sqlx::query("SELECT id, name FROM users WHERE token_sha256 = ?1")
+    let row = sqlx::query("SELECT id, name FROM users WHERE token_sha256 = $1")
         .bind(token_digest(token))
-        .fetch_optional(pool)
+        .fetch_optional(db.pool())
         .await?
         .ok_or(ApiError::UnknownUserToken)?;
     Ok(User {

@@ -276,7 +276,9 @@ impl Datasets {
     }
 
     /// Runs `work` while holding the gate named `key`, so that concurrent requests for the same derived object
-    /// (a filtered version, an HDF5 export) compute it once: a later holder finds the first one's result.
+    /// (an ingested version, a filtered version, an HDF5 export) compute it once: a later holder finds the first
+    /// one's result. The in-process gate queues this replica's requests; the database's lock (PostgreSQL) queues
+    /// the replicas.
     async fn one_at_a_time<T>(
         &self,
         key: String,
@@ -290,7 +292,7 @@ impl Datasets {
             .or_default()
             .clone();
         let turn = gate.lock().await;
-        let result = work.await;
+        let result = self.db.exclusively(&key, work).await;
         self.in_flight.lock().expect("in-flight map").remove(&key);
         drop(turn);
         result
@@ -541,72 +543,78 @@ impl Datasets {
         let version = converted.version.clone();
         let now = now_rfc3339();
 
-        if self.db.version(&task.id, &version).await?.is_none() {
-            let provenance = req.recipe.unwrap_or(Provenance::Import {
-                file_name: req.file_name,
-                sha256: req.upload_sha256,
-                source_format: format.as_str().to_owned(),
-                dropped_columns: converted.dropped_columns,
-            });
-            let manifest = Manifest::new(
-                &task,
-                version.clone(),
-                converted.byte_size,
-                converted.episode_index,
-                ManifestFacts {
-                    observation_space: space,
-                    provenance,
-                    license: req.license.unwrap_or_else(|| self.default_license.clone()),
-                    created_at: now.clone(),
-                },
-            );
-            let json = serde_json::to_string(&manifest).map_err(ApiError::internal)?;
-            self.store_objects(&manifest, &json, canonical.path()).await?;
-            drop(canonical);
-            let mut tx = self.db.begin().await?;
-            let created = db::insert_version(&mut tx, &manifest, &json).await?;
-            let mut moved = Vec::new();
-            if space == ObservationSpace::Simulator {
-                let only_if_absent = req.latest == LatestPolicy::IfAbsent;
-                if db::set_tag(&mut tx, &task.id, &TagName::latest(), &version, &now, only_if_absent).await? {
-                    moved.push(TagName::LATEST.to_owned());
+        // Replicas that get the same bytes at once (two starting together with the same starters) store and
+        // record them once: the second finds the version.
+        let gate = format!("ingest/{}/{}", task.id, version);
+        self.one_at_a_time(gate, async {
+            if self.db.version(&task.id, &version).await?.is_none() {
+                let provenance = req.recipe.unwrap_or(Provenance::Import {
+                    file_name: req.file_name,
+                    sha256: req.upload_sha256,
+                    source_format: format.as_str().to_owned(),
+                    dropped_columns: converted.dropped_columns,
+                });
+                let manifest = Manifest::new(
+                    &task,
+                    version.clone(),
+                    converted.byte_size,
+                    converted.episode_index,
+                    ManifestFacts {
+                        observation_space: space,
+                        provenance,
+                        license: req.license.unwrap_or_else(|| self.default_license.clone()),
+                        created_at: now.clone(),
+                    },
+                );
+                let json = serde_json::to_string(&manifest).map_err(ApiError::internal)?;
+                self.store_objects(&manifest, &json, canonical.path()).await?;
+                drop(canonical);
+                let mut tx = self.db.begin().await?;
+                let created = db::insert_version(&mut tx, &manifest, &json).await?;
+                let mut moved = Vec::new();
+                if space == ObservationSpace::Simulator {
+                    let only_if_absent = req.latest == LatestPolicy::IfAbsent;
+                    if db::set_tag(&mut tx, &task.id, &TagName::latest(), &version, &now, only_if_absent).await? {
+                        moved.push(TagName::LATEST.to_owned());
+                    }
                 }
+                moved.extend(self.set_tags(&mut tx, &task, &version, space, &req.tags, &now).await?);
+                tx.commit().await?;
+                let record = self
+                    .db
+                    .version(&task.id, &version)
+                    .await?
+                    .ok_or_else(|| ApiError::Internal("version row vanished after commit".into()))?;
+                tracing::info!(task = %task.id, version = %version, created, "ingested dataset version");
+                return Ok(IngestOutcome {
+                    created,
+                    version: record,
+                    moved_tags: moved,
+                });
             }
-            moved.extend(self.set_tags(&mut tx, &task, &version, space, &req.tags, &now).await?);
+
+            // Identical bytes: nothing to store. Tags the request names explicitly still apply.
+            let existing = self.db.version(&task.id, &version).await?.expect("checked above");
+            let space = existing
+                .observation_space
+                .parse::<ObservationSpace>()
+                .map_err(ApiError::Internal)?;
+            let mut tx = self.db.begin().await?;
+            let moved = self.set_tags(&mut tx, &task, &version, space, &req.tags, &now).await?;
             tx.commit().await?;
-            let record = self
-                .db
-                .version(&task.id, &version)
-                .await?
-                .ok_or_else(|| ApiError::Internal("version row vanished after commit".into()))?;
-            tracing::info!(task = %task.id, version = %version, created, "ingested dataset version");
-            return Ok(IngestOutcome {
-                created,
+            let record = self.db.version(&task.id, &version).await?.expect("exists");
+            Ok(IngestOutcome {
+                created: false,
                 version: record,
                 moved_tags: moved,
-            });
-        }
-
-        // Identical bytes: nothing to store. Tags the request names explicitly still apply.
-        let existing = self.db.version(&task.id, &version).await?.expect("checked above");
-        let space = existing
-            .observation_space
-            .parse::<ObservationSpace>()
-            .map_err(ApiError::Internal)?;
-        let mut tx = self.db.begin().await?;
-        let moved = self.set_tags(&mut tx, &task, &version, space, &req.tags, &now).await?;
-        tx.commit().await?;
-        let record = self.db.version(&task.id, &version).await?.expect("exists");
-        Ok(IngestOutcome {
-            created: false,
-            version: record,
-            moved_tags: moved,
+            })
         })
+        .await
     }
 
     async fn set_tags(
         &self,
-        tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+        tx: &mut sqlx::Transaction<'static, sqlx::Any>,
         task: &Task,
         version: &VersionId,
         space: ObservationSpace,

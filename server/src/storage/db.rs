@@ -1,48 +1,162 @@
-//! SQLite through sqlx: the connection pool, the migrations in `migrations/`, and the queries on dataset
-//! versions and tags. Runtime `query()` calls, so building needs no database.
+//! The metadata database through sqlx's `Any` driver: the embedded SQLite file (the default) or a PostgreSQL
+//! server shared by several replicas, chosen by `database.url`. One set of queries serves both (numbered `$N`
+//! parameters, `ON CONFLICT`, `RETURNING`); what differs is in `Backend`, in one place. Migrations per backend are
+//! compiled in from `migrations/sqlite/` and `migrations/postgres/`. Runtime `query()` calls, so building needs no
+//! database.
 
 use std::path::Path;
-use std::str::FromStr;
 
 use dsrl_suite::{TagName, TaskId, VersionId};
+use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::migrate::{Migration, MigrationType, Migrator};
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::{Row, SqlSafeStr, Sqlite, Transaction};
+use sqlx::{Any, AnyPool, Executor, Row, SqlSafeStr, Transaction};
 
 /// The server's name for a hosted version row.
 pub use dsrl_suite::HostedVersion as VersionRecord;
 
+/// Which database holds the metadata. Every SQL difference between the two is a method here.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Backend {
+    Sqlite,
+    Postgres,
+}
+
+impl Backend {
+    fn of_url(url: &str) -> Result<Backend, sqlx::Error> {
+        if url.starts_with("sqlite:") {
+            Ok(Backend::Sqlite)
+        } else if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            Ok(Backend::Postgres)
+        } else {
+            Err(sqlx::Error::Configuration(
+                format!("database.url must start with sqlite:, postgres:// or postgresql://, not {url:?}").into(),
+            ))
+        }
+    }
+
+    /// Joins a group's text values with commas.
+    pub fn comma_list(self, column: &str) -> String {
+        match self {
+            Backend::Sqlite => format!("group_concat({column}, ',')"),
+            Backend::Postgres => format!("string_agg({column}, ',')"),
+        }
+    }
+
+    /// The column that orders dataset versions by creation (SQLite's rowid; PostgreSQL's identity column).
+    pub fn creation_order(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "rowid",
+            Backend::Postgres => "seq",
+        }
+    }
+
+    /// Appended to a subquery that picks a queued job: on PostgreSQL, concurrent evaluators skip rows another one
+    /// is claiming instead of waiting for it (SQLite has one writer at a time, so nothing to skip).
+    pub fn skip_locked(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "",
+            Backend::Postgres => " FOR UPDATE SKIP LOCKED",
+        }
+    }
+
+    /// Appended to a SELECT of one row inside a transaction that later writes what depends on it: on PostgreSQL
+    /// the row stays locked until the commit, so concurrent transactions on it run one after the other (SQLite
+    /// already serializes writers).
+    pub fn for_update(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "",
+            Backend::Postgres => " FOR UPDATE",
+        }
+    }
+
+    fn migrations(self) -> &'static [(i64, &'static str, &'static str)] {
+        match self {
+            Backend::Sqlite => SQLITE_MIGRATIONS,
+            Backend::Postgres => POSTGRES_MIGRATIONS,
+        }
+    }
+}
+
 #[derive(Clone)]
 pub struct Db {
-    pool: SqlitePool,
+    pool: AnyPool,
+    backend: Backend,
 }
 
 impl Db {
+    /// The embedded default: a SQLite file (created when missing).
     pub async fn open(path: &Path) -> Result<Db, sqlx::Error> {
-        let options = SqliteConnectOptions::from_str(&format!("sqlite://{}", path.display()))?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            .synchronous(SqliteSynchronous::Full)
-            .foreign_keys(true)
-            .busy_timeout(std::time::Duration::from_secs(10));
-        let pool = SqlitePoolOptions::new()
-            .max_connections(8)
-            .connect_with(options)
-            .await?;
-        migrator().run(&pool).await?;
-        Ok(Db { pool })
+        Db::connect(&format!("sqlite://{}?mode=rwc", path.display()), 8).await
     }
 
-    pub fn pool(&self) -> &SqlitePool {
+    /// Connects to `url` (`sqlite://PATH?mode=rwc` or `postgres://…`) and applies the backend's migrations. Replicas
+    /// starting together are safe: sqlx takes an advisory lock around PostgreSQL migrations.
+    pub async fn connect(url: &str, max_connections: u32) -> Result<Db, sqlx::Error> {
+        sqlx::any::install_default_drivers();
+        let backend = Backend::of_url(url)?;
+        let pool = AnyPoolOptions::new()
+            .max_connections(max_connections)
+            .after_connect(move |conn, _| {
+                Box::pin(async move {
+                    if backend == Backend::Sqlite {
+                        // WAL lets readers run beside the one writer; FULL syncs every commit; a writer waits for
+                        // another instead of failing at once.
+                        conn.execute(
+                            "PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL; PRAGMA foreign_keys = ON;
+                             PRAGMA busy_timeout = 10000;",
+                        )
+                        .await?;
+                    }
+                    Ok(())
+                })
+            })
+            .connect(url)
+            .await?;
+        migrator(backend).run(&pool).await?;
+        Ok(Db { pool, backend })
+    }
+
+    pub fn pool(&self) -> &AnyPool {
         &self.pool
+    }
+
+    pub fn backend(&self) -> Backend {
+        self.backend
     }
 
     pub async fn ping(&self) -> Result<(), sqlx::Error> {
         sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
     }
 
-    pub async fn begin(&self) -> Result<Transaction<'static, Sqlite>, sqlx::Error> {
+    pub async fn begin(&self) -> Result<Transaction<'static, Any>, sqlx::Error> {
         self.pool.begin().await
+    }
+
+    /// Runs `work` holding the lock named `key` across every process that shares this database, so that a
+    /// derived object (an ingested version, a filtered version, an HDF5 export) is computed by one replica while
+    /// the others wait and then find it. PostgreSQL: a session advisory lock on a connection held for the work and
+    /// then closed, never returned to the pool, so a request dropped mid-work or a replica that dies releases the
+    /// lock with its session (derivations are expensive; one reconnect each costs nothing beside them). SQLite: one process serves the file, so the caller's in-process gate is the
+    /// whole story.
+    pub async fn exclusively<T, E: From<sqlx::Error>>(
+        &self,
+        key: &str,
+        work: impl std::future::Future<Output = Result<T, E>>,
+    ) -> Result<T, E> {
+        if self.backend == Backend::Sqlite {
+            return work.await;
+        }
+        let id = lock_id(key);
+        let mut conn = self.pool.acquire().await?;
+        conn.close_on_drop();
+        // Wrapped in a SELECT of a number: the lock function returns `void`, which the Any driver cannot decode.
+        sqlx::query("SELECT 1 FROM (SELECT pg_advisory_lock($1)) AS locked")
+            .bind(id)
+            .execute(&mut *conn)
+            .await?;
+        let result = work.await;
+        drop(conn);
+        result
     }
 
     pub async fn version_count(&self) -> Result<i64, sqlx::Error> {
@@ -65,7 +179,7 @@ impl Db {
         filter: &str,
     ) -> Result<Option<VersionId>, sqlx::Error> {
         let row =
-            sqlx::query("SELECT version FROM dataset_derivations WHERE task = ?1 AND parent = ?2 AND filter = ?3")
+            sqlx::query("SELECT version FROM dataset_derivations WHERE task = $1 AND parent = $2 AND filter = $3")
                 .bind(task.as_str())
                 .bind(parent)
                 .bind(filter)
@@ -76,7 +190,7 @@ impl Db {
 
     /// The HDF5 export of a version, if it was made before: (sha256 of its bytes, size).
     pub async fn hdf5_export(&self, task: &str, version: &str) -> Result<Option<(String, u64)>, sqlx::Error> {
-        let row = sqlx::query("SELECT digest, byte_size FROM dataset_hdf5_exports WHERE task = ?1 AND version = ?2")
+        let row = sqlx::query("SELECT digest, byte_size FROM dataset_hdf5_exports WHERE task = $1 AND version = $2")
             .bind(task)
             .bind(version)
             .fetch_optional(&self.pool)
@@ -95,7 +209,7 @@ impl Db {
         now: &str,
     ) -> Result<(), sqlx::Error> {
         sqlx::query(
-            "INSERT INTO dataset_hdf5_exports (task, version, digest, byte_size, created_at) VALUES (?1, ?2, ?3, ?4, ?5)
+            "INSERT INTO dataset_hdf5_exports (task, version, digest, byte_size, created_at) VALUES ($1, $2, $3, $4, $5)
              ON CONFLICT (task, version) DO NOTHING",
         )
         .bind(task)
@@ -117,24 +231,27 @@ impl Db {
         task: Option<&TaskId>,
         version: Option<&VersionId>,
     ) -> Result<Vec<VersionRecord>, sqlx::Error> {
-        let rows = sqlx::query(
+        let sql = format!(
             "SELECT v.task, v.version, v.byte_size, v.episodes, v.transitions, v.observation_space, v.created_at,
-                    (SELECT group_concat(t.tag, ',') FROM (SELECT tag FROM dataset_tags t
+                    (SELECT {tags} FROM (SELECT tag FROM dataset_tags t
                         WHERE t.task = v.task AND t.version = v.version ORDER BY tag) t) AS tags
              FROM dataset_versions v
-             WHERE (?1 IS NULL OR v.task = ?1) AND (?2 IS NULL OR v.version = ?2)
-               AND (?2 IS NOT NULL OR v.derived = 0)
-             ORDER BY v.rowid DESC",
-        )
-        .bind(task.map(|t| t.as_str()))
-        .bind(version.map(|v| v.as_str()))
-        .fetch_all(&self.pool)
-        .await?;
+             WHERE ($1 IS NULL OR v.task = $1) AND ($2 IS NULL OR v.version = $2)
+               AND ($2 IS NOT NULL OR NOT v.derived)
+             ORDER BY v.{order} DESC",
+            tags = self.backend.comma_list("t.tag"),
+            order = self.backend.creation_order(),
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(task.map(|t| t.as_str()))
+            .bind(version.map(|v| v.as_str()))
+            .fetch_all(&self.pool)
+            .await?;
         rows.iter().map(record).collect()
     }
 
     pub async fn tagged(&self, task: &TaskId, tag: &TagName) -> Result<Option<VersionId>, sqlx::Error> {
-        let row = sqlx::query("SELECT version FROM dataset_tags WHERE task = ?1 AND tag = ?2")
+        let row = sqlx::query("SELECT version FROM dataset_tags WHERE task = $1 AND tag = $2")
             .bind(task.as_str())
             .bind(tag.as_str())
             .fetch_optional(&self.pool)
@@ -143,7 +260,7 @@ impl Db {
     }
 
     pub async fn manifest(&self, task: &TaskId, version: &VersionId) -> Result<Option<String>, sqlx::Error> {
-        let row = sqlx::query("SELECT manifest FROM dataset_versions WHERE task = ?1 AND version = ?2")
+        let row = sqlx::query("SELECT manifest FROM dataset_versions WHERE task = $1 AND version = $2")
             .bind(task.as_str())
             .bind(version.as_str())
             .fetch_optional(&self.pool)
@@ -152,33 +269,41 @@ impl Db {
     }
 }
 
-/// The SQL files of `migrations/`, compiled in (listed by hand; a test checks the list against the folder).
-const MIGRATIONS: &[(i64, &str, &str)] = &[
+/// The SQL files of `migrations/sqlite/` and `migrations/postgres/`, compiled in (listed by hand; a test checks the
+/// lists against the folders).
+const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (
         20261122000001,
         "datasets",
-        include_str!("../../../migrations/20261122000001_datasets.sql"),
+        include_str!("../../../migrations/sqlite/20261122000001_datasets.sql"),
     ),
     (
         20261122000002,
         "derivations",
-        include_str!("../../../migrations/20261122000002_derivations.sql"),
+        include_str!("../../../migrations/sqlite/20261122000002_derivations.sql"),
     ),
     (
         20261122000003,
         "leaderboard",
-        include_str!("../../../migrations/20261122000003_leaderboard.sql"),
+        include_str!("../../../migrations/sqlite/20261122000003_leaderboard.sql"),
     ),
     (
         20261123000001,
         "hdf5_exports",
-        include_str!("../../../migrations/20261123000001_hdf5_exports.sql"),
+        include_str!("../../../migrations/sqlite/20261123000001_hdf5_exports.sql"),
     ),
 ];
 
-fn migrator() -> Migrator {
+const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[(
+    20261124000001,
+    "initial",
+    include_str!("../../../migrations/postgres/20261124000001_initial.sql"),
+)];
+
+fn migrator(backend: Backend) -> Migrator {
     Migrator::with_migrations(
-        MIGRATIONS
+        backend
+            .migrations()
             .iter()
             .map(|&(version, description, sql)| {
                 Migration::new(
@@ -195,14 +320,14 @@ fn migrator() -> Migrator {
 
 /// A new version row; `false` when the version already existed (an identical ingest).
 pub async fn insert_version(
-    tx: &mut Transaction<'static, Sqlite>,
+    tx: &mut Transaction<'static, Any>,
     manifest: &dsrl_suite::Manifest,
     manifest_json: &str,
 ) -> Result<bool, sqlx::Error> {
     let done = sqlx::query(
         "INSERT INTO dataset_versions
             (task, version, byte_size, episodes, transitions, observation_space, created_at, manifest, derived)
-         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)
          ON CONFLICT (task, version) DO NOTHING",
     )
     .bind(manifest.task.as_str())
@@ -221,7 +346,7 @@ pub async fn insert_version(
 
 /// Records that `filter` made `version` from `parent`.
 pub async fn insert_derivation(
-    tx: &mut Transaction<'static, Sqlite>,
+    tx: &mut Transaction<'static, Any>,
     task: &TaskId,
     parent: &str,
     filter: &str,
@@ -229,7 +354,7 @@ pub async fn insert_derivation(
     now: &str,
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
-        "INSERT INTO dataset_derivations (task, parent, filter, version, created_at) VALUES (?1, ?2, ?3, ?4, ?5)
+        "INSERT INTO dataset_derivations (task, parent, filter, version, created_at) VALUES ($1, $2, $3, $4, $5)
          ON CONFLICT (task, parent, filter) DO NOTHING",
     )
     .bind(task.as_str())
@@ -244,7 +369,7 @@ pub async fn insert_derivation(
 
 /// Points `tag` at `version`; with `only_if_absent`, leaves an existing tag alone. Returns whether it moved.
 pub async fn set_tag(
-    tx: &mut Transaction<'static, Sqlite>,
+    tx: &mut Transaction<'static, Any>,
     task: &TaskId,
     tag: &TagName,
     version: &VersionId,
@@ -252,10 +377,10 @@ pub async fn set_tag(
     only_if_absent: bool,
 ) -> Result<bool, sqlx::Error> {
     let sql = if only_if_absent {
-        "INSERT INTO dataset_tags (task, tag, version, updated_at) VALUES (?1, ?2, ?3, ?4)
+        "INSERT INTO dataset_tags (task, tag, version, updated_at) VALUES ($1, $2, $3, $4)
          ON CONFLICT (task, tag) DO NOTHING"
     } else {
-        "INSERT INTO dataset_tags (task, tag, version, updated_at) VALUES (?1, ?2, ?3, ?4)
+        "INSERT INTO dataset_tags (task, tag, version, updated_at) VALUES ($1, $2, $3, $4)
          ON CONFLICT (task, tag) DO UPDATE SET version = excluded.version, updated_at = excluded.updated_at
          WHERE dataset_tags.version != excluded.version"
     };
@@ -269,8 +394,14 @@ pub async fn set_tag(
     Ok(done.rows_affected() == 1)
 }
 
+/// A lock name as PostgreSQL's 64-bit advisory lock key: the first 8 bytes of its sha256.
+fn lock_id(key: &str) -> i64 {
+    let digest = <sha2::Sha256 as sha2::Digest>::digest(key.as_bytes());
+    i64::from_be_bytes(digest[..8].try_into().expect("8 bytes"))
+}
+
 /// The version id in the first column of an optional row.
-fn version_id(row: Option<sqlx::sqlite::SqliteRow>) -> Result<Option<VersionId>, sqlx::Error> {
+fn version_id(row: Option<AnyRow>) -> Result<Option<VersionId>, sqlx::Error> {
     row.map(|r| {
         let v: String = r.try_get(0)?;
         v.parse()
@@ -279,7 +410,7 @@ fn version_id(row: Option<sqlx::sqlite::SqliteRow>) -> Result<Option<VersionId>,
     .transpose()
 }
 
-fn record(row: &sqlx::sqlite::SqliteRow) -> Result<VersionRecord, sqlx::Error> {
+fn record(row: &AnyRow) -> Result<VersionRecord, sqlx::Error> {
     let tags: Option<String> = row.try_get("tags")?;
     Ok(VersionRecord {
         task: row.try_get("task")?,
@@ -301,15 +432,24 @@ mod tests {
 
     #[test]
     fn every_migration_file_is_compiled_in() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../migrations");
-        let mut files: Vec<String> = std::fs::read_dir(dir)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .filter(|n| n.ends_with(".sql"))
-            .collect();
-        files.sort();
-        let listed: Vec<String> = MIGRATIONS.iter().map(|(v, d, _)| format!("{v}_{d}.sql")).collect();
-        assert_eq!(files, listed);
+        for backend in [Backend::Sqlite, Backend::Postgres] {
+            let folder = format!("{backend:?}").to_lowercase();
+            let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../migrations")
+                .join(&folder);
+            let mut files: Vec<String> = std::fs::read_dir(dir)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .filter(|n| n.ends_with(".sql"))
+                .collect();
+            files.sort();
+            let listed: Vec<String> = backend
+                .migrations()
+                .iter()
+                .map(|(v, d, _)| format!("{v}_{d}.sql"))
+                .collect();
+            assert_eq!(files, listed, "{folder}");
+        }
     }
 
     #[tokio::test]

@@ -1,0 +1,279 @@
+//! Beyond one machine, with real parts on loopback: PostgreSQL (Debian's server, started in a temporary folder) as
+//! the shared metadata store and job queue, moto as the shared S3 bucket, two API replicas and two evaluator
+//! processes. What one replica does, the other sees; derived versions are computed once across both; a replica or
+//! an evaluator killed with SIGKILL loses nothing and leaves nothing half-visible.
+
+use std::path::Path;
+use std::time::Duration;
+
+use dsrl_e2e::{Cli, Server, wait_for};
+
+use crate::leaderboard::{TASK, train_bc};
+use crate::services::{Moto, Postgres};
+use crate::{block_on, get_json, s, sha256_file};
+
+const ADMIN_TOKEN: &str = "e2e-admin-token-shared-by-replicas";
+const SECRET: &str = "e2e-held-seed-secret";
+
+/// What every process of one deployment shares: the database, the bucket, the secrets.
+fn shared_env(pg: &Postgres, moto: &Moto, extra: &[(&str, &str)]) -> Vec<(String, String)> {
+    let mut envs = moto.server_env("cluster");
+    for (k, v) in [
+        ("DSRL__DATABASE__URL", pg.url.as_str()),
+        ("DSRL__AUTH__ADMIN_TOKEN", ADMIN_TOKEN),
+        ("DSRL__LEADERBOARD__SEED_SECRET", SECRET),
+    ]
+    .into_iter()
+    .chain(extra.iter().copied())
+    {
+        envs.push((k.to_owned(), v.to_owned()));
+    }
+    envs
+}
+
+fn start(dir: &Path, name: &str, args: &[&str], envs: &[(String, String)]) -> Server {
+    let envs: Vec<(&str, &str)> = envs.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
+    Server::start(&dir.join(name), args, &envs)
+}
+
+fn cli(server: &Server, cache: &Path) -> Cli {
+    Cli {
+        server: server.url.clone(),
+        cache: cache.to_owned(),
+        token: Some(ADMIN_TOKEN.to_owned()),
+    }
+}
+
+/// `dsrl_filters_total{outcome=...}` of one replica.
+fn filter_count(server: &Server, outcome: &str) -> u64 {
+    let url = format!("{}/metrics", server.url);
+    let text = block_on(async move { reqwest::get(url).await.unwrap().text().await.unwrap() });
+    let prefix = format!("dsrl_filters_total{{outcome=\"{outcome}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&prefix))
+        .map_or(0, |v| v.parse().unwrap())
+}
+
+#[test]
+fn two_api_replicas_share_postgres_and_s3() {
+    let dir = tempfile::tempdir().unwrap();
+    let pg = Postgres::start();
+    let moto = Moto::start("dsrl-replicas");
+    let envs = shared_env(&pg, &moto, &[("DSRL__LEADERBOARD__EVALUATORS", "0")]);
+    // Two replicas starting at once run the migrations once (sqlx holds an advisory lock around them).
+    let (mut a, b) = std::thread::scope(|scope| {
+        let a = scope.spawn(|| start(dir.path(), "a", &[], &envs));
+        let b = scope.spawn(|| start(dir.path(), "b", &[], &envs));
+        (a.join().unwrap(), b.join().unwrap())
+    });
+    let cli_a = cli(&a, &dir.path().join("cache-a"));
+    let cli_b = cli(&b, &dir.path().join("cache-b"));
+
+    // Ingest on A, fetch from B: the same bytes.
+    let task = "OfflineMetadrive-easysparse-v0";
+    let file = dir.path().join("md.parquet");
+    let made = dsrl_e2e::make_dataset(task, 4, 22, &file);
+    let version = made.version.to_string();
+    let ingested = cli_a
+        .run(&["--json", "admin", "ingest", "--task", task, s(&file)])
+        .ok()
+        .json();
+    assert_eq!(ingested["version"]["version"], version.as_str());
+    let fetched = cli_b.run(&["--json", "fetch", task]).ok().json();
+    assert_eq!(fetched["version"], version.as_str(), "{fetched}");
+    assert_eq!(sha256_file(Path::new(fetched["path"].as_str().unwrap())), version);
+    assert_eq!(
+        get_json(&format!("{}/v1/datasets/{task}/versions", b.url))["versions"][0]["version"],
+        version.as_str()
+    );
+
+    // 50 concurrent requests for one filtered version that does not exist yet, split over both replicas: the
+    // filter runs once in the whole deployment, and every request gets the same version.
+    let filter = "obs_noise%3D0.1%2Cseed%3D3"; // obs_noise=0.1,seed=3
+    let urls: Vec<String> = (0..50)
+        .map(|i| {
+            let replica = if i % 2 == 0 { &a } else { &b };
+            format!("{}/v1/datasets/{task}/versions/latest?filter={filter}", replica.url)
+        })
+        .collect();
+    let answers: Vec<serde_json::Value> = block_on(async move {
+        let http = reqwest::Client::new();
+        let requests = urls.iter().map(|url| {
+            let http = http.clone();
+            async move {
+                let response = http.get(url).send().await.unwrap();
+                let status = response.status();
+                let body = response.text().await.unwrap();
+                assert!(status.is_success(), "{url}: {status} {body}");
+                serde_json::from_str::<serde_json::Value>(&body).unwrap()
+            }
+        });
+        futures::future::join_all(requests).await
+    });
+    let derived = answers[0]["version"].as_str().unwrap().to_owned();
+    assert_ne!(derived, version);
+    assert!(answers.iter().all(|m| m["version"] == derived.as_str()));
+    let computed = filter_count(&a, "computed") + filter_count(&b, "computed");
+    let cached = filter_count(&a, "cached") + filter_count(&b, "cached");
+    assert_eq!(computed, 1, "the filter ran {computed} times across the replicas");
+    assert_eq!(cached, 49);
+
+    // A download cut by killing its replica (SIGKILL) resumes against the other.
+    let cache = dir.path().join("cache-resume");
+    let manifest = get_json(&format!("{}/v1/datasets/{task}/versions/{version}", a.url));
+    let size = manifest["byte_size"].as_u64().unwrap();
+    let part = cache
+        .join(task)
+        .join(&version)
+        .join(format!("{}.part", manifest["file_name"].as_str().unwrap()));
+    let mut download = cli(&a, &cache)
+        .command(&["fetch", task, "--limit-rate", "1M"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let grew = wait_for(Duration::from_secs(60), || {
+        std::fs::metadata(&part).is_ok_and(|m| m.len() >= 1 << 20)
+    });
+    assert!(grew, "the download from replica A never reached 1 MiB");
+    a.kill();
+    let _ = download.wait();
+    let partial = std::fs::metadata(&part).unwrap().len();
+    assert!(partial < size, "{partial} of {size}: the cut came too late");
+    let resumed = cli(&b, &cache).run(&["--json", "fetch", task]).ok().json();
+    let from = resumed["resumed_from"]
+        .as_u64()
+        .expect("the fetch from B resumed A's download");
+    assert!(from >= 1 << 20 && from <= partial, "{from} vs {partial}");
+    assert_eq!(sha256_file(&part.with_extension("")), version);
+
+    // A replica killed mid-ingest (its upload converted, not yet recorded) leaves nothing visible on the other;
+    // the same upload then succeeds there.
+    a.restart();
+    let cli_a = cli(&a, &dir.path().join("cache-a"));
+    let task = "OfflineMetadrive-hardmean-v0";
+    let file = dir.path().join("md-hard.parquet");
+    let made = dsrl_e2e::make_dataset(task, 12, 12, &file);
+    let tmp = a.data_dir.join("tmp");
+    let mut child = cli_a
+        .command(&["admin", "ingest", "--task", task, s(&file)])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let converting = wait_for(Duration::from_secs(60), || {
+        std::fs::read_dir(&tmp).is_ok_and(|d| {
+            d.flatten().any(|e| {
+                e.file_name().to_string_lossy().starts_with("canonical-") && e.metadata().is_ok_and(|m| m.len() > 0)
+            })
+        })
+    });
+    assert!(converting, "the ingest on A never reached its conversion");
+    a.kill();
+    let _ = child.wait();
+    let listed = get_json(&format!("{}/v1/datasets/{task}/versions", b.url));
+    assert_eq!(
+        listed["versions"],
+        serde_json::json!([]),
+        "half an ingest became visible: {listed}"
+    );
+    let out = cli_b
+        .run(&["--json", "admin", "ingest", "--task", task, s(&file)])
+        .ok()
+        .json();
+    assert_eq!(out["version"]["version"], made.version.as_str());
+}
+
+/// The job queue on PostgreSQL with the evaluators in their own processes: an API replica that only queues
+/// (`leaderboard.evaluators = 0`), and two `dsrl-server evaluator` processes with their own simulator workers. The
+/// evaluator playing a submission is killed with SIGKILL; the other takes the lapsed lease over and stores the
+/// same episodes an uninterrupted evaluation (SQLite, same secret) stores.
+#[test]
+fn a_submission_survives_its_evaluator_killed_mid_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let models = dir.path().join("models");
+    train_bc(&models, "all", 0);
+    let policy = models.join("bc-all");
+    let worker = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
+    let scoring = [
+        ("DSRL__SIMULATORS__WORKER_BINARY", worker.as_str()),
+        ("DSRL__LEADERBOARD__LEASE_SECONDS", "2"),
+        ("DSRL__LEADERBOARD__EPISODES_PER_THRESHOLD", "10"),
+    ];
+
+    // The reference: the same policy scored without interruption on the embedded default.
+    let reference = {
+        let mut envs: Vec<(&str, &str)> = scoring.to_vec();
+        envs.extend([
+            ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
+            ("DSRL__LEADERBOARD__SEED_SECRET", SECRET),
+        ]);
+        let env = crate::Env::with(&[], &envs);
+        let user = crate::leaderboard::create_user(&env, "alice");
+        let id = crate::leaderboard::submit(&env, &user, &policy, "BC-All").ok().json()["id"].clone();
+        let done = crate::leaderboard::client(&env, &user, &["--json", "status", &id.to_string(), "--wait"])
+            .ok()
+            .json();
+        assert_eq!(done["state"], "finished", "{done}");
+        done
+    };
+
+    let pg = Postgres::start();
+    let moto = Moto::start("dsrl-evaluators");
+    let mut api_envs = scoring.to_vec();
+    api_envs.push(("DSRL__LEADERBOARD__EVALUATORS", "0"));
+    let api = start(dir.path(), "api", &[], &shared_env(&pg, &moto, &api_envs));
+    let mut evaluator_envs = scoring.to_vec();
+    evaluator_envs.push(("DSRL__SIMULATORS__LOCAL_WORKERS", "1"));
+    let evaluator_envs = shared_env(&pg, &moto, &evaluator_envs);
+    let mut first = start(dir.path(), "evaluator-1", &["evaluator"], &evaluator_envs);
+    assert_eq!(
+        block_on(reqwest::get(format!("{}/healthz", first.url)))
+            .unwrap()
+            .status(),
+        200
+    );
+
+    let admin = cli(&api, &dir.path().join("cache"));
+    let token = admin
+        .run(&["admin", "create-user", "alice"])
+        .ok()
+        .stdout
+        .trim()
+        .to_owned();
+    let submitted = dsrl_e2e::Run::from(
+        admin
+            .command(&["--json", "submit", "--task", TASK, "--name", "BC-All"])
+            .arg(&policy)
+            .env("DSRL_TOKEN", &token)
+            .output()
+            .unwrap(),
+    )
+    .ok()
+    .json();
+    let id = submitted["id"].clone();
+    let state = |url: &str| get_json(&format!("{url}/v1/submissions/{id}"))["state"].clone();
+    assert!(
+        wait_for(Duration::from_secs(180), || state(&api.url) == "running"),
+        "the first evaluator never started the job"
+    );
+    // The second evaluator comes up while the first plays; the first is then killed mid-job.
+    let _second = start(dir.path(), "evaluator-2", &["evaluator"], &evaluator_envs);
+    assert_eq!(state(&api.url), "running", "the job finished before the kill");
+    first.kill();
+
+    let done = dsrl_e2e::Run::from(
+        admin
+            .command(&["--json", "status", &id.to_string(), "--wait"])
+            .env("DSRL_TOKEN", &token)
+            .output()
+            .unwrap(),
+    )
+    .ok()
+    .json();
+    assert_eq!(done["state"], "finished", "{done}");
+    assert_eq!(done["attempts"], 2, "the second evaluator re-ran the job: {done}");
+    assert_eq!(done["episodes"], reference["episodes"]);
+    assert_eq!(done["normalized_reward"], reference["normalized_reward"]);
+    assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
+}
