@@ -14,6 +14,12 @@ pub struct SimulatorsConfig {
     pub worker_args: Vec<String>,
     /// `host:port` of workers started elsewhere; health-checked, never restarted by this server.
     pub remote_workers: Vec<String>,
+    /// `host:port` names resolved again every `discovery_interval_ms`; every address one resolves to is a remote
+    /// worker, added when it appears and retired when it is gone (a Kubernetes headless Service resolves to one
+    /// address per ready pod).
+    pub worker_services: Vec<String>,
+    /// Time between two resolutions of `worker_services`.
+    pub discovery_interval_ms: u64,
     /// Time between health checks of each worker.
     pub health_interval_ms: u64,
     /// A session request (open, reset, step) that takes longer fails its session.
@@ -27,6 +33,8 @@ impl Default for SimulatorsConfig {
             worker_binary: None,
             worker_args: Vec::new(),
             remote_workers: Vec::new(),
+            worker_services: Vec::new(),
+            discovery_interval_ms: 5000,
             health_interval_ms: 1000,
             request_timeout_s: 120,
         }

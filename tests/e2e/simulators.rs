@@ -205,3 +205,42 @@ async fn sessions_spread_over_local_and_remote_workers_by_load() {
         .expect("opened without workers");
     assert!(err.to_string().contains("no simulator workers are configured"), "{err}");
 }
+
+/// Workers behind a service name are found by resolving it (here `localhost:PORT` through the system resolver, as a
+/// Kubernetes headless Service name would be) and used like any other.
+#[tokio::test]
+async fn workers_behind_a_service_name_are_discovered() {
+    let mut worker = tokio::process::Command::new(worker_binary())
+        .args(["--listen", "127.0.0.1:0", "--exit-with-stdin"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let mut lines = tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(worker.stdout.take().unwrap()));
+    let address = loop {
+        let line = lines.next_line().await.unwrap().expect("worker exited");
+        if let Some(a) = line.strip_prefix("dsrl-sim-worker listening on ") {
+            break a.to_owned();
+        }
+    };
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    let port = address.rsplit(':').next().unwrap();
+    let config = SimulatorsConfig {
+        worker_services: vec![format!("localhost:{port}")],
+        discovery_interval_ms: 200,
+        ..pool_config(0, vec![])
+    };
+    let pool = SimulatorPool::start(&config);
+    assert!(
+        pool.wait_healthy(1, Duration::from_secs(60)).await,
+        "{:?}",
+        pool.workers()
+    );
+    let found = pool.workers().into_iter().find(|w| w.healthy).unwrap();
+    assert_eq!(found.kind, "discovered");
+    assert_eq!(found.address.as_deref(), Some(address.as_str()));
+    let session = pool.open(open("SafetyCarRun-v0", 2)).await.unwrap();
+    assert_eq!(session.worker(), format!("localhost:{port}@{address}"));
+    session.close().await.unwrap();
+}

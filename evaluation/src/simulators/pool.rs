@@ -1,7 +1,12 @@
+use std::collections::BTreeSet;
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::Stdio;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
+
+use futures::future::BoxFuture;
 
 use dsrl_proto::simulator::v1::simulator_client::SimulatorClient;
 use dsrl_proto::simulator::v1::{HealthRequest, Open};
@@ -21,7 +26,8 @@ use crate::error::EvaluationError;
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct WorkerStatus {
     pub name: String,
-    /// "local" (started and supervised by this server) or "remote".
+    /// "local" (started and supervised by this server), "remote" (configured by address) or "discovered" (behind
+    /// one of `worker_services`).
     pub kind: String,
     pub address: Option<String>,
     pub pid: Option<u32>,
@@ -43,6 +49,20 @@ enum Source {
 struct Slot {
     source: Source,
     state: Mutex<SlotState>,
+    /// The service name a discovered worker was resolved from (`None`: configured or local).
+    service: Option<String>,
+    /// Set when discovery no longer lists the worker: its supervision ends, and no new session goes there (sessions
+    /// already open keep their own channel and finish).
+    retired: AtomicBool,
+}
+
+/// Resolves a `host:port` service name to the addresses behind it (the default is the system resolver, which
+/// answers a Kubernetes headless Service with one address per ready pod). Tests substitute their own.
+pub type Resolver = Arc<dyn Fn(String) -> BoxFuture<'static, std::io::Result<Vec<SocketAddr>>> + Send + Sync>;
+
+/// The system resolver.
+pub fn system_resolver() -> Resolver {
+    Arc::new(|service: String| Box::pin(async move { Ok(tokio::net::lookup_host(service).await?.collect()) }))
 }
 
 #[derive(Default)]
@@ -57,7 +77,8 @@ struct SlotState {
 }
 
 pub struct SimulatorPool {
-    slots: Vec<Arc<Slot>>,
+    /// Local and configured workers first, then discovered ones as discovery finds them.
+    slots: Arc<Mutex<Vec<Arc<Slot>>>>,
     /// Held while a session is placed (see `place`).
     placing: Mutex<()>,
     request_timeout: Duration,
@@ -66,10 +87,15 @@ pub struct SimulatorPool {
 
 impl Slot {
     fn new(name: String, address: Option<String>, source: Source) -> Arc<Slot> {
+        Slot::with_service(name, address, source, None)
+    }
+
+    fn with_service(name: String, address: Option<String>, source: Source, service: Option<String>) -> Arc<Slot> {
         let kind = match source {
             Source::Local { .. } => "local",
             Source::Remote { .. } => "remote",
         };
+        let kind = if service.is_some() { "discovered" } else { kind };
         let status = WorkerStatus {
             name,
             kind: kind.into(),
@@ -89,6 +115,8 @@ impl Slot {
                 status: Some(status),
                 ..Default::default()
             }),
+            service,
+            retired: AtomicBool::new(false),
         })
     }
 
@@ -152,8 +180,14 @@ fn channel_to(address: &str) -> Result<Channel, String> {
 }
 
 impl SimulatorPool {
-    /// Creates the pool and starts supervising its workers (local ones are spawned in the background).
+    /// Creates the pool and starts supervising its workers (local ones are spawned in the background) and
+    /// discovering the workers behind `worker_services`.
     pub fn start(config: &SimulatorsConfig) -> SimulatorPool {
+        SimulatorPool::start_with_resolver(config, system_resolver())
+    }
+
+    /// `start` with another resolver for `worker_services`.
+    pub fn start_with_resolver(config: &SimulatorsConfig, resolver: Resolver) -> SimulatorPool {
         let binary = config.worker_binary.clone().unwrap_or_else(default_worker_binary);
         let mut slots = Vec::new();
         for i in 0..config.local_workers {
@@ -174,6 +208,18 @@ impl SimulatorPool {
         for slot in &slots {
             tokio::spawn(supervise(slot.clone(), interval, stopped.clone()));
         }
+        let slots = Arc::new(Mutex::new(slots));
+        let every = Duration::from_millis(config.discovery_interval_ms.max(50));
+        for service in &config.worker_services {
+            tokio::spawn(discover(
+                service.clone(),
+                resolver.clone(),
+                slots.clone(),
+                every,
+                interval,
+                stopped.clone(),
+            ));
+        }
         SimulatorPool {
             slots,
             placing: Mutex::new(()),
@@ -183,7 +229,11 @@ impl SimulatorPool {
     }
 
     pub fn workers(&self) -> Vec<WorkerStatus> {
-        self.slots.iter().map(|s| s.status()).collect()
+        self.current().iter().map(|s| s.status()).collect()
+    }
+
+    fn current(&self) -> Vec<Arc<Slot>> {
+        self.slots.lock().expect("slots").clone()
     }
 
     /// Waits until at least `n` workers are healthy, or `timeout` passes.
@@ -232,7 +282,7 @@ impl SimulatorPool {
     fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), EvaluationError> {
         let _one_at_a_time = self.placing.lock().expect("placement lock");
         let mut best: Option<(f64, Arc<Slot>, Channel, String)> = None;
-        for slot in &self.slots {
+        for slot in &self.current() {
             let state = slot.state.lock().expect("slot state");
             let (Some(status), Some(channel)) = (&state.status, &state.channel) else {
                 continue;
@@ -262,7 +312,9 @@ impl SimulatorPool {
                     })
                     .collect();
                 Err(EvaluationError::Unavailable(if workers.is_empty() {
-                    "no simulator workers are configured (simulators.local_workers / remote_workers)".to_owned()
+                    "no simulator workers are configured or discovered (simulators.local_workers / remote_workers / \
+                     worker_services)"
+                        .to_owned()
                 } else {
                     format!(
                         "no simulator worker can take {num_envs} more environments: {}",
@@ -277,7 +329,7 @@ impl SimulatorPool {
 impl Drop for SimulatorPool {
     fn drop(&mut self) {
         let _ = self.stop.send(true);
-        for slot in &self.slots {
+        for slot in self.current() {
             if let Some(child) = &mut slot.state.lock().expect("slot state").child {
                 let _ = child.start_kill();
             }
@@ -298,7 +350,7 @@ fn default_worker_binary() -> PathBuf {
 async fn supervise(slot: Arc<Slot>, interval: Duration, mut stopped: watch::Receiver<bool>) {
     let mut backoff = interval;
     loop {
-        if *stopped.borrow() {
+        if *stopped.borrow() || slot.retired.load(Ordering::Relaxed) {
             return;
         }
         let needs_start = match &slot.source {
@@ -374,6 +426,60 @@ async fn supervise(slot: Arc<Slot>, interval: Duration, mut stopped: watch::Rece
     }
 }
 
+/// Keeps the pool's discovered workers equal to what `service` resolves to: every `every`, a new address becomes a
+/// worker (supervised like a configured remote one) and a vanished one is retired. A failed lookup changes
+/// nothing (a DNS hiccup must not drop every worker); workers that really went away fail their health checks.
+async fn discover(
+    service: String,
+    resolve: Resolver,
+    slots: Arc<Mutex<Vec<Arc<Slot>>>>,
+    every: Duration,
+    health_interval: Duration,
+    mut stopped: watch::Receiver<bool>,
+) {
+    loop {
+        match resolve(service.clone()).await {
+            Ok(found) => {
+                let found: BTreeSet<String> = found.iter().map(SocketAddr::to_string).collect();
+                let mut slots = slots.lock().expect("slots");
+                slots.retain(|slot| {
+                    let Source::Remote { address } = &slot.source else {
+                        return true;
+                    };
+                    if slot.service.as_deref() != Some(service.as_str()) || found.contains(address) {
+                        return true;
+                    }
+                    tracing::info!(%service, %address, "simulator worker no longer discovered; retiring it");
+                    slot.retired.store(true, Ordering::Relaxed);
+                    false
+                });
+                for address in found {
+                    let known = slots.iter().any(|slot| {
+                        slot.service.as_deref() == Some(service.as_str())
+                            && matches!(&slot.source, Source::Remote { address: a } if *a == address)
+                    });
+                    if !known {
+                        tracing::info!(%service, %address, "simulator worker discovered");
+                        let slot = Slot::with_service(
+                            format!("{service}@{address}"),
+                            Some(address.clone()),
+                            Source::Remote { address },
+                            Some(service.clone()),
+                        );
+                        tokio::spawn(supervise(slot.clone(), health_interval, stopped.clone()));
+                        slots.push(slot);
+                    }
+                }
+            }
+            Err(e) => tracing::warn!(%service, error = %e, "resolving simulator workers; keeping the last answer"),
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(every) => {}
+            _ = stopped.changed() => return,
+        }
+    }
+}
+
 async fn check_health(slot: &Slot) {
     let Some(channel) = slot.state.lock().expect("slot state").channel.clone() else {
         return;
@@ -413,5 +519,72 @@ async fn check_health(slot: &Slot) {
                 let _ = child.start_kill();
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Discovery follows the resolver's answers as pods come and go. The resolver is a stand-in (a real DNS server
+    /// whose records change cannot run here); the system resolver is exercised by the e2e test that discovers a
+    /// real worker behind `localhost:PORT`. Nothing listens on these addresses, so the workers stay unhealthy.
+    #[tokio::test]
+    async fn discovered_workers_follow_the_service_records() {
+        let records: Arc<Mutex<std::io::Result<Vec<SocketAddr>>>> = Arc::new(Mutex::new(Ok(vec![
+            "127.0.0.1:9".parse().unwrap(),
+            "127.0.0.2:9".parse().unwrap(),
+        ])));
+        let answers = records.clone();
+        let resolver: Resolver = Arc::new(move |service: String| {
+            assert_eq!(service, "workers.dsrl.svc:50051");
+            let answer = match &*answers.lock().unwrap() {
+                Ok(found) => Ok(found.clone()),
+                Err(e) => Err(std::io::Error::new(e.kind(), e.to_string())),
+            };
+            Box::pin(async move { answer })
+        });
+        let config = SimulatorsConfig {
+            local_workers: 0,
+            worker_services: vec!["workers.dsrl.svc:50051".into()],
+            discovery_interval_ms: 50,
+            ..SimulatorsConfig::default()
+        };
+        let pool = SimulatorPool::start_with_resolver(&config, resolver);
+        let addresses = |pool: &SimulatorPool| {
+            let mut found: Vec<(String, String)> = pool
+                .workers()
+                .into_iter()
+                .map(|w| (w.kind, w.address.unwrap_or_default()))
+                .collect();
+            found.sort();
+            found
+        };
+        let settle = || tokio::time::sleep(Duration::from_millis(300));
+        settle().await;
+        assert_eq!(
+            addresses(&pool),
+            [
+                ("discovered".into(), "127.0.0.1:9".into()),
+                ("discovered".into(), "127.0.0.2:9".into())
+            ]
+        );
+        // A pod goes, another comes.
+        *records.lock().unwrap() = Ok(vec!["127.0.0.2:9".parse().unwrap(), "127.0.0.3:9".parse().unwrap()]);
+        settle().await;
+        assert_eq!(
+            addresses(&pool),
+            [
+                ("discovered".into(), "127.0.0.2:9".into()),
+                ("discovered".into(), "127.0.0.3:9".into())
+            ]
+        );
+        // A failed lookup keeps the last answer.
+        *records.lock().unwrap() = Err(std::io::Error::other("SERVFAIL"));
+        settle().await;
+        assert_eq!(addresses(&pool).len(), 2);
+        // Nothing healthy to place on: the error says what the pool holds.
+        let err = pool.place(1).err().expect("placed on a worker nobody runs");
+        assert!(err.to_string().contains("workers.dsrl.svc:50051@127.0.0.2:9"), "{err}");
     }
 }
