@@ -19,6 +19,7 @@ pub struct Config {
     pub auth: AuthConfig,
     pub storage: StorageConfig,
     pub database: DatabaseConfig,
+    pub gc: GcConfig,
     pub simulators: SimulatorsConfig,
     pub leaderboard: LeaderboardConfig,
 }
@@ -95,6 +96,26 @@ impl Default for DatabaseConfig {
         DatabaseConfig {
             url: None,
             max_connections: 8,
+        }
+    }
+}
+
+/// Garbage collection of filtered versions (`dsrl-server gc`): they are derived, so removing one costs only its
+/// recomputation when it is asked for again.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GcConfig {
+    /// A filtered version nobody asked for in this many hours is removed.
+    pub derived_max_idle_hours: u64,
+    /// All filtered versions together may take this many bytes; past it the least recently used are removed.
+    pub derived_max_bytes: u64,
+}
+
+impl Default for GcConfig {
+    fn default() -> Self {
+        GcConfig {
+            derived_max_idle_hours: 30 * 24,
+            derived_max_bytes: 100 << 30,
         }
     }
 }
@@ -195,6 +216,7 @@ impl Default for Config {
                 s3: S3Config::default(),
             },
             database: DatabaseConfig::default(),
+            gc: GcConfig::default(),
             simulators: SimulatorsConfig::default(),
             leaderboard: LeaderboardConfig::default(),
         }

@@ -202,6 +202,34 @@ pub async fn run_evaluator(
     Ok(())
 }
 
+/// Applies the garbage-collection policy (`gc` in the configuration) to filtered versions: `dsrl-server gc`. Safe
+/// while replicas serve the same database and store (see `Datasets::collect_garbage`).
+pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::datasets::GcReport> {
+    let data_dir = &config.server.data_dir;
+    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
+    let db = open_db(config).await?;
+    let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
+    // Its own temporary folder: a server on the same data folder clears `tmp` at start and owns what is in it.
+    let tmp_dir = data_dir.join(format!("tmp-gc-{}", std::process::id()));
+    let datasets = Datasets::new(DatasetsSetup {
+        catalog: open_catalog(config)?,
+        db,
+        store,
+        local_objects: (config.storage.backend == config::StorageBackend::Local).then(|| data_dir.join("objects")),
+        tmp_dir: tmp_dir.clone(),
+        default_license: config.datasets.default_license.clone(),
+        converter: Converter::InProcess,
+        metrics: Arc::new(Metrics::new()),
+    })?;
+    let policy = storage::datasets::GcPolicy {
+        max_idle: std::time::Duration::from_secs(config.gc.derived_max_idle_hours.saturating_mul(3600)),
+        max_bytes: config.gc.derived_max_bytes,
+    };
+    let report = datasets.collect_garbage(&policy, dry_run).await;
+    let _ = std::fs::remove_dir_all(&tmp_dir);
+    Ok(report?)
+}
+
 /// REST and gRPC routes with metrics, request tracing, and panics turned into 500s.
 pub fn app(state: AppState) -> Router {
     let grpc_service = DatasetServiceServer::new(grpc::DatasetGrpc::new(state.clone()));

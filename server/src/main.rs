@@ -53,6 +53,14 @@ enum Internal {
     /// /healthz and /metrics on --listen. Takes the same configuration (database.url, storage, simulators,
     /// leaderboard.seed_secret); prints "dsrl-server evaluator listening on http://ADDR".
     Evaluator,
+    /// Remove filtered versions by the gc policy (gc.derived_max_idle_hours, gc.derived_max_bytes): those unused
+    /// for longer first, then the least recently used until all fit the size budget. Safe while servers run on
+    /// the same database and store; a removed filter is computed again when asked for. Prints a JSON report.
+    Gc {
+        /// Report what would be removed, remove nothing.
+        #[arg(long)]
+        dry_run: bool,
+    },
     /// Convert one upload to the canonical layout in this (child) process and answer with one JSON line.
     #[command(hide = true)]
     Convert {
@@ -145,6 +153,11 @@ async fn serve(args: Args) -> anyhow::Result<()> {
         starter_dir: args.starter_datasets,
     };
     let config = Config::load(args.config.as_deref(), &overrides)?;
+    if let Some(Internal::Gc { dry_run }) = args.command {
+        let report = dsrl_server::run_gc(&config, dry_run).await?;
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
     let listener = tokio::net::TcpListener::bind(config.server.listen).await?;
     let addr = listener.local_addr()?;
     if let Some(Internal::Evaluator) = args.command {

@@ -118,6 +118,46 @@ fn two_api_replicas_share_postgres_and_s3() {
     assert_eq!(computed, 1, "the filter ran {computed} times across the replicas");
     assert_eq!(cached, 49);
 
+    // Garbage collection of filtered versions while both replicas serve: the default policy keeps a version used
+    // a moment ago; a zero size budget removes it (rows, then objects); asked for again, it is computed again, to
+    // the same version.
+    let gc = |extra: &[(&str, &str)], args: &[&str]| {
+        let mut cmd = std::process::Command::new(dsrl_e2e::bin("dsrl-server"));
+        cmd.arg("--data-dir").arg(dir.path().join("gc")).arg("gc").args(args);
+        cmd.envs(envs.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        cmd.envs(extra.iter().copied());
+        let out = cmd.output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    let kept = gc(&[], &[]);
+    assert_eq!(
+        (kept["kept"].as_u64(), kept["removed"].as_array().unwrap().len()),
+        (Some(1), 0),
+        "{kept}"
+    );
+    let zero_budget = [("DSRL__GC__DERIVED_MAX_BYTES", "0")];
+    let dry = gc(&zero_budget, &["--dry-run"]);
+    assert_eq!(dry["removed"][0]["version"], derived.as_str(), "{dry}");
+    let manifest_url = format!("{}/v1/datasets/{task}/versions/{derived}", b.url);
+    let status_of = |url: &str| {
+        let url = url.to_owned();
+        block_on(async move { reqwest::get(url).await.unwrap().status().as_u16() })
+    };
+    assert_eq!(status_of(&manifest_url), 200, "a dry run removed something");
+    let removed = gc(&zero_budget, &[]);
+    assert_eq!(removed["removed"][0]["version"], derived.as_str(), "{removed}");
+    assert_eq!(removed["derived_bytes_after"], 0);
+    assert_eq!(status_of(&manifest_url), 404);
+    assert_eq!(
+        status_of(&format!("{}/download", manifest_url.replace(&b.url, &a.url))),
+        404
+    );
+    let again = get_json(&format!("{}/v1/datasets/{task}/versions/latest?filter={filter}", b.url));
+    assert_eq!(again["version"], derived.as_str());
+    assert_eq!(filter_count(&a, "computed") + filter_count(&b, "computed"), 2);
+    assert_eq!(status_of(&format!("{manifest_url}/download")), 200);
+
     // A download cut by killing its replica (SIGKILL) resumes against the other.
     let cache = dir.path().join("cache-resume");
     let manifest = get_json(&format!("{}/v1/datasets/{task}/versions/{version}", a.url));

@@ -17,7 +17,7 @@ use dsrl_suite::plot::{Point, cost_reward_svg};
 use dsrl_suite::{Catalog, Manifest, ObservationSpace, Provenance, TagName, Task, VersionId, VersionRef};
 use futures::StreamExt;
 use futures::stream::BoxStream;
-use object_store::ObjectStore;
+use object_store::{ObjectStore, ObjectStoreExt};
 use tokio::io::AsyncWriteExt;
 
 use super::converter::Converter;
@@ -257,10 +257,10 @@ impl Datasets {
         let canonical = spec.canonical();
         if let Some(found) = self.derivation(task, parent, &canonical).await? {
             self.count_filter("cached");
+            self.db.touch_derivation(&task.id, &parent.version, &canonical).await?;
             return Ok(found);
         }
-        let key = format!("{}/{}/{canonical}", task.id, parent.version);
-        self.one_at_a_time(key, async {
+        self.one_at_a_time(derivation_gate(task.id.as_str(), &parent.version, &canonical), async {
             // Whoever held the gate before us has committed its result.
             if let Some(found) = self.derivation(task, parent, &canonical).await? {
                 self.count_filter("cached");
@@ -296,6 +296,65 @@ impl Datasets {
         self.in_flight.lock().expect("in-flight map").remove(&key);
         drop(turn);
         result
+    }
+
+    /// Removes filtered versions by the policy: every one unused for `max_idle`, then the least recently used
+    /// until all together fit `max_bytes`. Each removal holds the version's derivation gate (the lock a replica
+    /// computing that filter holds), deletes the rows in one transaction, then the objects, so a replica never
+    /// serves a row whose file is gone, and a concurrent request for the same filter computes it again afterwards.
+    /// A download already streaming the removed file may fail; the client's retry recomputes the filter.
+    pub async fn collect_garbage(&self, policy: &GcPolicy, dry_run: bool) -> Result<GcReport, ApiError> {
+        let candidates = self.db.collectable_derivations().await?;
+        let mut total = self.db.derived_bytes().await?;
+        let cutoff = db::now_ms().saturating_sub(policy.max_idle.as_millis() as i64);
+        let mut report = GcReport {
+            derived_bytes_before: total,
+            ..GcReport::default()
+        };
+        for candidate in candidates {
+            let idle = candidate.last_used_ms < cutoff;
+            if !idle && total <= policy.max_bytes {
+                report.kept += 1;
+                continue;
+            }
+            if !dry_run && !self.remove_derived(&candidate).await? {
+                continue;
+            }
+            total = total.saturating_sub(candidate.byte_size);
+            report.removed.push(candidate);
+        }
+        report.derived_bytes_after = total;
+        Ok(report)
+    }
+
+    async fn remove_derived(&self, record: &db::DerivationRecord) -> Result<bool, ApiError> {
+        let gate = derivation_gate(&record.task, &record.parent, &record.filter);
+        self.one_at_a_time(gate, async {
+            let mut tx = self.db.begin().await?;
+            let Some(export) = db::remove_derived(&mut tx, record).await? else {
+                return Ok(false);
+            };
+            let export = match export {
+                Some(digest) if !db::hdf5_digest_in_use(&mut tx, &digest).await? => Some(digest),
+                _ => None,
+            };
+            tx.commit().await?;
+            let mut keys = vec![
+                objects::dataset_key(&record.task, &record.version),
+                objects::manifest_key(&record.task, &record.version),
+            ];
+            keys.extend(export.map(|digest| objects::hdf5_key(&digest)));
+            for key in keys {
+                match self.store.delete(&key).await {
+                    Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                    Err(e) => return Err(e.into()),
+                }
+            }
+            tracing::info!(task = %record.task, version = %record.version, filter = %record.filter,
+                bytes = record.byte_size, "removed a filtered version");
+            Ok(true)
+        })
+        .await
     }
 
     /// Puts a synced temporary file at `key` (renamed into place with the local backend, uploaded otherwise) and
@@ -666,4 +725,27 @@ pub fn now_rfc3339() -> String {
         .expect("0 is a valid nanosecond");
     now.format(&time::format_description::well_known::Rfc3339)
         .expect("formattable")
+}
+
+/// The gate (in-process and across replicas) of one filter applied to one parent version: held while the filter
+/// is computed, and while garbage collection removes its result.
+fn derivation_gate(task: &str, parent: &str, canonical_filter: &str) -> String {
+    format!("{task}/{parent}/{canonical_filter}")
+}
+
+/// Which filtered versions garbage collection removes.
+#[derive(Debug, Clone)]
+pub struct GcPolicy {
+    /// Unused (not asked for by a filter) for longer than this: removed.
+    pub max_idle: std::time::Duration,
+    /// All filtered versions together above this: the least recently used are removed until they fit.
+    pub max_bytes: u64,
+}
+
+#[derive(Debug, Default, serde::Serialize)]
+pub struct GcReport {
+    pub removed: Vec<db::DerivationRecord>,
+    pub kept: usize,
+    pub derived_bytes_before: u64,
+    pub derived_bytes_after: u64,
 }

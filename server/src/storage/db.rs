@@ -188,6 +188,58 @@ impl Db {
         version_id(row)
     }
 
+    /// Records that a filter's result was asked for now. At most one write a minute per derivation, so a busy
+    /// filtered version does not turn every request into a write.
+    pub async fn touch_derivation(&self, task: &TaskId, parent: &str, filter: &str) -> Result<(), sqlx::Error> {
+        let now = now_ms();
+        sqlx::query(
+            "UPDATE dataset_derivations SET last_used_ms = $4
+             WHERE task = $1 AND parent = $2 AND filter = $3 AND last_used_ms < $4 - 60000",
+        )
+        .bind(task.as_str())
+        .bind(parent)
+        .bind(filter)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Filtered versions that garbage collection may remove, least recently used first: not tagged, and not the
+    /// parent of another derivation (those go in a later pass, after their children).
+    pub async fn collectable_derivations(&self) -> Result<Vec<DerivationRecord>, sqlx::Error> {
+        let rows = sqlx::query(
+            "SELECT d.task, d.parent, d.filter, d.version, v.byte_size, d.last_used_ms
+             FROM dataset_derivations d JOIN dataset_versions v ON v.task = d.task AND v.version = d.version
+             WHERE v.derived
+               AND NOT EXISTS (SELECT 1 FROM dataset_tags t WHERE t.task = d.task AND t.version = d.version)
+               AND NOT EXISTS (SELECT 1 FROM dataset_derivations c WHERE c.task = d.task AND c.parent = d.version)
+             ORDER BY d.last_used_ms, d.task, d.version",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(DerivationRecord {
+                    task: r.try_get(0)?,
+                    parent: r.try_get(1)?,
+                    filter: r.try_get(2)?,
+                    version: r.try_get(3)?,
+                    byte_size: r.try_get::<i64, _>(4)? as u64,
+                    last_used_ms: r.try_get(5)?,
+                })
+            })
+            .collect()
+    }
+
+    /// Bytes of every filtered version (cast: PostgreSQL sums BIGINT to NUMERIC, which the Any driver cannot read).
+    pub async fn derived_bytes(&self) -> Result<u64, sqlx::Error> {
+        let row = sqlx::query("SELECT CAST(COALESCE(SUM(byte_size), 0) AS BIGINT) FROM dataset_versions WHERE derived")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<i64, _>(0)? as u64)
+    }
+
     /// The HDF5 export of a version, if it was made before: (sha256 of its bytes, size).
     pub async fn hdf5_export(&self, task: &str, version: &str) -> Result<Option<(String, u64)>, sqlx::Error> {
         let row = sqlx::query("SELECT digest, byte_size FROM dataset_hdf5_exports WHERE task = $1 AND version = $2")
@@ -292,13 +344,25 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
         "hdf5_exports",
         include_str!("../../../migrations/sqlite/20261123000001_hdf5_exports.sql"),
     ),
+    (
+        20261124000001,
+        "derivation_access",
+        include_str!("../../../migrations/sqlite/20261124000001_derivation_access.sql"),
+    ),
 ];
 
-const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[(
-    20261124000001,
-    "initial",
-    include_str!("../../../migrations/postgres/20261124000001_initial.sql"),
-)];
+const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
+    (
+        20261124000001,
+        "initial",
+        include_str!("../../../migrations/postgres/20261124000001_initial.sql"),
+    ),
+    (
+        20261124000002,
+        "derivation_access",
+        include_str!("../../../migrations/postgres/20261124000002_derivation_access.sql"),
+    ),
+];
 
 fn migrator(backend: Backend) -> Migrator {
     Migrator::with_migrations(
@@ -354,7 +418,8 @@ pub async fn insert_derivation(
     now: &str,
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
-        "INSERT INTO dataset_derivations (task, parent, filter, version, created_at) VALUES ($1, $2, $3, $4, $5)
+        "INSERT INTO dataset_derivations (task, parent, filter, version, created_at, last_used_ms)
+         VALUES ($1, $2, $3, $4, $5, $6)
          ON CONFLICT (task, parent, filter) DO NOTHING",
     )
     .bind(task.as_str())
@@ -362,6 +427,7 @@ pub async fn insert_derivation(
     .bind(filter)
     .bind(version.as_str())
     .bind(now)
+    .bind(now_ms())
     .execute(&mut **tx)
     .await?;
     Ok(())
@@ -392,6 +458,73 @@ pub async fn set_tag(
         .execute(&mut **tx)
         .await?;
     Ok(done.rows_affected() == 1)
+}
+
+/// A filtered version as garbage collection sees it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct DerivationRecord {
+    pub task: String,
+    pub parent: String,
+    pub filter: String,
+    pub version: String,
+    pub byte_size: u64,
+    pub last_used_ms: i64,
+}
+
+/// Removes a filtered version's rows (derivation, HDF5 export record, version) in one transaction, if it is still
+/// collectable (untagged, nobody's parent). Returns the HDF5 export's digest when one was recorded, and whether
+/// anything was removed.
+pub async fn remove_derived(
+    tx: &mut Transaction<'static, Any>,
+    record: &DerivationRecord,
+) -> Result<Option<Option<String>>, sqlx::Error> {
+    let still = sqlx::query(
+        "SELECT 1 FROM dataset_versions v
+         WHERE v.task = $1 AND v.version = $2 AND v.derived
+           AND NOT EXISTS (SELECT 1 FROM dataset_tags t WHERE t.task = v.task AND t.version = v.version)
+           AND NOT EXISTS (SELECT 1 FROM dataset_derivations c WHERE c.task = v.task AND c.parent = v.version)",
+    )
+    .bind(&record.task)
+    .bind(&record.version)
+    .fetch_optional(&mut **tx)
+    .await?;
+    if still.is_none() {
+        return Ok(None);
+    }
+    let export = sqlx::query("DELETE FROM dataset_hdf5_exports WHERE task = $1 AND version = $2 RETURNING digest")
+        .bind(&record.task)
+        .bind(&record.version)
+        .fetch_optional(&mut **tx)
+        .await?
+        .map(|r| r.try_get::<String, _>(0))
+        .transpose()?;
+    sqlx::query("DELETE FROM dataset_derivations WHERE task = $1 AND version = $2")
+        .bind(&record.task)
+        .bind(&record.version)
+        .execute(&mut **tx)
+        .await?;
+    sqlx::query("DELETE FROM dataset_versions WHERE task = $1 AND version = $2")
+        .bind(&record.task)
+        .bind(&record.version)
+        .execute(&mut **tx)
+        .await?;
+    Ok(Some(export))
+}
+
+/// Whether any recorded HDF5 export still points at `digest` (exports are content-addressed, so two versions
+/// could share one).
+pub async fn hdf5_digest_in_use(tx: &mut Transaction<'static, Any>, digest: &str) -> Result<bool, sqlx::Error> {
+    Ok(sqlx::query("SELECT 1 FROM dataset_hdf5_exports WHERE digest = $1")
+        .bind(digest)
+        .fetch_optional(&mut **tx)
+        .await?
+        .is_some())
+}
+
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
 }
 
 /// A lock name as PostgreSQL's 64-bit advisory lock key: the first 8 bytes of its sha256.
