@@ -298,6 +298,9 @@ mod tests {
             jail.set_env("DSRL__SERVER__DATA_DIR", "/srv/b");
             jail.set_env("DSRL__STORAGE__BACKEND", "s3");
             jail.set_env("DSRL__STORAGE__S3__BUCKET", "datasets");
+            // A list in one variable, as deploy/k8s/cluster/config.yaml sets it.
+            jail.set_env("DSRL__SIMULATORS__WORKER_SERVICES", r#"["dsrl-sim-workers:50051"]"#);
+            jail.set_env("DSRL__DATABASE__URL", "postgres://dsrl@db:5432/dsrl");
             let c = Config::load(Some(Path::new("dsrl.toml")), &Overrides::default()).unwrap();
             assert_eq!(c.server.listen.port(), 9000); // file
             assert_eq!(c.server.data_dir, PathBuf::from("/srv/b")); // env beats file
@@ -305,6 +308,8 @@ mod tests {
             assert_eq!(c.storage.backend, StorageBackend::S3);
             assert_eq!(c.storage.s3.bucket, "datasets");
             assert_eq!(c.datasets.default_license, "CC-BY-4.0"); // default
+            assert_eq!(c.simulators.worker_services, ["dsrl-sim-workers:50051"]);
+            assert_eq!(c.database.url.as_deref(), Some("postgres://dsrl@db:5432/dsrl"));
             let flags = Overrides {
                 data_dir: Some("/srv/c".into()),
                 ..Default::default()
@@ -338,6 +343,16 @@ mod tests {
             assert_eq!(c, defaults);
             Ok(())
         });
+    }
+
+    #[test]
+    fn database_passwords_are_redacted() {
+        assert_eq!(
+            redact_url("postgres://dsrl:s3cret@db:5432/dsrl"),
+            "postgres://dsrl:***@db:5432/dsrl"
+        );
+        assert_eq!(redact_url("postgres://dsrl@db/dsrl"), "postgres://dsrl@db/dsrl");
+        assert_eq!(redact_url("sqlite:///x.db"), "sqlite:///x.db");
     }
 
     #[test]

@@ -7,6 +7,7 @@ mod baselines;
 mod browser;
 mod catalog;
 mod collect;
+mod deploy;
 mod dsrl_download;
 mod expert;
 mod fetch;

@@ -60,12 +60,29 @@ fn two_api_replicas_share_postgres_and_s3() {
     let pg = Postgres::start();
     let moto = Moto::start("dsrl-replicas");
     let envs = shared_env(&pg, &moto, &[("DSRL__LEADERBOARD__EVALUATORS", "0")]);
-    // Two replicas starting at once run the migrations once (sqlx holds an advisory lock around them).
+    // Two replicas starting at once with the same starter dataset: the migrations run once (sqlx holds an advisory
+    // lock around them), and the starter becomes one version (the ingest gate), whichever replica records it.
+    let starters = dir.path().join("starters");
+    let committed = dsrl_e2e::repo_root().join("data/starter/OfflineBallRun-v0");
+    std::fs::create_dir_all(starters.join("OfflineBallRun-v0")).unwrap();
+    for file in std::fs::read_dir(&committed).unwrap() {
+        let file = file.unwrap().path();
+        std::os::unix::fs::symlink(
+            &file,
+            starters.join("OfflineBallRun-v0").join(file.file_name().unwrap()),
+        )
+        .unwrap();
+    }
+    let starter_args = ["--starter-datasets", s(&starters)];
     let (mut a, b) = std::thread::scope(|scope| {
-        let a = scope.spawn(|| start(dir.path(), "a", &[], &envs));
-        let b = scope.spawn(|| start(dir.path(), "b", &[], &envs));
+        let a = scope.spawn(|| start(dir.path(), "a", &starter_args, &envs));
+        let b = scope.spawn(|| start(dir.path(), "b", &starter_args, &envs));
         (a.join().unwrap(), b.join().unwrap())
     });
+    let starter_versions = get_json(&format!("{}/v1/datasets/OfflineBallRun-v0/versions", b.url));
+    let listed = starter_versions["versions"].as_array().unwrap();
+    assert_eq!(listed.len(), 1, "{starter_versions}");
+    assert_eq!(listed[0]["tags"], serde_json::json!(["latest"]));
     let cli_a = cli(&a, &dir.path().join("cache-a"));
     let cli_b = cli(&b, &dir.path().join("cache-b"));
 
@@ -117,6 +134,48 @@ fn two_api_replicas_share_postgres_and_s3() {
     let cached = filter_count(&a, "cached") + filter_count(&b, "cached");
     assert_eq!(computed, 1, "the filter ran {computed} times across the replicas");
     assert_eq!(cached, 49);
+
+    // The same checkpoint submitted 8 times at once, half to each replica: the unique index lets one in, the
+    // others are told it exists (not a check-then-insert race that lets two in).
+    let user = cli_a
+        .run(&["admin", "create-user", "alice"])
+        .ok()
+        .stdout
+        .trim()
+        .to_owned();
+    let policy = crate::make_policy(&dir.path().join("policy"), "OfflineBallRun-v0", "target-cost-mlp", 5);
+    let submitters: Vec<std::process::Child> = (0..8)
+        .map(|i| {
+            let replica = if i % 2 == 0 { &cli_a } else { &cli_b };
+            replica
+                .command(&[
+                    "--json",
+                    "submit",
+                    s(&policy),
+                    "--task",
+                    "OfflineBallRun-v0",
+                    "--name",
+                    "dup",
+                ])
+                .env("DSRL_TOKEN", &user)
+                .stdout(std::process::Stdio::piped())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    let runs: Vec<dsrl_e2e::Run> = submitters
+        .into_iter()
+        .map(|c| dsrl_e2e::Run::from(c.wait_with_output().unwrap()))
+        .collect();
+    let accepted = runs.iter().filter(|r| r.code == 0).count();
+    assert_eq!(accepted, 1, "{runs:?}");
+    assert!(
+        runs.iter()
+            .filter(|r| r.code != 0)
+            .all(|r| r.stderr.contains("already submitted") || r.stderr.contains("at the same time")),
+        "{runs:?}"
+    );
 
     // Garbage collection of filtered versions while both replicas serve: the default policy keeps a version used
     // a moment ago; a zero size budget removes it (rows, then objects); asked for again, it is computed again, to

@@ -12,12 +12,7 @@ use super::checkpoints::CheckpointRecord;
 use crate::error::ApiError;
 use crate::storage::datasets::now_rfc3339;
 
-pub fn now_ms() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_millis() as i64)
-        .unwrap_or(0)
-}
+pub use crate::storage::db::now_ms;
 
 /// A claimed job.
 #[derive(Debug, Clone)]
@@ -56,7 +51,11 @@ pub struct Quotas {
 /// Inserts a queued submission after the quota checks, in one transaction. The user's row is locked first, so
 /// two replicas inserting for one user check the quotas one after the other. Deduplication is the unique index
 /// `submissions_checkpoint`: a second live submission of a checkpoint fails the insert, whichever replica got it.
+/// A duplicate is looked for first only so that it is reported as one even when the quota is also spent.
 pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<i64, ApiError> {
+    if let Some(error) = already_submitted(db, &new).await? {
+        return Err(error);
+    }
     let mut tx = db.begin().await?;
     sqlx::query(AssertSqlSafe(format!(
         "SELECT id FROM users WHERE id = $1{}",
@@ -108,7 +107,13 @@ pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<
         Ok(row) => row.try_get(0)?,
         Err(sqlx::Error::Database(e)) if e.is_unique_violation() => {
             drop(tx);
-            return Err(already_submitted(db, &new).await);
+            return Err(already_submitted(db, &new).await?.unwrap_or_else(|| {
+                // The holder was cancelled between the refused insert and this look.
+                ApiError::AlreadyExists(format!(
+                    "this checkpoint (sha256 {}) was being submitted for {} at the same time; try again",
+                    new.checkpoint_sha256, new.task
+                ))
+            }));
         }
         Err(e) => return Err(e.into()),
     };
@@ -116,26 +121,21 @@ pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<
     Ok(id)
 }
 
-/// The error for a checkpoint the unique index refused: names the live submission that holds it.
-async fn already_submitted(db: &Db, new: &NewSubmission<'_>) -> ApiError {
+/// The error for a checkpoint that a live submission already holds, naming that submission.
+async fn already_submitted(db: &Db, new: &NewSubmission<'_>) -> Result<Option<ApiError>, ApiError> {
     let existing = sqlx::query(
         "SELECT id, state FROM submissions WHERE task = $1 AND checkpoint_sha256 = $2 AND state != 'cancelled'",
     )
     .bind(new.task)
     .bind(new.checkpoint_sha256)
     .fetch_optional(db.pool())
-    .await;
-    let held_by = match existing {
-        Ok(Some(row)) => match (row.try_get::<i64, _>(0), row.try_get::<String, _>(1)) {
-            (Ok(id), Ok(state)) => format!(" as submission {id} ({state})"),
-            _ => String::new(),
-        },
-        _ => String::new(),
-    };
-    ApiError::AlreadyExists(format!(
-        "this checkpoint (sha256 {}) was already submitted for {}{held_by}",
+    .await?;
+    let Some(row) = existing else { return Ok(None) };
+    let (id, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
+    Ok(Some(ApiError::AlreadyExists(format!(
+        "this checkpoint (sha256 {}) was already submitted for {} as submission {id} ({state})",
         new.checkpoint_sha256, new.task
-    ))
+    ))))
 }
 
 /// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the oldest runnable job.
