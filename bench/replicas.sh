@@ -67,7 +67,7 @@ serve() { # data_dir [env...]
 
 task=OfflineMetadrive-easysparse-v0
 echo "writing a ~200 MB synthetic $task dataset" >&2
-"$bin/dsrl-make-dataset" --task $task --episodes 110 --seed 7 "$work/big.parquet" > /dev/null
+"$bin/dsrl-make-dataset" --task $task --episodes 140 --seed 7 "$work/big.parquet" > /dev/null
 ingest() { # url
   DSRL_SERVER=$1 DSRL_ADMIN_TOKEN=$token DSRL_DATASET_DIR="$work/cache" HOME="$work" \
     "$bin/dsrl-client" --json admin ingest --task $task "$work/big.parquet" \
