@@ -37,6 +37,27 @@ fn pool_config(local: u32, remote: Vec<String>) -> SimulatorsConfig {
     }
 }
 
+/// A worker started apart from any pool (as one on another machine would be), killed when dropped; its address.
+async fn start_worker(args: &[&str]) -> (tokio::process::Child, String) {
+    let mut worker = tokio::process::Command::new(worker_binary())
+        .args(["--listen", "127.0.0.1:0", "--exit-with-stdin"])
+        .args(args)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let mut lines = tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(worker.stdout.take().unwrap()));
+    let address = loop {
+        let line = lines.next_line().await.unwrap().expect("the worker exited");
+        if let Some(a) = line.strip_prefix("dsrl-sim-worker listening on ") {
+            break a.to_owned();
+        }
+    };
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    (worker, address)
+}
+
 fn open(task: &str, k: u32) -> Open {
     Open {
         task: task.into(),
@@ -144,21 +165,7 @@ async fn sessions_fail_fast_when_their_worker_dies_and_the_pool_recovers() {
 #[tokio::test]
 async fn sessions_spread_over_local_and_remote_workers_by_load() {
     // A worker started by hand stands in for one on another machine.
-    let mut remote = tokio::process::Command::new(worker_binary())
-        .args(["--listen", "127.0.0.1:0", "--exit-with-stdin", "--max-envs", "8"])
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .kill_on_drop(true)
-        .spawn()
-        .unwrap();
-    let mut lines = tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(remote.stdout.take().unwrap()));
-    let address = loop {
-        let line = lines.next_line().await.unwrap().expect("remote worker exited");
-        if let Some(a) = line.strip_prefix("dsrl-sim-worker listening on ") {
-            break a.to_owned();
-        }
-    };
-    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    let (_remote, address) = start_worker(&["--max-envs", "8"]).await;
 
     let pool = SimulatorPool::start(&pool_config(1, vec![address.clone()]));
     assert!(
@@ -210,21 +217,7 @@ async fn sessions_spread_over_local_and_remote_workers_by_load() {
 /// Kubernetes headless Service name would be) and used like any other.
 #[tokio::test]
 async fn workers_behind_a_service_name_are_discovered() {
-    let mut worker = tokio::process::Command::new(worker_binary())
-        .args(["--listen", "127.0.0.1:0", "--exit-with-stdin"])
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .kill_on_drop(true)
-        .spawn()
-        .unwrap();
-    let mut lines = tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(worker.stdout.take().unwrap()));
-    let address = loop {
-        let line = lines.next_line().await.unwrap().expect("worker exited");
-        if let Some(a) = line.strip_prefix("dsrl-sim-worker listening on ") {
-            break a.to_owned();
-        }
-    };
-    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    let (_worker, address) = start_worker(&[]).await;
     let port = address.rsplit(':').next().unwrap();
     let config = SimulatorsConfig {
         worker_services: vec![format!("localhost:{port}")],
