@@ -81,6 +81,8 @@ impl Backend {
 pub struct Db {
     pool: AnyPool,
     backend: Backend,
+    /// For the connections that hold advisory locks, opened apart from the pool (see `exclusively`).
+    url: std::sync::Arc<str>,
 }
 
 impl Db {
@@ -113,7 +115,11 @@ impl Db {
             .connect(url)
             .await?;
         migrator(backend).run(&pool).await?;
-        Ok(Db { pool, backend })
+        Ok(Db {
+            pool,
+            backend,
+            url: url.into(),
+        })
     }
 
     pub fn pool(&self) -> &AnyPool {
@@ -134,9 +140,10 @@ impl Db {
 
     /// Runs `work` holding the lock named `key` across every process that shares this database, so that a
     /// derived object (an ingested version, a filtered version, an HDF5 export) is computed by one replica while
-    /// the others wait and then find it. PostgreSQL: a session advisory lock on a connection held for the work and
-    /// then closed, never returned to the pool, so a request dropped mid-work or a replica that dies releases the
-    /// lock with its session (derivations are expensive; one reconnect each costs nothing beside them). SQLite: one process serves the file, so the caller's in-process gate is the
+    /// the others wait and then find it. PostgreSQL: a session advisory lock on a connection of its own, opened
+    /// for the work and closed after it. Not a pooled one: lock holders would otherwise take the pool's
+    /// connections from the work inside them, and a request dropped mid-work or a replica that dies releases the
+    /// lock with the session (derivations are expensive; one connection each costs nothing beside them). SQLite: one process serves the file, so the caller's in-process gate is the
     /// whole story.
     pub async fn exclusively<T, E: From<sqlx::Error>>(
         &self,
@@ -147,15 +154,15 @@ impl Db {
             return work.await;
         }
         let id = lock_id(key);
-        let mut conn = self.pool.acquire().await?;
-        conn.close_on_drop();
+        let mut conn = <sqlx::AnyConnection as sqlx::Connection>::connect(&self.url).await?;
         // Wrapped in a SELECT of a number: the lock function returns `void`, which the Any driver cannot decode.
         sqlx::query("SELECT 1 FROM (SELECT pg_advisory_lock($1)) AS locked")
             .bind(id)
-            .execute(&mut *conn)
+            .execute(&mut conn)
             .await?;
         let result = work.await;
-        drop(conn);
+        // Closing ends the session, and the lock with it.
+        let _ = sqlx::Connection::close(conn).await;
         result
     }
 
