@@ -329,10 +329,11 @@ fn two_api_replicas_share_postgres_and_s3() {
     assert_eq!(out["version"]["version"], made.version.as_str());
 }
 
-/// The job queue on PostgreSQL with the evaluators in their own processes: an API replica that only queues
+/// The job queue on PostgreSQL with the evaluators in their own processes: two API replicas that only queue
 /// (`leaderboard.evaluators = 0`), and two `dsrl-server evaluator` processes with their own simulator workers. The
-/// evaluator playing a submission is killed with SIGKILL; the other takes the lapsed lease over and stores the
-/// same episodes an uninterrupted evaluation (SQLite, same secret) stores.
+/// evaluator playing a submission (the parent of its `play-policy` processes) is killed with SIGKILL; the other
+/// takes the lapsed lease over and stores the same episodes an uninterrupted evaluation (SQLite, same secret)
+/// stores.
 #[test]
 fn a_submission_survives_its_evaluator_killed_mid_job() {
     let dir = tempfile::tempdir().unwrap();
@@ -367,17 +368,19 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
     let moto = Moto::start("dsrl-evaluators");
     let mut api_envs = scoring.to_vec();
     api_envs.push(("DSRL__LEADERBOARD__EVALUATORS", "0"));
-    let api = start(dir.path(), "api", &[], &shared_env(&pg, &moto, &api_envs));
+    let api = start(dir.path(), "api-a", &[], &shared_env(&pg, &moto, &api_envs));
+    let api_b = start(dir.path(), "api-b", &[], &shared_env(&pg, &moto, &api_envs));
     let mut evaluator_envs = scoring.to_vec();
     evaluator_envs.push(("DSRL__SIMULATORS__LOCAL_WORKERS", "1"));
     let evaluator_envs = shared_env(&pg, &moto, &evaluator_envs);
-    let mut first = start(dir.path(), "evaluator-1", &["evaluator"], &evaluator_envs);
-    assert_eq!(
-        block_on(reqwest::get(format!("{}/healthz", first.url)))
-            .unwrap()
-            .status(),
-        200
-    );
+    let mut evaluators = [
+        start(dir.path(), "evaluator-1", &["evaluator"], &evaluator_envs),
+        start(dir.path(), "evaluator-2", &["evaluator"], &evaluator_envs),
+    ];
+    for evaluator in &evaluators {
+        let health = block_on(reqwest::get(format!("{}/healthz", evaluator.url))).unwrap();
+        assert_eq!(health.status(), 200);
+    }
 
     let admin = cli(&api, &dir.path().join("cache"));
     let token = admin
@@ -397,18 +400,20 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
     .ok()
     .json();
     let id = submitted["id"].clone();
-    let state = |url: &str| get_json(&format!("{url}/v1/submissions/{id}"))["state"].clone();
-    assert!(
-        wait_for(Duration::from_secs(180), || state(&api.url) == "running"),
-        "the first evaluator never started the job"
-    );
-    // The second evaluator comes up while the first plays; the first is then killed mid-job.
-    let _second = start(dir.path(), "evaluator-2", &["evaluator"], &evaluator_envs);
-    assert_eq!(state(&api.url), "running", "the job finished before the kill");
-    first.kill();
+    // Whichever evaluator claimed the job plays it in `play-policy` children: kill that one mid-job.
+    let mut holder = None;
+    let playing = wait_for(Duration::from_secs(180), || {
+        let parents = play_policy_parents();
+        holder = evaluators.iter().position(|e| parents.contains(&e.pid()));
+        holder.is_some()
+    });
+    assert!(playing, "no evaluator started playing the job");
+    let state = get_json(&format!("{}/v1/submissions/{id}", api_b.url))["state"].clone();
+    assert_eq!(state, "running", "the job finished before the kill");
+    evaluators[holder.unwrap()].kill();
 
     let done = dsrl_e2e::Run::from(
-        admin
+        cli(&api_b, &dir.path().join("cache-b"))
             .command(&["--json", "status", &id.to_string(), "--wait"])
             .env("DSRL_TOKEN", &token)
             .output()
@@ -421,4 +426,25 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
     assert_eq!(done["episodes"], reference["episodes"]);
     assert_eq!(done["normalized_reward"], reference["normalized_reward"]);
     assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
+}
+
+/// The parent pids of the running `dsrl-server play-policy` processes (Linux /proc).
+fn play_policy_parents() -> Vec<u32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .filter_map(|entry| {
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let playing = cmdline.split(|&b| b == 0).any(|arg| arg == b"play-policy");
+            if !playing {
+                return None;
+            }
+            let status = std::fs::read_to_string(entry.path().join("status")).ok()?;
+            status
+                .lines()
+                .find_map(|l| l.strip_prefix("PPid:")?.trim().parse().ok())
+        })
+        .collect()
 }
