@@ -140,11 +140,14 @@ impl Db {
 
     /// Runs `work` holding the lock named `key` across every process that shares this database, so that a
     /// derived object (an ingested version, a filtered version, an HDF5 export) is computed by one replica while
-    /// the others wait and then find it. PostgreSQL: a session advisory lock on a connection of its own, opened
-    /// for the work and closed after it. Not a pooled one: lock holders would otherwise take the pool's
-    /// connections from the work inside them, and a request dropped mid-work or a replica that dies releases the
-    /// lock with the session (derivations are expensive; one connection each costs nothing beside them). SQLite: one process serves the file, so the caller's in-process gate is the
-    /// whole story.
+    /// the others wait and then find it.
+    ///
+    /// PostgreSQL: a session advisory lock on a connection of its own, opened for the work and closed after it.
+    /// Not a pooled one: lock holders would otherwise take the pool's connections from the work inside them. A
+    /// request dropped mid-work, or a replica that dies, releases the lock with the session. Derivations are
+    /// expensive; one connection each costs nothing beside them.
+    ///
+    /// SQLite: one process serves the file, so the caller's in-process gate is the whole story.
     pub async fn exclusively<T, E: From<sqlx::Error>>(
         &self,
         key: &str,
