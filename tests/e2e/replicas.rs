@@ -448,3 +448,102 @@ fn play_policy_parents() -> Vec<u32> {
         })
         .collect()
 }
+
+/// The queue's guarantees on PostgreSQL under concurrency, through the server's own queue code: four evaluators
+/// (separate connections, as separate processes would have) claim 200 jobs at once, and each job is claimed and
+/// finished exactly once (`SKIP LOCKED`, finish only under the lease); eight concurrent submissions by one user
+/// with a limit of 2 at once let exactly 2 in (the user's row is locked while the quota is checked).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
+    use dsrl_server::leaderboard::queue::{self, NewSubmission, Quotas};
+    use dsrl_server::leaderboard::users;
+    use dsrl_server::storage::db::Db;
+
+    let pg = Postgres::start();
+    let db = Db::connect(&pg.url, 8).await.unwrap();
+    let user = users::create(&db, "bench").await.unwrap();
+    let unlimited = Quotas {
+        per_day: u32::MAX,
+        concurrent: u32::MAX,
+    };
+    let jobs = 200;
+    for i in 0..jobs {
+        let digest = format!("{i:064x}");
+        let new = NewSubmission {
+            user_id: user.id,
+            task: TASK,
+            name: "job",
+            checkpoint_sha256: &digest,
+            checkpoints: &[],
+            episodes_per_threshold: 20,
+        };
+        queue::insert(&db, new, &unlimited).await.unwrap();
+    }
+    assert_eq!(queue::depth(&db).await.unwrap(), jobs);
+    let evaluators = (0..4).map(|e| {
+        let url = pg.url.clone();
+        tokio::spawn(async move {
+            let db = Db::connect(&url, 2).await.unwrap();
+            let owner = format!("evaluator-{e}");
+            let mut claimed = Vec::new();
+            while let Some(job) = queue::claim(&db, &owner, 60_000, 3).await.unwrap() {
+                assert!(queue::finish(&db, job.id, &owner, &[], 0.0, 0.0).await.unwrap());
+                claimed.push(job.id);
+            }
+            claimed
+        })
+    });
+    let mut claimed: Vec<i64> = Vec::new();
+    let mut per_evaluator = Vec::new();
+    for evaluator in futures::future::join_all(evaluators).await {
+        let ids = evaluator.unwrap();
+        per_evaluator.push(ids.len());
+        claimed.extend(ids);
+    }
+    claimed.sort();
+    let before = claimed.len();
+    claimed.dedup();
+    assert_eq!(before, claimed.len(), "a job was claimed twice");
+    assert_eq!(claimed.len() as i64, jobs, "{per_evaluator:?}");
+    assert_eq!(queue::depth(&db).await.unwrap(), 0);
+
+    // Eight connections opened first (opening one runs the migration check under a lock), then released together.
+    let mut connections = Vec::new();
+    for _ in 0..8 {
+        connections.push(Db::connect(&pg.url, 1).await.unwrap());
+    }
+    let together = std::sync::Arc::new(tokio::sync::Barrier::new(8));
+    let submissions = connections.into_iter().enumerate().map(|(i, db)| {
+        let (together, user_id) = (together.clone(), user.id);
+        tokio::spawn(async move {
+            let limited = Quotas {
+                per_day: u32::MAX,
+                concurrent: 2,
+            };
+            let digest = format!("{:064x}", 1000 + i);
+            let new = NewSubmission {
+                user_id,
+                task: TASK,
+                name: "quota",
+                checkpoint_sha256: &digest,
+                checkpoints: &[],
+                episodes_per_threshold: 20,
+            };
+            together.wait().await;
+            queue::insert(&db, new, &limited).await.map_err(|e| e.to_string())
+        })
+    });
+    let results: Vec<Result<i64, String>> = futures::future::join_all(submissions)
+        .await
+        .into_iter()
+        .map(|r| r.unwrap())
+        .collect();
+    assert_eq!(results.iter().filter(|r| r.is_ok()).count(), 2, "{results:?}");
+    assert!(
+        results
+            .iter()
+            .filter_map(|r| r.as_ref().err())
+            .all(|e| e.contains("queued or running")),
+        "{results:?}"
+    );
+}
