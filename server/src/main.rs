@@ -54,8 +54,10 @@ enum Internal {
     /// leaderboard.seed_secret); prints "dsrl-server evaluator listening on http://ADDR".
     Evaluator,
     /// Remove filtered versions by the gc policy (gc.derived_max_idle_hours, gc.derived_max_bytes): those unused
-    /// for longer first, then the least recently used until all fit the size budget. Safe while servers run on
-    /// the same database and store; a removed filter is computed again when asked for. Prints a JSON report.
+    /// for longer first, then the least recently used until all fit the size budget. With PostgreSQL it is safe
+    /// while servers run on the same database and store (it takes their locks); with the embedded SQLite default,
+    /// whose locks live inside the one server process, stop that server first. A removed filter is computed again
+    /// when asked for. Prints a JSON report.
     Gc {
         /// Report what would be removed, remove nothing.
         #[arg(long)]
