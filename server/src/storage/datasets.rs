@@ -255,14 +255,17 @@ impl Datasets {
         request: &str,
     ) -> Result<VersionRecord, ApiError> {
         let canonical = spec.canonical();
-        if let Some(found) = self.derivation(task, parent, &canonical).await? {
+        if let Some((found, last_used_ms)) = self.derivation(task, parent, &canonical).await? {
             self.count_filter("cached");
-            self.db.touch_derivation(&task.id, &parent.version, &canonical).await?;
+            // Garbage collection goes by last use; recorded at most once a minute, so reads stay reads.
+            if db::now_ms() - last_used_ms >= db::DERIVATION_TOUCH_MS {
+                self.db.touch_derivation(&task.id, &parent.version, &canonical).await?;
+            }
             return Ok(found);
         }
         self.one_at_a_time(derivation_gate(task.id.as_str(), &parent.version, &canonical), async {
             // Whoever held the gate before us has committed its result.
-            if let Some(found) = self.derivation(task, parent, &canonical).await? {
+            if let Some((found, _)) = self.derivation(task, parent, &canonical).await? {
                 self.count_filter("cached");
                 return Ok(found);
             }
@@ -377,11 +380,11 @@ impl Datasets {
         task: &Task,
         parent: &VersionRecord,
         canonical: &str,
-    ) -> Result<Option<VersionRecord>, ApiError> {
-        match self.db.derivation(&task.id, &parent.version, canonical).await? {
-            Some(v) => Ok(self.db.version(&task.id, &v).await?),
-            None => Ok(None),
-        }
+    ) -> Result<Option<(VersionRecord, i64)>, ApiError> {
+        let Some((version, last_used_ms)) = self.db.derivation(&task.id, &parent.version, canonical).await? else {
+            return Ok(None);
+        };
+        Ok(self.db.version(&task.id, &version).await?.map(|v| (v, last_used_ms)))
     }
 
     /// Plans the filter from the parent's episode index, gathers and writes the output on a blocking thread,
@@ -606,7 +609,7 @@ impl Datasets {
         // record them once: the second finds the version.
         let gate = format!("ingest/{}/{}", task.id, version);
         self.one_at_a_time(gate, async {
-            if self.db.version(&task.id, &version).await?.is_none() {
+            let Some(existing) = self.db.version(&task.id, &version).await? else {
                 let provenance = req.recipe.unwrap_or(Provenance::Import {
                     file_name: req.file_name,
                     sha256: req.upload_sha256,
@@ -650,10 +653,9 @@ impl Datasets {
                     version: record,
                     moved_tags: moved,
                 });
-            }
+            };
 
             // Identical bytes: nothing to store. Tags the request names explicitly still apply.
-            let existing = self.db.version(&task.id, &version).await?.expect("checked above");
             let space = existing
                 .observation_space
                 .parse::<ObservationSpace>()

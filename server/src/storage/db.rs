@@ -182,34 +182,39 @@ impl Db {
     }
 
     /// The version a filter made from `parent`, if it was made before.
+    /// The version a filter made from `parent`, if it was made before, and when it was last asked for
+    /// (milliseconds since the epoch).
     pub async fn derivation(
         &self,
         task: &TaskId,
         parent: &str,
         filter: &str,
-    ) -> Result<Option<VersionId>, sqlx::Error> {
-        let row =
-            sqlx::query("SELECT version FROM dataset_derivations WHERE task = $1 AND parent = $2 AND filter = $3")
-                .bind(task.as_str())
-                .bind(parent)
-                .bind(filter)
-                .fetch_optional(&self.pool)
-                .await?;
-        version_id(row)
-    }
-
-    /// Records that a filter's result was asked for now. At most one write a minute per derivation, so a busy
-    /// filtered version does not turn every request into a write.
-    pub async fn touch_derivation(&self, task: &TaskId, parent: &str, filter: &str) -> Result<(), sqlx::Error> {
-        let now = now_ms();
-        sqlx::query(
-            "UPDATE dataset_derivations SET last_used_ms = $4
-             WHERE task = $1 AND parent = $2 AND filter = $3 AND last_used_ms < $4 - 60000",
+    ) -> Result<Option<(VersionId, i64)>, sqlx::Error> {
+        let row = sqlx::query(
+            "SELECT version, last_used_ms FROM dataset_derivations WHERE task = $1 AND parent = $2 AND filter = $3",
         )
         .bind(task.as_str())
         .bind(parent)
         .bind(filter)
-        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        let last_used_ms = row.as_ref().map(|r| r.try_get::<i64, _>(1)).transpose()?;
+        Ok(version_id(row)?.zip(last_used_ms))
+    }
+
+    /// Records that a filter's result was asked for now, unless that was recorded less than
+    /// `DERIVATION_TOUCH_MS` ago (the caller skips the call then too), so a busy filtered version does not turn
+    /// every request into a write.
+    pub async fn touch_derivation(&self, task: &TaskId, parent: &str, filter: &str) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "UPDATE dataset_derivations SET last_used_ms = $4
+             WHERE task = $1 AND parent = $2 AND filter = $3 AND last_used_ms < $4 - $5",
+        )
+        .bind(task.as_str())
+        .bind(parent)
+        .bind(filter)
+        .bind(now_ms())
+        .bind(DERIVATION_TOUCH_MS)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -530,6 +535,9 @@ pub async fn hdf5_digest_in_use(tx: &mut Transaction<'static, Any>, digest: &str
         .await?
         .is_some())
 }
+
+/// How stale a derivation's last use may be before a request records it again (see `touch_derivation`).
+pub const DERIVATION_TOUCH_MS: i64 = 60_000;
 
 pub fn now_ms() -> i64 {
     std::time::SystemTime::now()
