@@ -52,13 +52,11 @@ pub struct AppState {
 /// `converter` says where uploads are parsed (the `dsrl-server` binary uses a child process).
 pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Result<AppState> {
     let data_dir = &config.server.data_dir;
-    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
+    let store = open_store(config)?;
     let catalog = open_catalog(config)?;
     let db = open_db(config).await?;
-    let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
     let leaderboard_store = store.clone();
     let metrics = Arc::new(Metrics::new());
-    let local_objects = (config.storage.backend == config::StorageBackend::Local).then(|| data_dir.join("objects"));
     // Submitted policies act in child processes of the same binary as uploads are converted in (see `inference`).
     let converter_program = match &converter {
         Converter::Subprocess { program, .. } => Some(program.clone()),
@@ -68,7 +66,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         catalog: catalog.clone(),
         db,
         store,
-        local_objects,
+        local_objects: local_objects(config),
         tmp_dir: data_dir.join("tmp"),
         default_license: config.datasets.default_license.clone(),
         converter,
@@ -83,17 +81,13 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     }
     metrics.dataset_versions.set(datasets.db().version_count().await?);
     let simulators = Arc::new(SimulatorPool::start(&config.simulators));
-    let seed_secret = match &config.leaderboard.seed_secret {
-        Some(secret) => secret.clone(),
-        None => http::auth::load_or_generate_secret(&data_dir.join("evaluation-secret"), "evaluation seed secret")?,
-    };
     let leaderboard = Arc::new(Leaderboard::new(
         datasets.db().clone(),
         leaderboard_store,
         catalog,
         simulators.clone(),
         config.leaderboard.clone(),
-        seed_secret,
+        seed_secret(config)?,
         converter_program,
     ));
     leaderboard::runner::spawn(leaderboard.clone());
@@ -106,6 +100,29 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         max_upload_bytes: config.datasets.max_upload_bytes,
         dsrl_download_metadrive: config.datasets.dsrl_download_metadrive,
     })
+}
+
+/// The data folder (created when missing) and the object store in it or in S3.
+fn open_store(config: &Config) -> anyhow::Result<Arc<dyn object_store::ObjectStore>> {
+    let data_dir = &config.server.data_dir;
+    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
+    storage::objects::build(&config.storage, data_dir).context("opening the object store")
+}
+
+/// The local object store's folder, where finished files are renamed into place (`None` with S3).
+fn local_objects(config: &Config) -> Option<std::path::PathBuf> {
+    (config.storage.backend == config::StorageBackend::Local).then(|| config.server.data_dir.join("objects"))
+}
+
+/// The secret the held evaluation seeds derive from: configured, or generated once into the data folder.
+fn seed_secret(config: &Config) -> anyhow::Result<String> {
+    match &config.leaderboard.seed_secret {
+        Some(secret) => Ok(secret.clone()),
+        None => http::auth::load_or_generate_secret(
+            &config.server.data_dir.join("evaluation-secret"),
+            "evaluation seed secret",
+        ),
+    }
 }
 
 fn open_catalog(config: &Config) -> anyhow::Result<Arc<Catalog>> {
@@ -152,16 +169,10 @@ pub async fn run_evaluator(
     policy_program: Option<std::path::PathBuf>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
-    let data_dir = &config.server.data_dir;
-    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
+    let store = open_store(&config)?;
     let catalog = open_catalog(&config)?;
     let db = open_db(&config).await?;
-    let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
     let simulators = Arc::new(SimulatorPool::start(&config.simulators));
-    let seed_secret = match &config.leaderboard.seed_secret {
-        Some(secret) => secret.clone(),
-        None => http::auth::load_or_generate_secret(&data_dir.join("evaluation-secret"), "evaluation seed secret")?,
-    };
     let mut leaderboard_config = config.leaderboard.clone();
     leaderboard_config.evaluators = leaderboard_config.evaluators.max(1);
     let leaderboard = Arc::new(Leaderboard::new(
@@ -170,7 +181,7 @@ pub async fn run_evaluator(
         catalog,
         simulators,
         leaderboard_config,
-        seed_secret,
+        seed_secret(&config)?,
         policy_program,
     ));
     leaderboard::runner::spawn(leaderboard.clone());
@@ -180,14 +191,7 @@ pub async fn run_evaluator(
             "/healthz",
             axum::routing::get({
                 let leaderboard = leaderboard.clone();
-                move || async move {
-                    leaderboard
-                        .db
-                        .ping()
-                        .await
-                        .map(|()| "ok\n")
-                        .map_err(|e| error::ApiError::Unavailable(format!("database: {e}")))
-                }
+                move || async move { http::database_health(&leaderboard.db).await }
             }),
         )
         .route(
@@ -205,17 +209,15 @@ pub async fn run_evaluator(
 /// Applies the garbage-collection policy (`gc` in the configuration) to filtered versions: `dsrl-server gc`. Safe
 /// while replicas serve the same database and store (see `Datasets::collect_garbage`).
 pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::datasets::GcReport> {
-    let data_dir = &config.server.data_dir;
-    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
+    let store = open_store(config)?;
     let db = open_db(config).await?;
-    let store = storage::objects::build(&config.storage, data_dir).context("opening the object store")?;
     // Its own temporary folder: a server on the same data folder clears `tmp` at start and owns what is in it.
-    let tmp_dir = data_dir.join(format!("tmp-gc-{}", std::process::id()));
+    let tmp_dir = config.server.data_dir.join(format!("tmp-gc-{}", std::process::id()));
     let datasets = Datasets::new(DatasetsSetup {
         catalog: open_catalog(config)?,
         db,
         store,
-        local_objects: (config.storage.backend == config::StorageBackend::Local).then(|| data_dir.join("objects")),
+        local_objects: local_objects(config),
         tmp_dir: tmp_dir.clone(),
         default_license: config.datasets.default_license.clone(),
         converter: Converter::InProcess,

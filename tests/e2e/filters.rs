@@ -11,9 +11,9 @@ use futures::StreamExt;
 
 use crate::{Env, get_json, s, sha256_file};
 
-/// `dsrl_filters_total{outcome=...}` from /metrics.
-async fn filter_count(env: &Env, outcome: &str) -> u64 {
-    let text = reqwest::get(format!("{}/metrics", env.server.url))
+/// `dsrl_filters_total{outcome=...}` from a server's /metrics.
+pub(crate) async fn filter_count(server_url: &str, outcome: &str) -> u64 {
+    let text = reqwest::get(format!("{server_url}/metrics"))
         .await
         .unwrap()
         .text()
@@ -87,8 +87,8 @@ async fn the_papers_noise_filter_is_a_derived_version_computed_once() {
     assert_eq!(p["counts"]["relabelled_outliers"], 6); // int(120 * 0.05)
     assert_eq!(p["counts"]["output_episodes"], 120);
     assert!(p["reference"].as_str().unwrap().contains("pre_process_data"));
-    assert_eq!(filter_count(&env, "computed").await, 1);
-    assert_eq!(filter_count(&env, "cached").await, 1);
+    assert_eq!(filter_count(&env.server.url, "computed").await, 1);
+    assert_eq!(filter_count(&env.server.url, "cached").await, 1);
 
     // Fetching again from an empty cache downloads the stored result: no filter work.
     let mut other = env.cli.clone();
@@ -98,8 +98,8 @@ async fn the_papers_noise_filter_is_a_derived_version_computed_once() {
         .ok()
         .json();
     assert_eq!(again["version"], version.as_str());
-    assert_eq!(filter_count(&env, "computed").await, 1);
-    assert_eq!(filter_count(&env, "cached").await, 2);
+    assert_eq!(filter_count(&env.server.url, "computed").await, 1);
+    assert_eq!(filter_count(&env.server.url, "cached").await, 2);
 
     // Filtered versions are addressable by id but not listed among the task's versions.
     let listed = get_json(&format!("{}/v1/datasets/{task}/versions", env.server.url));
@@ -152,11 +152,11 @@ async fn concurrent_identical_filter_requests_compute_once() {
         .collect();
     assert!(versions.windows(2).all(|w| w[0] == w[1]), "{versions:?}");
     assert_eq!(
-        filter_count(&env, "computed").await,
+        filter_count(&env.server.url, "computed").await,
         1,
         "one computation for six identical requests"
     );
-    assert_eq!(filter_count(&env, "cached").await, 5);
+    assert_eq!(filter_count(&env.server.url, "cached").await, 5);
 }
 
 #[tokio::test]
@@ -229,8 +229,8 @@ async fn bad_filters_get_400_over_rest_cli_and_grpc() {
         Ok(stream) => stream.into_inner().next().await.unwrap().unwrap_err(),
     };
     assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
-    assert!(filter_count(&env, "rejected").await >= 20);
-    assert_eq!(filter_count(&env, "computed").await, 0);
+    assert!(filter_count(&env.server.url, "rejected").await >= 20);
+    assert_eq!(filter_count(&env.server.url, "computed").await, 0);
 }
 
 #[tokio::test]
@@ -259,7 +259,7 @@ async fn plots_show_the_scatter_and_what_a_filter_removes() {
     );
     assert!(svg.contains("filter: cbins=10,rbins=50,max_npb=5,min_npb=2,seed=1,outliers_percent=0.05"));
     // The plot needs no filtered data: nothing was computed.
-    assert_eq!(filter_count(&env, "computed").await, 0);
+    assert_eq!(filter_count(&env.server.url, "computed").await, 0);
     let file = env.path("plot.svg");
     env.cli
         .run(&["show", task, "--filter", "discard=tempting", "--plot", s(&file)])

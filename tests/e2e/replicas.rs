@@ -46,12 +46,8 @@ fn cli(server: &Server, cache: &Path) -> Cli {
 
 /// `dsrl_filters_total{outcome=...}` of one replica.
 fn filter_count(server: &Server, outcome: &str) -> u64 {
-    let url = format!("{}/metrics", server.url);
-    let text = block_on(async move { reqwest::get(url).await.unwrap().text().await.unwrap() });
-    let prefix = format!("dsrl_filters_total{{outcome=\"{outcome}\"}} ");
-    text.lines()
-        .find_map(|l| l.strip_prefix(&prefix))
-        .map_or(0, |v| v.parse().unwrap())
+    let (url, outcome) = (server.url.clone(), outcome.to_owned());
+    block_on(async move { crate::filters::filter_count(&url, &outcome).await })
 }
 
 #[test]

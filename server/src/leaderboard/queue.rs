@@ -158,9 +158,10 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
          SET state = 'running', attempts = attempts + 1, lease_owner = $1, lease_expires_ms = $2,
              started_at = COALESCE(started_at, $3)
          WHERE id = (SELECT id FROM submissions
-                     WHERE state = 'queued' OR (state = 'running' AND lease_expires_ms < $4)
+                     WHERE {}
                      ORDER BY id LIMIT 1{})
          RETURNING id, task, checkpoints, episodes_per_threshold, attempts",
+        waiting("$4"),
         db.backend().skip_locked()
     )))
     .bind(owner)
@@ -180,11 +181,18 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
     }))
 }
 
+/// The condition of a job waiting for an evaluator: queued, or running under a lease that ran out before the time
+/// (milliseconds) in the parameter `now`. One definition for the claim and the queue depth.
+fn waiting(now: &str) -> String {
+    format!("(state = 'queued' OR (state = 'running' AND lease_expires_ms < {now}))")
+}
+
 /// Jobs waiting for an evaluator: queued, or running under a lease that ran out.
 pub async fn depth(db: &Db) -> Result<i64, ApiError> {
-    let row = sqlx::query(
-        "SELECT COUNT(*) FROM submissions WHERE state = 'queued' OR (state = 'running' AND lease_expires_ms < $1)",
-    )
+    let row = sqlx::query(AssertSqlSafe(format!(
+        "SELECT COUNT(*) FROM submissions WHERE {}",
+        waiting("$1")
+    )))
     .bind(now_ms())
     .fetch_one(db.pool())
     .await?;
