@@ -22,7 +22,7 @@ fi
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
 echo "building (release): dsrl-server, dsrl-client, dsrl-make-dataset, the queue benchmark" >&2
 cargo build --release --locked -p dsrl-server -p dsrl-client -p dsrl-e2e --bins >&2
-cargo build --release --locked -p dsrl-server --example queue_claims >&2
+cargo build --release --locked -p dsrl-leaderboard --example queue_claims >&2
 bin=${CARGO_TARGET_DIR:-target}/release
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-replicas-bench.XXXXXX")
 pids=()

@@ -17,6 +17,9 @@ pub struct Adam {
     /// Decoupled weight decay (AdamW, Loshchilov & Hutter; PyTorch's `AdamW`): each parameter is first multiplied by
     /// `1 − lr·weight_decay`, then takes the Adam step. 0 is plain Adam.
     pub weight_decay: f64,
+    /// Keep each step's gradients (before clipping) for `last_gradients`: tests/parity holds them to PyTorch's.
+    pub keep_gradients: bool,
+    last_gradients: Vec<(usize, Tensor)>,
     steps: u64,
     params: Vec<Param>,
 }
@@ -50,6 +53,8 @@ impl Adam {
             eps: 1e-8,
             max_grad_norm,
             weight_decay: 0.0,
+            keep_gradients: false,
+            last_gradients: Vec::new(),
             steps: 0,
             params,
         })
@@ -79,6 +84,13 @@ impl Adam {
             .iter()
             .map(|p| grads.get(p.var.as_tensor()).cloned())
             .collect();
+        if self.keep_gradients {
+            self.last_gradients = gs
+                .iter()
+                .enumerate()
+                .filter_map(|(i, g)| Some((i, g.clone()?)))
+                .collect();
+        }
         // ‖g‖ over all tensors. Clipping decides with candle's own float32 sums, as it always has (its vectorized
         // sum rounds differently from a plain loop); without clipping the norm is only reported.
         let mut sq = 0.0f64;
@@ -127,6 +139,12 @@ impl Adam {
             p.var.set(&Tensor::from_vec(values, p.var.shape(), p.var.device())?)?;
         }
         Ok(norm)
+    }
+
+    /// The gradients of the last step by the parameter's position in the optimizer (only with `keep_gradients`;
+    /// a parameter the loss did not reach has none).
+    pub fn last_gradients(&self) -> &[(usize, Tensor)] {
+        &self.last_gradients
     }
 
     pub fn steps(&self) -> u64 {

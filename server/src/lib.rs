@@ -1,13 +1,13 @@
-//! The dsrl service: REST (axum) and gRPC (tonic) on one port over versioned Parquet datasets in an object store,
-//! with metadata in SQLite. `run(listener, config, shutdown)` is the whole server, so tests run it on port 0.
+//! The dsrl service's API: REST (axum) and gRPC (tonic) on one port over versioned Parquet datasets in an object
+//! store, with metadata in SQLite or PostgreSQL. `build_state` + `app` are the whole server, so tests run it on
+//! port 0.
 //!
-//! Layout: `config` (layered settings), `error` (one error type, one status table), `storage` (object store,
-//! SQLite, the dataset service), `http` (REST routes), `grpc` (gRPC service), `starter` (datasets loaded at start),
-//! `leaderboard` (submissions, the job queue and its runner). Playing policies on the simulators is
-//! `dsrl-evaluation`'s.
+//! Layout: `storage` (the dataset service over the object store and the database), `http` (REST routes), `grpc`
+//! (gRPC service), `starter` (datasets loaded at start), `leaderboard` (its REST/gRPC routes and page over the
+//! `dsrl-leaderboard` crate, where submissions, the job queue and the evaluators live). Configuration, the error
+//! type and the database are `dsrl-service`'s, shared with the evaluator process; playing policies on the
+//! simulators is `dsrl-evaluation`'s.
 
-pub mod config;
-pub mod error;
 pub mod grpc;
 pub mod http;
 pub mod leaderboard;
@@ -15,14 +15,15 @@ pub mod metrics;
 pub mod starter;
 pub mod storage;
 
+// The configuration and the error type are shared with the evaluators; re-exported at the paths the API uses.
+pub use dsrl_service::{config, error};
+
 use std::future::Future;
 use std::sync::Arc;
 
-use anyhow::Context;
 use axum::Router;
 use dsrl_proto::datasets::v1::dataset_service_server::DatasetServiceServer;
 use dsrl_proto::leaderboard::v1::leaderboard_service_server::LeaderboardServiceServer;
-use dsrl_suite::Catalog;
 use tonic::server::NamedService;
 use tower_http::trace::TraceLayer;
 
@@ -32,7 +33,6 @@ use crate::leaderboard::Leaderboard;
 use crate::metrics::Metrics;
 use crate::storage::converter::Converter;
 use crate::storage::datasets::{Datasets, DatasetsSetup};
-use crate::storage::db::Db;
 use dsrl_evaluation::simulators::SimulatorPool;
 
 /// What every handler shares.
@@ -52,9 +52,9 @@ pub struct AppState {
 /// `converter` says where uploads are parsed (the `dsrl-server` binary uses a child process).
 pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Result<AppState> {
     let data_dir = &config.server.data_dir;
-    let store = open_store(config)?;
-    let catalog = open_catalog(config)?;
-    let db = open_db(config).await?;
+    let store = dsrl_service::open_store(config)?;
+    let catalog = dsrl_service::open_catalog(config)?;
+    let db = dsrl_service::open_db(config).await?;
     let leaderboard_store = store.clone();
     let metrics = Arc::new(Metrics::new());
     // Submitted policies act in child processes of the same binary as uploads are converted in (see `inference`).
@@ -66,7 +66,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         catalog: catalog.clone(),
         db,
         store,
-        local_objects: local_objects(config),
+        local_objects: dsrl_service::local_objects(config),
         tmp_dir: data_dir.join("tmp"),
         default_license: config.datasets.default_license.clone(),
         converter,
@@ -87,7 +87,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         catalog,
         simulators.clone(),
         config.leaderboard.clone(),
-        seed_secret(config)?,
+        dsrl_service::seed_secret(config)?,
         converter_program,
     ));
     leaderboard::runner::spawn(leaderboard.clone());
@@ -102,122 +102,18 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     })
 }
 
-/// The data folder (created when missing) and the object store in it or in S3.
-fn open_store(config: &Config) -> anyhow::Result<Arc<dyn object_store::ObjectStore>> {
-    let data_dir = &config.server.data_dir;
-    std::fs::create_dir_all(data_dir).with_context(|| format!("creating {}", data_dir.display()))?;
-    storage::objects::build(&config.storage, data_dir).context("opening the object store")
-}
-
-/// The local object store's folder, where finished files are renamed into place (`None` with S3).
-fn local_objects(config: &Config) -> Option<std::path::PathBuf> {
-    (config.storage.backend == config::StorageBackend::Local).then(|| config.server.data_dir.join("objects"))
-}
-
-/// The secret the held evaluation seeds derive from: configured, or generated once into the data folder.
-fn seed_secret(config: &Config) -> anyhow::Result<String> {
-    match &config.leaderboard.seed_secret {
-        Some(secret) => Ok(secret.clone()),
-        None => http::auth::load_or_generate_secret(
-            &config.server.data_dir.join("evaluation-secret"),
-            "evaluation seed secret",
-        ),
-    }
-}
-
-fn open_catalog(config: &Config) -> anyhow::Result<Arc<Catalog>> {
-    let catalog = match &config.catalog.tasks {
-        Some(path) => Catalog::load(path)?,
-        None => Catalog::embedded()?,
-    };
-    tracing::info!(tasks = catalog.tasks().len(), "task catalog loaded");
-    Ok(Arc::new(catalog))
-}
-
-/// The metadata database: the embedded SQLite file, or the shared one `database.url` names. Processes that share
-/// a database must share their secrets too (the admin token, and the seed secret every evaluator derives the held
-/// episodes from), so those must be configured rather than generated into one process's data folder.
-async fn open_db(config: &Config) -> anyhow::Result<Db> {
-    let db = match &config.database.url {
-        None => Db::open(&config.server.data_dir.join("dsrl.sqlite3"))
-            .await
-            .context("opening the SQLite database")?,
-        Some(url) => Db::connect(url, config.database.max_connections)
-            .await
-            .with_context(|| format!("connecting to the database at {}", config::redact_url(url)))?,
-    };
-    if db.backend() == storage::db::Backend::Postgres {
-        anyhow::ensure!(
-            config.auth.admin_token.is_some() && config.leaderboard.seed_secret.is_some(),
-            "a shared PostgreSQL database needs auth.admin_token and leaderboard.seed_secret set \
-             (DSRL__AUTH__ADMIN_TOKEN, DSRL__LEADERBOARD__SEED_SECRET), the same in every replica and evaluator: \
-             generated ones would differ from process to process"
-        );
-    }
-    tracing::info!(backend = ?db.backend(), "metadata database open");
-    Ok(db)
-}
-
-/// The evaluator role (`dsrl-server evaluator`): a process that only claims leaderboard jobs from the shared
-/// database and plays them on its simulator workers (`leaderboard.evaluators` at once, at least one), scaled apart
-/// from the API replicas, which then run with `leaderboard.evaluators = 0`. It serves `/healthz` (database
-/// reachable) and `/metrics` (the queue depth) for its probes and nothing else; it ingests no starter datasets.
-/// `policy_program` is the `dsrl-server` binary submitted policies act in (`None`: in this process).
-pub async fn run_evaluator(
-    listener: tokio::net::TcpListener,
-    config: Config,
-    policy_program: Option<std::path::PathBuf>,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> anyhow::Result<()> {
-    let store = open_store(&config)?;
-    let catalog = open_catalog(&config)?;
-    let db = open_db(&config).await?;
-    let simulators = Arc::new(SimulatorPool::start(&config.simulators));
-    let mut leaderboard_config = config.leaderboard.clone();
-    leaderboard_config.evaluators = leaderboard_config.evaluators.max(1);
-    let leaderboard = Arc::new(Leaderboard::new(
-        db,
-        store,
-        catalog,
-        simulators,
-        leaderboard_config,
-        seed_secret(&config)?,
-        policy_program,
-    ));
-    leaderboard::runner::spawn(leaderboard.clone());
-    let metrics = Arc::new(Metrics::new());
-    let probes = Router::new()
-        .route(
-            "/healthz",
-            axum::routing::get({
-                let leaderboard = leaderboard.clone();
-                move || async move { http::database_health(&leaderboard.db).await }
-            }),
-        )
-        .route(
-            "/metrics",
-            axum::routing::get(move || async move {
-                http::metrics::refresh_queue_depth(&metrics, &leaderboard.db).await;
-                metrics.render()
-            }),
-        )
-        .fallback(http::not_found);
-    axum::serve(listener, probes).with_graceful_shutdown(shutdown).await?;
-    Ok(())
-}
-
 /// Applies the garbage-collection policy (`gc` in the configuration) to filtered versions: `dsrl-server gc`. Safe
 /// while replicas serve the same database and store (see `Datasets::collect_garbage`).
 pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::datasets::GcReport> {
-    let store = open_store(config)?;
-    let db = open_db(config).await?;
+    let store = dsrl_service::open_store(config)?;
+    let db = dsrl_service::open_db(config).await?;
     // Its own temporary folder: a server on the same data folder clears `tmp` at start and owns what is in it.
     let tmp_dir = config.server.data_dir.join(format!("tmp-gc-{}", std::process::id()));
     let datasets = Datasets::new(DatasetsSetup {
-        catalog: open_catalog(config)?,
+        catalog: dsrl_service::open_catalog(config)?,
         db,
         store,
-        local_objects: local_objects(config),
+        local_objects: dsrl_service::local_objects(config),
         tmp_dir: tmp_dir.clone(),
         default_license: config.datasets.default_license.clone(),
         converter: Converter::InProcess,

@@ -1,12 +1,11 @@
 //! `dsrl-server`: the dsrl service on one port (REST + gRPC).
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 use dsrl_evaluation::limit_memory;
-use dsrl_server::config::{Config, Overrides};
 use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_closes};
+use dsrl_service::ProcessArgs;
 
 /// Serve offline safe-RL datasets: the 38-task catalog, versioned Parquet datasets, downloads with resume.
 ///
@@ -18,29 +17,16 @@ use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_c
 /// The admin token (for ingest and tags) is auth.admin_token, or else generated into <data_dir>/admin-token.
 /// On start the server prints one line "dsrl-server listening on http://ADDR" to stdout.
 ///
-/// Several API replicas and evaluator processes can share one PostgreSQL database (database.url) and one S3
-/// bucket: see `dsrl-server evaluator --help` and deploy/README.md.
+/// Several API replicas and evaluator processes (`dsrl-evaluator`) can share one PostgreSQL database (database.url)
+/// and one S3 bucket: see deploy/README.md.
 #[derive(Debug, Parser)]
 #[command(version)]
 struct Args {
-    /// TOML configuration file.
-    #[arg(long, env = "DSRL_CONFIG")]
-    config: Option<PathBuf>,
-    /// Address to listen on (REST and gRPC); port 0 picks a free port.
-    #[arg(long)]
-    listen: Option<SocketAddr>,
-    /// Folder for the SQLite database, temporary files and the local object store.
-    #[arg(long)]
-    data_dir: Option<PathBuf>,
-    /// Task catalog CSV (default: the copy of data/tasks.csv compiled in).
-    #[arg(long)]
-    catalog: Option<PathBuf>,
+    #[command(flatten)]
+    process: ProcessArgs,
     /// Folder of starter datasets to ingest at start-up when missing.
     #[arg(long)]
     starter_datasets: Option<PathBuf>,
-    /// Log as JSON lines instead of text.
-    #[arg(long)]
-    log_json: bool,
     #[command(subcommand)]
     command: Option<Internal>,
 }
@@ -48,11 +34,6 @@ struct Args {
 /// Roles other than the API, and internal commands the server runs itself.
 #[derive(Debug, Subcommand)]
 enum Internal {
-    /// Run as an evaluator only: claim leaderboard jobs from the shared database and play them on this process's
-    /// simulator workers, leaving the API to replicas started with DSRL__LEADERBOARD__EVALUATORS=0. Serves only
-    /// /healthz and /metrics on --listen. Takes the same configuration (database.url, storage, simulators,
-    /// leaderboard.seed_secret); prints "dsrl-server evaluator listening on http://ADDR".
-    Evaluator,
     /// Remove filtered versions by the gc policy (gc.derived_max_idle_hours, gc.derived_max_bytes): those unused
     /// for longer first, then the least recently used until all fit the size budget. With PostgreSQL it is safe
     /// while servers run on the same database and store (it takes their locks); with the embedded SQLite default,
@@ -126,17 +107,7 @@ fn convert(
 }
 
 async fn server_main(args: Args) -> std::process::ExitCode {
-    let filter = tracing_subscriber::EnvFilter::try_from_env("DSRL_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,tower_http=info,sqlx=warn"));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .with_writer(std::io::stderr);
-    if args.log_json {
-        builder.json().init();
-    } else {
-        builder.init();
-    }
+    dsrl_service::init_logging(args.process.log_json);
     match serve(args).await {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
@@ -148,13 +119,7 @@ async fn server_main(args: Args) -> std::process::ExitCode {
 }
 
 async fn serve(args: Args) -> anyhow::Result<()> {
-    let overrides = Overrides {
-        listen: args.listen,
-        data_dir: args.data_dir,
-        catalog: args.catalog,
-        starter_dir: args.starter_datasets,
-    };
-    let config = Config::load(args.config.as_deref(), &overrides)?;
+    let config = args.process.load_config(args.starter_datasets)?;
     if let Some(Internal::Gc { dry_run }) = args.command {
         let report = dsrl_server::run_gc(&config, dry_run).await?;
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -162,13 +127,6 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     }
     let listener = tokio::net::TcpListener::bind(config.server.listen).await?;
     let addr = listener.local_addr()?;
-    if let Some(Internal::Evaluator) = args.command {
-        tracing::info!(%addr, "evaluator");
-        println!("dsrl-server evaluator listening on http://{addr}");
-        dsrl_server::run_evaluator(listener, config, Some(std::env::current_exe()?), shutdown_signal()).await?;
-        tracing::info!("stopped");
-        return Ok(());
-    }
     let converter = Converter::Subprocess {
         program: std::env::current_exe()?,
         memory_limit_bytes: config.datasets.converter_memory_limit_bytes,
@@ -177,29 +135,8 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     tracing::info!(%addr, data_dir = %config.server.data_dir.display(), "serving");
     println!("dsrl-server listening on http://{addr}");
     axum::serve(listener, dsrl_server::app(state))
-        .with_graceful_shutdown(shutdown_signal())
+        .with_graceful_shutdown(dsrl_service::shutdown_signal())
         .await?;
     tracing::info!("stopped");
     Ok(())
-}
-
-async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    #[cfg(unix)]
-    let terminate = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
-    #[cfg(not(unix))]
-    let terminate = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => {},
-        _ = terminate => {},
-    }
 }

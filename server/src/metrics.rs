@@ -85,12 +85,7 @@ impl Metrics {
         );
         let dataset_versions = Gauge::default();
         registry.register("dataset_versions", "Hosted dataset versions", dataset_versions.clone());
-        let queue_depth = Gauge::default();
-        registry.register(
-            "evaluation_queue_depth",
-            "Leaderboard submissions waiting for an evaluator (queued, or running with a lapsed lease), read at scrape time",
-            queue_depth.clone(),
-        );
+        let queue_depth = dsrl_leaderboard::queue::register_depth_gauge(&mut registry);
         let panics = Family::<RouteLabels, Counter>::default();
         registry.register(
             "panics",

@@ -150,7 +150,7 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
         .as_array()
         .unwrap()
         .len();
-    assert_eq!(passed(&out), 6 + golden_cases, "{out}");
+    assert_eq!(passed(&out), 7 + golden_cases, "{out}");
     assert!(!out.contains("skipped"), "{out}");
 
     let numpy2 = root.join(".venv-numpy2/bin/python");

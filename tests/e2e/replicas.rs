@@ -326,7 +326,7 @@ fn two_api_replicas_share_postgres_and_s3() {
 }
 
 /// The job queue on PostgreSQL with the evaluators in their own processes: two API replicas that only queue
-/// (`leaderboard.evaluators = 0`), and two `dsrl-server evaluator` processes with their own simulator workers. The
+/// (`leaderboard.evaluators = 0`), and two `dsrl-evaluator` processes with their own simulator workers. The
 /// evaluator playing a submission (the parent of its `play-policy` processes) is killed with SIGKILL; the other
 /// takes the lapsed lease over and stores the same episodes an uninterrupted evaluation (SQLite, same secret)
 /// stores.
@@ -369,10 +369,11 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
     let mut evaluator_envs = scoring.to_vec();
     evaluator_envs.push(("DSRL__SIMULATORS__LOCAL_WORKERS", "1"));
     let evaluator_envs = shared_env(&pg, &moto, &evaluator_envs);
-    let mut evaluators = [
-        start(dir.path(), "evaluator-1", &["evaluator"], &evaluator_envs),
-        start(dir.path(), "evaluator-2", &["evaluator"], &evaluator_envs),
-    ];
+    let evaluator = |name: &str| {
+        let envs: Vec<(&str, &str)> = evaluator_envs.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
+        Server::evaluator(&dir.path().join(name), &envs)
+    };
+    let mut evaluators = [evaluator("evaluator-1"), evaluator("evaluator-2")];
     for evaluator in &evaluators {
         let health = block_on(reqwest::get(format!("{}/healthz", evaluator.url))).unwrap();
         assert_eq!(health.status(), 200);
@@ -424,7 +425,7 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
     assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
 }
 
-/// The parent pids of the running `dsrl-server play-policy` processes (Linux /proc).
+/// The parent pids of the running `play-policy` processes (Linux /proc).
 fn play_policy_parents() -> Vec<u32> {
     let Ok(entries) = std::fs::read_dir("/proc") else {
         return Vec::new();
@@ -451,9 +452,9 @@ fn play_policy_parents() -> Vec<u32> {
 /// with a limit of 2 at once let exactly 2 in (the user's row is locked while the quota is checked).
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
-    use dsrl_server::leaderboard::queue::{self, NewSubmission, Quotas};
-    use dsrl_server::leaderboard::users;
-    use dsrl_server::storage::db::Db;
+    use dsrl_leaderboard::queue::{self, NewSubmission, Quotas};
+    use dsrl_leaderboard::users;
+    use dsrl_service::db::Db;
 
     let pg = Postgres::start();
     let db = Db::connect(&pg.url, 8).await.unwrap();

@@ -84,8 +84,9 @@ pub fn make_dataset(task: &str, episodes: usize, seed: u64, out: &Path) -> Conve
     write_canonical(task, ObservationSpace::Simulator, chunks.map(Ok), vec![], out).expect("writing a dataset")
 }
 
-/// A `dsrl-server` process on a free loopback port, killed when dropped.
+/// A `dsrl-server` (or `dsrl-evaluator`) process on a free loopback port, killed when dropped.
 pub struct Server {
+    program: &'static str,
     child: Child,
     pub url: String,
     pub data_dir: PathBuf,
@@ -98,12 +99,27 @@ impl Server {
     pub fn start(data_dir: &Path, args: &[&str], envs: &[(&str, &str)]) -> Server {
         let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
         let envs: Vec<(String, String)> = envs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
-        let (child, url) = spawn_server(data_dir, &args, &envs);
+        let (child, url) = spawn_server("dsrl-server", data_dir, &args, &envs);
         Server {
+            program: "dsrl-server",
             child,
             url,
             data_dir: data_dir.to_owned(),
             args,
+            envs,
+        }
+    }
+
+    /// Starts a `dsrl-evaluator` process (it serves /healthz and /metrics on its port) with the given environment.
+    pub fn evaluator(data_dir: &Path, envs: &[(&str, &str)]) -> Server {
+        let envs: Vec<(String, String)> = envs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+        let (child, url) = spawn_server("dsrl-evaluator", data_dir, &[], &envs);
+        Server {
+            program: "dsrl-evaluator",
+            child,
+            url,
+            data_dir: data_dir.to_owned(),
+            args: Vec::new(),
             envs,
         }
     }
@@ -124,7 +140,7 @@ impl Server {
     /// Kills the process and starts a new one on the same data (on a new port).
     pub fn restart(&mut self) {
         self.kill();
-        let (child, url) = spawn_server(&self.data_dir, &self.args, &self.envs);
+        let (child, url) = spawn_server(self.program, &self.data_dir, &self.args, &self.envs);
         self.child = child;
         self.url = url;
     }
@@ -149,11 +165,11 @@ impl Drop for Server {
     }
 }
 
-fn spawn_server(data_dir: &Path, args: &[String], envs: &[(String, String)]) -> (Child, String) {
-    let mut cmd = Command::new(bin("dsrl-server"));
+fn spawn_server(program: &str, data_dir: &Path, args: &[String], envs: &[(String, String)]) -> (Child, String) {
+    let mut cmd = Command::new(bin(program));
     cmd.arg("--listen").arg("127.0.0.1:0").arg("--data-dir").arg(data_dir);
     // Starter datasets are opt-in per test, never picked up from the working directory.
-    if !args.iter().any(|a| a == "--starter-datasets") {
+    if program == "dsrl-server" && !args.iter().any(|a| a == "--starter-datasets") {
         cmd.arg("--starter-datasets").arg(data_dir.join("no-starter-datasets"));
     }
     // The server's log goes to a file beside its data folder, for reading when a test fails.
@@ -170,17 +186,17 @@ fn spawn_server(data_dir: &Path, args: &[String], envs: &[(String, String)]) -> 
         .env("DSRL_LOG", "info")
         .stdout(Stdio::piped())
         .stderr(log);
-    let mut child = cmd.spawn().expect("spawning dsrl-server");
+    let mut child = cmd.spawn().unwrap_or_else(|e| panic!("spawning {program}: {e}"));
     let stdout = child.stdout.take().expect("stdout");
     let mut line = String::new();
     BufReader::new(stdout)
         .read_line(&mut line)
         .expect("reading the server's first line");
-    // The API prints "dsrl-server listening on URL"; the evaluator role "dsrl-server evaluator listening on URL".
-    let url = ["dsrl-server listening on ", "dsrl-server evaluator listening on "]
-        .iter()
-        .find_map(|prefix| line.trim().strip_prefix(prefix))
-        .unwrap_or_else(|| panic!("unexpected first line from dsrl-server: {line:?}"))
+    // "dsrl-server listening on URL", "dsrl-evaluator listening on URL".
+    let url = line
+        .trim()
+        .strip_prefix(&format!("{program} listening on "))
+        .unwrap_or_else(|| panic!("unexpected first line from {program}: {line:?}"))
         .to_owned();
     (child, url)
 }

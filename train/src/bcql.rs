@@ -17,7 +17,7 @@ use dsrl_policy::offline::{DoubleCritic, Ensemble, PidLagrangian, qc_threshold, 
 use dsrl_policy::vae::Vae;
 use dsrl_policy::{Device, Tensor, Var};
 
-use crate::offline::{Figures, ThresholdLearner, Transitions};
+use crate::offline::{Batch, Figures, ThresholdLearner, Transitions};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// OSRL's BCQ-L configuration (spec 5.6).
@@ -147,11 +147,39 @@ impl BcqlLearner {
 
 impl ThresholdLearner for BcqlLearner {
     /// One training step on a uniformly drawn batch (with replacement, as OSRL's `TransitionDataset`).
-    fn step(&mut self) -> anyhow::Result<Figures> {
-        let b = self.settings.batch_size;
-        let batch = self
-            .data
-            .sample(b, self.settings.reward_scale, self.settings.cost_scale, &mut self.noise)?;
+    fn modules(&self) -> Vec<(&'static str, Vec<(String, Var)>)> {
+        vec![
+            ("actor", self.actor.named_vars()),
+            ("critic", self.critic.named_vars()),
+            ("cost_critic", self.cost_critic.named_vars()),
+            ("vae", self.vae.named_vars()),
+            ("actor_old", self.actor_target.named_vars()),
+            ("critic_old", self.critic_target.named_vars()),
+            ("cost_critic_old", self.cost_critic_target.named_vars()),
+        ]
+    }
+
+    fn optimizers(&mut self) -> Vec<(&'static str, &mut Adam)> {
+        vec![
+            ("actor_optim", &mut self.actor_optim),
+            ("critic_optim", &mut self.critic_optim),
+            ("cost_critic_optim", &mut self.cost_critic_optim),
+            ("vae_optim", &mut self.vae_optim),
+        ]
+    }
+
+    fn noise(&mut self) -> &mut Noise {
+        &mut self.noise
+    }
+
+    fn sample(&mut self) -> anyhow::Result<Batch> {
+        let s = &self.settings;
+        self.data
+            .sample(s.batch_size, s.reward_scale, s.cost_scale, &mut self.noise)
+    }
+
+    fn update(&mut self, batch: &Batch) -> anyhow::Result<Figures> {
+        let b = batch.obs.dim(0)?;
         let (obs, next_obs, act) = (&batch.obs, &batch.next_obs, &batch.act);
         let (reward, cost, done) = (&batch.reward, &batch.cost, &batch.done);
         let mut stats = Vec::new();

@@ -25,7 +25,7 @@ use dsrl_policy::squashed::{SquashedGaussianActor, normal_log_prob};
 use dsrl_policy::{Device, Tensor, Var};
 
 use crate::Demonstrations;
-use crate::offline::{Figures, ThresholdLearner, Transitions, normals, write_squashed_actor};
+use crate::offline::{Batch, Figures, ThresholdLearner, Transitions, normals, write_squashed_actor};
 
 /// OSRL's COptiDICE configuration (spec 5.8; `examples/configs/coptidice_configs.py`).
 #[derive(Debug, Clone, PartialEq)]
@@ -167,10 +167,39 @@ fn scalar(t: &Tensor) -> anyhow::Result<f64> {
 }
 
 impl ThresholdLearner for CoptidiceLearner {
-    fn step(&mut self) -> anyhow::Result<Figures> {
+    fn modules(&self) -> Vec<(&'static str, Vec<(String, Var)>)> {
+        vec![
+            ("actor", self.actor.named_vars()),
+            ("nu_network", self.nu.named_vars()),
+            ("chi_network", self.chi.named_vars()),
+            ("tau", vec![("tau".into(), self.tau.clone())]),
+            ("lmbda", vec![("lmbda".into(), self.lmbda.clone())]),
+        ]
+    }
+
+    fn optimizers(&mut self) -> Vec<(&'static str, &mut Adam)> {
+        vec![
+            ("actor_optim", &mut self.actor_optim),
+            ("nu_optim", &mut self.nu_optim),
+            ("chi_optim", &mut self.chi_optim),
+            ("tau_optim", &mut self.tau_optim),
+            ("lmbda_optim", &mut self.lmbda_optim),
+        ]
+    }
+
+    fn noise(&mut self) -> &mut Noise {
+        &mut self.noise
+    }
+
+    fn sample(&mut self) -> anyhow::Result<Batch> {
+        let s = &self.settings;
+        self.data
+            .sample(s.batch_size, s.reward_scale, s.cost_scale, &mut self.noise)
+    }
+
+    fn update(&mut self, batch: &Batch) -> anyhow::Result<Figures> {
         let s = self.settings.clone();
-        let b = s.batch_size;
-        let batch = self.data.sample(b, s.reward_scale, s.cost_scale, &mut self.noise)?;
+        let b = batch.obs.dim(0)?;
         let (gamma, p0) = (s.gamma, self.data.init_proportion);
 
         // 1. The optimal distribution ratio.

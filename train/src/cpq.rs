@@ -20,9 +20,9 @@ use dsrl_policy::noise::Noise;
 use dsrl_policy::offline::{Ensemble, concat, qc_threshold, quantile, soft_update};
 use dsrl_policy::squashed::SquashedGaussianActor;
 use dsrl_policy::vae::Vae;
-use dsrl_policy::{DType, Tensor};
+use dsrl_policy::{DType, Tensor, Var};
 
-use crate::offline::{Figures, ThresholdLearner, Transitions, normals, write_squashed_actor};
+use crate::offline::{Batch, Figures, ThresholdLearner, Transitions, normals, write_squashed_actor};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// OSRL's CPQ configuration (spec 5.8; `examples/configs/cpq_configs.py`).
@@ -134,10 +134,39 @@ impl CpqLearner {
 }
 
 impl ThresholdLearner for CpqLearner {
-    fn step(&mut self) -> anyhow::Result<Figures> {
+    fn modules(&self) -> Vec<(&'static str, Vec<(String, Var)>)> {
+        vec![
+            ("actor", self.actor.named_vars()),
+            ("critic", self.critic.named_vars()),
+            ("cost_critic", self.cost_critic.named_vars()),
+            ("vae", self.vae.named_vars()),
+            ("critic_old", self.critic_target.named_vars()),
+            ("cost_critic_old", self.cost_critic_target.named_vars()),
+        ]
+    }
+
+    fn optimizers(&mut self) -> Vec<(&'static str, &mut Adam)> {
+        vec![
+            ("actor_optim", &mut self.actor_optim),
+            ("critic_optim", &mut self.critic_optim),
+            ("cost_critic_optim", &mut self.cost_critic_optim),
+            ("vae_optim", &mut self.vae_optim),
+        ]
+    }
+
+    fn noise(&mut self) -> &mut Noise {
+        &mut self.noise
+    }
+
+    fn sample(&mut self) -> anyhow::Result<Batch> {
+        let s = &self.settings;
+        self.data
+            .sample(s.batch_size, s.reward_scale, s.cost_scale, &mut self.noise)
+    }
+
+    fn update(&mut self, batch: &Batch) -> anyhow::Result<Figures> {
         let s = self.settings.clone();
-        let b = s.batch_size;
-        let batch = self.data.sample(b, s.reward_scale, s.cost_scale, &mut self.noise)?;
+        let b = batch.obs.dim(0)?;
         let input = concat(&batch.obs, &batch.act)?;
 
         // VAE.

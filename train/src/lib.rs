@@ -15,6 +15,7 @@ pub mod cdt_augment;
 pub mod coptidice;
 pub mod cpq;
 pub mod offline;
+pub mod parity;
 
 use std::path::Path;
 

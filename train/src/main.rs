@@ -128,6 +128,10 @@ enum Command {
         #[command(flatten)]
         data: DataArgs,
     },
+    /// One update from given weights, batch and seed, with its losses, gradients and new weights written out
+    /// (tests/parity/osrl_step_check.py holds them to OSRL's PyTorch code).
+    #[command(hide = true)]
+    Parity { dir: PathBuf },
 }
 
 /// The dataset named by `data`: read from its file, or fetched into the cache; with the fetched version id.
@@ -369,6 +373,7 @@ fn main() -> anyhow::Result<()> {
             });
         }
         Command::Cdt { data } => return train_cdt(data),
+        Command::Parity { dir } => return dsrl_train::parity::run(&dir),
         Command::Bearl { data } => {
             return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch| {
                 let default = BearlSettings::default();

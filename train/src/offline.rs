@@ -4,11 +4,12 @@
 
 use std::path::Path;
 
+use dsrl_policy::adam::Adam;
 use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig};
 use dsrl_policy::mlp::Activation;
 use dsrl_policy::noise::Noise;
 use dsrl_policy::squashed::SquashedGaussianActor;
-use dsrl_policy::{Device, Tensor};
+use dsrl_policy::{Device, Tensor, Var};
 
 use crate::{Demonstrations, MAX_ACTION};
 
@@ -17,8 +18,22 @@ pub type Figures = Vec<(&'static str, f64)>;
 
 /// One learner trained for one cost threshold, stepped by the CLI.
 pub trait ThresholdLearner {
-    /// One gradient step; named figures for the progress line and the record.
-    fn step(&mut self) -> anyhow::Result<Figures>;
+    /// One gradient step on a freshly drawn batch; named figures for the progress line and the record.
+    fn step(&mut self) -> anyhow::Result<Figures> {
+        let batch = self.sample()?;
+        self.update(&batch)
+    }
+    /// A batch drawn as OSRL's `TransitionDataset` draws one (uniform, with replacement), scaled.
+    fn sample(&mut self) -> anyhow::Result<Batch>;
+    /// One gradient step on `batch`: every network's update, in OSRL's order.
+    fn update(&mut self, batch: &Batch) -> anyhow::Result<Figures>;
+    /// The networks under OSRL's attribute names (`actor`, `actor_old`, `critic`, ...), each with its variables
+    /// in the order of OSRL's `parameters()`, for tests/parity (which loads OSRL's initial weights into them).
+    fn modules(&self) -> Vec<(&'static str, Vec<(String, Var)>)>;
+    /// The optimizers under OSRL's attribute names (`actor_optim`, ...), for tests/parity.
+    fn optimizers(&mut self) -> Vec<(&'static str, &mut Adam)>;
+    /// The learner's random numbers (batches, latents, action samples), for tests/parity to seed.
+    fn noise(&mut self) -> &mut Noise;
     /// The per-step cost-Q threshold the learner holds its policy to.
     fn qc_threshold(&self) -> f64;
     /// The hyperparameters, as recorded in `policy.json`.

@@ -111,6 +111,20 @@ fn task_json(id: &str) -> PyResult<String> {
     serde_json::to_string(task).map_err(|e| PyException::new_err(e.to_string()))
 }
 
+/// DSRL's density presets (`DENSITY_CFG`; `data/density_presets.csv`, compiled in) as JSON: one object per task
+/// and density with `task`, `density` (as Python writes it), `cbins`, `rbins`, `max_npb` and `min_npb`.
+#[pyfunction]
+fn density_presets_json() -> PyResult<String> {
+    let presets: Vec<serde_json::Value> = dsrl_suite::filters::spec::density_presets()
+        .into_iter()
+        .map(|((task, density), grid)| {
+            serde_json::json!({"task": task, "density": density, "cbins": grid.cbins, "rbins": grid.rbins,
+                               "max_npb": grid.max_npb, "min_npb": grid.min_npb})
+        })
+        .collect();
+    serde_json::to_string(&presets).map_err(|e| PyException::new_err(e.to_string()))
+}
+
 /// Makes `task`'s version (id or tag; with a DSRL filter, the filtered version the server derives) complete and
 /// verified in the cache, downloading or resuming only what is missing. Returns the fetch outcome and the
 /// version's manifest as JSON.
@@ -227,6 +241,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(default_cache_dir, m)?)?;
     m.add_function(wrap_pyfunction!(catalog_json, m)?)?;
     m.add_function(wrap_pyfunction!(task_json, m)?)?;
+    m.add_function(wrap_pyfunction!(density_presets_json, m)?)?;
     m.add_function(wrap_pyfunction!(fetch, m)?)?;
     m.add_function(wrap_pyfunction!(read_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(submit, m)?)?;

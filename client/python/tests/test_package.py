@@ -124,6 +124,21 @@ def test_the_env_without_its_simulator_names_the_pip_packages():
         gym.make("OfflineMetadrive-easysparse-v0").reset(seed=0)
 
 
+def test_infos_has_dsrls_density_presets_under_dsrls_keys():
+    """OSRL's scripts read `DENSITY_CFG[task + "_density" + str(density)]` from `dsrl.infos`."""
+    import csv
+    from pathlib import Path
+
+    from dsrl_client.infos import DENSITY_CFG
+
+    path = Path(__file__).resolve().parents[3] / "data" / "density_presets.csv"
+    rows = list(csv.DictReader(open(path)))
+    assert len(DENSITY_CFG) == len(rows) > 0
+    for row in rows:
+        preset = DENSITY_CFG[row["offline_env_id"] + "_density" + str(float(row["density"]))]
+        assert preset == {k: int(row[k]) for k in ("cbins", "rbins", "max_npb", "min_npb")}
+
+
 CASES = [c for c in GOLDEN["cases"] if c["dataset"] in VERSIONS]
 
 

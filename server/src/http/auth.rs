@@ -1,10 +1,10 @@
 //! Admin authentication: a bearer token compared in constant time. Unset in the configuration, a random token
 //! is generated once into `<data_dir>/admin-token` (mode 0600) and reused across restarts.
 
-use std::io::Write;
 use std::path::Path;
 
 use axum::http::{HeaderMap, header};
+use dsrl_service::secrets::{constant_time_eq, load_or_generate_secret};
 
 use crate::error::ApiError;
 
@@ -40,47 +40,6 @@ impl AdminAuth {
             Err(ApiError::PermissionDenied)
         }
     }
-}
-
-/// The secret stored in `path`, or a new random one (64 hex digits) written there with mode 0600.
-pub fn load_or_generate_secret(path: &Path, what: &str) -> anyhow::Result<String> {
-    match std::fs::read_to_string(path) {
-        Ok(secret) if !secret.trim().is_empty() => return Ok(secret.trim().to_owned()),
-        Ok(_) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-        Err(e) => return Err(e.into()),
-    }
-    let secret = random_hex()?;
-    let mut options = std::fs::OpenOptions::new();
-    options.write(true).create_new(true);
-    #[cfg(unix)]
-    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
-    let mut file = options.open(path)?;
-    writeln!(file, "{secret}")?;
-    file.sync_all()?;
-    tracing::info!(path = %path.display(), "generated the {what}");
-    Ok(secret)
-}
-
-/// 32 random bytes as hex.
-pub fn random_hex() -> anyhow::Result<String> {
-    let mut bytes = [0u8; 32];
-    getrandom::fill(&mut bytes).map_err(|e| anyhow::anyhow!("no randomness: {e}"))?;
-    Ok(hex::encode(bytes))
-}
-
-/// The token of an `Authorization: Bearer <token>` header, if there is one.
-pub fn bearer(headers: &HeaderMap) -> Option<&str> {
-    headers
-        .get(header::AUTHORIZATION)?
-        .to_str()
-        .ok()?
-        .strip_prefix("Bearer ")
-        .map(str::trim)
-}
-
-pub fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 #[cfg(test)]

@@ -62,7 +62,7 @@ pub(crate) fn is_grpc(request: &Request) -> bool {
     responses((status = 200, content_type = "application/openmetrics-text", body = String,
         description = "Prometheus metrics: requests by route and status, latency, panics, downloads, ingests, filters")))]
 pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
-    refresh_queue_depth(&state.metrics, &state.leaderboard.db).await;
+    dsrl_leaderboard::queue::refresh_depth_gauge(&state.metrics.queue_depth, &state.leaderboard.db).await;
     (
         [(
             header::CONTENT_TYPE,
@@ -70,15 +70,4 @@ pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         )],
         state.metrics.render(),
     )
-}
-
-/// Reads the evaluation queue's depth into its gauge (the autoscaler of simulator workers follows it); a database
-/// error leaves the last value and is logged.
-pub async fn refresh_queue_depth(metrics: &crate::metrics::Metrics, db: &crate::storage::db::Db) {
-    match crate::leaderboard::queue::depth(db).await {
-        Ok(depth) => {
-            metrics.queue_depth.set(depth);
-        }
-        Err(e) => tracing::warn!(error = %e, "reading the evaluation queue depth"),
-    }
 }

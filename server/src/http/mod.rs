@@ -67,15 +67,7 @@ pub fn router(state: AppState) -> Router {
     responses((status = 200, content_type = "text/plain", body = String, description = "ok"),
         (status = 503, description = "The database does not answer")))]
 pub async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError> {
-    database_health(state.datasets.db()).await
-}
-
-/// The health answer of every role (the API's `/healthz`, the evaluator's): the database answers.
-pub async fn database_health(db: &crate::storage::db::Db) -> Result<&'static str, ApiError> {
-    db.ping()
-        .await
-        .map_err(|e| ApiError::Unavailable(format!("database: {e}")))?;
-    Ok("ok\n")
+    dsrl_service::database_health(state.datasets.db()).await
 }
 
 #[utoipa::path(get, path = "/openapi.json", tag = "operations",

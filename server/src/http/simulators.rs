@@ -37,7 +37,7 @@ pub async fn list_simulators(
 ) -> Result<Json<SimulatorPoolStatus>, ApiError> {
     // Without a token: the summary. With one: it must be the admin's (a wrong token is an error, not a summary,
     // so a script that expects the detail learns why it is missing).
-    let detail = match super::auth::bearer(&headers) {
+    let detail = match dsrl_service::secrets::bearer(&headers) {
         None => false,
         Some(_) => {
             state.auth.check(&headers)?;

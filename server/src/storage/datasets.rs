@@ -21,7 +21,7 @@ use object_store::{ObjectStore, ObjectStoreExt};
 use tokio::io::AsyncWriteExt;
 
 use super::converter::Converter;
-use super::db::{self, Db, VersionRecord};
+use super::db::{self, Db, VersionRecord, now_rfc3339};
 use super::objects;
 use crate::error::ApiError;
 use crate::metrics::{Metrics, OutcomeLabels};
@@ -719,14 +719,6 @@ fn ids(record: &VersionRecord) -> Result<(dsrl_suite::TaskId, VersionId), ApiErr
     let task = record.task.parse().map_err(ApiError::internal)?;
     let version = record.version.parse().map_err(ApiError::internal)?;
     Ok((task, version))
-}
-
-pub fn now_rfc3339() -> String {
-    let now = time::OffsetDateTime::now_utc()
-        .replace_nanosecond(0)
-        .expect("0 is a valid nanosecond");
-    now.format(&time::format_description::well_known::Rfc3339)
-        .expect("formattable")
 }
 
 /// The gate (in-process and across replicas) of one filter applied to one parent version: held while the filter

@@ -342,27 +342,27 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (
         20261122000001,
         "datasets",
-        include_str!("../../../migrations/sqlite/20261122000001_datasets.sql"),
+        include_str!("../../migrations/sqlite/20261122000001_datasets.sql"),
     ),
     (
         20261122000002,
         "derivations",
-        include_str!("../../../migrations/sqlite/20261122000002_derivations.sql"),
+        include_str!("../../migrations/sqlite/20261122000002_derivations.sql"),
     ),
     (
         20261122000003,
         "leaderboard",
-        include_str!("../../../migrations/sqlite/20261122000003_leaderboard.sql"),
+        include_str!("../../migrations/sqlite/20261122000003_leaderboard.sql"),
     ),
     (
         20261123000001,
         "hdf5_exports",
-        include_str!("../../../migrations/sqlite/20261123000001_hdf5_exports.sql"),
+        include_str!("../../migrations/sqlite/20261123000001_hdf5_exports.sql"),
     ),
     (
         20261124000001,
         "derivation_access",
-        include_str!("../../../migrations/sqlite/20261124000001_derivation_access.sql"),
+        include_str!("../../migrations/sqlite/20261124000001_derivation_access.sql"),
     ),
 ];
 
@@ -370,12 +370,12 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (
         20261124000001,
         "initial",
-        include_str!("../../../migrations/postgres/20261124000001_initial.sql"),
+        include_str!("../../migrations/postgres/20261124000001_initial.sql"),
     ),
     (
         20261124000002,
         "derivation_access",
-        include_str!("../../../migrations/postgres/20261124000002_derivation_access.sql"),
+        include_str!("../../migrations/postgres/20261124000002_derivation_access.sql"),
     ),
 ];
 
@@ -539,6 +539,16 @@ pub async fn hdf5_digest_in_use(tx: &mut Transaction<'static, Any>, digest: &str
 /// How stale a derivation's last use may be before a request records it again (see `touch_derivation`).
 pub const DERIVATION_TOUCH_MS: i64 = 60_000;
 
+/// Now in UTC, to the second, as RFC 3339 (the timestamps the tables store).
+pub fn now_rfc3339() -> String {
+    let now = time::OffsetDateTime::now_utc()
+        .replace_nanosecond(0)
+        .expect("0 is a valid nanosecond");
+    now.format(&time::format_description::well_known::Rfc3339)
+        .expect("formattable")
+}
+
+/// Now in milliseconds since the Unix epoch (last-use times, leases).
 pub fn now_ms() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)

@@ -2,8 +2,8 @@
 //! one database, through the server's own queue code (`leaderboard::queue::claim` and `finish`, each job with 60
 //! stored episodes as the paper's protocol makes). No simulators: this measures the queue, not the scoring.
 //!
-//!   cargo run --release -p dsrl-server --example queue_claims -- --database sqlite --evaluators 4 --jobs 2000
-//!   cargo run --release -p dsrl-server --example queue_claims -- --database postgres://dsrl@127.0.0.1:5432/postgres
+//!   cargo run --release -p dsrl-leaderboard --example queue_claims -- --database sqlite --evaluators 4 --jobs 2000
+//!   cargo run --release -p dsrl-leaderboard --example queue_claims -- --database postgres://dsrl@127.0.0.1:5432/postgres
 //!
 //! Prints one JSON line. bench/replicas.sh runs it against SQLite and PostgreSQL side by side.
 
@@ -11,9 +11,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use clap::Parser;
-use dsrl_server::leaderboard::queue::{self, EpisodeRow, NewSubmission, Quotas};
-use dsrl_server::leaderboard::users;
-use dsrl_server::storage::db::Db;
+use dsrl_leaderboard::queue::{self, EpisodeRow, NewSubmission, Quotas};
+use dsrl_leaderboard::users;
+use dsrl_service::db::Db;
 
 #[derive(Parser)]
 struct Args {

@@ -16,7 +16,7 @@ use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::error::ApiError;
+use dsrl_service::error::ApiError;
 
 /// One checkpoint of a submission, checked.
 pub struct CheckedCheckpoint {

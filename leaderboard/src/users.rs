@@ -5,10 +5,10 @@ use serde::Serialize;
 use sha2::{Digest, Sha256};
 use sqlx::Row;
 
-use crate::error::ApiError;
-use crate::http::auth::{bearer, random_hex};
-use crate::storage::datasets::now_rfc3339;
-use crate::storage::db::Db;
+use dsrl_service::db::Db;
+use dsrl_service::db::now_rfc3339;
+use dsrl_service::error::ApiError;
+use dsrl_service::secrets::{bearer, random_hex};
 
 #[derive(Debug, Clone, Serialize)]
 pub struct User {

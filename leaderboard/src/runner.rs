@@ -13,8 +13,8 @@ use dsrl_evaluation::inference::{IsolatedPolicy, PolicySource};
 
 use super::Leaderboard;
 use super::queue::{self, EpisodeRow, Job};
-use crate::error::{ApiError, ErrorCode};
 use dsrl_evaluation::evaluator::play_episodes;
+use dsrl_service::error::{ApiError, ErrorCode};
 
 /// How a job ended.
 enum Outcome {
@@ -31,7 +31,7 @@ pub fn spawn(leaderboard: Arc<Leaderboard>) {
         let owner = format!(
             "{}-{}-{i}",
             std::process::id(),
-            crate::http::auth::random_hex()
+            dsrl_service::secrets::random_hex()
                 .unwrap_or_default()
                 .get(..8)
                 .unwrap_or("0")

@@ -3,16 +3,17 @@
 //! writing its own lease; it heartbeats while it plays and writes the result only while it still holds the lease,
 //! so a job taken over by another evaluator is finished exactly once.
 
+use prometheus_client::metrics::gauge::Gauge;
 use serde::{Deserialize, Serialize};
 use sqlx::{AssertSqlSafe, Row};
 
-use crate::storage::db::Db;
+use dsrl_service::db::Db;
 
 use super::checkpoints::CheckpointRecord;
-use crate::error::ApiError;
-use crate::storage::datasets::now_rfc3339;
+use dsrl_service::db::now_rfc3339;
+use dsrl_service::error::ApiError;
 
-pub use crate::storage::db::now_ms;
+pub use dsrl_service::db::now_ms;
 
 /// A claimed job.
 #[derive(Debug, Clone)]
@@ -197,6 +198,28 @@ pub async fn depth(db: &Db) -> Result<i64, ApiError> {
     .fetch_one(db.pool())
     .await?;
     Ok(row.try_get(0)?)
+}
+
+/// Registers the queue depth as the gauge `<prefix>_evaluation_queue_depth` (API replicas and evaluators alike;
+/// the autoscaler of simulator workers follows it). `refresh_depth_gauge` sets it at scrape time.
+pub fn register_depth_gauge(registry: &mut prometheus_client::registry::Registry) -> Gauge {
+    let gauge = Gauge::default();
+    registry.register(
+        "evaluation_queue_depth",
+        "Leaderboard submissions waiting for an evaluator (queued, or running with a lapsed lease), read at scrape time",
+        gauge.clone(),
+    );
+    gauge
+}
+
+/// Reads the queue's depth into its gauge; a database error leaves the last value and is logged.
+pub async fn refresh_depth_gauge(gauge: &Gauge, db: &Db) {
+    match depth(db).await {
+        Ok(depth) => {
+            gauge.set(depth);
+        }
+        Err(e) => tracing::warn!(error = %e, "reading the evaluation queue depth"),
+    }
 }
 
 /// Extends the lease; `false` when the job is no longer this evaluator's (taken over, or cancelled).

@@ -1,0 +1,326 @@
+"""One training step of dsrl-train's candle learners held to OSRL's own PyTorch code (osrl-lib 0.1.0, installed,
+not copied): the same initial weights, the same batch and the same random numbers, then every loss, every gradient
+each optimizer steps with, and every weight after the step (targets' soft updates included) compared, part by part.
+
+The random numbers: dsrl-train draws from its SplitMix64 stream (dsrl_policy::noise), which this script reproduces
+bit for bit in Python (Stream below). OSRL draws from torch.randn / torch.randn_like; while OSRL runs, those two
+return the draws dsrl-train makes, in the order each OSRL call consumes them (PLANS below: where OSRL draws again for
+something dsrl-train draws once, e.g. BCQ-L's second decode of the same next states, the same draws are replayed).
+The initial weights are OSRL's (torch.manual_seed), loaded into dsrl-train by module and parameter order
+(`dsrl-train parity`, hidden).
+
+Usage: .venv-bench/bin/python tests/parity/osrl_step_check.py DSRL_TRAIN [ALGO ...]   (see osrl_step_check.sh)
+Prints one JSON line per algorithm with the largest differences; exits non-zero when one is over its tolerance.
+"""
+import contextlib
+import json
+import math
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "bench"))
+from offline_step_torch import ALGOS, COMMON, SCALES, stand_in_loggers  # noqa: E402
+
+OBS, ACT, BATCH, HIDDEN, VAE_HIDDEN, SEED = 6, 2, 64, [64, 64], 48, 11
+MASK = (1 << 64) - 1
+# Relative tolerances (largest difference over the largest magnitude) of losses and gradients, and of the change
+# each weight made. The weights' is looser: Adam's first step is lr·g/(|g| + 1e-8), which turns a gradient's
+# rounding into a large relative change wherever |g| is near 1e-8.
+TOLERANCE = {"loss": 1e-4, "grad": 1e-4, "param": 1e-3}
+ULPS = 4
+SLACK = 8
+
+
+class Stream:
+    """dsrl_policy::noise::Noise: SplitMix64, uniform in (0, 1), Box-Muller keeping the cosine branch."""
+
+    def __init__(self, seed):
+        self.state = seed & MASK
+
+    def next_u64(self):
+        self.state = (self.state + 0x9E3779B97F4A7C15) & MASK
+        z = self.state
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & MASK
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & MASK
+        return z ^ (z >> 31)
+
+    def uniform(self):
+        return ((self.next_u64() >> 11) + 0.5) / float(1 << 53)
+
+    def normal(self):
+        u1, u2 = self.uniform(), self.uniform()
+        return math.sqrt(-2.0 * math.log(u1)) * math.cos(math.tau * u2)
+
+    def normals(self, *shape):
+        return torch.tensor([self.normal() for _ in range(int(np.prod(shape)))], dtype=torch.float32).reshape(shape)
+
+
+def plan_bcql(stream, model):
+    """dsrl-train: ε for the VAE [b, latent]; latents for the targets [b·n, latent], shared by both critics;
+    latents for the actor [b, latent]. OSRL: randn_like in VAE.forward, then randn in each decode."""
+    latent, n = model.latent_dim, model.sample_action_num
+    eps = stream.normals(BATCH, latent)
+    targets = stream.normals(BATCH * n, latent)
+    actor = stream.normals(BATCH, latent)
+    return [eps, targets, targets, actor]
+
+
+def plan_coptidice(stream, model):
+    """dsrl-train: noise on the observations [b, obs] and on the actions [b, act] of the policy extraction.
+    OSRL: randn_like(observations), randn_like(actions), then its actor samples an action it does not use (None)."""
+    return [stream.normals(BATCH, OBS), stream.normals(BATCH, ACT), None]
+
+
+def plan_cpq(stream, model):
+    """dsrl-train: ε for the VAE; an action for the reward critic's next states, another for the cost critic's;
+    the out-of-distribution draws [n·b, act] (sample-major, as `pi_dist.sample([n])`); an action for the actor.
+    OSRL draws two things more that it never uses (None: zeros): the action its cost-critic step samples beside the
+    distribution it wants, and the VAE's latent sample for the drawn actions (only the encoder's mean and spread
+    count)."""
+    b, n, act, latent = BATCH, model.sample_action_num, ACT, model.latent_dim
+    eps = stream.normals(b, latent)
+    next_reward = stream.normals(b, act)
+    next_cost = stream.normals(b, act)
+    ood = stream.normals(n * b, act).reshape(n, b, act)
+    actor = stream.normals(b, act)
+    return [eps, next_reward, next_cost, None, ood, torch.zeros(n * b, latent), actor]
+
+
+def plan_bearl(stream, model):
+    """dsrl-train: ε for the VAE; the target actor's actions for the reward critic's repeated next states, and new
+    ones for the cost critic's (OSRL draws in each too); the latents of the VAE's decodes [b·m, latent] (OSRL:
+    [b, m, latent]); the actor's draws for the MMD [b·m, act]."""
+    b, n, m = BATCH, model.sample_action_num, model.num_samples_mmd_match
+    eps = stream.normals(b, model.vae.latent_dim)
+    reward_next = stream.normals(b * n, ACT)
+    cost_next = stream.normals(b * n, ACT)
+    latents = stream.normals(b * m, model.vae.latent_dim).reshape(b, m, model.vae.latent_dim)
+    actor = stream.normals(b * m, ACT)
+    return [eps, reward_next, cost_next, latents, actor]
+
+
+PLANS = {"bcql": plan_bcql, "bearl": plan_bearl, "coptidice": plan_coptidice, "cpq": plan_cpq}
+# What to record from OSRL's methods, under dsrl-train's figure names: None is the loss a method returns as
+# (loss, stats); a string is a key of the stats it returns.
+CAPTURE = {
+    "bcql": {"vae_loss": {"vae": None}, "critic_loss": {"critic": None}, "cost_critic_loss": {"cost_critic": None},
+             "actor_loss": {"actor": None, "lagrangian": "loss/lagrangian"}},
+    "bearl": {"vae_loss": {"vae": None}, "critic_loss": {"critic": None}, "cost_critic_loss": {"cost_critic": None},
+              "actor_loss": {"actor": None, "mmd": "loss/mmd_loss", "alpha": "loss/alpha_value",
+                             "lagrangian": "loss/lagrangian"}},
+    "cpq": {"vae_loss": {"vae": None}, "critic_loss": {"critic": None},
+            "cost_critic_loss": {"cost_critic": None, "alpha": "loss/alpha_value"}, "actor_loss": {"actor": None}},
+    "coptidice": {"update": {"nu": "loss/nu_loss", "chi": "loss/chi_loss", "actor": "loss/actor_loss",
+                             "td_error": "loss/td_error", "d_kl": "loss/D_kl", "d_f": "loss/Df", "tau": "loss/tau",
+                             "lagrangian": "loss/lmbda"}},
+}
+# OSRL's attributes, in dsrl-train's module order (`dsrl-train parity` loads them by these names).
+MODULES = {"bcql": ["actor", "critic", "cost_critic", "vae", "actor_old", "critic_old", "cost_critic_old"],
+           "bearl": ["actor", "critic", "cost_critic", "vae", "actor_old", "critic_old", "cost_critic_old"],
+           "cpq": ["actor", "critic", "cost_critic", "vae", "critic_old", "cost_critic_old"],
+           "coptidice": ["actor", "nu_network", "chi_network", "tau", "lmbda"]}
+OPTIMIZERS = {"bcql": ["actor_optim", "critic_optim", "cost_critic_optim", "vae_optim"],
+              "bearl": ["actor_optim", "critic_optim", "cost_critic_optim", "vae_optim"],
+              "cpq": ["actor_optim", "critic_optim", "cost_critic_optim", "vae_optim"],
+              "coptidice": ["actor_optim", "nu_optim", "chi_optim", "tau_optim", "lmbda_optim"]}
+
+
+def parameters(model, name):
+    """An OSRL attribute's parameters: a module's, or the attribute itself (COptiDICE's τ and λ tensors)."""
+    attr = getattr(model, name)
+    return [attr] if isinstance(attr, torch.Tensor) else list(attr.parameters())
+
+
+@contextlib.contextmanager
+def injected(draws):
+    """OSRL's standard-normal draws answer `draws` in order (shapes checked; None: zeros of the asked shape), and
+    all must be used: torch.randn and torch.randn_like, the draws behind torch.distributions.Normal's rsample
+    (`_standard_normal`) and sample (`torch.normal(loc, scale)`, as loc + z·scale)."""
+    import torch.distributions.normal as normal_module
+    queue = list(draws)
+    saved = (torch.randn, torch.randn_like, torch.normal, normal_module._standard_normal)
+
+    def take(shape):
+        shape = tuple(shape)
+        if not queue:
+            raise AssertionError(f"OSRL drew {shape} more than planned")
+        draw = queue.pop(0)
+        if draw is None:
+            return torch.zeros(shape)
+        if tuple(draw.shape) != shape:
+            raise AssertionError(f"OSRL drew {shape} where the plan has {tuple(draw.shape)}")
+        return draw.clone()
+
+    def normal(mean, std, *args, **kw):
+        return mean + take(mean.shape) * std
+
+    torch.randn = lambda *size, **kw: take(size[0] if len(size) == 1 and isinstance(size[0], (tuple, list, torch.Size))
+                                           else size)
+    torch.randn_like = lambda t, **kw: take(t.shape)
+    torch.normal = normal
+    normal_module._standard_normal = lambda shape, dtype=None, device=None: take(shape)
+    try:
+        yield
+    finally:
+        torch.randn, torch.randn_like, torch.normal, normal_module._standard_normal = saved
+    if queue:
+        raise AssertionError(f"{len(queue)} planned draws were not used by OSRL")
+
+
+def batch(rng):
+    u = lambda *s: torch.from_numpy(rng.uniform(-1, 1, size=s).astype(np.float32))  # noqa: E731
+    done = torch.from_numpy((rng.uniform(size=BATCH) < 0.1).astype(np.float32))
+    return {
+        "observations": u(BATCH, OBS), "next_observations": u(BATCH, OBS), "actions": u(BATCH, ACT) * 0.9,
+        "rewards": torch.from_numpy(rng.uniform(0, 2, size=BATCH).astype(np.float32)) * SCALES["reward_scale"],
+        "costs": torch.from_numpy((rng.uniform(size=BATCH) < 0.3).astype(np.float32)) * SCALES["cost_scale"],
+        "done": done, "is_init": torch.cat([torch.ones(1), done[:-1]]),
+    }
+
+
+def relative(a, b):
+    a, b = a.double(), b.double()
+    scale = max(a.abs().max().item(), b.abs().max().item(), 1e-12)
+    return (a - b).abs().max().item() / scale
+
+
+def osrl_step(algo, algorithms, DummyLogger, data, dtype):
+    """OSRL's model (seeded) and one trainer step in `dtype`: (initial weights, figures, gradients, weights)."""
+    torch.manual_seed(SEED)
+    name, model_kw, trainer_kw = ALGOS[algo]
+    model_kw = dict(model_kw)
+    if "vae_hidden_sizes" in model_kw:
+        model_kw["vae_hidden_sizes"] = VAE_HIDDEN
+    if algo == "coptidice":
+        # What dsrl-train computes from its data (here the batch's rows), as OSRL's TransitionDataset does.
+        model_kw.update(init_state_propotion=data["is_init"].mean().item(),
+                        observations_std=data["observations"].numpy().std(0),
+                        actions_std=data["actions"].numpy().std(0))
+    model = getattr(algorithms, name)(state_dim=OBS, action_dim=ACT, max_action=1.0, a_hidden_sizes=HIDDEN,
+                                      c_hidden_sizes=HIDDEN, device="cpu", **COMMON, **model_kw)
+    init = {f"{m}/{i}": p.detach().clone().contiguous()
+            for m in MODULES[algo] for i, p in enumerate(parameters(model, m))}
+    model.to(dtype)
+    for m in MODULES[algo]:
+        attr = getattr(model, m)
+        if isinstance(attr, torch.Tensor):  # COptiDICE's τ and λ: leaf tensors, not module parameters
+            setattr(model, m, attr.detach().to(dtype).requires_grad_(True))
+    if algo == "coptidice":
+        model.observations_std = model.observations_std.to(dtype)
+        model.actions_std = model.actions_std.to(dtype)
+    trainer = getattr(algorithms, name + "Trainer")(model, None, logger=DummyLogger(), device="cpu", **SCALES,
+                                                    **trainer_kw)
+    figures, grads = {}, {}
+    for method, wanted in CAPTURE[algo].items():
+        original = getattr(model, method)
+
+        def record(*args, _wanted=wanted, _original=original, **kw):
+            result = _original(*args, **kw)
+            loss, stats = result if isinstance(result, tuple) else (None, result)
+            for figure, key in _wanted.items():
+                figures[figure] = loss.item() if key is None else float(stats[key])
+            return result
+        setattr(model, method, record)
+    for opt_name in OPTIMIZERS[algo]:
+        optimizer = getattr(model, opt_name)
+        original_step = optimizer.step
+
+        def step(*args, _name=opt_name, _optimizer=optimizer, _step=original_step, **kw):
+            grads[_name] = [p.grad.detach().clone() if p.grad is not None else None
+                            for g in _optimizer.param_groups for p in g["params"]]
+            return _step(*args, **kw)
+        optimizer.step = step
+    keys = ["observations", "next_observations", "actions", "rewards", "costs", "done"]
+    batch_in = {k: v.to(dtype) for k, v in data.items()}
+    plan = [None if d is None else d.to(dtype) for d in PLANS[algo](Stream(SEED), model)]
+    with injected(plan):
+        if algo == "coptidice":
+            trainer.train_one_step([batch_in[k] for k in keys + ["is_init"]])
+        else:
+            trainer.train_one_step(*[batch_in[k] for k in keys])
+    params = {f"{m}/{i}": p.detach().clone() for m in MODULES[algo] for i, p in enumerate(parameters(model, m))}
+    return init, figures, grads, params
+
+
+def check(algo, dsrl_train, algorithms, DummyLogger):
+    """candle against OSRL in float32, and both against OSRL in float64 (the float32 rounding both have to live
+    with): a difference passes when it is within the tolerance, or when candle is no further from the float64
+    result than SLACK times PyTorch's own float32 result is."""
+    data = batch(np.random.default_rng(SEED))
+    init, losses, grads, params = osrl_step(algo, algorithms, DummyLogger, data, torch.float32)
+    _, losses64, grads64, params64 = osrl_step(algo, algorithms, DummyLogger, data, torch.float64)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        save_file(init, tmp / "init.safetensors")
+        save_file({k: v.contiguous() for k, v in data.items()}, tmp / "batch.safetensors")
+        (tmp / "parity.json").write_text(json.dumps({
+            "algorithm": algo, "obs_dim": OBS, "act_dim": ACT, "hidden_sizes": HIDDEN, "vae_hidden": VAE_HIDDEN,
+            "cost_threshold": COMMON["cost_limit"], "episode_len": COMMON["episode_len"], "noise_seed": SEED}))
+        subprocess.run([dsrl_train, "parity", str(tmp)], check=True)
+        ours = load_file(tmp / "candle.safetensors")
+
+    worst = {"loss": (0.0, ""), "grad": (0.0, ""), "param": (0.0, "")}
+    failures = []
+
+    def judge(kind, key, theirs, mine, exact, before=None):
+        if before is not None:  # weights: measured on the change the step made
+            theirs, mine, exact = theirs - before, mine - before, exact - before
+        d = relative(theirs, mine)
+        if before is not None:
+            # A target network moves by τ of an update, where the weight's own float32 rounding is the floor.
+            ulps = (theirs - mine).abs().max().item() / ((theirs + before).abs().max().item() * 2.0 ** -23 + 1e-30)
+            if ulps <= ULPS:
+                d = 0.0
+        if d > worst[kind][0]:
+            worst[kind] = (d, key)
+        if d > TOLERANCE[kind]:
+            candle_error, torch_error = relative(exact, mine), relative(exact, theirs)
+            if candle_error > SLACK * torch_error:
+                failures.append(f"{key}: {d:.2e} from OSRL's float32; from float64 candle {candle_error:.2e}, "
+                                f"PyTorch float32 {torch_error:.2e}")
+
+    for figure, value in losses.items():
+        judge("loss", f"loss/{figure}", torch.tensor(value, dtype=torch.float64),
+              ours[f"loss/{figure}"].reshape(()).double(), torch.tensor(losses64[figure], dtype=torch.float64))
+    for opt_name, gs in grads.items():
+        for i, g in enumerate(gs):
+            key = f"grad/{opt_name}/{i}"
+            if g is None:
+                if key in ours:
+                    failures.append(f"{key}: candle has a gradient where OSRL has none")
+                continue
+            if key not in ours:
+                failures.append(f"{key}: OSRL has a gradient where candle has none")
+                continue
+            judge("grad", key, g.double(), ours[key].double(), grads64[opt_name][i].double())
+    for key, p in params.items():
+        judge("param", f"param/{key}", p.double(), ours[f"param/{key}"].double(), params64[key].double(),
+              before=init[key].double())
+    print(json.dumps({"algorithm": algo, "ok": not failures,
+                      "largest_relative_difference": {k: v[0] for k, v in worst.items()},
+                      "where": {k: v[1] for k, v in worst.items()}, "failures": failures[:10],
+                      "losses": losses, "tolerance": TOLERANCE, "slack": SLACK}))
+    return not failures
+
+
+def main():
+    dsrl_train = sys.argv[1]
+    algos = sys.argv[2:] or list(PLANS)
+    stand_in_loggers()
+    with contextlib.redirect_stdout(sys.stderr):
+        import osrl.algorithms as algorithms
+        from fsrl.utils import DummyLogger
+    torch.set_num_threads(1)
+    results = [check(a, dsrl_train, algorithms, DummyLogger) for a in algos]
+    sys.exit(0 if all(results) else 1)
+
+
+if __name__ == "__main__":
+    main()
