@@ -1,13 +1,16 @@
-"""One training step of dsrl-train's candle learners held to OSRL's own PyTorch code (osrl-lib 0.1.0, installed,
-not copied): the same initial weights, the same batch and the same random numbers, then every loss, every gradient
-each optimizer steps with, and every weight after the step (targets' soft updates included) compared, part by part.
+"""One training step of dsrl-train's candle learners (BCQ-Lag, BEAR-Lag, CPQ, COptiDICE, CDT) held to OSRL's own
+PyTorch code (osrl-lib 0.1.0, installed, not copied): the same initial weights, the same batch and the same random
+numbers, then every loss, every gradient each optimizer steps with, and every weight after the step (targets' soft
+updates included) compared, part by part.
 
 The random numbers: dsrl-train draws from its SplitMix64 stream (dsrl_policy::noise), which this script reproduces
-bit for bit in Python (Stream below). OSRL draws from torch.randn / torch.randn_like; while OSRL runs, those two
-return the draws dsrl-train makes, in the order each OSRL call consumes them (PLANS below: where OSRL draws again for
-something dsrl-train draws once, e.g. BCQ-L's second decode of the same next states, the same draws are replayed).
-The initial weights are OSRL's (torch.manual_seed), loaded into dsrl-train by module and parameter order
-(`dsrl-train parity`, hidden).
+bit for bit in Python (Stream below). OSRL draws from torch.randn / torch.randn_like and torch.distributions.Normal;
+while OSRL runs, those return the draws dsrl-train makes, in the order each OSRL call consumes them (PLANS below:
+where OSRL draws again for something dsrl-train draws once, e.g. BCQ-L's second decode of the same next states, the
+same draws are replayed).
+The initial weights are OSRL's (torch.manual_seed), loaded into dsrl-train by module and parameter order (CDT: by
+parameter name, as its exports) through `dsrl-train parity` (hidden). CDT runs without dropout, so its step draws
+nothing; its gradients are taken before OSRL clips them (dsrl-train's optimizer records them before clipping too).
 
 Usage: .venv-bench/bin/python tests/parity/osrl_step_check.py DSRL_TRAIN [ALGO ...]   (see osrl_step_check.sh)
 Prints one JSON line per algorithm with the largest differences; exits non-zero when one is over its tolerance.
@@ -250,9 +253,6 @@ def osrl_step(algo, algorithms, DummyLogger, data, dtype):
 
 
 def check(algo, dsrl_train, algorithms, DummyLogger):
-    """candle against OSRL in float32, and both against OSRL in float64 (the float32 rounding both have to live
-    with): a difference passes when it is within the tolerance, or when candle is no further from the float64
-    result than SLACK times PyTorch's own float32 result is."""
     data = batch(np.random.default_rng(SEED))
     init, losses, grads, params = osrl_step(algo, algorithms, DummyLogger, data, torch.float32)
     _, losses64, grads64, params64 = osrl_step(algo, algorithms, DummyLogger, data, torch.float64)
@@ -265,7 +265,14 @@ def check(algo, dsrl_train, algorithms, DummyLogger):
             "cost_threshold": COMMON["cost_limit"], "episode_len": COMMON["episode_len"], "noise_seed": SEED}))
         subprocess.run([dsrl_train, "parity", str(tmp)], check=True)
         ours = load_file(tmp / "candle.safetensors")
+    flat = lambda gs: {f"grad/{o}/{i}": g for o, lst in gs.items() for i, g in enumerate(lst)}  # noqa: E731
+    return compare(algo, losses, losses64, flat(grads), flat(grads64), params, params64, init, ours)
 
+
+def compare(algo, losses, losses64, grads, grads64, params, params64, init, ours):
+    """candle against OSRL in float32, and both against OSRL in float64 (the float32 rounding both have to live
+    with): a difference passes when it is within the tolerance, or when candle is no further from the float64
+    result than SLACK times PyTorch's own float32 result is. Prints one JSON line; True when all pass."""
     worst = {"loss": (0.0, ""), "grad": (0.0, ""), "param": (0.0, "")}
     failures = []
 
@@ -289,17 +296,17 @@ def check(algo, dsrl_train, algorithms, DummyLogger):
     for figure, value in losses.items():
         judge("loss", f"loss/{figure}", torch.tensor(value, dtype=torch.float64),
               ours[f"loss/{figure}"].reshape(()).double(), torch.tensor(losses64[figure], dtype=torch.float64))
-    for opt_name, gs in grads.items():
-        for i, g in enumerate(gs):
-            key = f"grad/{opt_name}/{i}"
-            if g is None:
-                if key in ours:
-                    failures.append(f"{key}: candle has a gradient where OSRL has none")
-                continue
-            if key not in ours:
-                failures.append(f"{key}: OSRL has a gradient where candle has none")
-                continue
-            judge("grad", key, g.double(), ours[key].double(), grads64[opt_name][i].double())
+    for key, g in grads.items():
+        if g is None or key not in ours:
+            # A parameter the loss does not reach: no gradient on one side, zeros (or none) on the other.
+            other = ours.get(key) if g is None else g
+            if other is not None and other.abs().max().item() > 0:
+                failures.append(f"{key}: a gradient on one side only")
+            continue
+        judge("grad", key, g.double(), ours[key].double(), grads64[key].double())
+    for key in ours:
+        if key.startswith("grad/") and key not in grads:
+            failures.append(f"{key}: candle has a gradient OSRL does not")
     for key, p in params.items():
         judge("param", f"param/{key}", p.double(), ours[f"param/{key}"].double(), params64[key].double(),
               before=init[key].double())
@@ -310,15 +317,115 @@ def check(algo, dsrl_train, algorithms, DummyLogger):
     return not failures
 
 
+# CDT at small sizes: embedding, layers, heads, window; episodes of CDT_EPISODE steps; batch CDT_BATCH windows.
+CDT_SIZES, CDT_EPISODE, CDT_BATCH = (32, 2, 4, 5), 50, 16
+
+
+class Recorder:
+    """A logger that keeps what OSRL's CDTTrainer stores (its figures)."""
+
+    def __init__(self):
+        self.figures = {}
+
+    def store(self, tab=None, **figures):
+        self.figures.update({k: float(v) for k, v in figures.items()})
+
+
+def cdt_windows(rng):
+    """Windows as OSRL's SequenceDataset gives them: padding at the end of some (mask 0, zero inputs)."""
+    b, k = CDT_BATCH, CDT_SIZES[3]
+    lengths = rng.integers(2, k + 1, size=b)
+    mask = (np.arange(k)[None, :] < lengths[:, None]).astype(np.float32)
+    f = lambda *s: rng.uniform(-1, 1, size=s).astype(np.float32)  # noqa: E731
+    start = rng.integers(0, CDT_EPISODE - k, size=b)
+    return {
+        "states": torch.from_numpy(f(b, k, OBS) * mask[..., None]),
+        "actions": torch.from_numpy(0.9 * f(b, k, ACT) * mask[..., None]),
+        # Returns-to-go as the trainer receives them: scaled (reward 0.1, cost 1) by OSRL's dataset.
+        "returns": torch.from_numpy((rng.uniform(0, 3, size=(b, k)) * mask).astype(np.float32)),
+        "costs_return": torch.from_numpy((rng.integers(0, 40, size=(b, k)) * mask).astype(np.float32)),
+        "time_steps": torch.from_numpy(start[:, None] + np.arange(k)[None, :]).long(),
+        "mask": torch.from_numpy(mask),
+        "episode_cost": torch.zeros(b),
+        "costs": torch.from_numpy(((rng.uniform(size=(b, k)) < 0.3) * mask).astype(np.float32)),
+    }
+
+
+def cdt_step(algorithms, data, dtype):
+    """OSRL's CDT (seeded, no dropout) and one CDTTrainer step: (initial weights, figures, gradients before
+    clipping, weights), by parameter name (`cdt.<name>` as its exports, and `log_temperature`)."""
+    torch.manual_seed(SEED)
+    embedding, layers, heads, k = CDT_SIZES
+    model = algorithms.CDT(state_dim=OBS, action_dim=ACT, max_action=1.0, seq_len=k, episode_len=CDT_EPISODE,
+                           embedding_dim=embedding, num_layers=layers, num_heads=heads, attention_dropout=0.0,
+                           residual_dropout=0.0, embedding_dropout=0.0, time_emb=True, use_rew=True, use_cost=True,
+                           cost_transform=True, stochastic=True, init_temperature=0.1, target_entropy=-ACT)
+    named = dict(model.named_parameters())
+    init = {f"cdt.{n}": p.detach().clone().contiguous() for n, p in named.items()}
+    init["log_temperature"] = model.log_temperature.detach().to(torch.float32).reshape(1).clone()
+    model.to(dtype)
+    model.log_temperature = model.log_temperature.detach().to(dtype).requires_grad_(True)
+    recorder = Recorder()
+    trainer = algorithms.CDTTrainer(model, None, logger=recorder, learning_rate=1e-4, weight_decay=1e-4,
+                                    betas=(0.9, 0.999), clip_grad=0.25, lr_warmup_steps=500, reward_scale=0.1,
+                                    cost_scale=1.0, loss_cost_weight=0.02, loss_state_weight=0.0, device="cpu")
+    grads = {}
+    clip = torch.nn.utils.clip_grad_norm_
+
+    def snapshot_then_clip(parameters, *args, **kw):
+        parameters = list(parameters)
+        for n, p in model.named_parameters():
+            if p.grad is not None:
+                grads[f"grad/optim/cdt.{n}"] = p.grad.detach().clone()
+        return clip(parameters, *args, **kw)
+    torch.nn.utils.clip_grad_norm_ = snapshot_then_clip
+    temperature_step = trainer.log_temperature_optimizer.step
+
+    def record_temperature(*args, **kw):
+        grads["grad/log_temperature_optimizer/log_temperature"] = model.log_temperature.grad.detach().reshape(1)
+        return temperature_step(*args, **kw)
+    trainer.log_temperature_optimizer.step = record_temperature
+    keys = ["states", "actions", "returns", "costs_return", "time_steps", "mask", "episode_cost", "costs"]
+    try:
+        trainer.train_one_step(*[data[k].to(dtype) if data[k].is_floating_point() else data[k] for k in keys])
+    finally:
+        torch.nn.utils.clip_grad_norm_ = clip
+    params = {f"cdt.{n}": p.detach().clone() for n, p in model.named_parameters()}
+    params["log_temperature"] = model.log_temperature.detach().reshape(1).clone()
+    figures = {"loss": recorder.figures["all_loss"], "action": recorder.figures["act_loss"],
+               "cost": recorder.figures["cost_loss"], "entropy": recorder.figures["ent"],
+               "temperature": recorder.figures["ent_reg"]}
+    return init, figures, grads, params
+
+
+def check_cdt(dsrl_train, algorithms):
+    data = cdt_windows(np.random.default_rng(SEED))
+    init, losses, grads, params = cdt_step(algorithms, data, torch.float32)
+    _, losses64, grads64, params64 = cdt_step(algorithms, data, torch.float64)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        save_file(init, tmp / "init.safetensors")
+        batch = {k: v.contiguous() for k, v in data.items() if k != "episode_cost"}
+        batch["time_steps"] = batch["time_steps"].to(torch.float32)
+        save_file(batch, tmp / "batch.safetensors")
+        (tmp / "parity.json").write_text(json.dumps({
+            "algorithm": "cdt", "obs_dim": OBS, "act_dim": ACT, "episode_len": CDT_EPISODE, "noise_seed": SEED,
+            "cdt": list(CDT_SIZES)}))
+        subprocess.run([dsrl_train, "parity", str(tmp)], check=True)
+        ours = load_file(tmp / "candle.safetensors")
+    return compare("cdt", losses, losses64, grads, grads64, params, params64, init, ours)
+
+
 def main():
     dsrl_train = sys.argv[1]
-    algos = sys.argv[2:] or list(PLANS)
+    algos = sys.argv[2:] or list(PLANS) + ["cdt"]
     stand_in_loggers()
     with contextlib.redirect_stdout(sys.stderr):
         import osrl.algorithms as algorithms
         from fsrl.utils import DummyLogger
     torch.set_num_threads(1)
-    results = [check(a, dsrl_train, algorithms, DummyLogger) for a in algos]
+    results = [check_cdt(dsrl_train, algorithms) if a == "cdt" else check(a, dsrl_train, algorithms, DummyLogger)
+               for a in algos]
     sys.exit(0 if all(results) else 1)
 
 

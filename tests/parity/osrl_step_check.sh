@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Runs tests/parity/osrl_step_check.py: one training step of dsrl-train's BCQ-L (and the other learners it has
-# plans for) against OSRL's own PyTorch code (osrl-lib 0.1.0 from PyPI) in .venv-bench, with the same weights,
-# batch and random numbers. Not part of scripts/test.sh: PyTorch is ~5 GB (bench/requirements-torch.txt).
-#   tests/parity/osrl_step_check.sh [ALGO ...]
+# Runs tests/parity/osrl_step_check.py: one training step of each of dsrl-train's five offline baselines (BCQ-Lag,
+# BEAR-Lag, CPQ, COptiDICE, CDT) against OSRL's own PyTorch code (osrl-lib 0.1.0 from PyPI) in .venv-bench, with the
+# same weights, batch and random numbers. Not part of scripts/test.sh: PyTorch is ~5 GB (bench/requirements-torch.txt).
+# Its last result is in README.md ("Held to OSRL's code, one step at a time").
+#   tests/parity/osrl_step_check.sh [bcql bearl cpq coptidice cdt]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 if [ ! -x .venv-bench/bin/python ]; then

@@ -122,6 +122,18 @@ struct Trajectory {
     cost_return: f64,
 }
 
+/// A batch of windows as the model reads them: `[batch, seq_len, …]`, returns scaled, cost labels 0/1.
+pub struct Windows {
+    pub states: Tensor,
+    pub actions: Tensor,
+    pub returns_to_go: Tensor,
+    pub costs_to_go: Tensor,
+    /// u32 timesteps within the episode.
+    pub timesteps: Tensor,
+    pub mask: Tensor,
+    pub cost_labels: Tensor,
+}
+
 pub struct CdtLearner {
     pub settings: CdtSettings,
     pub model: Cdt,
@@ -243,6 +255,23 @@ impl CdtLearner {
         })
     }
 
+    /// The optimizers under OSRL's names (`optim`: AdamW over the model; `log_temperature_optimizer`), the
+    /// temperature's variable and the random numbers (dropout masks, window draws): for tests/parity.
+    pub fn optimizers(&mut self) -> Vec<(&'static str, &mut Adam)> {
+        vec![
+            ("optim", &mut self.optim),
+            ("log_temperature_optimizer", &mut self.temperature_optim),
+        ]
+    }
+
+    pub fn log_temperature(&self) -> &Var {
+        &self.log_temperature
+    }
+
+    pub fn noise(&mut self) -> &mut Noise {
+        &mut self.noise
+    }
+
     /// A trajectory drawn by the sampling weights.
     fn draw_trajectory(&mut self) -> usize {
         let total = *self.cumulative.last().expect("at least one trajectory");
@@ -252,8 +281,15 @@ impl CdtLearner {
             .min(self.cumulative.len() - 1)
     }
 
-    /// One gradient step on a batch of windows.
+    /// One gradient step on a freshly drawn batch of windows.
     pub fn step(&mut self) -> anyhow::Result<Figures> {
+        let windows = self.sample()?;
+        self.update(&windows)
+    }
+
+    /// A batch of `seq_len`-step windows: trajectories drawn by the sampling weights, a uniform start in each, zero
+    /// padding past the trajectory's end (masked out).
+    pub fn sample(&mut self) -> anyhow::Result<Windows> {
         let s = self.settings.clone();
         let (b, k) = (s.batch_size, s.seq_len);
         let (o, a) = (self.data.obs_dim, self.data.act_dim);
@@ -289,19 +325,32 @@ impl CdtLearner {
             }
         }
         let cpu = &Device::Cpu;
-        let actions = Tensor::from_vec(actions, (b, k, a), cpu)?;
-        let mask = Tensor::from_vec(mask, (b, k), cpu)?;
-        let labels = Tensor::from_vec(labels, (b, k), cpu)?;
+        Ok(Windows {
+            states: Tensor::from_vec(states, (b, k, o), cpu)?,
+            actions: Tensor::from_vec(actions, (b, k, a), cpu)?,
+            returns_to_go: Tensor::from_vec(rtg, (b, k), cpu)?,
+            costs_to_go: Tensor::from_vec(ctg, (b, k), cpu)?,
+            timesteps: Tensor::from_vec(timesteps, (b, k), cpu)?,
+            mask: Tensor::from_vec(mask, (b, k), cpu)?,
+            cost_labels: Tensor::from_vec(labels, (b, k), cpu)?,
+        })
+    }
+
+    /// One gradient step on `windows`: the model (AdamW, OSRL's warm-up and clipping), then the temperature.
+    pub fn update(&mut self, windows: &Windows) -> anyhow::Result<Figures> {
+        let s = self.settings.clone();
+        let (b, k, a) = windows.actions.dims3()?;
+        let (actions, mask, labels) = (&windows.actions, &windows.mask, &windows.cost_labels);
         let mut training = Training {
             p: s.dropout,
             noise: &mut self.noise,
         };
         let (mu, log_std, cost_logits) = self.model.training_heads(
-            &Tensor::from_vec(states, (b, k, o), cpu)?,
-            &actions,
-            &Tensor::from_vec(rtg, (b, k), cpu)?,
-            &Tensor::from_vec(ctg, (b, k), cpu)?,
-            &Tensor::from_vec(timesteps, (b, k), cpu)?,
+            &windows.states,
+            actions,
+            &windows.returns_to_go,
+            &windows.costs_to_go,
+            &windows.timesteps,
             &mut training,
         )?;
         let half_ln_tau = 0.5 * (2.0 * std::f64::consts::PI).ln();
@@ -322,8 +371,8 @@ impl CdtLearner {
             .narrow(2, 0, 1)?
             .squeeze(2)?
             .mul(&labels.affine(-1.0, 1.0)?)?
-            .add(&log_classes.narrow(2, 1, 1)?.squeeze(2)?.mul(&labels)?)?;
-        let cost_loss = picked.neg()?.mul(&mask)?.mean_all()?;
+            .add(&log_classes.narrow(2, 1, 1)?.squeeze(2)?.mul(labels)?)?;
+        let cost_loss = picked.neg()?.mul(mask)?.mean_all()?;
         let loss = action_loss.add(&cost_loss.affine(s.loss_cost_weight, 0.0)?)?;
         // LambdaLR(min((step + 1)/warmup, 1)): the factor of the step about to be taken.
         self.optim.lr = s.lr * ((self.steps + 1) as f64 / s.warmup_steps.max(1) as f64).min(1.0);
