@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config;
 # with --tests also what the tests need: chromium (the leaderboard page is checked in headless Chromium) and
-# postgresql (the replica tests start their own server in a temporary folder; the package's cluster is not used).
+# postgresql (the replica tests start their own server in a temporary folder; the package's cluster is not used)
+# and openssl (they make that server's TLS certificates).
 # Idempotent: does nothing when they are present.
 set -euo pipefail
 "$(dirname "$0")/ensure-dev-null.sh"
@@ -11,6 +12,7 @@ dpkg -s pkg-config >/dev/null 2>&1 || need+=(pkg-config)
 if [ "${1:-}" = "--tests" ]; then
   dpkg -s chromium >/dev/null 2>&1 || need+=(chromium)
   dpkg -s postgresql >/dev/null 2>&1 || need+=(postgresql)
+  dpkg -s openssl >/dev/null 2>&1 || need+=(openssl)
 fi
 if [ ${#need[@]} -eq 0 ]; then
   exit 0

@@ -484,6 +484,49 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
             &format!("{}/leaderboard", env.server.url),
             &["BC-All", "BC-Safe", "CDT-untrained"],
         );
+        // One site with the dataset browser: its navigation, each task's heading linking to the dataset card, each
+        // entry to its submission's page with the per-threshold results of the JSON view.
+        assert!(
+            page.contains("<nav>") && page.contains(&format!("<a href=\"/tasks/{TASK}\">")),
+            "{page}"
+        );
+        let top = entries[0]["submission"].as_i64().unwrap();
+        assert!(page.contains(&format!("href=\"/submissions/{top}\"")), "{page}");
+        let view = get_json(&format!("{}/v1/submissions/{top}", env.server.url));
+        let submission_url = format!("{}/submissions/{top}", env.server.url);
+        let submission_page = reqwest_text(&submission_url);
+        assert!(submission_page.contains("<nav>"), "{submission_page}");
+        assert!(
+            submission_page.contains(&format!("href=\"/tasks/{TASK}\"")),
+            "{submission_page}"
+        );
+        for t in view["thresholds"].as_array().unwrap() {
+            let row = format!(
+                "<td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td>",
+                t["cost_threshold"].as_f64().unwrap(),
+                t["episodes"],
+                t["mean_reward_return"].as_f64().unwrap(),
+                t["mean_cost_return"].as_f64().unwrap()
+            );
+            assert!(submission_page.contains(&row), "{row} not in {submission_page}");
+        }
+        let profile = tempfile::tempdir().unwrap();
+        let dom = String::from_utf8(chromium(profile.path(), &["--dump-dom", &submission_url]).stdout).unwrap();
+        let name = view["name"].as_str().unwrap();
+        assert!(
+            dom.contains(&format!("<h1>{name} ")) && dom.contains("<strong id=\"state\">finished</strong>"),
+            "{dom}"
+        );
+        assert_eq!(
+            dom.matches("<tr class=\"").count(),
+            view["thresholds"].as_array().unwrap().len() + 1
+        );
+        assert_eq!(
+            block_on(reqwest::get(format!("{}/submissions/999999", env.server.url)))
+                .unwrap()
+                .status(),
+            404
+        );
         finished.swap_remove(0)
     };
 

@@ -544,3 +544,28 @@ async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
         "{results:?}"
     );
 }
+
+/// A managed PostgreSQL takes TLS: `database.url` carries libpq's `sslmode` and `sslrootcert`. Against a server that
+/// rejects plaintext connections, `verify-full` with the server's CA connects (and migrates); plaintext is refused by
+/// the server, and `verify-full` without the CA by the client.
+#[tokio::test]
+async fn postgres_over_tls_is_verified_and_plaintext_refused() {
+    use dsrl_service::db::{Backend, Db};
+
+    let (pg, ca) = Postgres::start_tls();
+    let verified = format!("{}?sslmode=verify-full&sslrootcert={}", pg.url, ca.display());
+    let db = Db::connect(&verified, 2).await.expect("a verified TLS connection");
+    assert_eq!(db.backend(), Backend::Postgres);
+    db.ping().await.unwrap();
+    let plaintext = Db::connect(&format!("{}?sslmode=disable", pg.url), 2).await;
+    let refused = plaintext.err().expect("plaintext must be refused").to_string();
+    assert!(
+        refused.contains("no encryption") || refused.contains("pg_hba"),
+        "{refused}"
+    );
+    let unknown_ca = Db::connect(&format!("{}?sslmode=verify-full", pg.url), 2).await;
+    assert!(
+        unknown_ca.is_err(),
+        "a server certificate from an unknown CA must not be accepted"
+    );
+}

@@ -91,6 +91,17 @@ pub struct Postgres {
 
 impl Postgres {
     pub fn start() -> Postgres {
+        Postgres::start_with(false).0
+    }
+
+    /// A server that takes TLS connections only (plaintext ones from 127.0.0.1 are rejected by pg_hba.conf), with a
+    /// certificate for 127.0.0.1 and localhost signed by a CA made for it; returns the CA's certificate file.
+    pub fn start_tls() -> (Postgres, PathBuf) {
+        let (postgres, ca) = Postgres::start_with(true);
+        (postgres, ca.expect("a TLS server has a CA"))
+    }
+
+    fn start_with(tls: bool) -> (Postgres, Option<PathBuf>) {
         let bin = postgres_bin_dir();
         let dir = tempfile::tempdir().unwrap();
         let data = dir.path().join("data");
@@ -125,9 +136,28 @@ impl Postgres {
             "initdb failed: {}",
             String::from_utf8_lossy(&init.stderr)
         );
+        let ca = tls.then(|| {
+            let ca = make_certificates(dir.path(), &data);
+            if as_root {
+                let status = Command::new("chown")
+                    .args(["postgres:postgres"])
+                    .arg(data.join("server.crt"))
+                    .arg(data.join("server.key"))
+                    .status()
+                    .unwrap();
+                assert!(status.success(), "chown of the server's key");
+            }
+            std::fs::write(
+                data.join("pg_hba.conf"),
+                "local all all trust\nhostssl all all 127.0.0.1/32 trust\nhostnossl all all 127.0.0.1/32 reject\n",
+            )
+            .unwrap();
+            ca
+        });
         let port = free_port();
         let log = std::fs::File::create(dir.path().join("postgres.log")).unwrap();
-        let child = command("postgres")
+        let mut postgres = command("postgres");
+        postgres
             .arg("-D")
             .arg(&data)
             .args(["-p", &port.to_string(), "-k"])
@@ -139,7 +169,18 @@ impl Postgres {
                 "fsync=off",
                 "-c",
                 "max_connections=200",
-            ])
+            ]);
+        if tls {
+            postgres.args([
+                "-c",
+                "ssl=on",
+                "-c",
+                "ssl_cert_file=server.crt",
+                "-c",
+                "ssl_key_file=server.key",
+            ]);
+        }
+        let child = postgres
             .stdout(Stdio::null())
             .stderr(log)
             .spawn()
@@ -156,8 +197,78 @@ impl Postgres {
                 .is_ok_and(|s| s.success())
         });
         assert!(ready, "PostgreSQL did not accept connections");
-        postgres
+        (postgres, ca)
     }
+}
+
+/// A CA and a server certificate it signs (for 127.0.0.1 and localhost) in `data` as server.crt / server.key
+/// (the key readable by its owner only, as PostgreSQL demands); returns the CA's certificate file, in `dir`.
+fn make_certificates(dir: &Path, data: &Path) -> PathBuf {
+    let openssl = |args: &[&str]| {
+        let out = Command::new("openssl")
+            .args(args)
+            .current_dir(dir)
+            .output()
+            .expect("openssl is installed by scripts/install-system-deps.sh --tests");
+        assert!(
+            out.status.success(),
+            "openssl {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let (key, crt) = (data.join("server.key"), data.join("server.crt"));
+    let (key, crt) = (key.to_str().unwrap(), crt.to_str().unwrap());
+    openssl(&[
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.crt",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=dsrl test CA",
+    ]);
+    openssl(&[
+        "req",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        key,
+        "-out",
+        "server.csr",
+        "-subj",
+        "/CN=localhost",
+    ]);
+    std::fs::write(dir.join("san.ext"), "subjectAltName=IP:127.0.0.1,DNS:localhost\n").unwrap();
+    openssl(&[
+        "x509",
+        "-req",
+        "-in",
+        "server.csr",
+        "-CA",
+        "ca.crt",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        crt,
+        "-days",
+        "2",
+        "-extfile",
+        "san.ext",
+    ]);
+    std::fs::set_permissions(
+        data.join("server.key"),
+        std::os::unix::fs::PermissionsExt::from_mode(0o600),
+    )
+    .unwrap();
+    dir.join("ca.crt")
 }
 
 impl Drop for Postgres {

@@ -21,18 +21,7 @@ use serde::Deserialize;
 use crate::AppState;
 use crate::error::ApiError;
 use crate::http::dsrl_download::dsrl_file_name;
-
-const STYLE: &str = "body{font-family:sans-serif;margin:2em;max-width:75em}table{border-collapse:collapse;\
-    margin:1em 0}td,th{border:1px solid #ccc;padding:.3em .6em;text-align:right;vertical-align:middle}\
-    td.name,th.name{text-align:left}pre{background:#f4f4f4;padding:.6em;overflow-x:auto}\
-    .missing{color:#888}.error{color:#a33}";
-
-fn escape(text: &str) -> String {
-    text.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
-}
+use crate::http::html::{escape, page};
 
 /// `a` encoded for a URL query value.
 fn query_value(text: &str) -> String {
@@ -42,15 +31,6 @@ fn query_value(text: &str) -> String {
             _ => format!("%{b:02X}"),
         })
         .collect()
-}
-
-fn page(title: &str, body: &str) -> String {
-    format!(
-        "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{}</title><style>{STYLE}</style>\
-         </head><body>\n<p><a href=\"/\">datasets</a> · <a href=\"/leaderboard\">leaderboard</a> · \
-         <a href=\"/openapi.json\">API</a></p>\n{body}</body></html>\n",
-        escape(title)
-    )
 }
 
 fn family_title(family: Family) -> &'static str {

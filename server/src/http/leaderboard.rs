@@ -215,3 +215,21 @@ pub async fn leaderboard_page(
     let board = state.leaderboard.board(query.task.as_deref()).await?;
     Ok(([(header::CACHE_CONTROL, "no-cache")], Html(page::render(&board))))
 }
+
+/// `GET /submissions/{id}`: a submission's page (per-threshold results), linked from the leaderboard page.
+#[utoipa::path(get, path = "/submissions/{id}", tag = "leaderboard",
+    params(("id" = String, Path, description = "Submission id (a number)")),
+    responses(
+        (status = 200, content_type = "text/html", body = String, description = "The submission's page"),
+        (status = 400, description = "Not a submission id"),
+        (status = 404, description = "No such submission")))]
+pub async fn submission_page(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<impl IntoResponse, ApiError> {
+    let view = state.leaderboard.view(submission_id(&id)?).await?;
+    Ok((
+        [(header::CACHE_CONTROL, "no-cache")],
+        Html(page::render_submission(&view)),
+    ))
+}

@@ -6,6 +6,7 @@ pub mod datasets;
 pub mod download;
 pub mod dsrl_download;
 pub mod failures;
+pub mod html;
 pub mod leaderboard;
 pub mod metrics;
 pub mod openapi;
@@ -59,6 +60,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/submissions/{id}/cancel", post(leaderboard::cancel_submission))
         .route("/v1/leaderboard", get(leaderboard::get_leaderboard))
         .route("/leaderboard", get(leaderboard::leaderboard_page))
+        .route("/submissions/{id}", get(leaderboard::submission_page))
         .with_state(state)
 }
 

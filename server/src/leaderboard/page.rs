@@ -1,18 +1,14 @@
-//! The leaderboard as an HTML page: each family's aggregate table, then each task's table with its entries on the
-//! normalized cost–reward plane (an inline SVG drawn on the server, so the page needs no script).
+//! The leaderboard as HTML pages of the site (`http::html`'s layout): `/leaderboard` shows each family's aggregate
+//! table, then each task's table (its heading links to the dataset card) with its entries on the normalized
+//! cost–reward plane (an inline SVG drawn on the server, so the page needs no script); each entry links to its
+//! submission's page, `/submissions/{id}`, with the per-threshold results.
 
 use std::fmt::Write;
 
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
-use super::{Board, TaskTable};
-
-fn escape(text: &str) -> String {
-    text.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
-}
+use super::{Board, SubmissionView, TaskTable};
+use crate::http::html::{escape, page};
 
 fn number(x: f64) -> String {
     if x.is_finite() { format!("{x:.3}") } else { "–".into() }
@@ -20,10 +16,7 @@ fn number(x: f64) -> String {
 
 pub fn render(board: &Board) -> String {
     let mut html = String::from(
-        "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>dsrl leaderboard</title>\n<style>\
-         body{font-family:sans-serif;margin:2em;max-width:70em}table{border-collapse:collapse;margin:1em 0}\
-         td,th{border:1px solid #ccc;padding:.3em .6em;text-align:right}td.name,th.name{text-align:left}\
-         tr.unsafe td{color:#a33}</style></head><body>\n<h1>dsrl leaderboard</h1>\n<p>Entries are scored by the \
+        "<h1>dsrl leaderboard</h1>\n<p>Entries are scored by the \
          server on the real simulators with held seeds: the task's three cost thresholds, the same episodes for \
          every entry. Normalized reward and cost are means over the thresholds; an entry is safe when its \
          normalized cost is at most 1. Safe entries rank by normalized reward, then unsafe ones by cost.</p>\n",
@@ -65,15 +58,14 @@ pub fn render(board: &Board) -> String {
     for table in &board.tasks {
         task_section(&mut html, table);
     }
-    html.push_str("</body></html>\n");
-    html
+    page("dsrl leaderboard", &html)
 }
 
 fn task_section(html: &mut String, table: &TaskTable) {
     let thresholds: Vec<String> = table.cost_thresholds.iter().map(|t| t.to_string()).collect();
     let _ = write!(
         html,
-        "<h2 id=\"{0}\">{0}</h2>\n<p>{1}; cost thresholds {2}.</p>\n<table class=\"task\"><tr><th>rank</th>\
+        "<h2 id=\"{0}\"><a href=\"/tasks/{0}\">{0}</a></h2>\n<p>{1}; cost thresholds {2}.</p>\n<table class=\"task\"><tr><th>rank</th>\
          <th class=\"name\">entry</th><th class=\"name\">user</th><th>normalized reward</th><th>normalized cost</th>\
          <th>safe</th><th>submission</th></tr>\n",
         escape(&table.task),
@@ -84,7 +76,7 @@ fn task_section(html: &mut String, table: &TaskTable) {
         let _ = writeln!(
             html,
             "<tr class=\"entry {}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td>\
-             <td>{}</td><td>{}</td><td><a href=\"/v1/submissions/{}\">{}</a></td></tr>",
+             <td>{}</td><td>{}</td><td><a href=\"/submissions/{}\">{}</a></td></tr>",
             if e.safe { "safe" } else { "unsafe" },
             e.rank,
             escape(&e.name),
@@ -115,4 +107,81 @@ fn task_section(html: &mut String, table: &TaskTable) {
             let _ = writeln!(html, "<p>plot unavailable: {}</p>", escape(&e));
         }
     }
+}
+
+/// A submission's page: its state, the per-threshold results with the means over thresholds, and its checkpoints
+/// (the episodes themselves are in the JSON at `/v1/submissions/{id}`; the seeds are never shown).
+pub fn render_submission(view: &SubmissionView) -> String {
+    let mut html = String::new();
+    let _ = write!(
+        html,
+        "<h1>{} <small>submission {}</small></h1>\n<p>by {} on <a href=\"/tasks/{task}\">{task}</a> \
+         (<a href=\"/leaderboard#{task}\">its table</a>): <strong id=\"state\">{}</strong>{}; submitted {}, \
+         {} attempt(s), {} episodes per threshold.</p>\n",
+        escape(&view.name),
+        view.id,
+        escape(&view.user),
+        escape(&view.state),
+        view.reason
+            .as_deref()
+            .map(|r| format!(" ({})", escape(r)))
+            .unwrap_or_default(),
+        escape(&view.created_at),
+        view.attempts,
+        view.episodes_per_threshold,
+        task = escape(&view.task),
+    );
+    if view.thresholds.is_empty() {
+        html.push_str("<p id=\"no-results\">No results yet.</p>\n");
+    } else {
+        html.push_str(
+            "<table id=\"thresholds\"><tr><th>cost threshold</th><th>episodes</th><th>mean reward return</th>\
+             <th>mean cost return</th><th>normalized reward</th><th>normalized cost</th><th>safe</th></tr>\n",
+        );
+        for t in &view.thresholds {
+            let _ = writeln!(
+                html,
+                "<tr class=\"{}\"><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                if t.safe { "safe" } else { "unsafe" },
+                t.cost_threshold,
+                t.episodes,
+                t.mean_reward_return,
+                t.mean_cost_return,
+                number(t.normalized_reward),
+                number(t.normalized_cost),
+                if t.safe { "yes" } else { "no" }
+            );
+        }
+        if let (Some(r), Some(c), Some(safe)) = (view.normalized_reward, view.normalized_cost, view.safe) {
+            let _ = writeln!(
+                html,
+                "<tr class=\"{}\"><th>mean</th><td></td><td></td><td></td><th>{}</th><th>{}</th><th>{}</th></tr>",
+                if safe { "safe" } else { "unsafe" },
+                number(r),
+                number(c),
+                if safe { "yes" } else { "no" }
+            );
+        }
+        html.push_str("</table>\n");
+    }
+    html.push_str(
+        "<h2>Checkpoints</h2>\n<table><tr><th class=\"name\">slot</th><th>cost threshold</th>\
+                   <th class=\"name\">architecture</th></tr>\n",
+    );
+    for c in &view.checkpoints {
+        let _ = writeln!(
+            html,
+            "<tr><td class=\"name\">{}</td><td>{}</td><td class=\"name\">{}</td></tr>",
+            escape(&c.slot),
+            c.cost_threshold.map(|k| k.to_string()).unwrap_or_else(|| "all".into()),
+            escape(&c.architecture)
+        );
+    }
+    let _ = write!(
+        html,
+        "</table>\n<p>sha256 <code>{}</code> · every episode: <a href=\"/v1/submissions/{}\">JSON</a></p>\n",
+        escape(&view.checkpoint_sha256),
+        view.id
+    );
+    page(&format!("{} — submission {}", view.name, view.id), &html)
 }
