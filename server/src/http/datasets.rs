@@ -259,7 +259,7 @@ const LINGER_BYTES: u64 = 64 << 20;
 /// Reads and discards what is left of a rejected upload, within bounds, as nginx's lingering close does: an
 /// HTTP/1.1 client that is still sending when the server answers and closes gets a broken pipe instead of the
 /// answer. Bounded, so a client that keeps sending cannot hold the connection.
-async fn linger(stream: &mut axum::body::BodyDataStream) {
+pub(super) async fn linger(stream: &mut axum::body::BodyDataStream) {
     let mut drained = 0u64;
     let _ = tokio::time::timeout(LINGER_TIME, async {
         while let Some(Ok(chunk)) = stream.next().await {

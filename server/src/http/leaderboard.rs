@@ -86,7 +86,15 @@ async fn receive_submission(
     state: &AppState,
     request: Request,
 ) -> Result<(StatusCode, Json<SubmissionView>), ApiError> {
-    let user = users::authenticate(&state.leaderboard.db, request.headers()).await?;
+    let user = match users::authenticate(&state.leaderboard.db, request.headers()).await {
+        Ok(user) => user,
+        Err(e) => {
+            // Refused before the body is read: read and discard it (bounded), or a client still sending the
+            // checkpoint gets a broken pipe instead of this answer.
+            super::datasets::linger(&mut request.into_body().into_data_stream()).await;
+            return Err(e);
+        }
+    };
     let mut form = Multipart::from_request(request, state)
         .await
         .map_err(|e| ApiError::InvalidArgument(format!("the body must be multipart/form-data: {}", e.body_text())))?;
