@@ -200,9 +200,15 @@ impl ChildPlayer {
     }
 }
 
-/// The child's side: lowers its priority, caps its memory, dies with its parent, then answers requests on
-/// stdin/stdout until stdin closes. Returns the process exit code.
-pub fn serve_child(memory_limit_bytes: u64) -> std::process::ExitCode {
+/// The child's side (`play-policy`): pins candle to one thread, lowers its priority, caps its memory, dies with
+/// its parent, then answers requests on stdin/stdout until stdin closes. Returns the process exit code.
+///
+/// # Safety
+/// Sets an environment variable (see `dsrl_policy::pin_candle_threads`): call it first thing in `main`, before
+/// any other thread exists.
+pub unsafe fn serve_child(memory_limit_bytes: u64) -> std::process::ExitCode {
+    // SAFETY: the caller's contract, the same as this one's.
+    unsafe { dsrl_policy::pin_candle_threads() };
     #[cfg(target_os = "linux")]
     // SAFETY: plain system calls with constant arguments. PR_SET_PDEATHSIG kills this process when the thread
     // that spawned it (an async worker thread of the server, alive as long as the server) goes away; the

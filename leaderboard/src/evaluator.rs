@@ -58,13 +58,7 @@ pub async fn run(
                 queue::refresh_depth_gauge(&queue_depth, &leaderboard.db).await;
                 let mut text = String::new();
                 prometheus_client::encoding::text::encode(&mut text, &registry).expect("writing to a String");
-                (
-                    [(
-                        header::CONTENT_TYPE,
-                        "application/openmetrics-text; version=1.0.0; charset=utf-8",
-                    )],
-                    text,
-                )
+                ([(header::CONTENT_TYPE, dsrl_service::OPENMETRICS_CONTENT_TYPE)], text)
             }),
         )
         .fallback(|| async {

@@ -112,6 +112,9 @@ pub async fn open_db(config: &Config) -> anyhow::Result<Db> {
     Ok(db)
 }
 
+/// The content type of every role's `/metrics` (Prometheus' OpenMetrics text).
+pub const OPENMETRICS_CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+
 /// The health answer of every role (an API replica's `/healthz`, an evaluator's): the database answers.
 pub async fn database_health(db: &Db) -> Result<&'static str, error::ApiError> {
     db.ping()

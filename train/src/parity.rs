@@ -10,7 +10,7 @@ use std::path::Path;
 
 use anyhow::Context;
 use dsrl_policy::noise::Noise;
-use dsrl_policy::{Device, Tensor};
+use dsrl_policy::{Device, Tensor, Var};
 use serde::Deserialize;
 
 use crate::Demonstrations;
@@ -44,49 +44,29 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
     if spec.algorithm == "cdt" {
         return run_cdt(dir, &spec);
     }
-    let batch = candle_core::safetensors::load(dir.join("batch.safetensors"), &Device::Cpu)?;
-    let column = |name: &str| -> anyhow::Result<Tensor> {
-        batch
-            .get(name)
-            .cloned()
-            .with_context(|| format!("batch.safetensors has no {name}"))
-    };
+    let file = Tensors::load(dir, "batch.safetensors")?;
     let batch = Batch {
-        obs: column("observations")?,
-        next_obs: column("next_observations")?,
-        act: column("actions")?,
-        reward: column("rewards")?,
-        cost: column("costs")?,
-        done: column("done")?,
-        is_init: column("is_init")?,
+        obs: file.get("observations")?,
+        next_obs: file.get("next_observations")?,
+        act: file.get("actions")?,
+        reward: file.get("rewards")?,
+        cost: file.get("costs")?,
+        done: file.get("done")?,
+        is_init: file.get("is_init")?,
     };
     let size = batch.obs.dim(0)?;
     let data = demonstrations_of(&batch, spec.obs_dim, spec.act_dim)?;
     let mut learner = learner(&spec, &data, size)?;
-
-    let init = candle_core::safetensors::load(dir.join("init.safetensors"), &Device::Cpu)?;
-    let mut loaded = 0;
-    for (module, vars) in learner.modules() {
-        for (i, (name, var)) in vars.iter().enumerate() {
-            let key = format!("{module}/{i}");
-            let value = init
-                .get(&key)
-                .with_context(|| format!("init.safetensors has no {key} ({name})"))?;
-            anyhow::ensure!(
-                value.dims() == var.dims(),
-                "{key} ({name}): OSRL's shape {:?}, ours {:?}",
-                value.dims(),
-                var.dims()
-            );
-            var.set(value)?;
-            loaded += 1;
-        }
-    }
-    anyhow::ensure!(
-        loaded == init.len(),
-        "init.safetensors has {} tensors, the learner {loaded}",
-        init.len()
-    );
+    let vars: Vec<(String, Var)> = learner
+        .modules()
+        .into_iter()
+        .flat_map(|(module, vars)| {
+            vars.into_iter()
+                .enumerate()
+                .map(move |(i, (_, var))| (format!("{module}/{i}"), var))
+        })
+        .collect();
+    load_weights(dir, &vars)?;
     *learner.noise() = Noise::seeded(spec.noise_seed);
     for (_, optimizer) in learner.optimizers() {
         optimizer.keep_gradients = true;
@@ -94,19 +74,77 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
 
     let figures = learner.update(&batch)?;
 
+    let mut gradients = Vec::new();
+    for (optimizer_name, optimizer) in learner.optimizers() {
+        for (i, gradient) in optimizer.last_gradients() {
+            gradients.push((format!("{optimizer_name}/{i}"), gradient.clone()));
+        }
+    }
+    write_step(dir, figures, gradients, &vars)
+}
+
+/// A safetensors file of the script's, read by name.
+struct Tensors {
+    file: &'static str,
+    tensors: HashMap<String, Tensor>,
+}
+
+impl Tensors {
+    fn load(dir: &Path, file: &'static str) -> anyhow::Result<Tensors> {
+        let tensors = candle_core::safetensors::load(dir.join(file), &Device::Cpu)?;
+        Ok(Tensors { file, tensors })
+    }
+
+    fn get(&self, name: &str) -> anyhow::Result<Tensor> {
+        self.tensors
+            .get(name)
+            .cloned()
+            .with_context(|| format!("{} has no {name}", self.file))
+    }
+}
+
+/// Sets each variable from `init.safetensors` under its key, shapes checked; a tensor no variable takes is an
+/// error too (the two sides would be comparing different networks).
+fn load_weights(dir: &Path, vars: &[(String, Var)]) -> anyhow::Result<()> {
+    let init = Tensors::load(dir, "init.safetensors")?;
+    for (key, var) in vars {
+        let value = init.get(key)?;
+        anyhow::ensure!(
+            value.dims() == var.dims(),
+            "{key}: OSRL's shape {:?}, ours {:?}",
+            value.dims(),
+            var.dims()
+        );
+        var.set(&value)?;
+    }
+    let unused: Vec<&String> = init
+        .tensors
+        .keys()
+        .filter(|k| !vars.iter().any(|(key, _)| key == *k))
+        .collect();
+    anyhow::ensure!(
+        unused.is_empty(),
+        "init.safetensors has tensors the learner lacks: {unused:?}"
+    );
+    Ok(())
+}
+
+/// Writes `candle.safetensors`: `loss/<figure>`, `grad/<key>` and `param/<key>` (every weight after the step).
+fn write_step(
+    dir: &Path,
+    figures: crate::offline::Figures,
+    gradients: Vec<(String, Tensor)>,
+    vars: &[(String, Var)],
+) -> anyhow::Result<()> {
     let mut out: HashMap<String, Tensor> = HashMap::new();
     for (name, value) in figures {
         out.insert(format!("loss/{name}"), Tensor::new(&[value], &Device::Cpu)?);
     }
-    for (optimizer_name, optimizer) in learner.optimizers() {
-        for (i, gradient) in optimizer.last_gradients() {
-            out.insert(format!("grad/{optimizer_name}/{i}"), gradient.clone());
-        }
+    for (key, gradient) in gradients {
+        out.insert(format!("grad/{key}"), gradient);
     }
-    for (module, vars) in learner.modules() {
-        for (i, (_, var)) in vars.iter().enumerate() {
-            out.insert(format!("param/{module}/{i}"), var.as_tensor().clone());
-        }
+    for (key, var) in vars {
+        out.insert(format!("param/{key}"), var.as_tensor().clone());
     }
     candle_core::safetensors::save(&out, dir.join("candle.safetensors"))?;
     Ok(())
@@ -182,21 +220,15 @@ fn demonstrations_of(batch: &Batch, obs_dim: usize, act_dim: usize) -> anyhow::R
 /// exports, and `log_temperature`); the windows from `batch.safetensors`; gradients and weights written by name.
 fn run_cdt(dir: &Path, spec: &Spec) -> anyhow::Result<()> {
     let (embedding_dim, num_layers, num_heads, seq_len) = spec.cdt.context("parity.json has no cdt sizes")?;
-    let batch = candle_core::safetensors::load(dir.join("batch.safetensors"), &Device::Cpu)?;
-    let get = |name: &str| -> anyhow::Result<Tensor> {
-        batch
-            .get(name)
-            .cloned()
-            .with_context(|| format!("batch.safetensors has no {name}"))
-    };
+    let file = Tensors::load(dir, "batch.safetensors")?;
     let windows = Windows {
-        states: get("states")?,
-        actions: get("actions")?,
-        returns_to_go: get("returns")?,
-        costs_to_go: get("costs_return")?,
-        timesteps: get("time_steps")?.to_dtype(candle_core::DType::U32)?,
-        mask: get("mask")?,
-        cost_labels: get("costs")?,
+        states: file.get("states")?,
+        actions: file.get("actions")?,
+        returns_to_go: file.get("returns")?,
+        costs_to_go: file.get("costs_return")?,
+        timesteps: file.get("time_steps")?.to_dtype(candle_core::DType::U32)?,
+        mask: file.get("mask")?,
+        cost_labels: file.get("costs")?,
     };
     // One episode as the learner's data: `new` needs trajectories; the windows come from the file.
     let mut data = Demonstrations::empty(spec.obs_dim, spec.act_dim);
@@ -217,26 +249,9 @@ fn run_cdt(dir: &Path, spec: &Spec) -> anyhow::Result<()> {
         ..CdtSettings::default()
     };
     let mut learner = CdtLearner::new(settings, data, spec.episode_len, None)?;
-    let init = candle_core::safetensors::load(dir.join("init.safetensors"), &Device::Cpu)?;
     let mut vars = learner.model.named_vars();
     vars.push(("log_temperature".into(), learner.log_temperature().clone()));
-    for (name, var) in &vars {
-        let value = init
-            .get(name)
-            .with_context(|| format!("init.safetensors has no {name}"))?;
-        anyhow::ensure!(
-            value.dims() == var.dims(),
-            "{name}: OSRL's shape {:?}, ours {:?}",
-            value.dims(),
-            var.dims()
-        );
-        var.set(value)?;
-    }
-    let unused: Vec<&String> = init.keys().filter(|k| !vars.iter().any(|(n, _)| n == *k)).collect();
-    anyhow::ensure!(
-        unused.is_empty(),
-        "init.safetensors has tensors the model lacks: {unused:?}"
-    );
+    load_weights(dir, &vars)?;
     *learner.noise() = Noise::seeded(spec.noise_seed);
     let model_names: Vec<String> = learner.model.named_vars().into_iter().map(|(n, _)| n).collect();
     for (_, optimizer) in learner.optimizers() {
@@ -245,10 +260,7 @@ fn run_cdt(dir: &Path, spec: &Spec) -> anyhow::Result<()> {
 
     let figures = learner.update(&windows)?;
 
-    let mut out: HashMap<String, Tensor> = HashMap::new();
-    for (name, value) in figures {
-        out.insert(format!("loss/{name}"), Tensor::new(&[value], &Device::Cpu)?);
-    }
+    let mut gradients = Vec::new();
     for (optimizer_name, optimizer) in learner.optimizers() {
         for (i, gradient) in optimizer.last_gradients() {
             let name = if optimizer_name == "optim" {
@@ -256,12 +268,8 @@ fn run_cdt(dir: &Path, spec: &Spec) -> anyhow::Result<()> {
             } else {
                 "log_temperature".to_owned()
             };
-            out.insert(format!("grad/{optimizer_name}/{name}"), gradient.clone());
+            gradients.push((format!("{optimizer_name}/{name}"), gradient.clone()));
         }
     }
-    for (name, var) in &vars {
-        out.insert(format!("param/{name}"), var.as_tensor().clone());
-    }
-    candle_core::safetensors::save(&out, dir.join("candle.safetensors"))?;
-    Ok(())
+    write_step(dir, figures, gradients, &vars)
 }

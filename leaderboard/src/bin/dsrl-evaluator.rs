@@ -36,8 +36,7 @@ fn main() -> std::process::ExitCode {
     let args = Args::parse();
     if let Some(Internal::PlayPolicy { memory_limit }) = &args.command {
         // SAFETY: first thing in this process, before any other thread exists.
-        unsafe { dsrl_policy::pin_candle_threads() };
-        return dsrl_evaluation::inference::serve_child(*memory_limit);
+        return unsafe { dsrl_evaluation::inference::serve_child(*memory_limit) };
     }
     dsrl_service::init_logging(args.process.log_json);
     let runtime = tokio::runtime::Runtime::new().expect("starting the async runtime");

@@ -64,10 +64,7 @@ pub(crate) fn is_grpc(request: &Request) -> bool {
 pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     dsrl_leaderboard::queue::refresh_depth_gauge(&state.metrics.queue_depth, &state.leaderboard.db).await;
     (
-        [(
-            header::CONTENT_TYPE,
-            "application/openmetrics-text; version=1.0.0; charset=utf-8",
-        )],
+        [(header::CONTENT_TYPE, dsrl_service::OPENMETRICS_CONTENT_TYPE)],
         state.metrics.render(),
     )
 }
