@@ -5,7 +5,7 @@
 #   2. one dsrl-server on PostgreSQL;
 #   3. two dsrl-server replicas on the same PostgreSQL, the load split between them;
 # and the leaderboard queue's throughput (jobs claimed and finished per second, 60 episodes stored per job) with 1
-# and 4 evaluators on SQLite and PostgreSQL (server/examples/queue_claims.rs).
+# and 4 evaluators on SQLite and PostgreSQL (leaderboard/examples/queue_claims.rs).
 #
 # Load comes from wrk (Debian's package, installed if missing), 16 connections in all (8 per replica with two),
 # 10 s per figure (20 s for downloads, 4 connections). PostgreSQL is Debian's, started here in a temporary folder.
