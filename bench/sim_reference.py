@@ -20,8 +20,8 @@ from dsrl_sim import batch as batch_module, tasks  # noqa: E402
 tasks.quiet()
 
 
-def raw(task, k, steps, warmup, seed):
-    envs = [tasks.make_env(task) for _ in range(k)]
+def raw(task, k, steps, warmup, seed, controller=None):
+    envs = [tasks.make_env(task, controller) for _ in range(k)]
     raw_envs = [e._env for e in envs]
     family = envs[0].family
     low, high = envs[0].low, envs[0].high
@@ -46,8 +46,8 @@ def raw(task, k, steps, warmup, seed):
     return time.perf_counter() - started, ended, envs[0]
 
 
-def batched(task, k, steps, warmup, seed):
-    b = batch_module.Batch(task, [seed + i for i in range(k)], auto_reset=True)
+def batched(task, k, steps, warmup, seed, controller=None):
+    b = batch_module.Batch(task, [seed + i for i in range(k)], auto_reset=True, controller=controller)
     indices = list(range(k))
     b.reset(indices, [seed + i for i in indices])
     rng = np.random.default_rng(seed)
@@ -71,9 +71,15 @@ def main():
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mode", choices=["raw", "batch"], default="raw")
+    parser.add_argument("--idm", metavar="SPEED,ACC", help="MetaDrive: DSRL's noisy IDM driver steers (target speed "
+                        "km/h, acceleration factor) as in the dataset sweep; the random actions are then ignored")
     args = parser.parse_args()
     run = raw if args.mode == "raw" else batched
-    seconds, ended, _ = run(args.task, args.envs, args.steps, args.warmup, args.seed)
+    controller = None
+    if args.idm:
+        speed, acc = (float(v) for v in args.idm.split(","))
+        controller = {"idm": {"target_speed": speed, "acc_factor": acc}}
+    seconds, ended, _ = run(args.task, args.envs, args.steps, args.warmup, args.seed, controller)
     env_steps = args.steps * args.envs
     print(json.dumps({"task": args.task, "envs": args.envs, "mode": args.mode, "env_steps": env_steps,
                       "seconds": round(seconds, 3), "env_steps_per_s": round(env_steps / seconds, 1),

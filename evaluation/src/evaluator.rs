@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::EvaluationError;
 use crate::inference::{Player, PolicySource};
-use crate::simulators::SimulatorPool;
+use crate::simulators::{PooledSession, Reply, SimulatorPool};
 
 /// One evaluated episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -104,6 +104,11 @@ pub async fn play_episodes(
 /// One session of up to `envs` environments playing `seeds` in order: environment `i` starts with seed `i`, and
 /// each finished environment takes the next unplayed seed. The policy's rollout is told of every episode start
 /// (its seed seeds the policy's own draws) and of every step's reward and cost.
+///
+/// The environments form two groups (the first half and the second) whose steps are pipelined: while the worker
+/// steps one group, this side scores the other's last step and computes its next actions, so the simulator does
+/// not wait for the round trip or the policy (BENCHMARKS.md, fixed-policy acting). The answers are handled in the
+/// order the requests were sent, which makes the episodes a function of the seeds and `envs` alone.
 async fn play_group(
     pool: &SimulatorPool,
     task: &Task,
@@ -140,46 +145,104 @@ async fn play_group(
     // The episode (index into `seeds`) each environment is playing; the next seed to hand out.
     let mut playing: Vec<usize> = (0..k).collect();
     let mut next = k;
-    let mut active: Vec<u32> = (0..k as u32).collect();
-    while !active.is_empty() {
-        let batch: Vec<f32> = active
-            .iter()
-            .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
-            .collect();
-        let actions = rollout.act(&active, &batch).await?;
-        let step = session.step(&active, &actions).await?;
-        rollout.observe(&active, &step.rewards, &step.costs).await?;
-        let mut still = Vec::with_capacity(active.len());
-        let (mut reset_envs, mut reset_seeds) = (Vec::new(), Vec::new());
-        for (row, &i) in active.iter().enumerate() {
-            let score = &mut scores[playing[i as usize]];
-            // Sums in f64 of the f32 values the datasets store, as the normalization constants were computed.
-            score.reward_return += f64::from(step.rewards[row] as f32);
-            score.cost_return += f64::from(step.costs[row] as f32);
-            score.length += 1;
-            obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
-                .copy_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
-            if !(step.terminated[row] || step.truncated[row]) {
-                still.push(i);
-            } else if next < seeds.len() {
-                playing[i as usize] = next;
-                reset_envs.push(i);
-                reset_seeds.push(seeds[next]);
-                rollout.start_episode(i as usize, seeds[next]).await?;
-                next += 1;
+    // Each group's environments still playing, and those it is resetting.
+    let mut active: Vec<Vec<u32>> = split_in_two(k);
+    let mut resetting: Vec<Vec<u32>> = vec![Vec::new(); active.len()];
+    // The requests in flight, oldest first: (group, is a reset).
+    let mut in_flight = std::collections::VecDeque::new();
+    for (g, slots) in active.iter().enumerate() {
+        send_actions(&mut session, &mut rollout, slots, &obs, obs_dim).await?;
+        in_flight.push_back((g, false));
+    }
+    while let Some((g, is_reset)) = in_flight.pop_front() {
+        match (session.receive().await?, is_reset) {
+            (Reply::Step(step), false) => {
+                let mut still = Vec::with_capacity(active[g].len());
+                let mut reset_seeds = Vec::new();
+                rollout.observe(&active[g], &step.rewards, &step.costs).await?;
+                for (row, &i) in active[g].iter().enumerate() {
+                    let score = &mut scores[playing[i as usize]];
+                    // Sums in f64 of the f32 values the datasets store, as the normalization constants were computed.
+                    score.reward_return += f64::from(step.rewards[row] as f32);
+                    score.cost_return += f64::from(step.costs[row] as f32);
+                    score.length += 1;
+                    obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
+                        .copy_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
+                    if !(step.terminated[row] || step.truncated[row]) {
+                        still.push(i);
+                    } else if next < seeds.len() {
+                        playing[i as usize] = next;
+                        resetting[g].push(i);
+                        reset_seeds.push(seeds[next]);
+                        rollout.start_episode(i as usize, seeds[next]).await?;
+                        next += 1;
+                    }
+                }
+                active[g] = still;
+                if !resetting[g].is_empty() {
+                    // The group's next step waits for these observations; the other group keeps the worker busy.
+                    session.send_reset(&resetting[g], &reset_seeds).await?;
+                    in_flight.push_back((g, true));
+                } else if !active[g].is_empty() {
+                    send_actions(&mut session, &mut rollout, &active[g], &obs, obs_dim).await?;
+                    in_flight.push_back((g, false));
+                }
+            }
+            (Reply::Reset { observations, .. }, true) => {
+                let reset = std::mem::take(&mut resetting[g]);
+                for (row, &i) in reset.iter().enumerate() {
+                    obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
+                        .copy_from_slice(&observations[row * obs_dim..(row + 1) * obs_dim]);
+                }
+                active[g].extend(reset);
+                active[g].sort_unstable();
+                send_actions(&mut session, &mut rollout, &active[g], &obs, obs_dim).await?;
+                in_flight.push_back((g, false));
+            }
+            _ => {
+                return Err(EvaluationError::Internal(format!(
+                    "simulator worker {} answered out of order",
+                    session.worker()
+                )));
             }
         }
-        if !reset_envs.is_empty() {
-            let observations = session.reset(&reset_envs, &reset_seeds).await?;
-            for (row, &i) in reset_envs.iter().enumerate() {
-                obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
-                    .copy_from_slice(&observations[row * obs_dim..(row + 1) * obs_dim]);
-            }
-            still.extend(reset_envs);
-            still.sort_unstable();
-        }
-        active = still;
     }
     session.close().await?;
     Ok(scores)
+}
+
+/// Environments `0..k` as two pipelined groups, the first half and the rest (one group when `k` is 1).
+pub fn split_in_two(k: usize) -> Vec<Vec<u32>> {
+    let half = k.div_ceil(2) as u32;
+    [(0..half).collect::<Vec<u32>>(), (half..k as u32).collect()]
+        .into_iter()
+        .filter(|g| !g.is_empty())
+        .collect()
+}
+
+/// The policy's actions for `slots` (from their rows of `obs`), sent as the group's next step.
+async fn send_actions(
+    session: &mut PooledSession,
+    rollout: &mut Player<'_>,
+    slots: &[u32],
+    obs: &[f32],
+    obs_dim: usize,
+) -> Result<(), EvaluationError> {
+    let batch: Vec<f32> = slots
+        .iter()
+        .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
+        .collect();
+    let actions = rollout.act(slots, &batch).await?;
+    session.send_step(slots, &actions).await
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn environments_split_into_two_pipelined_groups() {
+        assert_eq!(super::split_in_two(1), vec![vec![0]]);
+        assert_eq!(super::split_in_two(2), vec![vec![0], vec![1]]);
+        assert_eq!(super::split_in_two(5), vec![vec![0, 1, 2], vec![3, 4]]);
+        assert!(super::split_in_two(0).is_empty());
+    }
 }

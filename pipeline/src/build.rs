@@ -211,6 +211,7 @@ impl Run {
             "simulator_seconds": seconds(|l| l.simulator_seconds),
             "acting_seconds": seconds(|l| l.acting_seconds),
             "update_seconds": seconds(|l| l.update_seconds),
+            "worker_idle_seconds": seconds(|l| l.worker_idle_seconds),
             "expert_policy": "expert/policy (policy.safetensors + policy.json)",
             "training_log": "expert/training.csv",
         });

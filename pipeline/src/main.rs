@@ -58,6 +58,11 @@ struct EvaluateArgs {
     /// Environments per worker session.
     #[arg(long, default_value_t = 10)]
     envs_per_session: u32,
+    /// Sessions to spread the episodes over (default: as many as give every environment one episode, so each
+    /// episode depends on its seed alone). Fewer sessions play several episodes per environment and create fewer
+    /// environments: the leaderboard's layout, and the way to measure acting throughput (bench/acting.sh).
+    #[arg(long)]
+    sessions: Option<usize>,
     /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
     #[arg(long)]
     worker_binary: Option<PathBuf>,
@@ -158,7 +163,10 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     let seeds: Vec<u64> = (0..u64::from(args.episodes)).map(|i| seed + i).collect();
     let envs_per_session = args.envs_per_session.max(1) as usize;
     // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
-    let sessions = seeds.len().div_ceil(envs_per_session);
+    let sessions = args
+        .sessions
+        .unwrap_or_else(|| seeds.len().div_ceil(envs_per_session))
+        .max(1);
     let started = std::time::Instant::now();
     let mut thresholds = Vec::new();
     let mut all_episodes = Vec::new();
@@ -195,6 +203,7 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
         "policy": args.policy,
         "architecture": config.architecture.name(),
         "seeds": { "first": seed, "count": args.episodes },
+        "layout": { "sessions": sessions, "envs_per_session": envs_per_session },
         "thresholds": thresholds,
         "wall_seconds": started.elapsed().as_secs_f64(),
     });

@@ -11,7 +11,7 @@ const TASK: &str = "OfflineBallRun-v0";
 
 fn evaluate(dir: &Path, extra: &[&str]) -> serde_json::Value {
     let out = Command::new(dsrl_e2e::bin("dsrl-admin"))
-        .args(["evaluate", "--episodes", "3", "--workers", "1", "--json"])
+        .args(["evaluate", "--workers", "1", "--json"])
         .args(extra)
         .arg(dir)
         .output()
@@ -45,7 +45,7 @@ fn bcq_cdt_and_target_cost_policies_play_as_the_python_reference_does() {
     for arch in ["bcq-actor", "cdt", "target-cost-mlp"] {
         let policy = dir.path().join(arch);
         crate::make_policy(&policy, TASK, arch, 5);
-        let ours = evaluate(&policy, &["--cost-threshold", "20"]);
+        let ours = evaluate(&policy, &["--episodes", "3", "--cost-threshold", "20"]);
         let theirs = python_reference(&policy, "20");
         let (ours, theirs) = (
             ours["episodes"].as_array().unwrap(),
@@ -71,7 +71,7 @@ fn bcq_cdt_and_target_cost_policies_play_as_the_python_reference_does() {
 
     // Without --cost-threshold a conditioned policy plays at each of the task's thresholds; the target changes
     // what it does.
-    let report = evaluate(&dir.path().join("cdt"), &[]);
+    let report = evaluate(&dir.path().join("cdt"), &["--episodes", "3"]);
     let thresholds = report["thresholds"].as_array().unwrap();
     assert_eq!(thresholds.len(), 3);
     let rewards = |t: &serde_json::Value| {
@@ -84,4 +84,30 @@ fn bcq_cdt_and_target_cost_policies_play_as_the_python_reference_does() {
     };
     assert_ne!(rewards(&thresholds[0]), rewards(&thresholds[2]));
     assert_eq!(thresholds[1]["cost_threshold"], 20.0);
+}
+
+/// The leaderboard's layout: fewer environments than episodes, so each environment plays several, in two
+/// pipelined groups whose resets interleave with the other group's steps. Every seed is played once, in seed
+/// order, and a second run gives the same episodes (answers are handled in the order requests were sent, not as
+/// they happen to arrive). The CDT keeps a context per environment slot, so a slot mix-up would show.
+#[test]
+fn pipelined_groups_play_every_seed_once_and_deterministically() {
+    let dir = tempfile::tempdir().unwrap();
+    let policy = crate::make_policy(&dir.path().join("cdt"), TASK, "cdt", 7);
+    let layout = [
+        "--episodes",
+        "7",
+        "--sessions",
+        "1",
+        "--envs-per-session",
+        "3",
+        "--cost-threshold",
+        "20",
+    ];
+    let episodes = |report: serde_json::Value| report["episodes"].as_array().unwrap().clone();
+    let first = episodes(evaluate(&policy, &layout));
+    let seeds: Vec<u64> = first.iter().map(|e| e["seed"].as_u64().unwrap()).collect();
+    assert_eq!(seeds, (1_000_000..1_000_007).collect::<Vec<u64>>());
+    assert!(first.iter().all(|e| e["length"].as_u64().unwrap() > 0));
+    assert_eq!(first, episodes(evaluate(&policy, &layout)));
 }

@@ -6,5 +6,6 @@
 mod pool;
 mod session;
 
+pub use dsrl_proto::simulator_session::{Reply, StepResult};
 pub use pool::{SimulatorPool, WorkerStatus};
 pub use session::PooledSession;

@@ -1,7 +1,7 @@
 use std::time::Duration;
 
 use dsrl_proto::simulator::v1::TaskSpec;
-use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
+use dsrl_proto::simulator_session::{Reply, SimulatorSession, StepResult};
 use tonic::{Code, Status};
 
 use crate::error::EvaluationError;
@@ -68,6 +68,27 @@ impl PooledSession {
         let worker = self.worker.clone();
         let call = self.session.reset(envs, seeds);
         deadline(&worker, timeout, "reset", call).await
+    }
+
+    /// Queues a step without waiting for its result, so the worker can step it while the caller acts on another
+    /// group of the session's environments; [`Self::receive`] returns the answers in the order they were sent.
+    pub async fn send_step(&mut self, envs: &[u32], actions: &[f32]) -> Result<(), EvaluationError> {
+        let (timeout, worker) = (self.timeout, self.worker.clone());
+        deadline(&worker, timeout, "step", self.session.send_step(envs, actions)).await?;
+        Ok(())
+    }
+
+    /// Queues a reset without waiting for its observations (see [`Self::send_step`]).
+    pub async fn send_reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<(), EvaluationError> {
+        let (timeout, worker) = (self.timeout, self.worker.clone());
+        deadline(&worker, timeout, "reset", self.session.send_reset(envs, seeds)).await?;
+        Ok(())
+    }
+
+    /// The answer to the oldest request sent with [`Self::send_step`] or [`Self::send_reset`].
+    pub async fn receive(&mut self) -> Result<Reply, EvaluationError> {
+        let (timeout, worker) = (self.timeout, self.worker.clone());
+        deadline(&worker, timeout, "queued request", self.session.receive()).await
     }
 
     pub async fn close(self) -> Result<(), EvaluationError> {

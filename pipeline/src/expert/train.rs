@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use dsrl_evaluation::simulators::{PooledSession, SimulatorPool};
+use dsrl_evaluation::simulators::{PooledSession, Reply, SimulatorPool};
 use dsrl_policy::noise::Noise;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_suite::catalog::{ObservationSpace, Task};
@@ -53,6 +53,10 @@ pub struct CollectLog {
     /// The policy's forward passes while acting.
     pub acting_seconds: f64,
     pub update_seconds: f64,
+    /// How long the workers had nothing to do, on average over the sessions: the collect's wall time less the
+    /// time each session had a request in flight (steps, and resets waited for).
+    #[serde(default)]
+    pub worker_idle_seconds: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -127,11 +131,11 @@ fn save(
 
 fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
     let mut text = String::from(
-        "collect,steps,cost_limit,mean_reward,mean_cost,lagrangian,approx_kl,std,simulator_seconds,acting_seconds,update_seconds\n",
+        "collect,steps,cost_limit,mean_reward,mean_cost,lagrangian,approx_kl,std,simulator_seconds,acting_seconds,update_seconds,worker_idle_seconds\n",
     );
     for l in log {
         text.push_str(&format!(
-            "{},{},{},{:.3},{:.3},{:.5},{:.6},{:.4},{:.3},{:.3},{:.3}\n",
+            "{},{},{},{:.3},{:.3},{:.5},{:.6},{:.4},{:.3},{:.3},{:.3},{:.3}\n",
             l.collect,
             l.steps,
             l.cost_limit,
@@ -142,7 +146,8 @@ fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
             l.std,
             l.simulator_seconds,
             l.acting_seconds,
-            l.update_seconds
+            l.update_seconds,
+            l.worker_idle_seconds
         ));
     }
     std::fs::write(root.join("training.csv"), text)?;
@@ -223,6 +228,39 @@ struct Played {
     episodes: Vec<TransitionChunk>,
     simulator_seconds: f64,
     acting_seconds: f64,
+    /// Per session: how long it had a request in flight (its worker was busy or the answer on its way).
+    busy_seconds: Vec<f64>,
+}
+
+/// Per session, the time it has at least one request in flight: what is not is time its worker sat idle.
+struct Busy {
+    in_flight: Vec<usize>,
+    since: Vec<Instant>,
+    seconds: Vec<f64>,
+}
+
+impl Busy {
+    fn new(sessions: usize) -> Busy {
+        Busy {
+            in_flight: vec![0; sessions],
+            since: vec![Instant::now(); sessions],
+            seconds: vec![0.0; sessions],
+        }
+    }
+
+    fn sent(&mut self, session: usize) {
+        if self.in_flight[session] == 0 {
+            self.since[session] = Instant::now();
+        }
+        self.in_flight[session] += 1;
+    }
+
+    fn answered(&mut self, session: usize) {
+        self.in_flight[session] -= 1;
+        if self.in_flight[session] == 0 {
+            self.seconds[session] += self.since[session].elapsed().as_secs_f64();
+        }
+    }
 }
 
 /// Where environment `j` of a collect lives: `(session, index in the session)`, environments dealt out in order.
@@ -231,8 +269,12 @@ fn layout(envs: usize, sessions: usize) -> Vec<(usize, u32)> {
     (0..envs).map(|j| (j / per, (j % per) as u32)).collect()
 }
 
-/// Plays one episode in every environment from the observations `obs` (`[envs, obs_dim]`, global order); the
-/// policy acts on all playing environments in one batch whatever the sessions, so the grouping changes nothing.
+/// Plays one episode in every environment from the observations `obs` (`[envs, obs_dim]`, global order).
+///
+/// The environments form groups whose steps are pipelined: while a worker steps one group, the policy acts on
+/// another's last observations, so the simulators do not wait for the round trip or for acting (BENCHMARKS.md). Answers are handled in the order the requests were sent and the groups are contiguous runs of
+/// environments visited round-robin, so each round the policy draws its noise for the playing environments in
+/// environment order, whatever the number of sessions: the run does not depend on `--workers`.
 async fn play(
     sessions: &mut [PooledSession],
     layout: &[(usize, u32)],
@@ -255,65 +297,85 @@ async fn play(
             ..Trace::default()
         })
         .collect();
-    let mut active = vec![true; total];
-    let (mut simulator_seconds, mut acting_seconds) = (0.0, 0.0);
-    while active.iter().any(|&a| a) {
-        let playing: Vec<usize> = (0..total).filter(|&j| active[j]).collect();
-        let batch: Vec<f32> = playing
+    // Groups of global environment numbers, two per session (the session's first half and the rest).
+    let mut groups: Vec<(usize, Vec<usize>)> = Vec::new();
+    for s in 0..sessions.len() {
+        let members: Vec<usize> = (0..total).filter(|&j| layout[j].0 == s).collect();
+        for half in dsrl_evaluation::evaluator::split_in_two(members.len()) {
+            groups.push((s, half.iter().map(|&i| members[i as usize]).collect()));
+        }
+    }
+    let mut acting_seconds = 0.0;
+    let mut busy = Busy::new(sessions.len());
+    // The policy's actions for the group's playing environments, sent as its next step; returns them for the trace.
+    let act = async |sessions: &mut [PooledSession],
+                     (session, envs): &(usize, Vec<usize>),
+                     obs: &[f32],
+                     noise: &mut Noise,
+                     acting_seconds: &mut f64,
+                     busy: &mut Busy|
+           -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
+        let batch: Vec<f32> = envs
             .iter()
             .flat_map(|&j| obs[j * obs_dim..(j + 1) * obs_dim].iter().copied())
             .collect();
         let started = Instant::now();
-        let (actions, log_probs) = learner.act(&batch, playing.len(), noise)?;
-        acting_seconds += started.elapsed().as_secs_f64();
-        // Per session: its playing environments (local ids) and their rows in the batch.
-        let mut requests: Vec<(Vec<u32>, Vec<f32>, Vec<usize>)> = vec![Default::default(); sessions.len()];
-        for (row, &j) in playing.iter().enumerate() {
-            let (session, local) = layout[j];
-            let r = &mut requests[session];
-            r.0.push(local);
-            r.1.extend_from_slice(&actions[row * act_dim..(row + 1) * act_dim]);
-            r.2.push(row);
-        }
-        let started = Instant::now();
-        let steps = futures::future::try_join_all(
-            sessions
-                .iter_mut()
-                .zip(&requests)
-                .filter(|(_, r)| !r.0.is_empty())
-                .map(|(session, (envs, actions, _))| session.step(envs, actions)),
-        )
-        .await?;
-        simulator_seconds += started.elapsed().as_secs_f64();
-        for (step, (envs, _, rows)) in steps.iter().zip(requests.iter().filter(|r| !r.0.is_empty())) {
-            for (k, (&local, &row)) in envs.iter().zip(rows).enumerate() {
-                let j = playing[row];
-                debug_assert_eq!(layout[j], (layout[j].0, local));
-                let next = &step.observations[k * obs_dim..(k + 1) * obs_dim];
-                let trace = &mut traces[j];
-                let chunk = trace.chunk.as_mut().expect("an active environment has a chunk");
-                chunk
-                    .observations
-                    .extend_from_slice(&obs[j * obs_dim..(j + 1) * obs_dim]);
-                chunk.next_observations.extend_from_slice(next);
-                chunk
-                    .actions
-                    .extend_from_slice(&step.applied_actions[k * act_dim..(k + 1) * act_dim]);
-                chunk.rewards.push(step.rewards[k] as f32);
-                chunk.costs.push(step.costs[k] as f32);
-                chunk.terminals.push(step.terminated[k]);
-                chunk.timeouts.push(step.truncated[k] && !step.terminated[k]);
-                trace
-                    .actions
-                    .extend_from_slice(&actions[row * act_dim..(row + 1) * act_dim]);
-                trace.log_probs.push(log_probs[row]);
-                obs[j * obs_dim..(j + 1) * obs_dim].copy_from_slice(next);
-                if step.terminated[k] || step.truncated[k] {
-                    active[j] = false;
-                }
+        let (actions, log_probs) = learner.act(&batch, envs.len(), noise)?;
+        *acting_seconds += started.elapsed().as_secs_f64();
+        let local: Vec<u32> = envs.iter().map(|&j| layout[j].1).collect();
+        sessions[*session].send_step(&local, &actions).await?;
+        busy.sent(*session);
+        Ok((actions, log_probs))
+    };
+    // Requests in flight, oldest first: (group, the actions and log-probabilities sent).
+    let mut in_flight = std::collections::VecDeque::new();
+    let started = Instant::now();
+    for (g, group) in groups.iter().enumerate() {
+        let sent = act(sessions, group, &obs, noise, &mut acting_seconds, &mut busy).await?;
+        in_flight.push_back((g, sent));
+    }
+    while let Some((g, (actions, log_probs))) = in_flight.pop_front() {
+        let (session, envs) = &groups[g];
+        let Reply::Step(step) = sessions[*session].receive().await? else {
+            anyhow::bail!(
+                "simulator worker {} answered a step out of order",
+                sessions[*session].worker()
+            );
+        };
+        busy.answered(*session);
+        let mut still = Vec::with_capacity(envs.len());
+        for (k, &j) in envs.iter().enumerate() {
+            let next = &step.observations[k * obs_dim..(k + 1) * obs_dim];
+            let trace = &mut traces[j];
+            let chunk = trace.chunk.as_mut().expect("an active environment has a chunk");
+            chunk
+                .observations
+                .extend_from_slice(&obs[j * obs_dim..(j + 1) * obs_dim]);
+            chunk.next_observations.extend_from_slice(next);
+            chunk
+                .actions
+                .extend_from_slice(&step.applied_actions[k * act_dim..(k + 1) * act_dim]);
+            chunk.rewards.push(step.rewards[k] as f32);
+            chunk.costs.push(step.costs[k] as f32);
+            chunk.terminals.push(step.terminated[k]);
+            chunk.timeouts.push(step.truncated[k] && !step.terminated[k]);
+            trace
+                .actions
+                .extend_from_slice(&actions[k * act_dim..(k + 1) * act_dim]);
+            trace.log_probs.push(log_probs[k]);
+            obs[j * obs_dim..(j + 1) * obs_dim].copy_from_slice(next);
+            if !(step.terminated[k] || step.truncated[k]) {
+                still.push(j);
             }
         }
+        groups[g].1 = still;
+        if !groups[g].1.is_empty() {
+            let sent = act(sessions, &groups[g], &obs, noise, &mut acting_seconds, &mut busy).await?;
+            in_flight.push_back((g, sent));
+        }
     }
+    // Acting overlaps the simulators: what is left of the wall time is waiting for them.
+    let simulator_seconds = started.elapsed().as_secs_f64() - acting_seconds;
     let mut rollout = Rollout {
         obs_dim,
         act_dim,
@@ -338,7 +400,23 @@ async fn play(
         episodes,
         simulator_seconds,
         acting_seconds,
+        busy_seconds: busy.seconds,
     })
+}
+
+/// Queues a reset of every environment of every session for collect `collect`; the caller receives the answers.
+async fn send_resets(
+    sessions: &mut [PooledSession],
+    members: &[Vec<u32>],
+    recipe: &Recipe,
+    collect: u64,
+) -> anyhow::Result<()> {
+    for (session, envs) in sessions.iter_mut().zip(members) {
+        let ids: Vec<u32> = (0..envs.len() as u32).collect();
+        let seeds: Vec<u64> = envs.iter().map(|&j| env_seed(recipe, collect, j)).collect();
+        session.send_reset(&ids, &seeds).await?;
+    }
+    Ok(())
 }
 
 /// The seed of environment `env` in collect `collect`: distinct across the run.
@@ -444,6 +522,8 @@ pub async fn train(
             .iter()
             .flat_map(|s| s.initial_observations().to_vec())
             .collect();
+        // Whether the next collect's resets are already with the workers.
+        let mut resets_sent = false;
         for c in 0..expert.checkpoint_every_collects {
             if state.steps >= budget {
                 break;
@@ -451,12 +531,13 @@ pub async fn train(
             let reset_started = Instant::now();
             if c > 0 {
                 obs.clear();
-                let resets = sessions.iter_mut().zip(&members).map(|(session, envs)| {
-                    let ids: Vec<u32> = (0..envs.len() as u32).collect();
-                    let seeds: Vec<u64> = envs.iter().map(|&j| env_seed(recipe, state.collects, j)).collect();
-                    async move { session.reset(&ids, &seeds).await }
-                });
-                for observations in futures::future::try_join_all(resets).await? {
+                if !resets_sent {
+                    send_resets(&mut sessions, &members, recipe, state.collects).await?;
+                }
+                for session in sessions.iter_mut() {
+                    let Reply::Reset { observations, .. } = session.receive().await? else {
+                        anyhow::bail!("simulator worker {} answered a reset out of order", session.worker());
+                    };
                     obs.extend(observations);
                 }
             }
@@ -489,6 +570,12 @@ pub async fn train(
                 });
             }
             let cost_limit = expert.cost_limit_at(state.steps, budget);
+            // The next collect's resets need no policy: the workers do them while the learner updates.
+            resets_sent =
+                c + 1 < expert.checkpoint_every_collects && state.steps + (played.rollout.len() as u64) < budget;
+            if resets_sent {
+                send_resets(&mut sessions, &members, recipe, state.collects + 1).await?;
+            }
             let started = Instant::now();
             let stats: UpdateStats =
                 tokio::task::block_in_place(|| learner.update(&played.rollout, &costs, cost_limit, &mut state.noise))?;
@@ -507,6 +594,10 @@ pub async fn train(
                 simulator_seconds: played.simulator_seconds + reset_seconds,
                 acting_seconds: played.acting_seconds,
                 update_seconds,
+                worker_idle_seconds: (reset_started.elapsed().as_secs_f64()
+                    - reset_seconds
+                    - played.busy_seconds.iter().sum::<f64>() / played.busy_seconds.len().max(1) as f64)
+                    .max(0.0),
             });
             state.collects += 1;
             bar.set_position(state.steps.min(budget));
