@@ -255,8 +255,18 @@ fn every_safety_gymnasium_recipe_collects_a_dataset_with_a_tiny_budget() {
         );
         std::fs::write(&recipe, text.join("\n")).unwrap();
         let mut cmd = collect(task, &recipe, &env.path(task), 1, 1, &[]);
-        let out = cmd.stderr(Stdio::null()).output().unwrap();
-        assert!(out.status.success(), "{task}: dsrl-admin failed");
+        let out = cmd.output().unwrap();
+        // The workers' logs fill stderr; on failure, show what is not routine.
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        let unusual: Vec<&str> = stderr
+            .lines()
+            .filter(|l| !l.contains("INFO") && !l.contains("Adroit"))
+            .collect();
+        assert!(
+            out.status.success(),
+            "{task}: dsrl-admin failed:\n{}",
+            unusual[unusual.len().saturating_sub(40)..].join("\n")
+        );
         let out: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         let details = &out["provenance"]["details"];
         assert_eq!(details["collects"], 1, "{task}");
