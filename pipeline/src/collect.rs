@@ -1,6 +1,6 @@
 //! Episodes of one sweep setting, stepped through a pooled simulator session.
 
-use dsrl_evaluation::simulators::SimulatorPool;
+use dsrl_evaluation::simulators::{SimulatorPool, StepResult};
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
 use dsrl_suite::transitions::TransitionChunk;
 
@@ -30,6 +30,23 @@ impl Episode {
             cost_return,
         }
     }
+}
+
+/// Appends row `row` of a step's answer to an episode's transitions: the observation it was taken from, the next
+/// one, the action the simulator applied (a controller's, or the policy's clipped), reward, cost, and how it ended.
+pub fn record_step(chunk: &mut TransitionChunk, observation: &[f32], step: &StepResult, row: usize) {
+    let (obs_dim, act_dim) = (observation.len(), step.applied_actions.len() / step.rewards.len());
+    chunk.observations.extend_from_slice(observation);
+    chunk
+        .next_observations
+        .extend_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
+    chunk
+        .actions
+        .extend_from_slice(&step.applied_actions[row * act_dim..(row + 1) * act_dim]);
+    chunk.rewards.push(step.rewards[row] as f32);
+    chunk.costs.push(step.costs[row] as f32);
+    chunk.terminals.push(step.terminated[row]);
+    chunk.timeouts.push(step.truncated[row] && !step.terminated[row]);
 }
 
 /// Runs all episodes of `setting` on one worker session of up to `max_envs` environments (the IDM driver steers;
@@ -77,18 +94,9 @@ pub async fn collect_setting(
         let (mut reset_envs, mut reset_seeds) = (Vec::new(), Vec::new());
         for (row, &env) in envs.iter().enumerate() {
             let i = env as usize;
-            let next = &step.observations[row * obs_dim..(row + 1) * obs_dim];
             let chunk = &mut partial[i];
-            chunk.observations.extend_from_slice(&last_obs[i]);
-            chunk.next_observations.extend_from_slice(next);
-            chunk
-                .actions
-                .extend_from_slice(&step.applied_actions[row * act_dim..(row + 1) * act_dim]);
-            chunk.rewards.push(step.rewards[row] as f32);
-            chunk.costs.push(step.costs[row] as f32);
-            chunk.terminals.push(step.terminated[row]);
-            chunk.timeouts.push(step.truncated[row] && !step.terminated[row]);
-            last_obs[i] = next.to_vec();
+            record_step(chunk, &last_obs[i], &step, row);
+            last_obs[i] = step.observations[row * obs_dim..(row + 1) * obs_dim].to_vec();
             if step.terminated[row] || step.truncated[row] {
                 let number = playing[i].expect("stepped envs are playing");
                 let transitions = std::mem::replace(chunk, TransitionChunk::empty(obs_dim, act_dim));

@@ -25,7 +25,7 @@ use indicatif::ProgressBar;
 use serde::{Deserialize, Serialize};
 
 use super::ppo::{Learner, LearnerState, Rollout, UpdateStats};
-use crate::collect::Episode;
+use crate::collect::{Episode, record_step};
 use crate::recipe::{ExpertSettings, Recipe};
 
 /// What the training left in its buffer, with the numbers provenance records.
@@ -348,17 +348,7 @@ async fn play(
             let next = &step.observations[k * obs_dim..(k + 1) * obs_dim];
             let trace = &mut traces[j];
             let chunk = trace.chunk.as_mut().expect("an active environment has a chunk");
-            chunk
-                .observations
-                .extend_from_slice(&obs[j * obs_dim..(j + 1) * obs_dim]);
-            chunk.next_observations.extend_from_slice(next);
-            chunk
-                .actions
-                .extend_from_slice(&step.applied_actions[k * act_dim..(k + 1) * act_dim]);
-            chunk.rewards.push(step.rewards[k] as f32);
-            chunk.costs.push(step.costs[k] as f32);
-            chunk.terminals.push(step.terminated[k]);
-            chunk.timeouts.push(step.truncated[k] && !step.terminated[k]);
+            record_step(chunk, &obs[j * obs_dim..(j + 1) * obs_dim], &step, k);
             trace
                 .actions
                 .extend_from_slice(&actions[k * act_dim..(k + 1) * act_dim]);
