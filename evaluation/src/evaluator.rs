@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::EvaluationError;
 use crate::inference::{Player, PolicySource};
-use crate::simulators::{PooledSession, Reply, SimulatorPool};
+use crate::simulators::{PooledSession, Reply, SimulatorPool, split_in_two};
 
 /// One evaluated episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -211,15 +211,6 @@ async fn play_group(
     Ok(scores)
 }
 
-/// Environments `0..k` as two pipelined groups, the first half and the rest (one group when `k` is 1).
-pub fn split_in_two(k: usize) -> Vec<Vec<u32>> {
-    let half = k.div_ceil(2) as u32;
-    [(0..half).collect::<Vec<u32>>(), (half..k as u32).collect()]
-        .into_iter()
-        .filter(|g| !g.is_empty())
-        .collect()
-}
-
 /// The policy's actions for `slots` (from their rows of `obs`), sent as the group's next step.
 async fn send_actions(
     session: &mut PooledSession,
@@ -234,15 +225,4 @@ async fn send_actions(
         .collect();
     let actions = rollout.act(slots, &batch).await?;
     session.send_step(slots, &actions).await
-}
-
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn environments_split_into_two_pipelined_groups() {
-        assert_eq!(super::split_in_two(1), vec![vec![0]]);
-        assert_eq!(super::split_in_two(2), vec![vec![0], vec![1]]);
-        assert_eq!(super::split_in_two(5), vec![vec![0, 1, 2], vec![3, 4]]);
-        assert!(super::split_in_two(0).is_empty());
-    }
 }

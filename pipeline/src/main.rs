@@ -162,7 +162,8 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     let seed = args.seed;
     let seeds: Vec<u64> = (0..u64::from(args.episodes)).map(|i| seed + i).collect();
     let envs_per_session = args.envs_per_session.max(1) as usize;
-    // One episode per environment (as many sessions as that takes): each episode depends on its seed only.
+    // By default one episode per environment (as many sessions as that takes): each episode depends on its seed
+    // only. --sessions N lets environments play several.
     let sessions = args
         .sessions
         .unwrap_or_else(|| seeds.len().div_ceil(envs_per_session))

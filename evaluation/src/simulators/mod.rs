@@ -8,4 +8,4 @@ mod session;
 
 pub use dsrl_proto::simulator_session::{Reply, StepResult};
 pub use pool::{SimulatorPool, WorkerStatus};
-pub use session::PooledSession;
+pub use session::{PooledSession, split_in_two};

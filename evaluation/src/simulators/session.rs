@@ -110,3 +110,23 @@ async fn deadline<T>(
         ))),
     }
 }
+
+/// Environments `0..k` as two pipelined groups, the first half and the rest (one group when `k` is 1).
+pub fn split_in_two(k: usize) -> Vec<Vec<u32>> {
+    let half = k.div_ceil(2) as u32;
+    [(0..half).collect::<Vec<u32>>(), (half..k as u32).collect()]
+        .into_iter()
+        .filter(|g| !g.is_empty())
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn environments_split_into_two_pipelined_groups() {
+        assert_eq!(super::split_in_two(1), vec![vec![0]]);
+        assert_eq!(super::split_in_two(2), vec![vec![0], vec![1]]);
+        assert_eq!(super::split_in_two(5), vec![vec![0, 1, 2], vec![3, 4]]);
+        assert!(super::split_in_two(0).is_empty());
+    }
+}

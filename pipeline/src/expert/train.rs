@@ -272,8 +272,9 @@ fn layout(envs: usize, sessions: usize) -> Vec<(usize, u32)> {
 /// Plays one episode in every environment from the observations `obs` (`[envs, obs_dim]`, global order).
 ///
 /// The environments form groups whose steps are pipelined: while a worker steps one group, the policy acts on
-/// another's last observations, so the simulators do not wait for the round trip or for acting (BENCHMARKS.md). Answers are handled in the order the requests were sent and the groups are contiguous runs of
-/// environments visited round-robin, so each round the policy draws its noise for the playing environments in
+/// another's last observations, so the simulators do not wait for the round trip or for acting (BENCHMARKS.md).
+/// Answers are handled in the order the requests were sent and the groups are contiguous runs of environments
+/// visited round-robin, so each round the policy draws its noise for the playing environments in
 /// environment order, whatever the number of sessions: the run does not depend on `--workers`.
 async fn play(
     sessions: &mut [PooledSession],
@@ -301,7 +302,7 @@ async fn play(
     let mut groups: Vec<(usize, Vec<usize>)> = Vec::new();
     for s in 0..sessions.len() {
         let members: Vec<usize> = (0..total).filter(|&j| layout[j].0 == s).collect();
-        for half in dsrl_evaluation::evaluator::split_in_two(members.len()) {
+        for half in dsrl_evaluation::simulators::split_in_two(members.len()) {
             groups.push((s, half.iter().map(|&i| members[i as usize]).collect()));
         }
     }
