@@ -2,8 +2,8 @@
 # Benchmark: one training step of the five offline safe-RL baselines (BCQ-L, BEAR-L, CPQ, COptiDICE, CDT) side by side in
 # one run, on the same data (the committed OfflineCarRun-v0 starter) with OSRL's CarRun settings (batch 512, hidden
 # [256, 256], VAE hidden 400, cost threshold 10, each algorithm's own learning rates):
-#   - candle: `dsrl-train <algo> --cost-threshold 10` (release build, one thread; the learner's own timer over all
-#     steps, which includes drawing each batch and has no warm-up);
+#   - candle: `dsrl-train <algo> --cost-threshold 10` (release build, one thread; the learner's own timer, which
+#     includes drawing each batch, over all steps after the first: the first is the warm-up, as PyTorch's are);
 #   - PyTorch on CPU (bench/offline_step_torch.py: OSRL's own model classes and Trainers, imported from the installed
 #     osrl-lib package), one thread and all cores; batches built before the clock starts, a few untimed warm-up
 #     steps first.
@@ -48,20 +48,20 @@ for algo in bcql bearl cpq coptidice cdt; do
   echo "== $algo" >&2
   if [ "$algo" = cdt ]; then
     # CDT is trained once (no threshold) at batch 2048 and takes seconds a step: fewer steps, one warm-up.
-    "$bin/dsrl-train" cdt --task OfflineCarRun-v0 --dataset "$data" --steps "$cdt_steps" --out "$work" >&2
+    "$bin/dsrl-train" cdt --task OfflineCarRun-v0 --dataset "$data" --steps $((cdt_steps + 1)) --out "$work" >&2
     policy=$work/cdt/policy.json
     torch1=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$cdt_steps" --warmup 1 \
       --threads 1 | ms)
     torch_all=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$cdt_steps" \
       --warmup 1 --threads "$threads" | ms)
   else
-    "$bin/dsrl-train" "$algo" --task OfflineCarRun-v0 --dataset "$data" --steps "$steps" --cost-threshold 10 \
+    "$bin/dsrl-train" "$algo" --task OfflineCarRun-v0 --dataset "$data" --steps $((steps + 1)) --cost-threshold 10 \
       --out "$work" >&2
     policy=$work/$algo/threshold-10/policy.json
     torch1=$(torch_step "$algo" 1)
     torch_all=$(torch_step "$algo" "$threads")
   fi
-  candle=$(python3 -c "import json; t=json.load(open('$policy'))['training']; print(1000*t['seconds']/t['steps'])")
+  candle=$(python3 -c "import json; t=json.load(open('$policy'))['training']; print(1000*(t['seconds']-t['first_step_seconds'])/(t['steps']-1))")
   rows+=("$(python3 -c "print('| %s | %.1f | %.1f | %.1f | %.2f |' % ('$algo', $candle, $torch1, $torch_all, \
 $candle / $torch1))")")
 done
@@ -72,7 +72,7 @@ done
   echo
   echo "CPU: $cpu ($threads cores), AVX-512: $avx512. $steps steps per run at batch 512 (CDT: $cdt_steps at batch 2048),"
   echo "OfflineCarRun-v0 starter;"
-  echo "PyTorch after $warmup warm-up steps with batches built beforehand (OSRL osrl-lib 0.1.0); candle's time includes"
-  echo "drawing its batches and its first steps. Load average at start: $load."
+  echo "PyTorch after $warmup warm-up steps with batches built beforehand (OSRL osrl-lib 0.1.0); candle after its first"
+  echo "step, its time including drawing its batches. Load average at start: $load."
 } > bench/out/offline_step.md
 cat bench/out/offline_step.md

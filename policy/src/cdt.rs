@@ -11,6 +11,7 @@
 
 use candle_core::{DType, Device, Tensor, Var};
 
+use crate::fused;
 use crate::layers::{LayerNorm, Linear, Weights, normal_var};
 use crate::noise::Noise;
 use crate::{PolicyError, Result};
@@ -285,9 +286,8 @@ impl Cdt {
         if let Some(training) = training.as_deref_mut() {
             x = training.dropout(&x)?;
         }
-        let mask = causal_mask(TOKENS * t)?;
         for block in &self.blocks {
-            x = block.forward(&x, &mask, self.shape.num_heads, training.as_deref_mut())?;
+            x = block.forward(&x, self.shape.num_heads, training.as_deref_mut())?;
         }
         x = self.out_norm.forward(&x)?;
         Ok(x.reshape((b, t, TOKENS, d))?)
@@ -299,45 +299,40 @@ impl Cdt {
     }
 }
 
-/// `[L, L]` additive mask: 0 where a position may attend (itself and earlier), −∞ after it.
-fn causal_mask(len: usize) -> Result<Tensor> {
-    let values: Vec<f32> = (0..len)
-        .flat_map(|i| (0..len).map(move |j| if j <= i { 0.0 } else { f32::NEG_INFINITY }))
-        .collect();
-    Ok(Tensor::from_vec(values, (len, len), &Device::Cpu)?)
-}
-
 impl Block {
     /// Pre-LN: `x + Dropout(Attention(LN(x)))`, then `x + Dropout(MLP(LN(x)))`; attention weights drop out too
     /// when training (PyTorch's `nn.MultiheadAttention` dropout).
-    fn forward(&self, x: &Tensor, mask: &Tensor, heads: usize, mut training: Option<&mut Training>) -> Result<Tensor> {
+    fn forward(&self, x: &Tensor, heads: usize, mut training: Option<&mut Training>) -> Result<Tensor> {
         let (b, l, d) = x.dims3()?;
         let head_dim = d / heads;
         let h = self.norm1.forward(x)?;
-        let qkv = h
-            .reshape((b * l, d))?
-            .matmul(&self.in_proj_weight.as_tensor().t()?)?
-            .broadcast_add(self.in_proj_bias.as_tensor())?
-            .reshape((b, l, 3, heads, head_dim))?;
-        // [B, heads, L, head_dim] each.
-        let part = |i: usize| -> Result<Tensor> { Ok(qkv.narrow(2, i, 1)?.squeeze(2)?.transpose(1, 2)?.contiguous()?) };
-        let (q, k, v) = (part(0)?, part(1)?, part(2)?);
+        // Query, key and value each from their rows of the packed projection, `[B, heads, L, head_dim]`. Slicing
+        // the weights rather than one packed output keeps the slices' gradients weight-sized.
+        let rows = h.reshape((b * l, d))?;
+        let project = |i: usize| -> Result<Tensor> {
+            let weight = self.in_proj_weight.as_tensor().narrow(0, i * d, d)?;
+            let bias = self.in_proj_bias.as_tensor().narrow(0, i * d, d)?;
+            Ok(fused::bias_add(&rows.matmul(&weight.t()?)?, &bias)?
+                .reshape((b, l, heads, head_dim))?
+                .transpose(1, 2)?
+                .contiguous()?)
+        };
+        let (q, k, v) = (project(0)?, project(1)?, project(2)?);
         let scores = q
             .affine(1.0 / (head_dim as f64).sqrt(), 0.0)?
-            .matmul(&k.transpose(2, 3)?.contiguous()?)?
-            .broadcast_add(mask)?;
-        let weights = match training.as_deref_mut() {
-            // candle-nn's fused softmax has no backward pass.
-            Some(training) => training.dropout(&crate::layers::softmax(&scores, 3)?)?,
-            None => candle_nn::ops::softmax_last_dim(&scores)?,
-        };
+            .matmul(&k.transpose(2, 3)?.contiguous()?)?;
+        // Causal: each token attends to itself and the tokens before it.
+        let mut weights = fused::causal_softmax(&scores)?;
+        if let Some(training) = training.as_deref_mut() {
+            weights = training.dropout(&weights)?;
+        }
         let attended = weights.matmul(&v)?.transpose(1, 2)?.contiguous()?.reshape((b, l, d))?;
         let mut attention_out = self.out_proj.forward(&attended)?;
         if let Some(training) = training.as_deref_mut() {
             attention_out = training.dropout(&attention_out)?;
         }
         let x = x.add(&attention_out)?;
-        let hidden = self.mlp_in.forward(&self.norm2.forward(&x)?)?.gelu_erf()?;
+        let hidden = fused::gelu_erf(&self.mlp_in.forward(&self.norm2.forward(&x)?)?)?;
         let mut mlp_out = self.mlp_out.forward(&hidden)?;
         if let Some(training) = training {
             mlp_out = training.dropout(&mlp_out)?;
@@ -355,16 +350,17 @@ pub struct Training<'a> {
 
 impl Training<'_> {
     /// Zeroes each element with probability `p` and scales the rest by `1/(1 − p)`, as `nn.Dropout` in training.
+    /// An element is dropped when its uniform draw is below `p`, compared in integers: the draw is
+    /// `((u >> 11) + 0.5) / 2⁵³`, so it is below `p` exactly when `u >> 11` is below `⌈p·2⁵³ − 0.5⌉`.
     pub fn dropout(&mut self, x: &Tensor) -> Result<Tensor> {
         if self.p <= 0.0 {
             return Ok(x.clone());
         }
-        let keep = (1.0 / (1.0 - self.p)) as f32;
-        let p = self.p;
-        let mask: Vec<f32> = (0..x.elem_count())
-            .map(|_| if self.noise.uniform() < p { 0.0 } else { keep })
+        let below = (self.p * (1u64 << 53) as f64 - 0.5).ceil() as u64;
+        let keep: Vec<bool> = (0..x.elem_count())
+            .map(|_| (self.noise.next_u64() >> 11) >= below)
             .collect();
-        Ok(x.mul(&Tensor::from_vec(mask, x.shape(), x.device())?)?)
+        Ok(fused::dropout(x, keep, self.p)?)
     }
 }
 
@@ -477,6 +473,29 @@ impl Cdt {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn dropout_drops_where_the_uniform_draw_is_below_p() {
+        let x = Tensor::ones((4, 250), DType::F32, &Device::Cpu).unwrap();
+        for p in [0.1, 0.25, 0.5] {
+            let mut noise = Noise::seeded(21);
+            let out: Vec<f32> = Training { p, noise: &mut noise }
+                .dropout(&x)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let mut replay = Noise::seeded(21);
+            let keep = (1.0 / (1.0 - p)) as f32;
+            for (i, got) in out.iter().enumerate() {
+                let want = if replay.uniform() < p { 0.0 } else { keep };
+                assert_eq!(*got, want, "p {p}, element {i}");
+            }
+            let dropped = out.iter().filter(|v| **v == 0.0).count() as f64 / out.len() as f64;
+            assert!((dropped - p).abs() < 0.06, "p {p}: dropped {dropped}");
+        }
+    }
 
     #[test]
     fn training_gradients_through_attention_layer_norm_and_gelu_match_finite_differences() {

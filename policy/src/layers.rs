@@ -47,10 +47,10 @@ impl Linear {
             .last()
             .ok_or_else(|| PolicyError::Format("a linear layer needs an input axis".into()))?;
         let rows = x.elem_count() / inputs.max(1);
-        let y = x
-            .reshape((rows, inputs))?
-            .matmul(&self.weight.as_tensor().t()?)?
-            .broadcast_add(self.bias.as_tensor())?;
+        let y = crate::fused::bias_add(
+            &x.reshape((rows, inputs))?.matmul(&self.weight.as_tensor().t()?)?,
+            self.bias.as_tensor(),
+        )?;
         let mut out = dims;
         *out.last_mut().expect("checked above") = self.weight.dims()[0];
         Ok(y.reshape(out)?)
@@ -81,14 +81,14 @@ impl LayerNorm {
         })
     }
 
+    /// One fused operation ([`crate::fused::layer_norm`]) forward and backward.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let last = x.rank() - 1;
-        let centred = x.broadcast_sub(&x.mean_keepdim(last)?)?;
-        let variance = centred.sqr()?.mean_keepdim(last)?;
-        let normed = centred.broadcast_div(&variance.affine(1.0, Self::EPS)?.sqrt()?)?;
-        Ok(normed
-            .broadcast_mul(self.weight.as_tensor())?
-            .broadcast_add(self.bias.as_tensor())?)
+        Ok(crate::fused::layer_norm(
+            x,
+            self.weight.as_tensor(),
+            self.bias.as_tensor(),
+            Self::EPS,
+        )?)
     }
 
     pub fn named_vars(&self, name: &str) -> Vec<(String, Var)> {

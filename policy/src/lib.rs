@@ -10,6 +10,7 @@ pub mod adam;
 pub mod bcq;
 pub mod cdt;
 pub mod checkpoint;
+pub mod fused;
 pub mod gaussian;
 pub mod layers;
 pub mod mlp;

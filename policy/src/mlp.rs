@@ -21,7 +21,7 @@ impl Activation {
     pub fn apply(self, x: &Tensor) -> Result<Tensor> {
         Ok(match self {
             Activation::Tanh => x.tanh()?,
-            Activation::Relu => x.relu()?,
+            Activation::Relu => crate::fused::relu(x)?,
         })
     }
 }
@@ -177,7 +177,7 @@ impl Mlp {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let mut h = x.clone();
         for (i, (w, b)) in self.layers.iter().enumerate() {
-            h = h.matmul(&w.as_tensor().t()?)?.broadcast_add(b.as_tensor())?;
+            h = crate::fused::bias_add(&h.matmul(&w.as_tensor().t()?)?, b.as_tensor())?;
             if i + 1 < self.layers.len() {
                 h = self.activation.apply(&h)?;
             }

@@ -53,7 +53,7 @@ impl SquashedGaussianActor {
     /// The pre-squash Normal's parameters for `[batch, obs]` rows: (μ, clamped log σ), each `[batch, act]`.
     pub fn distribution(&self, obs: &Tensor) -> Result<(Tensor, Tensor)> {
         // The trunk's ReLU also follows its last layer (`mlp(..., activation, activation)`).
-        let h = self.trunk.forward(obs)?.relu()?;
+        let h = crate::fused::relu(&self.trunk.forward(obs)?)?;
         let mean = self.mu.forward(&h)?;
         let log_std = self.log_std.forward(&h)?.clamp(LOG_STD_RANGE.0, LOG_STD_RANGE.1)?;
         Ok((mean, log_std))

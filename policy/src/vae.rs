@@ -73,7 +73,7 @@ impl Vae {
 
     /// The latent distribution of `[obs, act]` rows: (mean, σ).
     pub fn encode(&self, obs: &Tensor, act: &Tensor) -> Result<(Tensor, Tensor)> {
-        let h = self.encoder.forward(&Tensor::cat(&[obs, act], 1)?)?.relu()?;
+        let h = crate::fused::relu(&self.encoder.forward(&Tensor::cat(&[obs, act], 1)?)?)?;
         let mean = self.mean.forward(&h)?;
         let log_std = self.log_std.forward(&h)?.clamp(LOG_STD_RANGE.0, LOG_STD_RANGE.1)?;
         Ok((mean, log_std.exp()?))

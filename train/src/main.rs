@@ -213,8 +213,10 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
         let bar = progress(data.steps);
         let started = std::time::Instant::now();
         let mut figures = Vec::new();
+        let mut first_step_seconds = None;
         for step in 0..data.steps {
             figures = learner.step()?;
+            first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
             if step % 100 == 0 {
                 bar.set_position(step);
                 let shown: Vec<String> = figures.iter().take(4).map(|(n, v)| format!("{n} {v:.4}")).collect();
@@ -239,6 +241,7 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
             "seed": data.seed,
             "final": last,
             "seconds": seconds,
+            "first_step_seconds": first_step_seconds,
         });
         let dir = out.join(&name);
         learner
@@ -290,8 +293,10 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
     let bar = progress(data.steps);
     let started = std::time::Instant::now();
     let mut figures = Vec::new();
+    let mut first_step_seconds = None;
     for step in 0..data.steps {
         figures = learner.step()?;
+        first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
         if step % 10 == 0 {
             bar.set_position(step);
             let shown: Vec<String> = figures.iter().take(3).map(|(n, v)| format!("{n} {v:.4}")).collect();
@@ -320,6 +325,7 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         "seed": data.seed,
         "final": last,
         "seconds": seconds,
+        "first_step_seconds": first_step_seconds,
     });
     let dir = out.join("cdt");
     learner
@@ -454,8 +460,10 @@ fn main() -> anyhow::Result<()> {
         let bar = progress(steps);
         let started = std::time::Instant::now();
         let mut loss = f64::NAN;
+        let mut first_step_seconds = None;
         for step in 0..steps {
             loss = learner.step()?;
+            first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
             if step % 500 == 0 {
                 bar.set_position(step);
                 bar.set_message(format!("{name} mse {loss:.5}"));
@@ -480,6 +488,7 @@ fn main() -> anyhow::Result<()> {
             "seed": seed,
             "final_mse": loss,
             "seconds": seconds,
+            "first_step_seconds": first_step_seconds,
         });
         learner
             .write(&dir, task.id.as_str(), &settings.hidden_sizes, conditioning, training)
