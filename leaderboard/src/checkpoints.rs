@@ -164,7 +164,10 @@ fn check_thresholds(task: &Task, checkpoints: &mut [CheckedCheckpoint]) -> Resul
     let mut declared = Vec::new();
     for c in checkpoints.iter() {
         match c.config.conditioning {
-            Conditioning::Unconditioned | Conditioning::TargetCost | Conditioning::ReturnsToGo { .. } => {
+            Conditioning::Unconditioned
+            | Conditioning::TargetCost
+            | Conditioning::ReturnsToGo { .. }
+            | Conditioning::CostBudget => {
                 return Err(ApiError::InvalidArgument(format!(
                     "{}: a checkpoint scored at every threshold ({} conditioning) must be the submission's only \
                      one; per-threshold checkpoints declare conditioning {{\"kind\": \"per_threshold\", \

@@ -2,7 +2,8 @@
 //! tensor checked, and [`Rollout`]s that play it in several environments at once.
 //!
 //! A rollout keeps what a policy carries through an episode: the CDT's context (states, actions, reward- and
-//! cost-to-go so far) and the BCQ actor's latent generator, seeded with the episode's seed. The evaluator starts
+//! cost-to-go so far), the BCQ actor's latent generator, seeded with the episode's seed, and CAPS's cost received
+//! and steps taken. The evaluator starts
 //! an episode in an environment slot, asks for actions for any subset of slots, and reports each step's reward and
 //! cost; the policy's actions are deterministic given the episode seeds, whatever the batching.
 
@@ -11,6 +12,7 @@ use std::collections::HashMap;
 use candle_core::{Device, Tensor};
 
 use crate::bcq::{self, BcqActor, BcqShape};
+use crate::caps::{CapsNetworks, CapsShape, per_step_limit};
 use crate::cdt::{self, Cdt, CdtContext, CdtShape};
 use crate::checkpoint::{Architecture, CONFIG_FILE, Conditioning, PolicyConfig};
 use crate::gaussian::GaussianActor;
@@ -39,6 +41,13 @@ pub enum Network {
         model: Cdt,
         max_action: f64,
         reward_scale: f64,
+        cost_scale: f64,
+    },
+    Caps {
+        nets: CapsNetworks,
+        max_action: f64,
+        gamma: f64,
+        episode_len: usize,
         cost_scale: f64,
     },
 }
@@ -158,6 +167,35 @@ impl Network {
                 };
                 (network, &cdt::TRAINING_ONLY)
             }
+            Architecture::Caps {
+                hidden_sizes,
+                num_heads,
+                max_action,
+                gamma,
+                episode_len,
+                cost_scale,
+            } => {
+                if !(gamma.is_finite() && (0.0..=1.0).contains(gamma) && cost_scale.is_finite() && *episode_len > 0) {
+                    return Err(format_error(
+                        "caps: gamma must be in [0, 1], cost_scale finite and episode_len positive",
+                    ));
+                }
+                let shape = CapsShape {
+                    obs_dim: input_dim,
+                    act_dim,
+                    hidden_sizes: hidden_sizes.clone(),
+                    num_heads: *num_heads,
+                };
+                let network = Network::Caps {
+                    nets: CapsNetworks::from_weights(shape, &mut w)?,
+                    max_action: *max_action,
+                    gamma: *gamma,
+                    episode_len: *episode_len,
+                    cost_scale: *cost_scale,
+                };
+                // The value networks only train the critics.
+                (network, &["reward_v.", "cost_v."])
+            }
         };
         w.finish(training_only)?;
         Ok(network)
@@ -178,7 +216,7 @@ impl Network {
                 let h = activation.apply(&trunk.forward(obs)?)?;
                 mu.forward(&h)?.tanh()?.affine(*max_action, 0.0)?
             }
-            Network::Bcq(_) | Network::Cdt { .. } => return Ok(None),
+            Network::Bcq(_) | Network::Cdt { .. } | Network::Caps { .. } => return Ok(None),
         };
         Ok(Some(out.flatten_all()?.to_vec1::<f32>()?))
     }
@@ -218,6 +256,15 @@ impl Policy {
             }
         };
         let is_cdt = matches!(config.architecture, Architecture::Cdt { .. });
+        let is_caps = matches!(config.architecture, Architecture::Caps { .. });
+        if is_caps != (config.conditioning == Conditioning::CostBudget) {
+            return Err(format_error(format!(
+                "{CONFIG_FILE}: conditioning cost_budget goes with the caps architecture, and caps with it; got {} \
+                 with {}",
+                config.conditioning.kind(),
+                config.architecture.name()
+            )));
+        }
         match &config.conditioning {
             Conditioning::ReturnsToGo { targets } => {
                 if !is_cdt {
@@ -331,12 +378,7 @@ impl Policy {
             policy: self,
             cost_threshold: cost_threshold as f32,
             start,
-            episodes: (0..envs)
-                .map(|_| EpisodeState {
-                    latents: Noise::seeded(0),
-                    context: CdtContext::new(start.0, start.1),
-                })
-                .collect(),
+            episodes: (0..envs).map(|_| EpisodeState::new(Noise::seeded(0), start)).collect(),
         })
     }
 }
@@ -347,6 +389,21 @@ struct EpisodeState {
     latents: Noise,
     /// The CDT's inputs so far.
     context: CdtContext,
+    /// The cost received so far (scaled as the policy's critics see it) and the steps taken: what a budget-adaptive
+    /// policy (CAPS) has left.
+    spent: f64,
+    steps: usize,
+}
+
+impl EpisodeState {
+    fn new(latents: Noise, start: (f32, f32)) -> EpisodeState {
+        EpisodeState {
+            latents,
+            context: CdtContext::new(start.0, start.1),
+            spent: 0.0,
+            steps: 0,
+        }
+    }
 }
 
 /// A policy playing episodes in a fixed number of environment slots at one cost threshold.
@@ -365,10 +422,7 @@ impl Rollout<'_> {
             .episodes
             .get_mut(env)
             .ok_or_else(|| format_error(format!("no environment slot {env}")))?;
-        *slot = EpisodeState {
-            latents: Noise::seeded(seed),
-            context: CdtContext::new(self.start.0, self.start.1),
-        };
+        *slot = EpisodeState::new(Noise::seeded(seed), self.start);
         Ok(())
     }
 
@@ -418,6 +472,22 @@ impl Rollout<'_> {
                 let mut contexts: Vec<&mut CdtContext> = slots.iter_mut().map(|s| &mut s.context).collect();
                 model.act(&mut contexts, &input, *max_action)?
             }
+            Network::Caps {
+                nets,
+                max_action,
+                gamma,
+                episode_len,
+                cost_scale,
+            } => {
+                let budget = f64::from(self.cost_threshold) * cost_scale;
+                let limits: Vec<f64> = self
+                    .slots(envs)?
+                    .iter()
+                    .map(|s| per_step_limit(budget - s.spent, s.steps, *episode_len, *gamma))
+                    .collect();
+                let obs = Tensor::from_vec(input, (n, input_dim), &Device::Cpu)?;
+                nets.switch(&obs, &limits, *max_action)?
+            }
             network => {
                 let obs = Tensor::from_vec(input, (n, input_dim), &Device::Cpu)?;
                 network.act_memoryless(&obs)?.unwrap_or_default()
@@ -436,6 +506,14 @@ impl Rollout<'_> {
     /// Records the reward and cost each of `envs` received for its last action (what a return-conditioned policy
     /// subtracts from its reward- and cost-to-go).
     pub fn observe(&mut self, envs: &[u32], rewards: &[f64], costs: &[f64]) -> Result<()> {
+        if let Network::Caps { cost_scale, .. } = &self.policy.network {
+            let cost_scale = *cost_scale;
+            for (slot, c) in self.slots(envs)?.into_iter().zip(costs) {
+                slot.spent += c * cost_scale;
+                slot.steps += 1;
+            }
+            return Ok(());
+        }
         let Network::Cdt {
             reward_scale,
             cost_scale,

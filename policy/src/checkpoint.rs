@@ -65,6 +65,9 @@ pub enum Conditioning {
     /// A return-conditioned sequence model (`cdt`): for each threshold, the reward and cost return an episode starts
     /// out aiming for (OSRL's CDT `target_returns`); one policy for every threshold.
     ReturnsToGo { targets: Vec<ReturnTarget> },
+    /// One policy for every threshold, given the threshold as the episode's cost budget and, after each step, the
+    /// cost it received (`caps`): it adapts within the episode to what is left.
+    CostBudget,
 }
 
 /// What a return-conditioned policy aims for when it is scored at `cost_threshold` (unscaled returns).
@@ -92,12 +95,16 @@ impl Conditioning {
             Conditioning::PerThreshold { .. } => "per_threshold",
             Conditioning::TargetCost => "target_cost",
             Conditioning::ReturnsToGo { .. } => "returns_to_go",
+            Conditioning::CostBudget => "cost_budget",
         }
     }
 
     /// Whether the network reads the threshold (so one checkpoint serves them all).
     pub fn is_conditioned(&self) -> bool {
-        matches!(self, Conditioning::TargetCost | Conditioning::ReturnsToGo { .. })
+        matches!(
+            self,
+            Conditioning::TargetCost | Conditioning::ReturnsToGo { .. } | Conditioning::CostBudget
+        )
     }
 }
 
@@ -151,6 +158,18 @@ pub enum Architecture {
         /// Embed `50 − Ĉ` instead of `Ĉ` (OSRL's configs turn this on).
         cost_transform: bool,
     },
+    /// CAPS ([`crate::caps`]): policy heads on a shared trunk and reward/cost critic pairs; at each step the
+    /// highest-reward head whose predicted cost fits the episode's remaining budget (conditioning `cost_budget`).
+    /// The budget and the costs received enter multiplied by `cost_scale`; `gamma` and `episode_len` spread what is
+    /// left of it over the remaining steps.
+    Caps {
+        hidden_sizes: Vec<usize>,
+        num_heads: usize,
+        max_action: f64,
+        gamma: f64,
+        episode_len: usize,
+        cost_scale: f64,
+    },
 }
 
 impl Architecture {
@@ -162,6 +181,7 @@ impl Architecture {
             Architecture::SquashedGaussianMlp { .. } => "squashed_gaussian_mlp",
             Architecture::BcqActor { .. } => "bcq_actor",
             Architecture::Cdt { .. } => "cdt",
+            Architecture::Caps { .. } => "caps",
         }
     }
 }
@@ -229,6 +249,17 @@ impl Architecture {
                 let layers = f(*num_layers) * (12.0 * n * d * d + 2.0 * n * n * d);
                 let scores = f(*num_heads) * n * n * 4.0;
                 (embed + layers + d * f(act_dim), scores.max(n * 4.0 * d * 4.0))
+            }
+            Architecture::Caps {
+                hidden_sizes,
+                num_heads,
+                ..
+            } => {
+                // The trunk, every head, and four critics on every head's action.
+                let (trunk, p1) = chain(input_dim, hidden_sizes, 0);
+                let heads = f(*num_heads) * hidden_sizes.last().map_or(0.0, |&h| f(h) * f(act_dim));
+                let (critic, p2) = chain(input_dim + act_dim, hidden_sizes, 1);
+                (trunk + heads + 4.0 * f(*num_heads) * critic, p1.max(p2) * f(*num_heads))
             }
         };
         StepCost {

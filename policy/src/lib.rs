@@ -8,6 +8,7 @@
 pub mod acting;
 pub mod adam;
 pub mod bcq;
+pub mod caps;
 pub mod cdt;
 pub mod checkpoint;
 pub mod fused;

@@ -1,8 +1,9 @@
 //! The offline baselines end to end: `dsrl-train bcql|bearl|cpq|coptidice` train a few steps each on the committed
 //! BallRun starter (real checkpoints, not good ones: the scores are not the point) and write one model per benchmark
 //! threshold with the training recorded; `dsrl-train cdt` trains one model (at a small batch: OSRL's 2048 takes tens
-//! of seconds a step) with OSRL's return targets; the leaderboard scores each on real simulator workers with the
-//! paper's protocol (3 thresholds × 20 episodes).
+//! of seconds a step) with OSRL's return targets; `dsrl-train caps` one model that takes each threshold as its
+//! episode's cost budget; the leaderboard scores each on real simulator workers with the paper's protocol
+//! (3 thresholds × 20 episodes).
 
 use std::path::Path;
 use std::process::Command;
@@ -93,6 +94,20 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
             .contains("augmentation")
     );
 
+    // CAPS: one model for every budget, the critics it switches with inside the checkpoint.
+    let stdout = train("caps", models.path(), 3, &[]);
+    assert!(stdout.contains("caps: 3 steps"), "{stdout}");
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(models.path().join("caps/policy.json")).unwrap()).unwrap();
+    assert_eq!(config["architecture"]["name"], "caps", "{config}");
+    assert_eq!(config["architecture"]["num_heads"], 5, "{config}");
+    assert_eq!(
+        config["architecture"]["episode_len"], 100,
+        "BallRun's horizon: {config}"
+    );
+    assert_eq!(config["conditioning"]["kind"], "cost_budget", "{config}");
+    assert_eq!(config["training"]["algorithm"], "caps", "{config}");
+
     let env = scoring_env("60");
     // Three users, since a user has at most two submissions in flight.
     let users = [
@@ -117,6 +132,9 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
     let cdt = submit(&env, &users[2], &models.path().join("cdt"), "cdt").ok().json();
     assert_eq!(cdt["checkpoints"][0]["architecture"], "cdt", "{cdt}");
     submitted.push((users[2].clone(), cdt["id"].to_string()));
+    let caps = submit(&env, &users[1], &models.path().join("caps"), "caps").ok().json();
+    assert_eq!(caps["checkpoints"][0]["architecture"], "caps", "{caps}");
+    submitted.push((users[1].clone(), caps["id"].to_string()));
     for (token, id) in submitted {
         let done = client(&env, &token, &["--json", "status", &id, "--wait"]).ok().json();
         assert_eq!(done["state"], "finished", "{done}");
@@ -127,5 +145,5 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
         assert!(done["normalized_cost"].as_f64().unwrap() >= 0.0);
     }
     let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
-    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 5, "{board}");
+    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 6, "{board}");
 }

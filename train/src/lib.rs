@@ -10,6 +10,7 @@
 
 pub mod bcql;
 pub mod bearl;
+pub mod caps;
 pub mod cdt;
 pub mod cdt_augment;
 pub mod coptidice;

@@ -10,6 +10,7 @@ use dsrl_policy::checkpoint::Conditioning;
 use dsrl_suite::Catalog;
 use dsrl_train::bcql::{BcqlLearner, BcqlSettings};
 use dsrl_train::bearl::{BearlLearner, BearlSettings};
+use dsrl_train::caps::{CapsLearner, CapsSettings};
 use dsrl_train::cdt::{CdtLearner, CdtSettings, return_targets, task_augmentation};
 use dsrl_train::coptidice::{CoptidiceLearner, CoptidiceSettings};
 use dsrl_train::cpq::{CpqLearner, CpqSettings};
@@ -125,6 +126,16 @@ enum Command {
     /// (α 0.5), a cost upper bound (ε 0.01), a Lagrange multiplier, and a policy extracted by weighted behaviour
     /// cloning; lrs 1e-4, batch 512. One model per threshold: <out>/coptidice/threshold-<K>.
     Coptidice {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// CAPS (Chemingui et al., AAAI 2025; its IQL variant): beyond the paper's baselines. Five policy heads on a
+    /// shared trunk, each regressed on the data's actions with its own mix of reward and cost advantages, and
+    /// reward and cost critics learned by implicit Q-learning (hidden [512, 512], lrs 3e-4, batch 512, β 3,
+    /// expectile 0.7). Trained once; <out>/caps is scored at every threshold, given as the episode's cost budget:
+    /// at each step it plays the head with the highest predicted reward among those whose predicted cost fits what
+    /// is left of the budget. CAPS trains 100000 steps.
+    Caps {
         #[command(flatten)]
         data: DataArgs,
     },
@@ -261,6 +272,77 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
     Ok(())
 }
 
+/// CAPS: one model for every threshold, given as the episode's cost budget.
+fn train_caps(data: DataArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        data.cost_thresholds.is_empty(),
+        "CAPS is trained once and scored at every benchmark threshold as a cost budget; drop --cost-threshold"
+    );
+    let catalog = Catalog::embedded()?;
+    let task = catalog.get(&data.task)?.clone();
+    let (path, dataset_version, demonstrations) = load_data(&data, &task)?;
+    let out = data
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
+    let default = CapsSettings::default();
+    let settings = CapsSettings {
+        seed: data.seed,
+        batch_size: data.batch_size.unwrap_or(default.batch_size),
+        ..default
+    };
+    let transitions = demonstrations.rows();
+    let mut learner = CapsLearner::new(settings.clone(), &demonstrations, task.max_episode_steps as usize)?;
+    let bar = progress(data.steps);
+    let started = std::time::Instant::now();
+    let mut figures = Vec::new();
+    let mut first_step_seconds = None;
+    for step in 0..data.steps {
+        figures = learner.step()?;
+        first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
+        if step % 100 == 0 {
+            bar.set_position(step);
+            let shown: Vec<String> = figures.iter().take(5).map(|(n, v)| format!("{n} {v:.4}")).collect();
+            bar.set_message(format!("caps {}", shown.join(" ")));
+        }
+    }
+    bar.finish_and_clear();
+    let seconds = started.elapsed().as_secs_f64();
+    let last: serde_json::Map<String, serde_json::Value> = figures
+        .iter()
+        .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
+        .collect();
+    let training = serde_json::json!({
+        "algorithm": "caps",
+        "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
+        "dataset_version": dataset_version,
+        "filter": data.filter,
+        "transitions": transitions,
+        "steps": data.steps,
+        "settings": format!("{settings:?}"),
+        "departures": "batches drawn by the seeded generator; every other choice as CAPS's capsiql.py",
+        "seed": data.seed,
+        "final": last,
+        "seconds": seconds,
+        "first_step_seconds": first_step_seconds,
+    });
+    let dir = out.join("caps");
+    learner
+        .write(&dir, task.id.as_str(), training)
+        .with_context(|| format!("writing {}", dir.display()))?;
+    let shown: Vec<String> = figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
+    println!(
+        "caps: {} steps in {seconds:.0} s ({}) -> {}",
+        data.steps,
+        shown.join(", "),
+        dir.display()
+    );
+    if let (Some(name), Some(server)) = (&data.submit, &data.server) {
+        submit(server, &dir, task.id.as_str(), name)?;
+    }
+    Ok(())
+}
+
 /// CDT: one model for every threshold.
 fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
@@ -379,6 +461,7 @@ fn main() -> anyhow::Result<()> {
             });
         }
         Command::Cdt { data } => return train_cdt(data),
+        Command::Caps { data } => return train_caps(data),
         Command::Parity { dir } => return dsrl_train::parity::run(&dir),
         Command::Bearl { data } => {
             return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch| {
