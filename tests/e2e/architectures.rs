@@ -1,5 +1,5 @@
-//! The architectures this project scores but does not train (the BCQ actor, the CDT, an MLP conditioned on the
-//! target cost), as seeded, freshly initialised checkpoints from `dsrl-make-policy`: each plays on the real simulator
+//! The architectures with state or conditioning (the BCQ actor, the CDT, an MLP conditioned on the target cost,
+//! CAPS switching on its remaining budget), as seeded, freshly initialised checkpoints from `dsrl-make-policy`: each plays on the real simulator
 //! through `dsrl-admin evaluate` and agrees episode by episode with `tests/parity/evaluate_in_python.py`, which
 //! implements every architecture again in NumPy (the CDT unbatched and unpadded, as OSRL's rollout feeds it; the
 //! BCQ latents from its own SplitMix64).
@@ -40,9 +40,9 @@ fn python_reference(dir: &Path, cost_threshold: &str) -> serde_json::Value {
 }
 
 #[test]
-fn bcq_cdt_and_target_cost_policies_play_as_the_python_reference_does() {
+fn bcq_cdt_target_cost_and_caps_policies_play_as_the_python_reference_does() {
     let dir = tempfile::tempdir().unwrap();
-    for arch in ["bcq-actor", "cdt", "target-cost-mlp"] {
+    for arch in ["bcq-actor", "cdt", "target-cost-mlp", "caps"] {
         let policy = dir.path().join(arch);
         crate::make_policy(&policy, TASK, arch, 5);
         let ours = evaluate(&policy, &["--episodes", "3", "--cost-threshold", "20"]);

@@ -186,6 +186,27 @@ def policy_fn(policy_dir, cost_threshold):
         state["actions"][-1] = a
         return a
 
+    def caps(x, state):
+        # Every head's action, the critic pairs' predictions for each, and CAPS's switch on the budget left.
+        h = mlp(w, "actor.trunk", x, "relu", activate_last=True)
+        actions = [np.tanh(mlp(w, f"actor.head.{k}", h, "relu")) * scale for k in range(arch["num_heads"])]
+        predicted = []
+        for a in actions:
+            xa = np.concatenate([x, a], 1)
+            reward = min(mlp(w, f"reward_q.{j}", xa, "relu")[0, 0] for j in (0, 1))
+            cost = -min(mlp(w, f"cost_q.{j}", xa, "relu")[0, 0] for j in (0, 1))
+            predicted.append((float(reward), float(cost)))
+        left = max(arch["episode_len"] - state["steps"], 1)
+        gamma = arch["gamma"]
+        remaining = float(np.float32(cost_threshold)) * arch["cost_scale"] - state["spent"]
+        limit = max(remaining, 0.0) * (1 - gamma**left) / (1 - gamma) / left
+        fits = [k for k, (_, c) in enumerate(predicted) if c < limit]
+        if fits:
+            chosen = max(fits, key=lambda k: (predicted[k][0], -k))
+        else:
+            chosen = min(range(len(predicted)), key=lambda k: (predicted[k][1], k))
+        return actions[chosen][0]
+
     if arch["name"] == "cdt":
         target = next(t for t in conditioning["targets"] if t["cost_threshold"] == cost_threshold)
         start = (
@@ -194,15 +215,18 @@ def policy_fn(policy_dir, cost_threshold):
         )
 
     def new_episode(seed):
-        state = {"noise": SplitMix64(seed), "states": [], "actions": []}
+        state = {"noise": SplitMix64(seed), "states": [], "actions": [], "spent": 0.0, "steps": 0}
         if arch["name"] == "cdt":
             state["rtg"], state["ctg"] = [start[0]], [start[1]]
-        step = {"bcq_actor": bcq, "cdt": cdt}.get(arch["name"], memoryless)
+        step = {"bcq_actor": bcq, "cdt": cdt, "caps": caps}.get(arch["name"], memoryless)
 
         def act(obs):
             return step(prepare(obs), state)
 
         def observe(reward, cost):
+            if arch["name"] == "caps":
+                state["spent"] += cost * arch["cost_scale"]
+                state["steps"] += 1
             if arch["name"] == "cdt":
                 # In float32, as OSRL's rollout tensors hold them.
                 state["rtg"].append(np.float32(state["rtg"][-1] - np.float32(reward * arch["reward_scale"])))
