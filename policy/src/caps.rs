@@ -71,37 +71,26 @@ impl CapsShape {
 impl CapsNetworks {
     /// Initialised as PyTorch's `nn.Linear` default, which CAPS keeps.
     pub fn new(shape: CapsShape, noise: &mut Noise) -> Result<CapsNetworks> {
-        let last = shape.check()?;
-        let init = |prefix: &str, sizes: &[usize], noise: &mut Noise| {
+        Self::build(shape, |prefix, sizes| {
             Mlp::pytorch_default(prefix, sizes, Activation::Relu, noise)
-        };
-        let trunk = init("actor.trunk", &trunk_sizes(&shape), noise)?;
-        let heads = (0..shape.num_heads)
-            .map(|k| init(&format!("actor.head.{k}"), &[last, shape.act_dim], noise))
-            .collect::<Result<_>>()?;
-        let critic = critic_sizes(&shape);
-        let reward_q = [init("reward_q.0", &critic, noise)?, init("reward_q.1", &critic, noise)?];
-        let cost_q = [init("cost_q.0", &critic, noise)?, init("cost_q.1", &critic, noise)?];
-        Ok(CapsNetworks {
-            shape,
-            trunk,
-            heads,
-            reward_q,
-            cost_q,
         })
     }
 
     /// Reads the deployed networks of `shape`, checking every name and size.
     pub fn from_weights(shape: CapsShape, w: &mut Weights) -> Result<CapsNetworks> {
+        Self::build(shape, |prefix, sizes| w.mlp(prefix, sizes, Activation::Relu))
+    }
+
+    /// The networks of `shape`, each made by `make(prefix, layer sizes)`.
+    fn build(shape: CapsShape, mut make: impl FnMut(&str, &[usize]) -> Result<Mlp>) -> Result<CapsNetworks> {
         let last = shape.check()?;
-        let relu = Activation::Relu;
-        let trunk = w.mlp("actor.trunk", &trunk_sizes(&shape), relu)?;
+        let trunk = make("actor.trunk", &trunk_sizes(&shape))?;
         let heads = (0..shape.num_heads)
-            .map(|k| w.mlp(&format!("actor.head.{k}"), &[last, shape.act_dim], relu))
+            .map(|k| make(&format!("actor.head.{k}"), &[last, shape.act_dim]))
             .collect::<Result<_>>()?;
         let critic = critic_sizes(&shape);
-        let reward_q = [w.mlp("reward_q.0", &critic, relu)?, w.mlp("reward_q.1", &critic, relu)?];
-        let cost_q = [w.mlp("cost_q.0", &critic, relu)?, w.mlp("cost_q.1", &critic, relu)?];
+        let reward_q = [make("reward_q.0", &critic)?, make("reward_q.1", &critic)?];
+        let cost_q = [make("cost_q.0", &critic)?, make("cost_q.1", &critic)?];
         Ok(CapsNetworks {
             shape,
             trunk,

@@ -100,9 +100,17 @@ impl CustomOp2 for BiasAdd {
     }
 }
 
-/// GELU with the error function, `x · Φ(x)` (PyTorch's default GELU and candle's `gelu_erf`).
+/// GELU with the error function, `x · Φ(x)` (PyTorch's default GELU and candle's `gelu_erf`); its slope is
+/// `Φ(x) + x·φ(x)`.
 pub fn gelu_erf(x: &Tensor) -> CResult<Tensor> {
-    x.contiguous()?.apply_op1(GeluErf)
+    x.contiguous()?.apply_op1(Elementwise {
+        name: "gelu-erf",
+        value: |x| x * normal_cdf_pdf(x).0,
+        slope: |x| {
+            let (cdf, pdf) = normal_cdf_pdf(x);
+            cdf + x * pdf
+        },
+    })
 }
 
 /// `(Φ(x), φ(x))`, the standard normal's distribution and density, with one `exp`. `erf` is Abramowitz and
@@ -120,63 +128,42 @@ fn normal_cdf_pdf(x: f32) -> (f32, f32) {
     (0.5 * (1. + erf), INV_SQRT_2PI * e)
 }
 
-struct GeluErf;
-
-impl CustomOp1 for GeluErf {
-    fn name(&self) -> &'static str {
-        "gelu-erf"
-    }
-
-    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> CResult<(CpuStorage, Shape)> {
-        let x = slice(storage, layout, "gelu-erf")?;
-        let y = x.iter().map(|&v| v * normal_cdf_pdf(v).0).collect();
-        Ok((CpuStorage::F32(y), layout.shape().clone()))
-    }
-
-    /// `d/dx x·Φ(x) = Φ(x) + x·φ(x)`.
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> CResult<Option<Tensor>> {
-        let values = with_elements(x, "gelu-erf", |x| {
-            with_elements(grad, "gelu-erf", |g| {
-                Ok(x.iter()
-                    .zip(g)
-                    .map(|(&x, &g)| {
-                        let (cdf, pdf) = normal_cdf_pdf(x);
-                        g * (cdf + x * pdf)
-                    })
-                    .collect::<Vec<f32>>())
-            })
-        })?;
-        Ok(Some(tensor(values, x.shape())?))
-    }
-}
-
 /// `max(x, 0)`, with candle's gradient convention (`g` where `x ≥ 0`) so that results do not change from `relu()`;
 /// candle's own backward builds a comparison tensor, a type conversion and a product, each a pass over the batch.
 pub fn relu(x: &Tensor) -> CResult<Tensor> {
-    x.contiguous()?.apply_op1(Relu)
+    x.contiguous()?.apply_op1(Elementwise {
+        name: "relu",
+        value: |x| x.max(0.),
+        slope: |x| if x >= 0. { 1. } else { 0. },
+    })
 }
 
-struct Relu;
+/// A function applied to each element: `value(x)` forward, `g · slope(x)` backward.
+struct Elementwise {
+    name: &'static str,
+    value: fn(f32) -> f32,
+    slope: fn(f32) -> f32,
+}
 
-impl CustomOp1 for Relu {
+impl CustomOp1 for Elementwise {
     fn name(&self) -> &'static str {
-        "relu"
+        self.name
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> CResult<(CpuStorage, Shape)> {
-        let x = slice(storage, layout, "relu")?;
+        let x = slice(storage, layout, self.name)?;
         Ok((
-            CpuStorage::F32(x.iter().map(|v| v.max(0.)).collect()),
+            CpuStorage::F32(x.iter().map(|&v| (self.value)(v)).collect()),
             layout.shape().clone(),
         ))
     }
 
     fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> CResult<Option<Tensor>> {
-        let values = with_elements(x, "relu", |x| {
-            with_elements(grad, "relu", |g| {
+        let values = with_elements(x, self.name, |x| {
+            with_elements(grad, self.name, |g| {
                 Ok(x.iter()
                     .zip(g)
-                    .map(|(&x, &g)| if x >= 0. { g } else { 0. })
+                    .map(|(&x, &g)| g * (self.slope)(x))
                     .collect::<Vec<f32>>())
             })
         })?;
@@ -425,20 +412,15 @@ mod tests {
         let (a, b) = (fused(&tensors), primitive(&tensors));
         close(&values(&a), &values(&b), 1e-5, what);
         let weights = random(a.dims(), 99);
-        let grads_a = a
-            .mul(weights.as_tensor())
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
-        let grads_b = b
-            .mul(weights.as_tensor())
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
+        let grads = |t: &Tensor| {
+            t.mul(weights.as_tensor())
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap()
+        };
+        let (grads_a, grads_b) = (grads(&a), grads(&b));
         for (k, input) in tensors.iter().enumerate() {
             close(
                 &values(grads_a.get(input).unwrap()),

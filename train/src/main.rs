@@ -189,6 +189,85 @@ fn progress(steps: u64) -> ProgressBar {
     bar
 }
 
+/// What every algorithm starts from: the task, its training data and the output folder the data options name.
+struct Prepared {
+    task: dsrl_suite::Task,
+    path: PathBuf,
+    dataset_version: Option<String>,
+    demonstrations: Demonstrations,
+    out: PathBuf,
+}
+
+fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
+    let catalog = Catalog::embedded()?;
+    let task = catalog.get(&data.task)?.clone();
+    let (path, dataset_version, demonstrations) = load_data(data, &task)?;
+    let out = data
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
+    Ok(Prepared {
+        task,
+        path,
+        dataset_version,
+        demonstrations,
+        out,
+    })
+}
+
+/// What a training loop leaves: the last step's figures and its timing.
+struct Trained {
+    figures: Vec<(&'static str, f64)>,
+    seconds: f64,
+    /// The first step alone (page faults, first allocations): benchmarks leave it out as PyTorch's warm-up.
+    first_step_seconds: Option<f64>,
+}
+
+impl Trained {
+    /// The last figures as the training record's `final`.
+    fn last(&self) -> serde_json::Map<String, serde_json::Value> {
+        self.figures
+            .iter()
+            .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
+            .collect()
+    }
+
+    /// `name value, ...` for the closing line.
+    fn summary(&self) -> String {
+        let shown: Vec<String> = self.figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
+        shown.join(", ")
+    }
+}
+
+/// Runs `step` `steps` times under a progress bar labelled `label` (its first `shown` figures every `every` steps).
+fn train_loop(
+    steps: u64,
+    label: &str,
+    every: u64,
+    shown: usize,
+    mut step: impl FnMut() -> anyhow::Result<Vec<(&'static str, f64)>>,
+) -> anyhow::Result<Trained> {
+    let bar = progress(steps);
+    let started = std::time::Instant::now();
+    let mut figures = Vec::new();
+    let mut first_step_seconds = None;
+    for i in 0..steps {
+        figures = step()?;
+        first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
+        if i % every == 0 {
+            bar.set_position(i);
+            let head: Vec<String> = figures.iter().take(shown).map(|(n, v)| format!("{n} {v:.4}")).collect();
+            bar.set_message(format!("{label} {}", head.join(" ")));
+        }
+    }
+    bar.finish_and_clear();
+    Ok(Trained {
+        figures,
+        seconds: started.elapsed().as_secs_f64(),
+        first_step_seconds,
+    })
+}
+
 /// Submits the folder `dir` (what `dsrl-client submit` takes) as `name`.
 fn submit(server: &str, dir: &std::path::Path, task: &str, name: &str) -> anyhow::Result<()> {
     let token = std::env::var("DSRL_TOKEN").ok();
@@ -205,13 +284,13 @@ type MakeLearner = dyn Fn(&Demonstrations, f64, usize, u64, Option<usize>) -> an
 
 /// Trains one model per threshold with `make`, writes `<out>/<algorithm>/threshold-<K>` and optionally submits.
 fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> anyhow::Result<()> {
-    let catalog = Catalog::embedded()?;
-    let task = catalog.get(&data.task)?.clone();
-    let (path, dataset_version, demonstrations) = load_data(&data, &task)?;
-    let out = data
-        .out
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
+    let Prepared {
+        task,
+        path,
+        dataset_version,
+        demonstrations,
+        out,
+    } = prepare(&data)?;
     let thresholds = if data.cost_thresholds.is_empty() {
         task.cost_thresholds.clone()
     } else {
@@ -221,25 +300,7 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
     for kappa in thresholds {
         let name = format!("{algorithm}/threshold-{kappa}");
         let mut learner = make(&demonstrations, kappa, episode_len, data.seed, data.batch_size)?;
-        let bar = progress(data.steps);
-        let started = std::time::Instant::now();
-        let mut figures = Vec::new();
-        let mut first_step_seconds = None;
-        for step in 0..data.steps {
-            figures = learner.step()?;
-            first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
-            if step % 100 == 0 {
-                bar.set_position(step);
-                let shown: Vec<String> = figures.iter().take(4).map(|(n, v)| format!("{n} {v:.4}")).collect();
-                bar.set_message(format!("{name} {}", shown.join(" ")));
-            }
-        }
-        bar.finish_and_clear();
-        let seconds = started.elapsed().as_secs_f64();
-        let last: serde_json::Map<String, serde_json::Value> = figures
-            .iter()
-            .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
-            .collect();
+        let trained = train_loop(data.steps, &name, 100, 4, || learner.step())?;
         let training = serde_json::json!({
             "algorithm": algorithm,
             "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
@@ -250,19 +311,19 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
             "settings": learner.settings(),
             "qc_threshold": learner.qc_threshold(),
             "seed": data.seed,
-            "final": last,
-            "seconds": seconds,
-            "first_step_seconds": first_step_seconds,
+            "final": trained.last(),
+            "seconds": trained.seconds,
+            "first_step_seconds": trained.first_step_seconds,
         });
         let dir = out.join(&name);
         learner
             .write(&dir, task.id.as_str(), kappa, training)
             .with_context(|| format!("writing {}", dir.display()))?;
-        let shown: Vec<String> = figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
         println!(
-            "{name}: {} steps in {seconds:.0} s ({}) -> {}",
+            "{name}: {} steps in {:.0} s ({}) -> {}",
             data.steps,
-            shown.join(", "),
+            trained.seconds,
+            trained.summary(),
             dir.display()
         );
     }
@@ -278,13 +339,13 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         data.cost_thresholds.is_empty(),
         "CAPS is trained once and scored at every benchmark threshold as a cost budget; drop --cost-threshold"
     );
-    let catalog = Catalog::embedded()?;
-    let task = catalog.get(&data.task)?.clone();
-    let (path, dataset_version, demonstrations) = load_data(&data, &task)?;
-    let out = data
-        .out
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
+    let Prepared {
+        task,
+        path,
+        dataset_version,
+        demonstrations,
+        out,
+    } = prepare(&data)?;
     let default = CapsSettings::default();
     let settings = CapsSettings {
         seed: data.seed,
@@ -293,25 +354,7 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
     };
     let transitions = demonstrations.rows();
     let mut learner = CapsLearner::new(settings.clone(), &demonstrations, task.max_episode_steps as usize)?;
-    let bar = progress(data.steps);
-    let started = std::time::Instant::now();
-    let mut figures = Vec::new();
-    let mut first_step_seconds = None;
-    for step in 0..data.steps {
-        figures = learner.step()?;
-        first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
-        if step % 100 == 0 {
-            bar.set_position(step);
-            let shown: Vec<String> = figures.iter().take(5).map(|(n, v)| format!("{n} {v:.4}")).collect();
-            bar.set_message(format!("caps {}", shown.join(" ")));
-        }
-    }
-    bar.finish_and_clear();
-    let seconds = started.elapsed().as_secs_f64();
-    let last: serde_json::Map<String, serde_json::Value> = figures
-        .iter()
-        .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
-        .collect();
+    let trained = train_loop(data.steps, "caps", 100, 5, || learner.step())?;
     let training = serde_json::json!({
         "algorithm": "caps",
         "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
@@ -322,19 +365,19 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         "settings": format!("{settings:?}"),
         "departures": "batches drawn by the seeded generator; every other choice as CAPS's capsiql.py",
         "seed": data.seed,
-        "final": last,
-        "seconds": seconds,
-        "first_step_seconds": first_step_seconds,
+        "final": trained.last(),
+        "seconds": trained.seconds,
+        "first_step_seconds": trained.first_step_seconds,
     });
     let dir = out.join("caps");
     learner
         .write(&dir, task.id.as_str(), training)
         .with_context(|| format!("writing {}", dir.display()))?;
-    let shown: Vec<String> = figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
     println!(
-        "caps: {} steps in {seconds:.0} s ({}) -> {}",
+        "caps: {} steps in {:.0} s ({}) -> {}",
         data.steps,
-        shown.join(", "),
+        trained.seconds,
+        trained.summary(),
         dir.display()
     );
     if let (Some(name), Some(server)) = (&data.submit, &data.server) {
@@ -349,14 +392,14 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         data.cost_thresholds.is_empty(),
         "CDT is trained once and scored at the task's benchmark thresholds from OSRL's targets; drop --cost-threshold"
     );
-    let catalog = Catalog::embedded()?;
-    let task = catalog.get(&data.task)?.clone();
+    let Prepared {
+        task,
+        path,
+        dataset_version,
+        demonstrations,
+        out,
+    } = prepare(&data)?;
     let targets = return_targets(task.id.as_str())?;
-    let (path, dataset_version, demonstrations) = load_data(&data, &task)?;
-    let out = data
-        .out
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
     let default = CdtSettings::default();
     let settings = CdtSettings {
         seed: data.seed,
@@ -372,25 +415,7 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         task.max_episode_steps as usize,
         Some(&augmentation),
     )?;
-    let bar = progress(data.steps);
-    let started = std::time::Instant::now();
-    let mut figures = Vec::new();
-    let mut first_step_seconds = None;
-    for step in 0..data.steps {
-        figures = learner.step()?;
-        first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
-        if step % 10 == 0 {
-            bar.set_position(step);
-            let shown: Vec<String> = figures.iter().take(3).map(|(n, v)| format!("{n} {v:.4}")).collect();
-            bar.set_message(format!("cdt {}", shown.join(" ")));
-        }
-    }
-    bar.finish_and_clear();
-    let seconds = started.elapsed().as_secs_f64();
-    let last: serde_json::Map<String, serde_json::Value> = figures
-        .iter()
-        .map(|(n, v)| ((*n).to_owned(), serde_json::json!(v)))
-        .collect();
+    let trained = train_loop(data.steps, "cdt", 10, 3, || learner.step())?;
     let training = serde_json::json!({
         "algorithm": "cdt",
         "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
@@ -405,19 +430,19 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         "augmented_trajectories": learner.augmented,
         "departures": "augmentation draws from the seeded generator, not Python's and NumPy's; the state head is not decayed",
         "seed": data.seed,
-        "final": last,
-        "seconds": seconds,
-        "first_step_seconds": first_step_seconds,
+        "final": trained.last(),
+        "seconds": trained.seconds,
+        "first_step_seconds": trained.first_step_seconds,
     });
     let dir = out.join("cdt");
     learner
         .write(&dir, task.id.as_str(), &task.cost_thresholds, &targets, training)
         .with_context(|| format!("writing {}", dir.display()))?;
-    let shown: Vec<String> = figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
     println!(
-        "cdt: {} steps in {seconds:.0} s ({}) -> {}",
+        "cdt: {} steps in {:.0} s ({}) -> {}",
         data.steps,
-        shown.join(", "),
+        trained.seconds,
+        trained.summary(),
         dir.display()
     );
     if let (Some(name), Some(server)) = (&data.submit, &data.server) {
@@ -540,20 +565,8 @@ fn main() -> anyhow::Result<()> {
             threshold.unwrap_or_default()
         );
         let mut learner = BcLearner::new(&settings, &obs, &act, data.obs_dim, data.act_dim)?;
-        let bar = progress(steps);
-        let started = std::time::Instant::now();
-        let mut loss = f64::NAN;
-        let mut first_step_seconds = None;
-        for step in 0..steps {
-            loss = learner.step()?;
-            first_step_seconds.get_or_insert_with(|| started.elapsed().as_secs_f64());
-            if step % 500 == 0 {
-                bar.set_position(step);
-                bar.set_message(format!("{name} mse {loss:.5}"));
-            }
-        }
-        bar.finish_and_clear();
-        let seconds = started.elapsed().as_secs_f64();
+        let trained = train_loop(steps, &name, 500, 1, || Ok(vec![("mse", learner.step()?)]))?;
+        let (loss, seconds) = (trained.figures.first().map_or(f64::NAN, |f| f.1), trained.seconds);
         let dir = out.join(&name);
         let conditioning = match threshold {
             None => Conditioning::Unconditioned,
@@ -571,7 +584,7 @@ fn main() -> anyhow::Result<()> {
             "seed": seed,
             "final_mse": loss,
             "seconds": seconds,
-            "first_step_seconds": first_step_seconds,
+            "first_step_seconds": trained.first_step_seconds,
         });
         learner
             .write(&dir, task.id.as_str(), &settings.hidden_sizes, conditioning, training)
