@@ -503,28 +503,26 @@ impl Rollout<'_> {
         Ok(actions)
     }
 
-    /// Records the reward and cost each of `envs` received for its last action (what a return-conditioned policy
-    /// subtracts from its reward- and cost-to-go).
+    /// Records the reward and cost each of `envs` received for its last action: what a return-conditioned policy
+    /// subtracts from its reward- and cost-to-go, and what a budget-adaptive one (CAPS) takes off its budget.
     pub fn observe(&mut self, envs: &[u32], rewards: &[f64], costs: &[f64]) -> Result<()> {
-        if let Network::Caps { cost_scale, .. } = &self.policy.network {
-            let cost_scale = *cost_scale;
-            for (slot, c) in self.slots(envs)?.into_iter().zip(costs) {
-                slot.spent += c * cost_scale;
-                slot.steps += 1;
+        match self.policy.network {
+            Network::Cdt {
+                reward_scale,
+                cost_scale,
+                ..
+            } => {
+                for ((slot, r), c) in self.slots(envs)?.into_iter().zip(rewards).zip(costs) {
+                    slot.context.record((r * reward_scale) as f32, (c * cost_scale) as f32);
+                }
             }
-            return Ok(());
-        }
-        let Network::Cdt {
-            reward_scale,
-            cost_scale,
-            ..
-        } = &self.policy.network
-        else {
-            return Ok(());
-        };
-        let (reward_scale, cost_scale) = (*reward_scale, *cost_scale);
-        for ((slot, r), c) in self.slots(envs)?.into_iter().zip(rewards).zip(costs) {
-            slot.context.record((r * reward_scale) as f32, (c * cost_scale) as f32);
+            Network::Caps { cost_scale, .. } => {
+                for (slot, c) in self.slots(envs)?.into_iter().zip(costs) {
+                    slot.spent += c * cost_scale;
+                    slot.steps += 1;
+                }
+            }
+            _ => {}
         }
         Ok(())
     }

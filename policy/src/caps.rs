@@ -19,6 +19,7 @@ use candle_core::Tensor;
 use crate::layers::Weights;
 use crate::mlp::{Activation, Mlp};
 use crate::noise::Noise;
+use crate::offline::{Ensemble, qc_threshold};
 use crate::{PolicyError, Result};
 
 /// The sizes and constants of a CAPS policy.
@@ -35,8 +36,9 @@ pub struct CapsNetworks {
     pub shape: CapsShape,
     pub trunk: Mlp,
     pub heads: Vec<Mlp>,
-    pub reward_q: [Mlp; 2],
-    pub cost_q: [Mlp; 2],
+    /// Pairs answering their minimum (OSRL's `Ensemble` of two, named `reward_q.<j>`, `cost_q.<j>`).
+    pub reward_q: Ensemble,
+    pub cost_q: Ensemble,
 }
 
 fn critic_sizes(shape: &CapsShape) -> Vec<usize> {
@@ -89,8 +91,12 @@ impl CapsNetworks {
             .map(|k| make(&format!("actor.head.{k}"), &[last, shape.act_dim]))
             .collect::<Result<_>>()?;
         let critic = critic_sizes(&shape);
-        let reward_q = [make("reward_q.0", &critic)?, make("reward_q.1", &critic)?];
-        let cost_q = [make("cost_q.0", &critic)?, make("cost_q.1", &critic)?];
+        let reward_q = Ensemble {
+            nets: vec![make("reward_q.0", &critic)?, make("reward_q.1", &critic)?],
+        };
+        let cost_q = Ensemble {
+            nets: vec![make("cost_q.0", &critic)?, make("cost_q.1", &critic)?],
+        };
         Ok(CapsNetworks {
             shape,
             trunk,
@@ -102,9 +108,8 @@ impl CapsNetworks {
 
     pub fn named_vars(&self) -> Vec<(String, candle_core::Var)> {
         let mut out = self.actor_vars();
-        for net in self.reward_q.iter().chain(&self.cost_q) {
-            out.extend(net.named_vars());
-        }
+        out.extend(self.reward_q.named_vars());
+        out.extend(self.cost_q.named_vars());
         out
     }
 
@@ -121,11 +126,6 @@ impl CapsNetworks {
     pub fn head_means(&self, obs: &Tensor) -> Result<Vec<Tensor>> {
         let h = crate::fused::relu(&self.trunk.forward(obs)?)?;
         self.heads.iter().map(|head| Ok(head.forward(&h)?.tanh()?)).collect()
-    }
-
-    /// `min(q_0, q_1)` of a critic pair at `[obs, act]` rows, `[batch]`.
-    pub fn pair_min(pair: &[Mlp; 2], input: &Tensor) -> Result<Tensor> {
-        Ok(pair[0].forward(input)?.minimum(&pair[1].forward(input)?)?.squeeze(1)?)
     }
 
     /// The actions CAPS plays at `obs` (`[n, obs]`) given each row's per-step cost limit, row-major `[n, act]`:
@@ -148,12 +148,13 @@ impl CapsNetworks {
         // Head-major rows: head j's action for row i is row j·n + i.
         let stacked = Tensor::cat(&actions, 0)?;
         let input = Tensor::cat(&[&Tensor::cat(&vec![obs; k], 0)?, &stacked], 1)?;
-        let reward: Vec<f32> = Self::pair_min(&self.reward_q, &input)?.to_vec1()?;
-        let cost: Vec<f32> = Self::pair_min(&self.cost_q, &input)?.neg()?.to_vec1()?;
+        let reward: Vec<f32> = Ensemble::min(&self.reward_q.values(&input)?)?.to_vec1()?;
+        let cost: Vec<f32> = Ensemble::min(&self.cost_q.values(&input)?)?.neg()?.to_vec1()?;
         let stacked: Vec<f32> = stacked.flatten_all()?.to_vec1()?;
         let mut out = Vec::with_capacity(n * a);
         for (i, &limit) in limits.iter().enumerate() {
-            let chosen = choose_head((0..k).map(|j| (reward[j * n + i], cost[j * n + i])), limit);
+            let heads: Vec<(f32, f32)> = (0..k).map(|j| (reward[j * n + i], cost[j * n + i])).collect();
+            let chosen = choose_head(&heads, limit);
             let row = chosen * n + i;
             out.extend_from_slice(&stacked[row * a..(row + 1) * a]);
         }
@@ -163,30 +164,29 @@ impl CapsNetworks {
 
 /// CAPS's `select_head_q`: of heads given as `(predicted reward, predicted cost)`, the first with the highest
 /// reward among those whose cost is below `limit`; when none is, the first with the lowest cost.
-pub fn choose_head(heads: impl Iterator<Item = (f32, f32)>, limit: f64) -> usize {
-    let heads: Vec<(f32, f32)> = heads.collect();
-    let best = |key: &dyn Fn(&(f32, f32)) -> f32, among: &dyn Fn(&(f32, f32)) -> bool| -> Option<usize> {
-        let mut best: Option<(usize, f32)> = None;
-        for (j, h) in heads.iter().enumerate() {
-            if among(h) && best.is_none_or(|(_, b)| key(h) > b) {
-                best = Some((j, key(h)));
-            }
+pub fn choose_head(heads: &[(f32, f32)], limit: f64) -> usize {
+    let (mut fitting, mut cheapest): (Option<usize>, usize) = (None, 0);
+    for (j, &(reward, cost)) in heads.iter().enumerate() {
+        if f64::from(cost) < limit && fitting.is_none_or(|f| reward > heads[f].0) {
+            fitting = Some(j);
         }
-        best.map(|(j, _)| j)
-    };
-    best(&|h| h.0, &|h| f64::from(h.1) < limit).unwrap_or_else(|| best(&|h| -h.1, &|_| true).unwrap_or(0))
+        if cost < heads[cheapest].1 {
+            cheapest = j;
+        }
+    }
+    fitting.unwrap_or(cheapest)
 }
 
-/// The per-step cost limit at step `step` of an episode of `episode_len` steps with `remaining` of the budget left.
+/// The per-step cost limit at step `step` of an episode of `episode_len` steps with `remaining` of the budget left:
+/// OSRL's per-step cost threshold ([`qc_threshold`]) of what is left, over the steps left.
 pub fn per_step_limit(remaining: f64, step: usize, episode_len: usize, gamma: f64) -> f64 {
     // Past the declared length (an evaluator horizon longer than training's), the last step's spreading holds.
-    let left = episode_len.saturating_sub(step).max(1) as f64;
-    let spread = if (1.0 - gamma).abs() < 1e-12 {
-        1.0
-    } else {
-        (1.0 - gamma.powf(left)) / (1.0 - gamma) / left
-    };
-    remaining.max(0.0) * spread
+    let left = episode_len.saturating_sub(step).max(1);
+    if (1.0 - gamma).abs() < 1e-12 {
+        // The limit of the spreading as γ → 1: the remainder shared evenly, discounting nothing.
+        return remaining.max(0.0);
+    }
+    qc_threshold(remaining.max(0.0), gamma, left)
 }
 
 #[cfg(test)]
@@ -203,15 +203,15 @@ mod tests {
     fn the_switch_plays_the_best_reward_that_fits_else_the_least_cost() {
         let heads = [(1.0f32, 5.0f32), (3.0, 2.0), (2.0, 0.5), (9.0, 8.0)];
         // Limit 3: heads 1 and 2 fit; head 1 has the higher reward.
-        assert_eq!(choose_head(heads.into_iter(), 3.0), 1);
+        assert_eq!(choose_head(&heads, 3.0), 1);
         // Limit 1: only head 2 fits.
-        assert_eq!(choose_head(heads.into_iter(), 1.0), 2);
+        assert_eq!(choose_head(&heads, 1.0), 2);
         // Limit 10: every head fits; head 3 has the highest reward.
-        assert_eq!(choose_head(heads.into_iter(), 10.0), 3);
+        assert_eq!(choose_head(&heads, 10.0), 3);
         // Limit 0.1: none fits; head 2 has the lowest cost. Strictly below: a cost equal to the limit does not fit.
-        assert_eq!(choose_head(heads.into_iter(), 0.1), 2);
-        assert_eq!(choose_head(heads.into_iter(), 0.5), 2);
-        assert_eq!(choose_head([(1.0, 0.5), (2.0, 0.5)].into_iter(), 0.5), 0);
+        assert_eq!(choose_head(&heads, 0.1), 2);
+        assert_eq!(choose_head(&heads, 0.5), 2);
+        assert_eq!(choose_head(&[(1.0, 0.5), (2.0, 0.5)], 0.5), 0);
     }
 
     #[test]
@@ -246,11 +246,11 @@ mod tests {
         for (j, m) in means.iter().enumerate() {
             let acts = matrix(m.iter().flatten().map(|v| v * 2.0).collect(), 2, 2).unwrap();
             let input = Tensor::cat(&[&obs, &acts], 1).unwrap();
-            let r: Vec<f32> = CapsNetworks::pair_min(&nets.reward_q, &input)
+            let r: Vec<f32> = Ensemble::min(&nets.reward_q.values(&input).unwrap())
                 .unwrap()
                 .to_vec1()
                 .unwrap();
-            let c: Vec<f32> = CapsNetworks::pair_min(&nets.cost_q, &input)
+            let c: Vec<f32> = Ensemble::min(&nets.cost_q.values(&input).unwrap())
                 .unwrap()
                 .neg()
                 .unwrap()
@@ -261,7 +261,8 @@ mod tests {
         for limits in [[-1e9, -1e9], [1e9, 1e9], [1e9, -1e9]] {
             let played = nets.switch(&obs, &limits, 2.0).unwrap();
             for (i, &limit) in limits.iter().enumerate() {
-                let want = choose_head(predicted.iter().map(|(_, r, c)| (r[i], c[i])), limit);
+                let heads: Vec<(f32, f32)> = predicted.iter().map(|(_, r, c)| (r[i], c[i])).collect();
+                let want = choose_head(&heads, limit);
                 let row: Vec<f32> = means[want][i].iter().map(|v| v * 2.0).collect();
                 assert_eq!(&played[i * 2..i * 2 + 2], &row[..], "row {i} at limit {limit}");
             }

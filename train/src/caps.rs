@@ -27,7 +27,7 @@ use dsrl_policy::caps::{CapsNetworks, CapsShape};
 use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig};
 use dsrl_policy::mlp::{Activation, Mlp};
 use dsrl_policy::noise::Noise;
-use dsrl_policy::offline::{concat, soft_update};
+use dsrl_policy::offline::{Ensemble, concat, soft_update};
 use dsrl_policy::{DType, Tensor};
 
 use crate::offline::{Batch, Figures, Transitions};
@@ -86,8 +86,8 @@ impl Default for CapsSettings {
 pub struct CapsLearner {
     pub settings: CapsSettings,
     pub nets: CapsNetworks,
-    reward_q_target: [Mlp; 2],
-    cost_q_target: [Mlp; 2],
+    reward_q_target: Ensemble,
+    cost_q_target: Ensemble,
     reward_v: Mlp,
     cost_v: Mlp,
     actor_optim: Adam,
@@ -101,10 +101,6 @@ pub struct CapsLearner {
     steps: u64,
 }
 
-fn pair_vars(pair: &[Mlp; 2]) -> Vec<(String, dsrl_policy::Var)> {
-    pair.iter().flat_map(Mlp::named_vars).collect()
-}
-
 /// `mean(|τ − 1[u < 0]|·u²)`, IQL's expectile loss.
 fn expectile_loss(u: &Tensor, tau: f64) -> anyhow::Result<Tensor> {
     let below = u.lt(0.0)?.to_dtype(DType::F32)?;
@@ -112,17 +108,9 @@ fn expectile_loss(u: &Tensor, tau: f64) -> anyhow::Result<Tensor> {
     Ok(weight.mul(&u.sqr()?)?.mean_all()?)
 }
 
-/// `Σ_j mean((q_j − y)²) / 2` over a critic pair.
-fn pair_loss(pair: &[Mlp; 2], input: &Tensor, target: &Tensor) -> anyhow::Result<Tensor> {
-    let mut total: Option<Tensor> = None;
-    for net in pair {
-        let loss = net.forward(input)?.squeeze(1)?.sub(target)?.sqr()?.mean_all()?;
-        total = Some(match total {
-            None => loss,
-            Some(t) => t.add(&loss)?,
-        });
-    }
-    Ok(total.expect("a pair").affine(0.5, 0.0)?)
+/// CAPS's critic loss: the mean over the pair of each network's mean squared error.
+fn pair_loss(pair: &Ensemble, input: &Tensor, target: &Tensor) -> anyhow::Result<Tensor> {
+    Ok(Ensemble::loss(&pair.values(input)?, target)?.affine(0.5, 0.0)?)
 }
 
 impl CapsLearner {
@@ -143,15 +131,14 @@ impl CapsLearner {
         v_sizes.push(1);
         let reward_v = Mlp::pytorch_default("reward_v", &v_sizes, Activation::Relu, &mut noise)?;
         let cost_v = Mlp::pytorch_default("cost_v", &v_sizes, Activation::Relu, &mut noise)?;
-        let copy = |pair: &[Mlp; 2]| -> anyhow::Result<[Mlp; 2]> { Ok([pair[0].copy()?, pair[1].copy()?]) };
         Ok(CapsLearner {
             actor_optim: Adam::new(nets.actor_vars(), settings.actor_lr, None)?,
-            reward_q_optim: Adam::new(pair_vars(&nets.reward_q), settings.q_lr, None)?,
-            cost_q_optim: Adam::new(pair_vars(&nets.cost_q), settings.q_lr, None)?,
+            reward_q_optim: Adam::new(nets.reward_q.named_vars(), settings.q_lr, None)?,
+            cost_q_optim: Adam::new(nets.cost_q.named_vars(), settings.q_lr, None)?,
             reward_v_optim: Adam::new(reward_v.named_vars(), settings.value_lr, None)?,
             cost_v_optim: Adam::new(cost_v.named_vars(), settings.value_lr, None)?,
-            reward_q_target: copy(&nets.reward_q)?,
-            cost_q_target: copy(&nets.cost_q)?,
+            reward_q_target: nets.reward_q.copy()?,
+            cost_q_target: nets.cost_q.copy()?,
             reward_v,
             cost_v,
             data: Transitions::new(data)?,
@@ -200,11 +187,11 @@ impl CapsLearner {
         let next_vc = self.cost_v.forward(&batch.next_obs)?.squeeze(1)?.detach();
 
         // 2. Value networks by expectile regression; the advantages are taken before the update.
-        let target_qr = CapsNetworks::pair_min(&self.reward_q_target, &input)?.detach();
+        let target_qr = Ensemble::min(&self.reward_q_target.values(&input)?)?.detach();
         let adv_r = target_qr.sub(&self.reward_v.forward(&batch.obs)?.squeeze(1)?)?;
         let reward_v_loss = expectile_loss(&adv_r, s.iql_tau)?;
         self.reward_v_optim.step(&reward_v_loss.backward()?)?;
-        let target_qc = CapsNetworks::pair_min(&self.cost_q_target, &input)?.detach();
+        let target_qc = Ensemble::min(&self.cost_q_target.values(&input)?)?.detach();
         let adv_c = target_qc.sub(&self.cost_v.forward(&batch.obs)?.squeeze(1)?)?;
         let cost_v_loss = expectile_loss(&adv_c, s.iql_tau_cost)?;
         self.cost_v_optim.step(&cost_v_loss.backward()?)?;
@@ -240,11 +227,11 @@ impl CapsLearner {
 
         // 5. Targets.
         soft_update(
-            &pair_vars(&self.reward_q_target),
-            &pair_vars(&self.nets.reward_q),
+            &self.reward_q_target.named_vars(),
+            &self.nets.reward_q.named_vars(),
             s.tau,
         )?;
-        soft_update(&pair_vars(&self.cost_q_target), &pair_vars(&self.nets.cost_q), s.tau)?;
+        soft_update(&self.cost_q_target.named_vars(), &self.nets.cost_q.named_vars(), s.tau)?;
 
         let scalar = |t: &Tensor| -> anyhow::Result<f64> { Ok(f64::from(t.to_scalar::<f32>()?)) };
         Ok(vec![
@@ -401,8 +388,8 @@ mod tests {
         let predicted: Vec<(f32, f32)> = heads
             .iter()
             .map(|&a| {
-                let r = CapsNetworks::pair_min(&learner.nets.reward_q, &input(a)).unwrap();
-                let c = CapsNetworks::pair_min(&learner.nets.cost_q, &input(a))
+                let r = Ensemble::min(&learner.nets.reward_q.values(&input(a)).unwrap()).unwrap();
+                let c = Ensemble::min(&learner.nets.cost_q.values(&input(a)).unwrap())
                     .unwrap()
                     .neg()
                     .unwrap();
@@ -413,7 +400,7 @@ mod tests {
             let mut rollout = policy.rollout(budget, 1).unwrap();
             rollout.start_episode(0, 7).unwrap();
             let limit = dsrl_policy::caps::per_step_limit(budget, 0, 10, 0.99);
-            let want = heads[dsrl_policy::caps::choose_head(predicted.iter().copied(), limit)];
+            let want = heads[dsrl_policy::caps::choose_head(&predicted, limit)];
             assert_eq!(rollout.act(&[0], &obs).unwrap(), vec![want], "budget {budget}");
         }
         // The cost received is taken off the budget: after spending it all, the policy plays as at budget 0.
@@ -422,7 +409,7 @@ mod tests {
         spent.act(&[0], &obs).unwrap();
         spent.observe(&[0], &[1.0], &[5.0]).unwrap();
         let limit = dsrl_policy::caps::per_step_limit(0.0, 1, 10, 0.99);
-        let want = heads[dsrl_policy::caps::choose_head(predicted.iter().copied(), limit)];
+        let want = heads[dsrl_policy::caps::choose_head(&predicted, limit)];
         assert_eq!(spent.act(&[0], &obs).unwrap(), vec![want]);
 
         // A caps checkpoint declared with another conditioning is refused, and so is cost_budget on another net.

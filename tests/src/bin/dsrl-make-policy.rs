@@ -133,7 +133,7 @@ fn main() -> anyhow::Result<()> {
             // A fresh cost critic predicts ~−0.04 everywhere, which every limit admits; shifted to ~0.17 its
             // predictions straddle the per-step limits of a budget of 20 at cost_scale 0.01 (0.127 at the first
             // step), so some steps have heads that fit and some none.
-            for net in &nets.cost_q {
+            for net in &nets.cost_q.nets {
                 for (name, var) in net.named_vars() {
                     if name.ends_with(".2.bias") {
                         var.set(&var.as_tensor().affine(1.0, -0.21)?)?;
