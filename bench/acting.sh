@@ -9,7 +9,10 @@
 #   while the policy acts on the other group. The wall time counts everything after the workers are healthy
 #   (opening the sessions, that is creating the environments, included).
 # - MetaDrive (OfflineMetadrive-easysparse-v0): the dataset sweep itself, `dsrl-admin collect
-#   --episodes-per-setting 1` (DSRL's noisy IDM driver in the worker, 50 settings), whole process wall time.
+#   --episodes-per-setting 1` (DSRL's noisy IDM driver in the worker, 50 settings), whole process wall time, twice:
+#   a fresh session per setting (`--settings-per-session 1`, how the committed starters were built; one episode per
+#   setting makes it one environment per session), and blocks of 25 settings per session whose 2 environments switch
+#   the driver's settings on reset (`--settings-per-session 25 --envs-per-session 2`).
 # - Reference: `bench/sim_reference.py --mode raw`, the simulator's own env stepped in a Python loop (MetaDrive
 #   with the same IDM driver steering), two processes at once, one per core; per core = the mean of the two.
 #
@@ -18,6 +21,7 @@
 # Usage: bench/acting.sh [ROUNDS=2]
 #        ONLY=REGEX bench/acting.sh   (only the tasks whose family or id matches)
 set -euo pipefail
+case ${1:-} in -h|--help) sed -n "2,22p" "$0"; exit 0 ;; esac
 cd "$(dirname "$0")/.."
 rounds=${1:-2}
 sim/setup.sh >&2
@@ -70,14 +74,15 @@ print(f"{steps / r['wall_seconds'] / int(sys.argv[2]):.0f} {steps}")
 PY
 }
 
-# Ours, the MetaDrive IDM sweep; prints env-steps/s per core.
+# Ours, the MetaDrive IDM sweep with BLOCK settings per session of ENVS environments; prints env-steps/s per core.
 ours_sweep() {
-  local task=$1 state
+  local task=$1 block=$2 envs=$3 state
   state="$work/sweep.$RANDOM"
   local start end
   start=$(date +%s.%N)
   RUST_BACKTRACE=0 "$bin/dsrl-admin" collect --task "$task" --state "$state" --workers "$cores" --json \
-    --episodes-per-setting 1 > "$work/sweep.json" 2> "$work/sweep.log"
+    --episodes-per-setting 1 --settings-per-session "$block" \
+    --envs-per-session "$envs" > "$work/sweep.json" 2> "$work/sweep.log"
   end=$(date +%s.%N)
   python3 - "$work/sweep.json" "$start" "$end" "$cores" <<'PY'
 import json, sys
@@ -113,10 +118,15 @@ EOF_TASKS
 )
 
 grep -qE "${ONLY:-.}" <<< "metadrive OfflineMetadrive-easysparse-v0" && for round in $(seq "$rounds"); do
-  echo "OfflineMetadrive-easysparse-v0 round $round: raw loop with the IDM driver, then the sweep" >&2
+  echo "OfflineMetadrive-easysparse-v0 round $round: raw loop with the IDM driver, then the sweep (a fresh" \
+    "session per setting, then blocks of 25 settings whose environments switch the driver on reset)" >&2
   r=$(raw SafeMetaDrive-easysparse-v0 2000 13,3.0)
-  read -r o n < <(ours_sweep OfflineMetadrive-easysparse-v0)
-  row metadrive OfflineMetadrive-easysparse-v0 "noisy IDM driver (the dataset sweep, 50 settings)" "$round" "$r" "$o" "$n"
+  for layout in "1 4" "25 2"; do
+    read -r block envs <<< "$layout"
+    read -r o n < <(ours_sweep OfflineMetadrive-easysparse-v0 "$block" "$envs")
+    row metadrive OfflineMetadrive-easysparse-v0 \
+      "noisy IDM driver (the dataset sweep, 50 settings, $block per session)" "$round" "$r" "$o" "$n"
+  done
 done
 
 cat "$out"

@@ -21,7 +21,7 @@ use dsrl_suite::{Catalog, Provenance};
 use futures::StreamExt;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::collect::{Episode, collect_setting};
+use crate::collect::{Episode, collect_settings};
 use crate::recipe::{Recipe, Setting};
 
 pub struct Run {
@@ -35,6 +35,8 @@ pub struct Run {
     pub budget_steps: Option<u64>,
     pub workers: u32,
     pub envs_per_session: u32,
+    /// IDM sweeps: consecutive settings per session (blocks fixed by setting index, so resuming replays the same).
+    pub settings_per_session: u32,
     pub simulators: SimulatorsConfig,
     pub progress: bool,
     /// Thin the result to at most this many episodes with the trajectory buffer's grid (starter datasets).
@@ -242,32 +244,44 @@ impl Run {
             tracing::info!(resumed, "resuming: finished settings found in the state folder");
         }
 
-        let todo: Vec<Setting> = settings
-            .iter()
-            .filter(|s| !finished.contains_key(&s.index))
-            .copied()
+        // Blocks of consecutive settings, fixed by index whatever is resumed; one with any setting unsaved is
+        // played again whole, so its episodes are those of an uninterrupted run.
+        let block = self.settings_per_session.max(1) as usize;
+        let todo: Vec<Vec<Setting>> = settings
+            .chunks(block)
+            .filter(|b| b.iter().any(|s| !finished.contains_key(&s.index)))
+            .map(<[Setting]>::to_vec)
             .collect();
         if !todo.is_empty() {
+            for b in &todo {
+                for s in b {
+                    if let Some(replayed) = finished.remove(&s.index) {
+                        bar.set_position(bar.position() - replayed.len() as u64);
+                    }
+                }
+            }
             let pool = self.start_pool().await?;
             let wanted = (self.workers as usize + self.simulators.remote_workers.len()).max(1);
-            let jobs = futures::stream::iter(todo.into_iter().map(|setting| {
+            let jobs = futures::stream::iter(todo.into_iter().map(|block| {
                 let (pool, recipe, bar) = (pool.clone(), self.recipe.clone(), bar.clone());
                 let (task, state) = (task.clone(), self.state_dir.clone());
                 let envs = self.envs_per_session;
                 async move {
-                    let episodes = collect_setting(&pool, &recipe, setting, envs, || bar.inc(1)).await?;
-                    let episodes = tokio::task::spawn_blocking(move || {
-                        save_setting(&task, &state, &setting, &episodes).map(|()| episodes)
+                    let episodes = collect_settings(&pool, &recipe, &block, envs, || bar.inc(1)).await?;
+                    let saved = tokio::task::spawn_blocking(move || {
+                        for (setting, episodes) in block.iter().zip(&episodes) {
+                            save_setting(&task, &state, setting, episodes)?;
+                        }
+                        anyhow::Ok(block.iter().map(|s| s.index).zip(episodes).collect::<Vec<_>>())
                     })
                     .await??;
-                    anyhow::Ok((setting.index, episodes))
+                    anyhow::Ok(saved)
                 }
             }))
             .buffer_unordered(wanted);
             futures::pin_mut!(jobs);
             while let Some(result) = jobs.next().await {
-                let (index, episodes) = result?;
-                finished.insert(index, episodes);
+                finished.extend(result?);
             }
         }
         bar.finish();
@@ -284,12 +298,17 @@ impl Run {
                 payload: episode,
             });
         }
-        let details = serde_json::json!({
+        let mut details = serde_json::json!({
             "episodes_per_setting": self.episodes_per_setting.unwrap_or_else(|| self.recipe.settings(None)[0].episodes),
             "budget_scaled": self.episodes_per_setting.is_some(),
             "settings": settings.len(),
             "envs_per_session": self.envs_per_session,
         });
+        // Only recorded where it departs from a fresh session per setting, so the provenance of such builds (the
+        // committed starters') stays what it was.
+        if self.settings_per_session > 1 {
+            details["settings_per_session"] = self.settings_per_session.into();
+        }
         Ok((
             buffer.into_episodes().into_iter().map(|s| s.payload).collect(),
             collected,

@@ -1,4 +1,4 @@
-//! Episodes of one sweep setting, stepped through a pooled simulator session.
+//! Episodes of a block of sweep settings, stepped through one pooled simulator session.
 
 use dsrl_evaluation::simulators::{SimulatorPool, StepResult};
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
@@ -49,30 +49,46 @@ pub fn record_step(chunk: &mut TransitionChunk, observation: &[f32], step: &Step
     chunk.timeouts.push(step.truncated[row] && !step.terminated[row]);
 }
 
-/// Runs all episodes of `setting` on one worker session of up to `max_envs` environments (the IDM driver steers;
-/// the dataset records the actions it applied). Episodes come back in episode-number order.
-pub async fn collect_setting(
+/// The IDM driver of one sweep setting.
+fn driver(setting: &Setting) -> Controller {
+    Controller {
+        kind: Some(controller::Kind::Idm(Idm {
+            target_speed: setting.target_speed,
+            acc_factor: setting.acc_factor,
+        })),
+    }
+}
+
+/// Runs all episodes of `settings` (a block of the sweep) on one worker session of up to `max_envs` environments
+/// (the IDM driver steers; the dataset records the actions it applied). Episodes are dealt in order, setting by
+/// setting, to whichever environment finishes first (ties by environment index), and an environment that moves to
+/// the next setting switches its driver on reset instead of being built again. The deal depends only on the
+/// episodes, so a block gives the same episodes every time it runs; a block of one setting is a fresh session for
+/// it. Returns each setting's episodes in episode-number order.
+pub async fn collect_settings(
     pool: &SimulatorPool,
     recipe: &Recipe,
-    setting: Setting,
+    settings: &[Setting],
     max_envs: u32,
     on_episode: impl Fn(),
-) -> anyhow::Result<Vec<Episode>> {
-    let seeds: Vec<u64> = (0..setting.episodes)
-        .map(|e| recipe.episode_seed(setting.index, e))
+) -> anyhow::Result<Vec<Vec<Episode>>> {
+    // Every (setting, episode) of the block, in the order they are dealt.
+    let deal: Vec<(usize, u32)> = settings
+        .iter()
+        .enumerate()
+        .flat_map(|(s, setting)| (0..setting.episodes).map(move |e| (s, e)))
         .collect();
-    let k = setting.episodes.min(max_envs).max(1) as usize;
+    let seed_of = |(s, e): (usize, u32)| recipe.episode_seed(settings[s].index, e);
+    let k = deal.len().min(max_envs as usize).max(1);
+    let Some(first) = settings.first() else {
+        return Ok(Vec::new());
+    };
     let open = Open {
         task: recipe.task.clone(),
         num_envs: k as u32,
-        seeds: seeds[..k].to_vec(),
+        seeds: deal[..k].iter().map(|&d| seed_of(d)).collect(),
         auto_reset: AutoReset::None as i32,
-        controller: Some(Controller {
-            kind: Some(controller::Kind::Idm(Idm {
-                target_speed: setting.target_speed,
-                acc_factor: setting.acc_factor,
-            })),
-        }),
+        controller: Some(driver(first)),
     };
     let mut session = pool.open(open).await?;
     let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
@@ -81,50 +97,77 @@ pub async fn collect_setting(
         .chunks(obs_dim)
         .map(<[f32]>::to_vec)
         .collect();
-    // Which episode each env is playing (None: done, nothing left to start).
-    let mut playing: Vec<Option<u32>> = (0..k as u32).map(Some).collect();
+    // The setting whose driver each env has (all start with the first setting's) and what it is playing.
+    let mut driving: Vec<usize> = vec![0; k];
+    let mut playing: Vec<Option<(usize, u32)>> = vec![None; k];
+    let mut starting: Vec<(u32, (usize, u32))> = deal[..k].iter().enumerate().map(|(i, &d)| (i as u32, d)).collect();
+    // The first deal's envs already run their first episode, except where it belongs to a later setting.
+    starting.retain(|&(i, d)| {
+        playing[i as usize] = Some(d);
+        d.0 != 0
+    });
+    let mut dealt = k;
     let mut partial: Vec<TransitionChunk> = (0..k).map(|_| TransitionChunk::empty(obs_dim, act_dim)).collect();
-    let mut next_episode = k as u32;
-    let mut done: Vec<Episode> = Vec::with_capacity(setting.episodes as usize);
-    while done.len() < setting.episodes as usize {
+    let mut done: Vec<Vec<Episode>> = settings
+        .iter()
+        .map(|s| Vec::with_capacity(s.episodes as usize))
+        .collect();
+    let mut finished = 0;
+    loop {
+        // Start the dealt episodes, one reset per setting whose driver the envs switch to.
+        let mut by_setting: Vec<usize> = starting.iter().map(|&(_, (s, _))| s).collect();
+        by_setting.dedup();
+        for s in by_setting {
+            let (envs, seeds): (Vec<u32>, Vec<u64>) = starting
+                .iter()
+                .filter(|&&(_, d)| d.0 == s)
+                .map(|&(i, d)| (i, seed_of(d)))
+                .unzip();
+            let switch = envs
+                .iter()
+                .any(|&i| driving[i as usize] != s)
+                .then(|| driver(&settings[s]));
+            let observations = session.reset_with(&envs, &seeds, switch).await?;
+            for (row, &env) in envs.iter().enumerate() {
+                last_obs[env as usize] = observations[row * obs_dim..(row + 1) * obs_dim].to_vec();
+                driving[env as usize] = s;
+            }
+        }
+        starting.clear();
+        if finished == deal.len() {
+            break;
+        }
         let envs: Vec<u32> = (0..k as u32).filter(|&i| playing[i as usize].is_some()).collect();
         // Ignored while the controller drives, but the shape must be right.
         let actions = vec![0f32; envs.len() * act_dim];
         let step = session.step(&envs, &actions).await?;
-        let (mut reset_envs, mut reset_seeds) = (Vec::new(), Vec::new());
         for (row, &env) in envs.iter().enumerate() {
             let i = env as usize;
             let chunk = &mut partial[i];
             record_step(chunk, &last_obs[i], &step, row);
             last_obs[i] = step.observations[row * obs_dim..(row + 1) * obs_dim].to_vec();
             if step.terminated[row] || step.truncated[row] {
-                let number = playing[i].expect("stepped envs are playing");
+                let (s, number) = playing[i].take().expect("stepped envs are playing");
                 let transitions = std::mem::replace(chunk, TransitionChunk::empty(obs_dim, act_dim));
-                done.push(Episode::from_chunk(
-                    setting.index,
+                done[s].push(Episode::from_chunk(
+                    settings[s].index,
                     number,
-                    seeds[number as usize],
+                    seed_of((s, number)),
                     transitions,
                 ));
+                finished += 1;
                 on_episode();
-                if next_episode < setting.episodes {
-                    playing[i] = Some(next_episode);
-                    reset_envs.push(env);
-                    reset_seeds.push(seeds[next_episode as usize]);
-                    next_episode += 1;
-                } else {
-                    playing[i] = None;
+                if let Some(&next) = deal.get(dealt) {
+                    playing[i] = Some(next);
+                    starting.push((env, next));
+                    dealt += 1;
                 }
-            }
-        }
-        if !reset_envs.is_empty() {
-            let observations = session.reset(&reset_envs, &reset_seeds).await?;
-            for (row, &env) in reset_envs.iter().enumerate() {
-                last_obs[env as usize] = observations[row * obs_dim..(row + 1) * obs_dim].to_vec();
             }
         }
     }
     session.close().await?;
-    done.sort_by_key(|e| e.number);
+    for episodes in &mut done {
+        episodes.sort_by_key(|e| e.number);
+    }
     Ok(done)
 }

@@ -95,6 +95,13 @@ struct CollectArgs {
     /// Environments per worker session (MetaDrive: one process each, ~300 MB).
     #[arg(long, default_value_t = 4)]
     envs_per_session: u32,
+    /// IDM sweeps: consecutive settings played in one session, whose environments switch the driver's settings on
+    /// reset instead of being built again (MetaDrive builds one in ~4 s, about half an episode). 1, the default,
+    /// is a fresh session per setting, as the committed MetaDrive starters were built; a larger block is faster
+    /// and gives different (equally valid) episodes, since a reused environment does not replay a fresh one
+    /// exactly. Recorded in the provenance; a resumed run replays unfinished blocks whole.
+    #[arg(long, default_value_t = 1)]
+    settings_per_session: u32,
     /// Thin the result to at most N episodes, spread over the (reward, cost) plane like the trajectory buffer
     /// does (for starter datasets; a finished run's settings are reused, nothing is simulated again).
     #[arg(long)]
@@ -266,6 +273,7 @@ async fn run() -> anyhow::Result<()> {
         budget_steps,
         workers,
         envs_per_session,
+        settings_per_session,
         worker_binary,
         max_episodes,
         out,
@@ -297,6 +305,7 @@ async fn run() -> anyhow::Result<()> {
         budget_steps,
         workers: workers.unwrap_or_else(cores).max(1),
         envs_per_session: envs_per_session.max(1),
+        settings_per_session: settings_per_session.max(1),
         simulators: SimulatorsConfig {
             worker_binary,
             ..SimulatorsConfig::default()

@@ -208,6 +208,7 @@ impl SimulatorSession {
         self.send(session_request::Kind::Reset(pb::Reset {
             envs: envs.to_vec(),
             seeds: seeds.to_vec(),
+            controller: None,
         }))
         .await
     }
@@ -253,7 +254,22 @@ impl SimulatorSession {
 
     /// Resets the given environments (empty: all) with one seed each; returns their observations.
     pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, Status> {
-        self.send_reset(envs, seeds).await?;
+        self.reset_with(envs, seeds, None).await
+    }
+
+    /// [`Self::reset`], switching the reset environments to `controller`'s driver (a session opened with one only).
+    pub async fn reset_with(
+        &mut self,
+        envs: &[u32],
+        seeds: &[u64],
+        controller: Option<pb::Controller>,
+    ) -> Result<Vec<f32>, Status> {
+        self.send(session_request::Kind::Reset(pb::Reset {
+            envs: envs.to_vec(),
+            seeds: seeds.to_vec(),
+            controller,
+        }))
+        .await?;
         match self.receive().await? {
             Reply::Reset { observations, .. } => Ok(observations),
             _ => Err(Status::internal("a reset was not answered with observations")),

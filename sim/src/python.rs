@@ -195,22 +195,7 @@ impl PythonHost {
         controller: Option<Controller>,
     ) -> Result<(PyBatch, BatchShape), SimError> {
         Python::attach(|py| {
-            let controller = match controller {
-                None => py.None().into_bound(py),
-                Some(Controller::Idm {
-                    target_speed,
-                    acc_factor,
-                }) => {
-                    let idm = PyDict::new(py);
-                    let inner = PyDict::new(py);
-                    let set = inner
-                        .set_item("target_speed", target_speed)
-                        .and(inner.set_item("acc_factor", acc_factor));
-                    set.and(idm.set_item("idm", inner))
-                        .map_err(|e| simulator_error(py, "controller", e))?;
-                    idm.into_any()
-                }
-            };
+            let controller = controller_dict(py, controller)?;
             let built = self
                 .batch_class
                 .bind(py)
@@ -244,13 +229,34 @@ fn bytes_of(item: Bound<'_, PyAny>) -> PyResult<Vec<u8>> {
     Ok(item.cast_into::<PyBytes>()?.as_bytes().to_vec())
 }
 
+/// The Python form of a controller (`{"idm": {"target_speed": v, "acc_factor": a}}`), or None.
+fn controller_dict(py: Python<'_>, controller: Option<Controller>) -> Result<Bound<'_, PyAny>, SimError> {
+    let Some(Controller::Idm {
+        target_speed,
+        acc_factor,
+    }) = controller
+    else {
+        return Ok(py.None().into_bound(py));
+    };
+    let idm = PyDict::new(py);
+    let inner = PyDict::new(py);
+    let set = inner
+        .set_item("target_speed", target_speed)
+        .and(inner.set_item("acc_factor", acc_factor));
+    set.and(idm.set_item("idm", inner))
+        .map_err(|e| simulator_error(py, "controller", e))?;
+    Ok(idm.into_any())
+}
+
 impl PyBatch {
-    pub fn reset(&self, envs: &[u32], seeds: &[u64]) -> Result<Vec<u8>, SimError> {
+    /// Resets `envs` with one seed each; `switch` changes their driver first (a controlled batch only).
+    pub fn reset(&self, envs: &[u32], seeds: &[u64], switch: Option<Controller>) -> Result<Vec<u8>, SimError> {
         Python::attach(|py| {
+            let switch = controller_dict(py, switch)?;
             let result = self
                 .batch
                 .bind(py)
-                .call_method1("reset", (envs.to_vec(), seeds.to_vec()));
+                .call_method1("reset", (envs.to_vec(), seeds.to_vec(), switch));
             result.and_then(bytes_of).map_err(|e| simulator_error(py, "reset", e))
         })
     }

@@ -7,8 +7,9 @@ use std::sync::{Arc, Mutex};
 
 use dsrl_proto::simulator::v1 as pb;
 use dsrl_proto::simulator::v1::{
-    AutoReset, Closed, DType, DescribeRequest, HealthRequest, HealthResponse, Observations, Opened, SessionRequest,
-    SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response, simulator_server::Simulator,
+    AutoReset, Closed, DType, DescribeRequest, HealthRequest, HealthResponse, Observations, Opened, Reset,
+    SessionRequest, SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response,
+    simulator_server::Simulator,
 };
 use dsrl_suite::catalog::{Catalog, Family};
 use tokio::sync::mpsc;
@@ -220,6 +221,7 @@ async fn run_session(
     let sim_id = inner.simulator_id(&open.task)?;
     let seeds = check_open(&open, inner.limits)?;
     let controller = inner.controller(&sim_id, open.controller.as_ref())?;
+    let driven = controller.is_some();
     let reservation = inner.reserve(open.num_envs)?;
     let auto_reset = open.auto_reset == AutoReset::SameStep as i32;
     let k = seeds.len();
@@ -230,7 +232,7 @@ async fn run_session(
         .run(move || {
             let (batch, shape) = host.open(&id, &seeds, auto_reset, controller)?;
             let all: Vec<u32> = (0..k as u32).collect();
-            match batch.reset(&all, &seeds) {
+            match batch.reset(&all, &seeds, None) {
                 Ok(observations) => Ok((batch, shape, observations)),
                 Err(err) => {
                     batch.close();
@@ -316,13 +318,17 @@ async fn run_session(
                 let _ = answer.send(Ok(session_response::Kind::Closed(Closed {})));
             }
             Some(kind) => {
+                let switch = match &kind {
+                    session_request::Kind::Reset(reset) => switch_driver(&inner, &sim_id, driven, reset),
+                    _ => Ok(None),
+                };
                 let (shared, batch) = (shared.clone(), batch.clone());
                 inner.python.spawn(move || {
                     let mut jobs = shared.lock().expect("session state");
                     if jobs.failed {
                         return;
                     }
-                    let result = respond(kind, &mut jobs.state, &batch, shape);
+                    let result = switch.and_then(|switch| respond(kind, &mut jobs.state, &batch, shape, switch));
                     jobs.failed = result.is_err();
                     let _ = answer.send(result);
                 });
@@ -335,6 +341,20 @@ async fn run_session(
     drop(pending);
     let _ = forwarder.await;
     Ok(())
+}
+
+/// The driver a `Reset` switches its environments to, checked as an `Open`'s is. Only a session opened with a
+/// controller may switch: the client's own actions never silently give way to a driver.
+fn switch_driver(inner: &Inner, sim_id: &str, driven: bool, reset: &Reset) -> Result<Option<Controller>, SimError> {
+    let Some(controller) = reset.controller.as_ref() else {
+        return Ok(None);
+    };
+    if !driven {
+        return Err(SimError::FailedPrecondition(
+            "a reset can switch the driver only in a session opened with a controller".into(),
+        ));
+    }
+    inner.controller(sim_id, Some(controller))
 }
 
 type Answer = tokio::sync::oneshot::Receiver<Result<session_response::Kind, SimError>>;
@@ -358,6 +378,7 @@ fn respond(
     state: &mut SessionState,
     batch: &PyBatch,
     shape: Shape,
+    switch: Option<Controller>,
 ) -> Result<session_response::Kind, SimError> {
     let Shape {
         obs_dim,
@@ -367,7 +388,7 @@ fn respond(
     match kind {
         session_request::Kind::Reset(reset) => {
             let (envs, seeds) = state.check_reset(&reset)?;
-            let observations = batch.reset(&envs, &seeds)?;
+            let observations = batch.reset(&envs, &seeds, switch)?;
             state.after_reset(&envs);
             let observations = tensor(DType::Float32, &[envs.len(), obs_dim], observations, 4, "observations")?;
             Ok(session_response::Kind::Reset(Observations {

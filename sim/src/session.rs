@@ -257,7 +257,11 @@ mod tests {
     #[test]
     fn reset_needs_one_seed_per_env() {
         let state = SessionState::new(3, 1, 3, false);
-        let reset = |envs: Vec<u32>, seeds: Vec<u64>| Reset { envs, seeds };
+        let reset = |envs: Vec<u32>, seeds: Vec<u64>| Reset {
+            envs,
+            seeds,
+            controller: None,
+        };
         assert_eq!(
             state.check_reset(&reset(vec![], vec![4, 5, 6])).unwrap(),
             (vec![0, 1, 2], vec![4, 5, 6])

@@ -1,5 +1,7 @@
 //! `dsrl-admin collect` end to end: a small MetaDrive IDM sweep on real workers, killed mid-run and resumed, gives
-//! the same dataset as an uninterrupted run, and is ingested with its recipe provenance.
+//! the same dataset as an uninterrupted run, and is ingested with its recipe provenance. A sweep that plays several
+//! settings per session (environments switch the driver on reset) drives each setting as fresh sessions do, and
+//! replays an unfinished block whole when resumed.
 
 use std::path::Path;
 use std::process::Command;
@@ -101,4 +103,59 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
         "{file}"
     );
     assert!(Path::new(&format!("{file}.provenance.json")).exists());
+}
+
+/// Each episode's length in a stored setting (`<state>/settings/NNN.parquet`).
+fn episode_lengths(state: &Path, setting: usize) -> Vec<usize> {
+    let file = std::fs::File::open(state.join(format!("settings/{setting:03}.parquet"))).unwrap();
+    let mut lengths = vec![0];
+    for chunk in dsrl_suite::parquet_file::ParquetTransitions::open(file).unwrap() {
+        let chunk = chunk.unwrap();
+        for i in 0..chunk.len() {
+            *lengths.last_mut().unwrap() += 1;
+            if chunk.is_done(i) {
+                lengths.push(0);
+            }
+        }
+    }
+    assert_eq!(lengths.pop(), Some(0), "a stored setting ends mid-episode");
+    lengths
+}
+
+#[test]
+fn a_block_of_settings_per_session_drives_each_as_fresh_sessions_do_and_resumes_whole() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = tiny_recipe(dir.path());
+    let (fresh, block) = (dir.path().join("fresh"), dir.path().join("block"));
+    crate::admin_json(collect(&recipe, &fresh, &[]));
+    let blocked = crate::admin_json(collect(&recipe, &block, &["--settings-per-session", "2"]));
+    assert_eq!(blocked["episodes"], 4);
+    assert_eq!(blocked["provenance"]["details"]["settings_per_session"], 2);
+
+    // Two environments play the block's four episodes; the second setting's are driven after a switch on reset.
+    // Their lengths match fresh sessions' at that setting (a reused environment does not replay a fresh one to the
+    // last bit, so not exactly), and differ from the first setting's, so the switch took effect.
+    let (fast_fresh, slow_fresh) = (episode_lengths(&fresh, 1), episode_lengths(&fresh, 0));
+    let fast_block = episode_lengths(&block, 1);
+    for (a, b) in fast_block.iter().zip(&fast_fresh) {
+        assert!(
+            a.abs_diff(*b) * 50 <= *b,
+            "21 km/h after a switch: {fast_block:?}, fresh {fast_fresh:?}"
+        );
+    }
+    for (a, b) in slow_fresh.iter().zip(&fast_fresh) {
+        assert!(
+            a.abs_diff(*b) * 10 > *b,
+            "13 and 21 km/h should differ: {slow_fresh:?}, {fast_fresh:?}"
+        );
+    }
+
+    // A block with a setting missing is played again whole: the same dataset as the uninterrupted run.
+    std::fs::remove_file(block.join("settings/001.parquet")).unwrap();
+    let resumed = crate::admin_json(collect(&recipe, &block, &["--settings-per-session", "2"]));
+    assert_eq!(
+        resumed["version"], blocked["version"],
+        "replaying the block changed the dataset"
+    );
+    assert_eq!(episode_lengths(&block, 1), fast_block);
 }

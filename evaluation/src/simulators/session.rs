@@ -1,6 +1,6 @@
 use std::time::Duration;
 
-use dsrl_proto::simulator::v1::TaskSpec;
+use dsrl_proto::simulator::v1::{Controller, TaskSpec};
 use dsrl_proto::simulator_session::{Reply, SimulatorSession, StepResult};
 use tonic::{Code, Status};
 
@@ -64,9 +64,19 @@ impl PooledSession {
     }
 
     pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, EvaluationError> {
+        self.reset_with(envs, seeds, None).await
+    }
+
+    /// A reset that also switches the environments' built-in driver (sessions opened with a controller only).
+    pub async fn reset_with(
+        &mut self,
+        envs: &[u32],
+        seeds: &[u64],
+        controller: Option<Controller>,
+    ) -> Result<Vec<f32>, EvaluationError> {
         let timeout = self.timeout;
         let worker = self.worker.clone();
-        let call = self.session.reset(envs, seeds);
+        let call = self.session.reset_with(envs, seeds, controller);
         deadline(&worker, timeout, "reset", call).await
     }
 

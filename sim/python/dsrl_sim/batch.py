@@ -2,6 +2,7 @@
 
     batch = Batch("SafetyBallRun-v0", seeds=[0, 1, 2], auto_reset=False)
     obs = batch.reset([0, 1, 2], [0, 1, 2])             # float32 [n, obs_dim]
+    obs = batch.reset([0], [5], {"idm": {...}})         # MetaDrive, opened with a controller: switch env 0's driver
     obs, rewards, costs, terminated, truncated, final_obs, applied = batch.step([0, 1, 2], actions)
     # float32 [n, obs_dim], float64 [n], float64 [n], uint8 [n], uint8 [n], float32 [n, obs_dim] or b"",
     # float32 [n, act_dim] (the actions the simulators applied: clipped, or a controller's)
@@ -29,7 +30,8 @@ def _host(conn, sim_id, controller):
         while True:
             command, argument = conn.recv()
             if command == "reset":
-                conn.send(env.reset(argument))
+                seed, switch = argument
+                conn.send(env.reset(seed, switch))
             elif command == "step":
                 conn.send(env.step(argument))
             else:
@@ -86,15 +88,16 @@ class Batch:
         self.obs_dim, self.act_dim = first.obs_dim, first.act_dim
         self.low, self.high, self.max_episode_steps = first.low, first.high, first.max_episode_steps
 
-    def _reset_many(self, indices, seeds):
+    def _reset_many(self, indices, seeds, switch=None):
         if self.remote:
             for i, s in zip(indices, seeds):
-                self.envs[i].send("reset", s)
+                self.envs[i].send("reset", (s, switch))
             return [self.envs[i].receive() for i in indices]
-        return [self.envs[i].reset(s) for i, s in zip(indices, seeds)]
+        return [self.envs[i].reset(s, switch) for i, s in zip(indices, seeds)]
 
-    def reset(self, indices, seeds):
-        rows = self._reset_many(list(indices), list(seeds))
+    def reset(self, indices, seeds, switch=None):
+        """Resets the envs at `indices`; `switch` (a controller) changes their driver from this episode on."""
+        rows = self._reset_many(list(indices), list(seeds), switch)
         return np.stack(rows).astype(np.float32, copy=False).tobytes()
 
     def step(self, indices, actions):

@@ -117,7 +117,11 @@ class Env:
         self.act_dim = int(np.prod(space.shape))
         self.obs_dim = int(np.prod(self._env.observation_space.shape))
 
-    def reset(self, seed):
+    def reset(self, seed, switch=None):
+        if switch:
+            if not self.controlled:
+                raise ValueError(f"{self.sim_id}: only an env built with a controller can switch it")
+            self._env.set_controller(switch)
         if self.family == BULLET:
             self._random = _GlobalRandomState(int(seed) % 2**32)
             with self._random:
