@@ -253,11 +253,9 @@ impl Run {
             .map(<[Setting]>::to_vec)
             .collect();
         if !todo.is_empty() {
-            for b in &todo {
-                for s in b {
-                    if let Some(replayed) = finished.remove(&s.index) {
-                        bar.set_position(bar.position() - replayed.len() as u64);
-                    }
+            for s in todo.iter().flatten() {
+                if let Some(replayed) = finished.remove(&s.index) {
+                    bar.set_position(bar.position() - replayed.len() as u64);
                 }
             }
             let pool = self.start_pool().await?;

@@ -99,13 +99,12 @@ pub async fn collect_settings(
         .collect();
     // The setting whose driver each env has (all start with the first setting's) and what it is playing.
     let mut driving: Vec<usize> = vec![0; k];
-    let mut playing: Vec<Option<(usize, u32)>> = vec![None; k];
-    let mut starting: Vec<(u32, (usize, u32))> = deal[..k].iter().enumerate().map(|(i, &d)| (i as u32, d)).collect();
+    let mut playing: Vec<Option<(usize, u32)>> = deal[..k].iter().copied().map(Some).collect();
     // The first deal's envs already run their first episode, except where it belongs to a later setting.
-    starting.retain(|&(i, d)| {
-        playing[i as usize] = Some(d);
-        d.0 != 0
-    });
+    let mut starting: Vec<(u32, (usize, u32))> = (0..k as u32)
+        .zip(deal[..k].iter().copied())
+        .filter(|&(_, d)| d.0 != 0)
+        .collect();
     let mut dealt = k;
     let mut partial: Vec<TransitionChunk> = (0..k).map(|_| TransitionChunk::empty(obs_dim, act_dim)).collect();
     let mut done: Vec<Vec<Episode>> = settings

@@ -205,10 +205,21 @@ impl SimulatorSession {
     }
 
     pub async fn send_reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<u64, Status> {
+        self.send_reset_with(envs, seeds, None).await
+    }
+
+    /// [`Self::send_reset`], switching the reset environments to `controller`'s driver (a session opened with one
+    /// only).
+    pub async fn send_reset_with(
+        &mut self,
+        envs: &[u32],
+        seeds: &[u64],
+        controller: Option<pb::Controller>,
+    ) -> Result<u64, Status> {
         self.send(session_request::Kind::Reset(pb::Reset {
             envs: envs.to_vec(),
             seeds: seeds.to_vec(),
-            controller: None,
+            controller,
         }))
         .await
     }
@@ -264,12 +275,7 @@ impl SimulatorSession {
         seeds: &[u64],
         controller: Option<pb::Controller>,
     ) -> Result<Vec<f32>, Status> {
-        self.send(session_request::Kind::Reset(pb::Reset {
-            envs: envs.to_vec(),
-            seeds: seeds.to_vec(),
-            controller,
-        }))
-        .await?;
+        self.send_reset_with(envs, seeds, controller).await?;
         match self.receive().await? {
             Reply::Reset { observations, .. } => Ok(observations),
             _ => Err(Status::internal("a reset was not answered with observations")),
