@@ -192,10 +192,16 @@ fn progress(steps: u64) -> ProgressBar {
 /// What every algorithm starts from: the task, its training data and the output folder the data options name.
 struct Prepared {
     task: dsrl_suite::Task,
-    path: PathBuf,
-    dataset_version: Option<String>,
+    source: Source,
     demonstrations: Demonstrations,
     out: PathBuf,
+}
+
+/// Which data a model was trained on, as its training record names it.
+struct Source {
+    path: PathBuf,
+    dataset_version: Option<String>,
+    transitions: usize,
 }
 
 fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
@@ -206,10 +212,14 @@ fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("policies").join(task.id.as_str()));
-    Ok(Prepared {
-        task,
+    let source = Source {
         path,
         dataset_version,
+        transitions: demonstrations.rows(),
+    };
+    Ok(Prepared {
+        task,
+        source,
         demonstrations,
         out,
     })
@@ -236,6 +246,45 @@ impl Trained {
     fn summary(&self) -> String {
         let shown: Vec<String> = self.figures.iter().map(|(n, v)| format!("{n} {v:.4}")).collect();
         shown.join(", ")
+    }
+
+    /// The closing line of a trained model written to `dir`.
+    fn report(&self, name: &str, steps: u64, dir: &std::path::Path) {
+        println!(
+            "{name}: {steps} steps in {:.0} s ({}) -> {}",
+            self.seconds,
+            self.summary(),
+            dir.display()
+        );
+    }
+}
+
+impl Source {
+    /// The training record every algorithm writes (what was trained on, for how long, with which seed, how it
+    /// ended), with the algorithm's own fields in `extra`.
+    fn training_record(
+        &self,
+        algorithm: &str,
+        data: &DataArgs,
+        trained: &Trained,
+        extra: serde_json::Value,
+    ) -> serde_json::Value {
+        let mut record = serde_json::json!({
+            "algorithm": algorithm,
+            "dataset": self.path.file_name().map(|n| n.to_string_lossy().into_owned()),
+            "dataset_version": self.dataset_version,
+            "filter": data.filter,
+            "transitions": self.transitions,
+            "steps": data.steps,
+            "seed": data.seed,
+            "final": trained.last(),
+            "seconds": trained.seconds,
+            "first_step_seconds": trained.first_step_seconds,
+        });
+        if let (Some(record), serde_json::Value::Object(extra)) = (record.as_object_mut(), extra) {
+            record.extend(extra);
+        }
+        record
     }
 }
 
@@ -286,8 +335,7 @@ type MakeLearner = dyn Fn(&Demonstrations, f64, usize, u64, Option<usize>) -> an
 fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> anyhow::Result<()> {
     let Prepared {
         task,
-        path,
-        dataset_version,
+        source,
         demonstrations,
         out,
     } = prepare(&data)?;
@@ -301,31 +349,13 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
         let name = format!("{algorithm}/threshold-{kappa}");
         let mut learner = make(&demonstrations, kappa, episode_len, data.seed, data.batch_size)?;
         let trained = train_loop(data.steps, &name, 100, 4, || learner.step())?;
-        let training = serde_json::json!({
-            "algorithm": algorithm,
-            "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
-            "dataset_version": dataset_version,
-            "filter": data.filter,
-            "transitions": demonstrations.rows(),
-            "steps": data.steps,
-            "settings": learner.settings(),
-            "qc_threshold": learner.qc_threshold(),
-            "seed": data.seed,
-            "final": trained.last(),
-            "seconds": trained.seconds,
-            "first_step_seconds": trained.first_step_seconds,
-        });
+        let extra = serde_json::json!({ "settings": learner.settings(), "qc_threshold": learner.qc_threshold() });
+        let training = source.training_record(algorithm, &data, &trained, extra);
         let dir = out.join(&name);
         learner
             .write(&dir, task.id.as_str(), kappa, training)
             .with_context(|| format!("writing {}", dir.display()))?;
-        println!(
-            "{name}: {} steps in {:.0} s ({}) -> {}",
-            data.steps,
-            trained.seconds,
-            trained.summary(),
-            dir.display()
-        );
+        trained.report(&name, data.steps, &dir);
     }
     if let (Some(name), Some(server)) = (&data.submit, &data.server) {
         submit(server, &out.join(algorithm), task.id.as_str(), name)?;
@@ -341,8 +371,7 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
     );
     let Prepared {
         task,
-        path,
-        dataset_version,
+        source,
         demonstrations,
         out,
     } = prepare(&data)?;
@@ -352,34 +381,18 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         batch_size: data.batch_size.unwrap_or(default.batch_size),
         ..default
     };
-    let transitions = demonstrations.rows();
     let mut learner = CapsLearner::new(settings.clone(), &demonstrations, task.max_episode_steps as usize)?;
     let trained = train_loop(data.steps, "caps", 100, 5, || learner.step())?;
-    let training = serde_json::json!({
-        "algorithm": "caps",
-        "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
-        "dataset_version": dataset_version,
-        "filter": data.filter,
-        "transitions": transitions,
-        "steps": data.steps,
+    let extra = serde_json::json!({
         "settings": format!("{settings:?}"),
         "departures": "batches drawn by the seeded generator; every other choice as CAPS's capsiql.py",
-        "seed": data.seed,
-        "final": trained.last(),
-        "seconds": trained.seconds,
-        "first_step_seconds": trained.first_step_seconds,
     });
+    let training = source.training_record("caps", &data, &trained, extra);
     let dir = out.join("caps");
     learner
         .write(&dir, task.id.as_str(), training)
         .with_context(|| format!("writing {}", dir.display()))?;
-    println!(
-        "caps: {} steps in {:.0} s ({}) -> {}",
-        data.steps,
-        trained.seconds,
-        trained.summary(),
-        dir.display()
-    );
+    trained.report("caps", data.steps, &dir);
     if let (Some(name), Some(server)) = (&data.submit, &data.server) {
         submit(server, &dir, task.id.as_str(), name)?;
     }
@@ -394,8 +407,7 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
     );
     let Prepared {
         task,
-        path,
-        dataset_version,
+        source,
         demonstrations,
         out,
     } = prepare(&data)?;
@@ -406,7 +418,6 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         batch_size: data.batch_size.unwrap_or(default.batch_size),
         ..default
     };
-    let transitions = demonstrations.rows();
     let episodes = demonstrations.episodes.len();
     let augmentation = task_augmentation(task.id.as_str())?;
     let mut learner = CdtLearner::new(
@@ -416,35 +427,20 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         Some(&augmentation),
     )?;
     let trained = train_loop(data.steps, "cdt", 10, 3, || learner.step())?;
-    let training = serde_json::json!({
-        "algorithm": "cdt",
-        "dataset": path.file_name().map(|n| n.to_string_lossy().into_owned()),
-        "dataset_version": dataset_version,
-        "filter": data.filter,
+    let extra = serde_json::json!({
         "episodes": episodes,
-        "transitions": transitions,
-        "steps": data.steps,
         "settings": format!("{settings:?}"),
         "sampling": learner.sampling,
         "augmentation": format!("{augmentation:?}"),
         "augmented_trajectories": learner.augmented,
         "departures": "augmentation draws from the seeded generator, not Python's and NumPy's; the state head is not decayed",
-        "seed": data.seed,
-        "final": trained.last(),
-        "seconds": trained.seconds,
-        "first_step_seconds": trained.first_step_seconds,
     });
+    let training = source.training_record("cdt", &data, &trained, extra);
     let dir = out.join("cdt");
     learner
         .write(&dir, task.id.as_str(), &task.cost_thresholds, &targets, training)
         .with_context(|| format!("writing {}", dir.display()))?;
-    println!(
-        "cdt: {} steps in {:.0} s ({}) -> {}",
-        data.steps,
-        trained.seconds,
-        trained.summary(),
-        dir.display()
-    );
+    trained.report("cdt", data.steps, &dir);
     if let (Some(name), Some(server)) = (&data.submit, &data.server) {
         submit(server, &dir, task.id.as_str(), name)?;
     }
