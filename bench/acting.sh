@@ -9,19 +9,25 @@
 #   while the policy acts on the other group. The wall time counts everything after the workers are healthy
 #   (opening the sessions, that is creating the environments, included).
 # - MetaDrive (OfflineMetadrive-easysparse-v0): the dataset sweep itself, `dsrl-admin collect
-#   --episodes-per-setting 1` (DSRL's noisy IDM driver in the worker, 50 settings), whole process wall time, twice:
-#   a fresh session per setting (`--settings-per-session 1`, how the committed starters were built; one episode per
-#   setting makes it one environment per session), and blocks of 25 settings per session whose 2 environments switch
-#   the driver's settings on reset (`--settings-per-session 25 --envs-per-session 2`).
+#   --episodes-per-setting 1` (DSRL's noisy IDM driver in the worker, 50 settings), whole process wall time, three
+#   ways: a fresh session per setting (`--settings-per-session 1`, how the committed starters were built; one
+#   episode per setting makes it one environment per session), blocks of 25 settings per session of one
+#   environment (`--settings-per-session 25 --envs-per-session 1`), both with whole episodes driven inside the
+#   worker (a `Drive` request: one round trip per episode), and blocks of 25 on 2 environments, which are stepped
+#   (one round trip per step: the deal of episodes to environments depends on which finishes first).
 # - Reference: `bench/sim_reference.py --mode raw`, the simulator's own env stepped in a Python loop (MetaDrive
 #   with the same IDM driver steering), two processes at once, one per core; per core = the mean of the two.
+#   MetaDrive has two references: the raw loop doing the same work as ours (`--mode sweep`: one env per process
+#   plays half the 50 settings with the recipe's episode seeds, switching the driver on reset, timed whole with the
+#   env's creation as ours is; its episodes are ours, step for step), and the raw loop stepping one setting
+#   (13 km/h, factor 3.0) with creation and warm-up left out of its time.
 #
 # Each task runs reference and ours alternately, ROUNDS times (default 2); each round's ratio is printed.
 # Prints a Markdown table (also written to bench/out/acting.md). Run it on an otherwise idle machine.
 # Usage: bench/acting.sh [ROUNDS=2]
 #        ONLY=REGEX bench/acting.sh   (only the tasks whose family or id matches)
 set -euo pipefail
-case ${1:-} in -h|--help) sed -n "2,22p" "$0"; exit 0 ;; esac
+case ${1:-} in -h|--help) sed -n "2,26p" "$0"; exit 0 ;; esac
 cd "$(dirname "$0")/.."
 rounds=${1:-2}
 sim/setup.sh >&2
@@ -51,6 +57,21 @@ print(f"{sum(rates) / len(rates):.0f}")
 PY
 }
 
+# The raw loop doing the MetaDrive sweep's work: two processes at once, settings 0..24 and 25..49 (one episode each,
+# the recipe's seeds), each timed whole with its env's creation; prints the mean env-steps/s per process.
+raw_sweep() {
+  local task=$1
+  PYTHONWARNINGS=ignore .venv-sim/bin/python bench/sim_reference.py --task "$task" --mode sweep --settings 0:25 \
+    > "$work/raw.1" 2>/dev/null &
+  PYTHONWARNINGS=ignore .venv-sim/bin/python bench/sim_reference.py --task "$task" --mode sweep --settings 25:50 \
+    > "$work/raw.2" 2>/dev/null &
+  wait
+  python3 - "$work/raw.1" "$work/raw.2" <<'PY'
+import json, sys
+rates = [json.loads(open(p).read().strip().splitlines()[-1])["env_steps_per_s"] for p in sys.argv[1:]]
+print(f"{sum(rates) / len(rates):.0f}")
+PY
+}
 # A saved expert for the task: a short training run (its quality does not matter to acting speed).
 expert() {
   local task=$1
@@ -118,14 +139,21 @@ EOF_TASKS
 )
 
 grep -qE "${ONLY:-.}" <<< "metadrive OfflineMetadrive-easysparse-v0" && for round in $(seq "$rounds"); do
-  echo "OfflineMetadrive-easysparse-v0 round $round: raw loop with the IDM driver, then the sweep (a fresh" \
-    "session per setting, then blocks of 25 settings whose environments switch the driver on reset)" >&2
+  echo "OfflineMetadrive-easysparse-v0 round $round: the raw loop playing the sweep, the raw loop at one setting," \
+    "then ours (a fresh session per setting, then blocks of 25 settings on 1 environment, driven, and on 2," \
+    "stepped)" >&2
+  rs=$(raw_sweep SafeMetaDrive-easysparse-v0)
   r=$(raw SafeMetaDrive-easysparse-v0 2000 13,3.0)
-  for layout in "1 4" "25 2"; do
-    read -r block envs <<< "$layout"
+  for layout in "1 4 driven" "25 1 driven" "25 2 stepped"; do
+    read -r block envs how <<< "$layout"
     read -r o n < <(ours_sweep OfflineMetadrive-easysparse-v0 "$block" "$envs")
-    row metadrive OfflineMetadrive-easysparse-v0 \
-      "noisy IDM driver (the dataset sweep, 50 settings, $block per session)" "$round" "$r" "$o" "$n"
+    what="noisy IDM driver (the dataset sweep, 50 settings, $block per session, $envs env(s) each, episodes $how)"
+    row metadrive OfflineMetadrive-easysparse-v0 "$what against the raw loop playing the same sweep" \
+      "$round" "$rs" "$o" "$n"
+    if [ "$block" = 25 ] && [ "$envs" = 1 ]; then
+      row metadrive OfflineMetadrive-easysparse-v0 "$what against the raw loop at one setting, stepping only" \
+        "$round" "$r" "$o" "$n"
+    fi
   done
 done
 

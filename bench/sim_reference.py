@@ -5,6 +5,11 @@ reset-on-done, with no RPC at all, and prints one JSON line like dsrl-sim-bench 
               the way a researcher steps them; MetaDrive allows one env per process, so raw MetaDrive is K=1 only.
 --mode batch: dsrl_sim.batch.Batch, the exact code the worker runs, called directly (MetaDrive: one child process
               per env, as in the worker).
+--mode sweep: MetaDrive only, the raw loop doing a dataset sweep's work: one SafeMetaDrive env plays settings
+              FIRST..LAST-1 of the recipe's 50 noisy-IDM settings (acceleration factor 0.0..5.4 outer, target speed
+              5..21 km/h inner, as pipeline/src/recipe.rs orders them) with the recipe's episode seeds (recipe seed 0:
+              setting * 100000 + episode), switching the driver on reset. Timed whole, creating the env included,
+              as `dsrl-admin collect` is.
 """
 import argparse
 import json
@@ -63,6 +68,31 @@ def batched(task, k, steps, warmup, seed, controller=None):
     return seconds, ended, None
 
 
+SPEEDS = [5.0, 9.0, 13.0, 17.0, 21.0]
+ACC_FACTORS = [round(0.6 * i, 1) for i in range(10)]
+
+
+def sweep(task, first, last, episodes_per_setting):
+    """-> (seconds, env-steps, episodes): the raw loop playing settings first..last-1, creating its env included."""
+    started = time.perf_counter()
+    settings = [(speed, acc) for acc in ACC_FACTORS for speed in SPEEDS][first:last]
+    controller = lambda speed, acc: {"idm": {"target_speed": speed, "acc_factor": acc}}  # noqa: E731
+    env = tasks.make_env(task, controller(*settings[0]))._env
+    steps = episodes = 0
+    for offset, (speed, acc) in enumerate(settings):
+        env.set_controller(controller(speed, acc))
+        for episode in range(episodes_per_setting):
+            env.reset(seed=(first + offset) * 100000 + episode)
+            while True:
+                _, _, terminated, truncated, _ = env.step([0.0, 0.0])
+                steps += 1
+                if terminated or truncated:
+                    break
+            episodes += 1
+    env.close()
+    return time.perf_counter() - started, steps, episodes
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", required=True)
@@ -70,10 +100,19 @@ def main():
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--mode", choices=["raw", "batch"], default="raw")
+    parser.add_argument("--mode", choices=["raw", "batch", "sweep"], default="raw")
+    parser.add_argument("--settings", metavar="FIRST:LAST", default="0:50", help="sweep: the settings to play")
+    parser.add_argument("--episodes-per-setting", type=int, default=1, help="sweep: episodes of each setting")
     parser.add_argument("--idm", metavar="SPEED,ACC", help="MetaDrive: DSRL's noisy IDM driver steers (target speed "
                         "km/h, acceleration factor) as in the dataset sweep; the random actions are then ignored")
     args = parser.parse_args()
+    if args.mode == "sweep":
+        first, last = (int(v) for v in args.settings.split(":"))
+        seconds, env_steps, episodes = sweep(args.task, first, last, args.episodes_per_setting)
+        print(json.dumps({"task": args.task, "envs": 1, "mode": "sweep", "settings": args.settings,
+                          "env_steps": env_steps, "seconds": round(seconds, 3),
+                          "env_steps_per_s": round(env_steps / seconds, 1), "episodes_ended": episodes}))
+        return
     run = raw if args.mode == "raw" else batched
     controller = None
     if args.idm:

@@ -37,6 +37,8 @@ pub struct Run {
     pub envs_per_session: u32,
     /// IDM sweeps: consecutive settings per session (blocks fixed by setting index, so resuming replays the same).
     pub settings_per_session: u32,
+    /// IDM sweeps: let the worker's driver play whole episodes where the deal allows (see `collect_settings`).
+    pub drive_episodes: bool,
     pub simulators: SimulatorsConfig,
     pub progress: bool,
     /// Thin the result to at most this many episodes with the trajectory buffer's grid (starter datasets).
@@ -263,9 +265,9 @@ impl Run {
             let jobs = futures::stream::iter(todo.into_iter().map(|block| {
                 let (pool, recipe, bar) = (pool.clone(), self.recipe.clone(), bar.clone());
                 let (task, state) = (task.clone(), self.state_dir.clone());
-                let envs = self.envs_per_session;
+                let (envs, drive) = (self.envs_per_session, self.drive_episodes);
                 async move {
-                    let episodes = collect_settings(&pool, &recipe, &block, envs, || bar.inc(1)).await?;
+                    let episodes = collect_settings(&pool, &recipe, &block, envs, drive, || bar.inc(1)).await?;
                     let saved = tokio::task::spawn_blocking(move || {
                         for (setting, episodes) in block.iter().zip(&episodes) {
                             save_setting(&task, &state, setting, episodes)?;

@@ -1,7 +1,8 @@
 //! Episodes of a block of sweep settings, stepped through one pooled simulator session.
 
-use dsrl_evaluation::simulators::{SimulatorPool, StepResult};
+use dsrl_evaluation::simulators::{PooledSession, SimulatorPool, StepResult};
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
+use dsrl_proto::simulator_session::DrivenRest;
 use dsrl_suite::transitions::TransitionChunk;
 
 use crate::recipe::{Recipe, Setting};
@@ -49,6 +50,26 @@ pub fn record_step(chunk: &mut TransitionChunk, observation: &[f32], step: &Step
     chunk.timeouts.push(step.truncated[row] && !step.terminated[row]);
 }
 
+/// An episode's transitions from its first observation and the rest its controller drove.
+fn driven_chunk(first: &[f32], rest: &DrivenRest, obs_dim: usize, act_dim: usize) -> TransitionChunk {
+    let steps = rest.rewards.len();
+    let mut chunk = TransitionChunk::empty(obs_dim, act_dim);
+    chunk.observations.extend_from_slice(first);
+    chunk
+        .observations
+        .extend_from_slice(&rest.observations[..steps.saturating_sub(1) * obs_dim]);
+    chunk.next_observations = rest.observations.clone();
+    chunk.actions = rest.applied_actions.clone();
+    chunk.rewards = rest.rewards.iter().map(|&r| r as f32).collect();
+    chunk.costs = rest.costs.iter().map(|&c| c as f32).collect();
+    // Only the last step ends the episode; stepping records the same flags.
+    chunk.terminals = (0..steps).map(|t| t + 1 == steps && rest.terminated).collect();
+    chunk.timeouts = (0..steps)
+        .map(|t| t + 1 == steps && rest.truncated && !rest.terminated)
+        .collect();
+    chunk
+}
+
 /// The IDM driver of one sweep setting.
 fn driver(setting: &Setting) -> Controller {
     Controller {
@@ -64,12 +85,15 @@ fn driver(setting: &Setting) -> Controller {
 /// setting, to whichever environment finishes first (ties by environment index), and an environment that moves to
 /// the next setting switches its driver on reset instead of being built again. The deal depends only on the
 /// episodes, so a block gives the same episodes every time it runs; a block of one setting is a fresh session for
-/// it. Returns each setting's episodes in episode-number order.
+/// it. With `drive`, where every episode's environment is known before any is played (one environment, or all
+/// episodes dealt at once), the worker's driver plays whole episodes instead (`drive_settings`): the same
+/// episodes, one round trip per episode. Returns each setting's episodes in episode-number order.
 pub async fn collect_settings(
     pool: &SimulatorPool,
     recipe: &Recipe,
     settings: &[Setting],
     max_envs: u32,
+    drive: bool,
     on_episode: impl Fn(),
 ) -> anyhow::Result<Vec<Vec<Episode>>> {
     // Every (setting, episode) of the block, in the order they are dealt.
@@ -91,6 +115,14 @@ pub async fn collect_settings(
         controller: Some(driver(first)),
     };
     let mut session = pool.open(open).await?;
+    if drive && (k == 1 || deal.len() <= k) {
+        // Every episode's environment is known before any is played (all dealt at once, or one environment for
+        // all), so the worker's driver can play whole episodes: the same episodes as stepping, without a round trip
+        // per step.
+        let done = drive_settings(&mut session, settings, &deal, &seed_of, &on_episode).await?;
+        session.close().await?;
+        return Ok(done);
+    }
     let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
     let mut last_obs: Vec<Vec<f32>> = session
         .initial_observations()
@@ -165,6 +197,70 @@ pub async fn collect_settings(
         }
     }
     session.close().await?;
+    for episodes in &mut done {
+        episodes.sort_by_key(|e| e.number);
+    }
+    Ok(done)
+}
+
+/// `collect_settings` where every episode's environment is known in advance: the first `k` episodes of `deal` on
+/// environments `0..k` (driven together, their processes in parallel), then, with one environment, the rest one by
+/// one on it. Each episode starts with a reset that switches the driver where the setting changes, as stepping does.
+async fn drive_settings(
+    session: &mut PooledSession,
+    settings: &[Setting],
+    deal: &[(usize, u32)],
+    seed_of: &impl Fn((usize, u32)) -> u64,
+    on_episode: &impl Fn(),
+) -> anyhow::Result<Vec<Vec<Episode>>> {
+    let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
+    let k = session.initial_observations().len() / obs_dim.max(1);
+    let mut first: Vec<Vec<f32>> = session
+        .initial_observations()
+        .chunks(obs_dim)
+        .map(<[f32]>::to_vec)
+        .collect();
+    let mut done: Vec<Vec<Episode>> = settings
+        .iter()
+        .map(|s| Vec::with_capacity(s.episodes as usize))
+        .collect();
+    // The setting whose driver each env has: all open with the first setting's.
+    let mut driving = vec![0usize; k];
+    let mut next = 0;
+    while next < deal.len() {
+        let wave: Vec<(u32, (usize, u32))> = (0..k as u32).zip(deal[next..].iter().copied()).collect();
+        // Episodes past the first deal, or of another setting than the env drives, start with their own reset.
+        for &(env, d) in &wave {
+            if next > 0 || d.0 != driving[env as usize] {
+                let switch = (d.0 != driving[env as usize]).then(|| driver(&settings[d.0]));
+                first[env as usize] = session.reset_with(&[env], &[seed_of(d)], switch).await?;
+                driving[env as usize] = d.0;
+            }
+        }
+        let envs: Vec<u32> = wave.iter().map(|&(env, _)| env).collect();
+        let driven = session.drive(&envs).await?;
+        anyhow::ensure!(
+            driven.len() == envs.len(),
+            "the worker drove {} episodes for {} environments",
+            driven.len(),
+            envs.len()
+        );
+        for (&(env, (s, number)), rest) in wave.iter().zip(&driven) {
+            anyhow::ensure!(
+                rest.env == env && !rest.rewards.is_empty(),
+                "a driven episode is malformed"
+            );
+            let transitions = driven_chunk(&first[env as usize], rest, obs_dim, act_dim);
+            done[s].push(Episode::from_chunk(
+                settings[s].index,
+                number,
+                seed_of((s, number)),
+                transitions,
+            ));
+            on_episode();
+        }
+        next += wave.len();
+    }
     for episodes in &mut done {
         episodes.sort_by_key(|e| e.number);
     }

@@ -92,7 +92,10 @@ struct CollectArgs {
     /// Local simulator workers (default: one per core).
     #[arg(long)]
     workers: Option<u32>,
-    /// Environments per worker session (MetaDrive: one process each, ~300 MB).
+    /// Environments per worker session (MetaDrive: one process each, ~300 MB). IDM sweeps: where a session has
+    /// one environment, or all its episodes are dealt at once, the driver plays whole episodes inside the worker
+    /// (one round trip per episode, the same episodes as stepping); with `--settings-per-session` above 1, one
+    /// environment per session is the fastest layout.
     #[arg(long, default_value_t = 4)]
     envs_per_session: u32,
     /// IDM sweeps: consecutive settings played in one session, whose environments switch the driver's settings on
@@ -102,6 +105,10 @@ struct CollectArgs {
     /// exactly. Recorded in the provenance; a resumed run replays unfinished blocks whole.
     #[arg(long, default_value_t = 1)]
     settings_per_session: u32,
+    /// IDM sweeps: step every episode through the protocol (a round trip per step) even where the driver could
+    /// play it whole in the worker. The same episodes, slower; kept to check that claim and to measure it.
+    #[arg(long)]
+    step_episodes: bool,
     /// Thin the result to at most N episodes, spread over the (reward, cost) plane like the trajectory buffer
     /// does (for starter datasets; a finished run's settings are reused, nothing is simulated again).
     #[arg(long)]
@@ -274,6 +281,7 @@ async fn run() -> anyhow::Result<()> {
         workers,
         envs_per_session,
         settings_per_session,
+        step_episodes,
         worker_binary,
         max_episodes,
         out,
@@ -306,6 +314,7 @@ async fn run() -> anyhow::Result<()> {
         workers: workers.unwrap_or_else(cores).max(1),
         envs_per_session: envs_per_session.max(1),
         settings_per_session: settings_per_session.max(1),
+        drive_episodes: !step_episodes,
         simulators: SimulatorsConfig {
             worker_binary,
             ..SimulatorsConfig::default()

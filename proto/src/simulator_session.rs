@@ -111,11 +111,26 @@ pub struct StepResult {
     pub applied_actions: Vec<f32>,
 }
 
+/// The rest of one episode its controller drove (see `Drive` in the proto): `T` steps to the episode's end.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DrivenRest {
+    pub env: u32,
+    /// `[T * obs_dim]`, row-major: the observation after each step.
+    pub observations: Vec<f32>,
+    /// `[T * act_dim]`: what the controller applied.
+    pub applied_actions: Vec<f32>,
+    pub rewards: Vec<f64>,
+    pub costs: Vec<f64>,
+    pub terminated: bool,
+    pub truncated: bool,
+}
+
 /// A decoded response to one pipelined request.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Reply {
     Reset { envs: Vec<u32>, observations: Vec<f32> },
     Step(StepResult),
+    Drive(Vec<DrivenRest>),
     Closed,
 }
 
@@ -224,6 +239,12 @@ impl SimulatorSession {
         .await
     }
 
+    /// Queues a drive (the controller plays the rest of each named environment's episode) without waiting.
+    pub async fn send_drive(&mut self, envs: &[u32]) -> Result<u64, Status> {
+        self.send(session_request::Kind::Drive(pb::Drive { envs: envs.to_vec() }))
+            .await
+    }
+
     /// Sends a raw request (tests use it to send what a typed call never would).
     pub async fn send_raw(&mut self, kind: session_request::Kind) -> Result<u64, Status> {
         self.send(kind).await
@@ -249,6 +270,24 @@ impl SimulatorSession {
                     .transpose()?,
                 applied_actions: required(step.applied_actions, "applied_actions")?.to_f32("applied_actions")?,
             })),
+            Some(session_response::Kind::Drive(driven)) => Ok(Reply::Drive(
+                driven
+                    .episodes
+                    .into_iter()
+                    .map(|e| {
+                        Ok(DrivenRest {
+                            env: e.env,
+                            observations: required(e.observations, "observations")?.to_f32("observations")?,
+                            applied_actions: required(e.applied_actions, "applied_actions")?
+                                .to_f32("applied_actions")?,
+                            rewards: required(e.rewards, "rewards")?.to_f64("rewards")?,
+                            costs: required(e.costs, "costs")?.to_f64("costs")?,
+                            terminated: e.terminated,
+                            truncated: e.truncated,
+                        })
+                    })
+                    .collect::<Result<_, Status>>()?,
+            )),
             Some(session_response::Kind::Closed(_)) => Ok(Reply::Closed),
             _ => Err(Status::internal("unexpected response in a simulator session")),
         }
@@ -279,6 +318,16 @@ impl SimulatorSession {
         match self.receive().await? {
             Reply::Reset { observations, .. } => Ok(observations),
             _ => Err(Status::internal("a reset was not answered with observations")),
+        }
+    }
+
+    /// Lets the session's controller play the rest of each named environment's episode (empty: all); returns them
+    /// in the request's order. A session opened with a controller and without auto-reset only.
+    pub async fn drive(&mut self, envs: &[u32]) -> Result<Vec<DrivenRest>, Status> {
+        self.send_drive(envs).await?;
+        match self.receive().await? {
+            Reply::Drive(episodes) => Ok(episodes),
+            _ => Err(Status::internal("a drive was not answered with driven episodes")),
         }
     }
 

@@ -46,6 +46,16 @@ pub struct StepBytes {
     pub applied_actions: Vec<u8>,
 }
 
+/// The rest of one episode its controller drove; see `dsrl_sim/tasks.py` `drive`.
+pub struct DrivenBytes {
+    pub observations: Vec<u8>,
+    pub applied_actions: Vec<u8>,
+    pub rewards: Vec<u8>,
+    pub costs: Vec<u8>,
+    pub terminated: bool,
+    pub truncated: bool,
+}
+
 /// A built-in driver instead of the client's actions (see `Controller` in the proto).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Controller {
@@ -278,6 +288,29 @@ impl PyBatch {
                 })
             };
             call().map_err(|e| simulator_error(py, "step", e))
+        })
+    }
+
+    /// Plays the rest of each named environment's episode, its controller driving (a controlled batch only).
+    pub fn drive(&self, envs: &[u32]) -> Result<Vec<DrivenBytes>, SimError> {
+        Python::attach(|py| {
+            let call = || -> PyResult<Vec<DrivenBytes>> {
+                let result = self.batch.bind(py).call_method1("drive", (envs.to_vec(),))?;
+                let mut episodes = Vec::with_capacity(envs.len());
+                for item in result.try_iter()? {
+                    let parts = item?.cast_into::<PyTuple>()?;
+                    episodes.push(DrivenBytes {
+                        observations: bytes_of(parts.get_item(0)?)?,
+                        applied_actions: bytes_of(parts.get_item(1)?)?,
+                        rewards: bytes_of(parts.get_item(2)?)?,
+                        costs: bytes_of(parts.get_item(3)?)?,
+                        terminated: parts.get_item(4)?.extract()?,
+                        truncated: parts.get_item(5)?.extract()?,
+                    });
+                }
+                Ok(episodes)
+            };
+            call().map_err(|e| simulator_error(py, "drive", e))
         })
     }
 

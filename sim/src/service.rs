@@ -7,8 +7,8 @@ use std::sync::{Arc, Mutex};
 
 use dsrl_proto::simulator::v1 as pb;
 use dsrl_proto::simulator::v1::{
-    AutoReset, Closed, DType, DescribeRequest, HealthRequest, HealthResponse, Observations, Opened, Reset,
-    SessionRequest, SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response,
+    AutoReset, Closed, DType, DescribeRequest, Driven, DrivenEpisode, HealthRequest, HealthResponse, Observations,
+    Opened, Reset, SessionRequest, SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response,
     simulator_server::Simulator,
 };
 use dsrl_suite::catalog::{Catalog, Family};
@@ -320,6 +320,10 @@ async fn run_session(
             Some(kind) => {
                 let switch = match &kind {
                     session_request::Kind::Reset(reset) => switch_driver(&inner, &sim_id, driven, reset),
+                    session_request::Kind::Drive(_) if !driven => Err(SimError::FailedPrecondition(
+                        "drive needs a session opened with a controller: without one, the client chooses the actions"
+                            .into(),
+                    )),
                     _ => Ok(None),
                 };
                 let (shared, batch) = (shared.clone(), batch.clone());
@@ -435,7 +439,48 @@ fn respond(
                 envs,
             }))
         }
-        _ => Err(SimError::InvalidArgument("not a reset or a step".into())),
+        session_request::Kind::Drive(drive) => {
+            let envs = state.check_drive(&drive)?;
+            let driven = batch.drive(&envs)?;
+            state.after_drive(&envs);
+            let episodes = envs
+                .iter()
+                .zip(driven)
+                .map(|(&env, out)| {
+                    let steps = out.rewards.len() / 8;
+                    Ok(DrivenEpisode {
+                        env,
+                        observations: Some(tensor(
+                            DType::Float32,
+                            &[steps, obs_dim],
+                            out.observations,
+                            4,
+                            "observations",
+                        )?),
+                        applied_actions: Some(tensor(
+                            DType::Float32,
+                            &[steps, act_dim],
+                            out.applied_actions,
+                            4,
+                            "applied actions",
+                        )?),
+                        rewards: Some(tensor(DType::Float64, &[steps], out.rewards, 8, "rewards")?),
+                        costs: Some(tensor(DType::Float64, &[steps], out.costs, 8, "costs")?),
+                        terminated: out.terminated,
+                        truncated: out.truncated,
+                    })
+                })
+                .collect::<Result<Vec<_>, SimError>>()?;
+            if episodes.len() != envs.len() {
+                return Err(SimError::Simulator(format!(
+                    "the simulator drove {} episodes for {} environments",
+                    episodes.len(),
+                    envs.len()
+                )));
+            }
+            Ok(session_response::Kind::Drive(Driven { episodes }))
+        }
+        _ => Err(SimError::InvalidArgument("not a reset, a step or a drive".into())),
     }
 }
 

@@ -1,7 +1,7 @@
 //! The rules of one session, checked in Rust before anything reaches Python: which environments a request names,
 //! the actions' dtype, shape and values, and which environments have finished their episode.
 
-use dsrl_proto::simulator::v1::{DType, Open, Reset, Step};
+use dsrl_proto::simulator::v1::{DType, Drive, Open, Reset, Step};
 
 use crate::error::SimError;
 
@@ -146,6 +146,32 @@ impl SessionState {
         Ok((envs, &actions.data))
     }
 
+    /// Checks a drive: a session without auto-reset (a driven episode ends with its environment finished), the
+    /// environments, and that none of them has finished. Whether the session has a controller is checked by the
+    /// caller, which knows how the session was opened.
+    pub fn check_drive(&self, drive: &Drive) -> Result<Vec<u32>, SimError> {
+        if self.auto_reset {
+            return Err(SimError::FailedPrecondition(
+                "drive needs a session opened with AUTO_RESET_NONE: a driven episode ends, and the client resets it"
+                    .into(),
+            ));
+        }
+        let envs = self.envs(&drive.envs)?;
+        if let Some(&env) = envs.iter().find(|&&env| self.finished[env as usize]) {
+            return Err(SimError::FailedPrecondition(format!(
+                "env {env} has finished its episode: reset it before driving it"
+            )));
+        }
+        Ok(envs)
+    }
+
+    /// Driven environments have played their episode to its end.
+    pub fn after_drive(&mut self, envs: &[u32]) {
+        for &env in envs {
+            self.finished[env as usize] = true;
+        }
+    }
+
     /// Records which stepped environments ended their episode (with auto-reset they start a new one at once).
     pub fn after_step(&mut self, envs: &[u32], terminated: &[u8], truncated: &[u8]) {
         if self.auto_reset {
@@ -252,6 +278,28 @@ mod tests {
                 .check_step(&step(vec![], Tensor::from_f32(&[1, 1], &[0.0])))
                 .is_ok()
         );
+    }
+
+    #[test]
+    fn drive_needs_no_auto_reset_known_envs_and_unfinished_episodes() {
+        let drive = |envs: Vec<u32>| Drive { envs };
+        let auto = SessionState::new(3, 1, 2, true);
+        assert!(matches!(
+            auto.check_drive(&drive(vec![])),
+            Err(SimError::FailedPrecondition(_))
+        ));
+        let mut state = SessionState::new(3, 1, 2, false);
+        assert_eq!(state.check_drive(&drive(vec![])).unwrap(), vec![0, 1]);
+        assert!(matches!(
+            state.check_drive(&drive(vec![2])),
+            Err(SimError::InvalidArgument(_))
+        ));
+        state.after_drive(&[1]);
+        assert_eq!(state.check_drive(&drive(vec![0])).unwrap(), vec![0]);
+        let err = state.check_drive(&drive(vec![0, 1])).unwrap_err();
+        assert!(matches!(err, SimError::FailedPrecondition(_)), "{err}");
+        state.after_reset(&[1]);
+        assert!(state.check_drive(&drive(vec![0, 1])).is_ok());
     }
 
     #[test]

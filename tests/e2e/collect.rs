@@ -30,25 +30,20 @@ fn tiny_recipe(dir: &Path) -> std::path::PathBuf {
     path
 }
 
+/// `dsrl-admin collect` on one worker, two environments per session unless `extra` says otherwise.
 fn collect(recipe: &Path, state: &Path, extra: &[&str]) -> Command {
     let mut cmd = Command::new(dsrl_e2e::bin("dsrl-admin"));
-    cmd.args([
-        "collect",
-        "--task",
-        TASK,
-        "--json",
-        "--workers",
-        "1",
-        "--envs-per-session",
-        "2",
-    ])
-    .arg("--recipe")
-    .arg(recipe)
-    .arg("--state")
-    .arg(state)
-    .args(extra)
-    .env_remove("DSRL_SERVER")
-    .env_remove("DSRL_ADMIN_TOKEN");
+    cmd.args(["collect", "--task", TASK, "--json", "--workers", "1"]);
+    if !extra.contains(&"--envs-per-session") {
+        cmd.args(["--envs-per-session", "2"]);
+    }
+    cmd.arg("--recipe")
+        .arg(recipe)
+        .arg("--state")
+        .arg(state)
+        .args(extra)
+        .env_remove("DSRL_SERVER")
+        .env_remove("DSRL_ADMIN_TOKEN");
     cmd
 }
 
@@ -149,6 +144,33 @@ fn a_block_of_settings_per_session_drives_each_as_fresh_sessions_do_and_resumes_
             "13 and 21 km/h should differ: {slow_fresh:?}, {fast_fresh:?}"
         );
     }
+
+    // Where every episode's environment is known in advance, the worker's driver plays whole episodes; stepped
+    // through the protocol instead (`--step-episodes`), the same layout gives the same dataset. Two layouts: the
+    // fresh sessions above (both episodes of a setting dealt at once to two environments), and the block on one
+    // environment (four episodes one after another, the driver switched on reset).
+    let fresh_stepped = crate::admin_json(collect(
+        &recipe,
+        &dir.path().join("fresh-stepped"),
+        &["--step-episodes"],
+    ));
+    let fresh_driven = crate::admin_json(collect(&recipe, &fresh, &[]));
+    assert_eq!(
+        fresh_stepped["version"], fresh_driven["version"],
+        "driven and stepped episodes differ"
+    );
+    let one_env = ["--settings-per-session", "2", "--envs-per-session", "1"];
+    let driven = crate::admin_json(collect(&recipe, &dir.path().join("one-env"), &one_env));
+    let stepped = crate::admin_json(collect(
+        &recipe,
+        &dir.path().join("one-env-stepped"),
+        &[&one_env[..], &["--step-episodes"]].concat(),
+    ));
+    assert_eq!(driven["episodes"], 4);
+    assert_eq!(
+        stepped["version"], driven["version"],
+        "driven and stepped episodes differ"
+    );
 
     // A block with a setting missing is played again whole: the same dataset as the uninterrupted run.
     std::fs::remove_file(block.join("settings/001.parquet")).unwrap();

@@ -1,7 +1,7 @@
 use std::time::Duration;
 
 use dsrl_proto::simulator::v1::{Controller, TaskSpec};
-use dsrl_proto::simulator_session::{Reply, SimulatorSession, StepResult};
+use dsrl_proto::simulator_session::{DrivenRest, Reply, SimulatorSession, StepResult};
 use tonic::{Code, Status};
 
 use crate::error::EvaluationError;
@@ -78,6 +78,13 @@ impl PooledSession {
         let worker = self.worker.clone();
         let call = self.session.reset_with(envs, seeds, controller);
         deadline(&worker, timeout, "reset", call).await
+    }
+
+    /// The controller plays the rest of each named environment's episode inside the worker (a session opened with a
+    /// controller only): one answer per episode instead of one per step. The deadline holds for the whole drive.
+    pub async fn drive(&mut self, envs: &[u32]) -> Result<Vec<DrivenRest>, EvaluationError> {
+        let (timeout, worker) = (self.timeout, self.worker.clone());
+        deadline(&worker, timeout, "drive", self.session.drive(envs)).await
     }
 
     /// Queues a step without waiting for its result, so the worker can step it while the caller acts on another

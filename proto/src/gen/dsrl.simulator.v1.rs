@@ -48,7 +48,7 @@ pub struct SessionRequest {
     /// Echoed in the response.
     #[prost(uint64, tag = "1")]
     pub id: u64,
-    #[prost(oneof = "session_request::Kind", tags = "2, 3, 4, 5")]
+    #[prost(oneof = "session_request::Kind", tags = "2, 3, 4, 5, 6")]
     pub kind: ::core::option::Option<session_request::Kind>,
 }
 /// Nested message and enum types in `SessionRequest`.
@@ -64,6 +64,8 @@ pub mod session_request {
         Step(super::Step),
         #[prost(message, tag = "5")]
         Close(super::Close),
+        #[prost(message, tag = "6")]
+        Drive(super::Drive),
     }
 }
 #[allow(clippy::all)]
@@ -134,6 +136,18 @@ pub struct Step {
     #[prost(message, optional, tag = "2")]
     pub actions: ::core::option::Option<Tensor>,
 }
+/// Only in a session opened with a controller and AUTO_RESET_NONE: the controller plays each named environment's
+/// current episode (just reset, or part-played) to its end inside the worker, and one answer carries the rest of
+/// every episode. A sweep then costs one round trip per episode instead of one per step; the episode is the one
+/// that stepping would have played (the same calls, in the same order). The environments have finished afterwards:
+/// reset them before driving or stepping them again.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct Drive {
+    /// Environments to drive (empty: all).
+    #[prost(uint32, repeated, tag = "1")]
+    pub envs: ::prost::alloc::vec::Vec<u32>,
+}
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]
 pub struct Close {}
@@ -142,7 +156,7 @@ pub struct Close {}
 pub struct SessionResponse {
     #[prost(uint64, tag = "1")]
     pub id: u64,
-    #[prost(oneof = "session_response::Kind", tags = "2, 3, 4, 5")]
+    #[prost(oneof = "session_response::Kind", tags = "2, 3, 4, 5, 6")]
     pub kind: ::core::option::Option<session_response::Kind>,
 }
 /// Nested message and enum types in `SessionResponse`.
@@ -158,6 +172,8 @@ pub mod session_response {
         Step(super::Transition),
         #[prost(message, tag = "5")]
         Closed(super::Closed),
+        #[prost(message, tag = "6")]
+        Drive(super::Driven),
     }
 }
 #[allow(clippy::all)]
@@ -203,6 +219,36 @@ pub struct Transition {
     /// controller's). Datasets record these.
     #[prost(message, optional, tag = "8")]
     pub applied_actions: ::core::option::Option<Tensor>,
+}
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct Driven {
+    /// One per driven environment, in the request's order.
+    #[prost(message, repeated, tag = "1")]
+    pub episodes: ::prost::alloc::vec::Vec<DrivenEpisode>,
+}
+/// The rest of one episode: T steps, from the environment's state when the Drive arrived to the episode's end.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct DrivenEpisode {
+    #[prost(uint32, tag = "1")]
+    pub env: u32,
+    /// FLOAT32 \[T, obs_dim\]: the observation after each step.
+    #[prost(message, optional, tag = "2")]
+    pub observations: ::core::option::Option<Tensor>,
+    /// FLOAT32 \[T, act_dim\]: the actions the controller applied.
+    #[prost(message, optional, tag = "3")]
+    pub applied_actions: ::core::option::Option<Tensor>,
+    /// FLOAT64 \[T\] each.
+    #[prost(message, optional, tag = "4")]
+    pub rewards: ::core::option::Option<Tensor>,
+    #[prost(message, optional, tag = "5")]
+    pub costs: ::core::option::Option<Tensor>,
+    /// How the last step ended the episode.
+    #[prost(bool, tag = "6")]
+    pub terminated: bool,
+    #[prost(bool, tag = "7")]
+    pub truncated: bool,
 }
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]

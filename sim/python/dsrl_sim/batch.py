@@ -6,6 +6,8 @@
     obs, rewards, costs, terminated, truncated, final_obs, applied = batch.step([0, 1, 2], actions)
     # float32 [n, obs_dim], float64 [n], float64 [n], uint8 [n], uint8 [n], float32 [n, obs_dim] or b"",
     # float32 [n, act_dim] (the actions the simulators applied: clipped, or a controller's)
+    episodes = batch.drive([0, 1])                      # opened with a controller: play the rest of each episode
+    # [(observations, applied actions, rewards, costs, terminated, truncated)], see tasks.drive
 
 Bullet-Safety-Gym and Safety-Gymnasium envs live in this process. MetaDrive allows one engine per process, so each
 MetaDrive env lives in its own process (multiprocessing, spawn start method) and a batch steps them in parallel.
@@ -34,6 +36,8 @@ def _host(conn, sim_id, controller):
                 conn.send(env.reset(seed, switch))
             elif command == "step":
                 conn.send(env.step(argument))
+            elif command == "drive":
+                conn.send(tasks.drive(env))
             else:
                 env.close()
                 conn.send(None)
@@ -132,6 +136,15 @@ class Batch:
             final = final_obs.tobytes()
         return (obs.tobytes(), rewards.tobytes(), costs.tobytes(), terminated.tobytes(), truncated.tobytes(), final,
                 applied.tobytes())
+
+    def drive(self, indices):
+        """The rest of each named env's episode, its controller driving; MetaDrive's processes play in parallel."""
+        indices = list(indices)
+        if self.remote:
+            for i in indices:
+                self.envs[i].send("drive")
+            return [self.envs[i].receive() for i in indices]
+        return [tasks.drive(self.envs[i]) for i in indices]
 
     def close(self):
         for env in self.envs:

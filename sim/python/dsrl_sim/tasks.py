@@ -153,6 +153,29 @@ class Env:
         self._env.close()
 
 
+def drive(env):
+    """Plays `env`'s current episode to its end with the actions ignored (its controller drives), calling `step`
+    exactly as a client's steps would. -> observations float32 [T, obs_dim], applied actions float32 [T, act_dim],
+    rewards float64 [T], costs float64 [T] (as bytes), terminated, truncated."""
+    if not env.controlled:
+        raise ValueError(f"{env.sim_id}: only an env built with a controller can drive itself")
+    idle = np.zeros(env.act_dim, dtype=np.float32)
+    observations, actions, rewards, costs = [], [], [], []
+    # A guard against an episode that never ends (every task here ends at its horizon).
+    for _ in range(10 * env.max_episode_steps):
+        obs, reward, cost, terminated, truncated, applied = env.step(idle)
+        observations.append(obs)
+        actions.append(applied)
+        rewards.append(reward)
+        costs.append(cost)
+        if terminated or truncated:
+            return (np.stack(observations).astype(np.float32, copy=False).tobytes(),
+                    np.stack(actions).astype(np.float32, copy=False).tobytes(),
+                    np.asarray(rewards, dtype=np.float64).tobytes(), np.asarray(costs, dtype=np.float64).tobytes(),
+                    bool(terminated), bool(truncated))
+    raise RuntimeError(f"{env.sim_id}: the episode did not end within {10 * env.max_episode_steps} steps")
+
+
 def make_env(sim_id, controller=None):
     return Env(sim_id, controller)
 

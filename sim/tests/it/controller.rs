@@ -1,5 +1,6 @@
 //! The built-in IDM driver of MetaDrive data collection: it drives instead of the client, reports what it applied,
-//! and is as reproducible as everything else; other families refuse it. A reset can switch its settings.
+//! and is as reproducible as everything else; other families refuse it. A reset can switch its settings, and a drive
+//! lets it play a whole episode inside the worker.
 
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
 use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
@@ -136,4 +137,64 @@ async fn a_reset_switches_the_driver_as_a_fresh_session_at_those_settings_would_
             .unwrap();
     let status = driven.reset_with(&[0], &[1], Some(idm(-1.0, 0.6))).await.err().unwrap();
     assert_eq!(status.code(), Code::InvalidArgument, "{}", status.message());
+}
+
+#[tokio::test]
+async fn a_drive_plays_the_episode_that_stepping_would_and_is_refused_where_it_cannot() {
+    let worker = Worker::start(&[]).await;
+    let open = || {
+        let mut open = idm_open("SafeMetaDrive-hardsparse-v0", vec![3, 4]);
+        open.controller = Some(idm(21.0, 3.0));
+        open
+    };
+    // Env 0's episode, stepped to its end.
+    let (mut stepped, _) = SimulatorSession::open(worker.channel().await, open()).await.unwrap();
+    let mut played = Vec::new();
+    loop {
+        let step = stepped.step(&[0], &[0.0, 0.0]).await.unwrap();
+        let ended = step.terminated[0] || step.truncated[0];
+        played.push(step);
+        if ended {
+            break;
+        }
+        assert!(played.len() <= 1000, "the episode should end at the horizon");
+    }
+    stepped.close().await.unwrap();
+
+    // The same episode, driven inside the worker, beside env 1's.
+    let (mut driven, _) = SimulatorSession::open(worker.channel().await, open()).await.unwrap();
+    let episodes = driven.drive(&[0, 1]).await.unwrap();
+    assert_eq!(episodes.iter().map(|e| e.env).collect::<Vec<_>>(), vec![0, 1]);
+    let rest = &episodes[0];
+    assert_eq!(rest.rewards.len(), played.len(), "a drive plays the episode to its end");
+    let concat = |f: fn(&StepResult) -> &[f32]| played.iter().flat_map(|s| f(s).to_vec()).collect::<Vec<f32>>();
+    assert!(rest.observations == concat(|s| &s.observations), "observations differ");
+    assert!(
+        rest.applied_actions == concat(|s| &s.applied_actions),
+        "applied actions differ"
+    );
+    assert!(rest.rewards == played.iter().map(|s| s.rewards[0]).collect::<Vec<_>>());
+    assert!(rest.costs == played.iter().map(|s| s.costs[0]).collect::<Vec<_>>());
+    let last = played.last().unwrap();
+    assert_eq!(
+        (rest.terminated, rest.truncated),
+        (last.terminated[0], last.truncated[0])
+    );
+    assert!(!episodes[1].rewards.is_empty() && episodes[1].rewards != rest.rewards);
+    // A reset starts another episode to drive; a finished one must be reset first.
+    driven.reset_with(&[0], &[5], Some(idm(13.0, 1.2))).await.unwrap();
+    assert!(!driven.drive(&[0]).await.unwrap()[0].rewards.is_empty());
+    let status = driven.drive(&[0]).await.err().unwrap();
+    assert_eq!(status.code(), Code::FailedPrecondition, "{}", status.message());
+    assert!(status.message().contains("reset it"), "{}", status.message());
+
+    // Only a session with a controller, and without auto-reset, can drive.
+    let (mut client_driven, _) = worker.open("SafeMetaDrive-hardsparse-v0", &[0], AutoReset::None).await;
+    let status = client_driven.drive(&[]).await.err().unwrap();
+    assert_eq!(status.code(), Code::FailedPrecondition, "{}", status.message());
+    let mut auto = open();
+    auto.auto_reset = AutoReset::SameStep as i32;
+    let (mut auto, _) = SimulatorSession::open(worker.channel().await, auto).await.unwrap();
+    let status = auto.drive(&[]).await.err().unwrap();
+    assert_eq!(status.code(), Code::FailedPrecondition, "{}", status.message());
 }
