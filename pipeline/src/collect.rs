@@ -1,4 +1,5 @@
-//! Episodes of a block of sweep settings, stepped through one pooled simulator session.
+//! Episodes of a block of sweep settings, played through one pooled simulator session: driven whole by the worker's
+//! driver where the deal allows, stepped otherwise.
 
 use dsrl_evaluation::simulators::{PooledSession, SimulatorPool, StepResult};
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
@@ -246,9 +247,15 @@ async fn drive_settings(
             envs.len()
         );
         for (&(env, (s, number)), rest) in wave.iter().zip(&driven) {
+            let steps = rest.rewards.len();
             anyhow::ensure!(
-                rest.env == env && !rest.rewards.is_empty(),
-                "a driven episode is malformed"
+                rest.env == env
+                    && steps > 0
+                    && rest.costs.len() == steps
+                    && rest.observations.len() == steps * obs_dim
+                    && rest.applied_actions.len() == steps * act_dim,
+                "the worker's driven episode of env {env} is malformed (env {}, {steps} steps)",
+                rest.env
             );
             let transitions = driven_chunk(&first[env as usize], rest, obs_dim, act_dim);
             done[s].push(Episode::from_chunk(
