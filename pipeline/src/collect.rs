@@ -116,14 +116,43 @@ pub async fn collect_settings(
         controller: Some(driver(first)),
     };
     let mut session = pool.open(open).await?;
+    let mut done: Vec<Vec<Episode>> = settings
+        .iter()
+        .map(|s| Vec::with_capacity(s.episodes as usize))
+        .collect();
+    let mut finish = |(s, number): (usize, u32), transitions: TransitionChunk| {
+        done[s].push(Episode::from_chunk(
+            settings[s].index,
+            number,
+            seed_of((s, number)),
+            transitions,
+        ));
+        on_episode();
+    };
     if drive && (k == 1 || deal.len() <= k) {
         // Every episode's environment is known before any is played (all dealt at once, or one environment for
         // all), so the worker's driver can play whole episodes: the same episodes as stepping, without a round trip
         // per step.
-        let done = drive_settings(&mut session, settings, &deal, &seed_of, &on_episode).await?;
-        session.close().await?;
-        return Ok(done);
+        drive_settings(&mut session, settings, &deal, k, &seed_of, &mut finish).await?;
+    } else {
+        step_settings(&mut session, settings, &deal, k, &seed_of, &mut finish).await?;
     }
+    session.close().await?;
+    for episodes in &mut done {
+        episodes.sort_by_key(|e| e.number);
+    }
+    Ok(done)
+}
+
+/// `collect_settings` by stepping: episodes dealt to whichever environment finishes first, each step a round trip.
+async fn step_settings(
+    session: &mut PooledSession,
+    settings: &[Setting],
+    deal: &[(usize, u32)],
+    k: usize,
+    seed_of: &impl Fn((usize, u32)) -> u64,
+    finish: &mut impl FnMut((usize, u32), TransitionChunk),
+) -> anyhow::Result<()> {
     let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
     let mut last_obs: Vec<Vec<f32>> = session
         .initial_observations()
@@ -140,10 +169,6 @@ pub async fn collect_settings(
         .collect();
     let mut dealt = k;
     let mut partial: Vec<TransitionChunk> = (0..k).map(|_| TransitionChunk::empty(obs_dim, act_dim)).collect();
-    let mut done: Vec<Vec<Episode>> = settings
-        .iter()
-        .map(|s| Vec::with_capacity(s.episodes as usize))
-        .collect();
     let mut finished = 0;
     loop {
         // Start the dealt episodes, one reset per setting whose driver the envs switch to.
@@ -179,16 +204,12 @@ pub async fn collect_settings(
             record_step(chunk, &last_obs[i], &step, row);
             last_obs[i] = step.observations[row * obs_dim..(row + 1) * obs_dim].to_vec();
             if step.terminated[row] || step.truncated[row] {
-                let (s, number) = playing[i].take().expect("stepped envs are playing");
-                let transitions = std::mem::replace(chunk, TransitionChunk::empty(obs_dim, act_dim));
-                done[s].push(Episode::from_chunk(
-                    settings[s].index,
-                    number,
-                    seed_of((s, number)),
-                    transitions,
-                ));
+                let played = playing[i].take().expect("stepped envs are playing");
+                finish(
+                    played,
+                    std::mem::replace(chunk, TransitionChunk::empty(obs_dim, act_dim)),
+                );
                 finished += 1;
-                on_episode();
                 if let Some(&next) = deal.get(dealt) {
                     playing[i] = Some(next);
                     starting.push((env, next));
@@ -197,11 +218,7 @@ pub async fn collect_settings(
             }
         }
     }
-    session.close().await?;
-    for episodes in &mut done {
-        episodes.sort_by_key(|e| e.number);
-    }
-    Ok(done)
+    Ok(())
 }
 
 /// `collect_settings` where every episode's environment is known in advance: the first `k` episodes of `deal` on
@@ -211,19 +228,15 @@ async fn drive_settings(
     session: &mut PooledSession,
     settings: &[Setting],
     deal: &[(usize, u32)],
+    k: usize,
     seed_of: &impl Fn((usize, u32)) -> u64,
-    on_episode: &impl Fn(),
-) -> anyhow::Result<Vec<Vec<Episode>>> {
+    finish: &mut impl FnMut((usize, u32), TransitionChunk),
+) -> anyhow::Result<()> {
     let (obs_dim, act_dim) = (session.spec().obs_dim as usize, session.spec().act_dim as usize);
-    let k = session.initial_observations().len() / obs_dim.max(1);
     let mut first: Vec<Vec<f32>> = session
         .initial_observations()
         .chunks(obs_dim)
         .map(<[f32]>::to_vec)
-        .collect();
-    let mut done: Vec<Vec<Episode>> = settings
-        .iter()
-        .map(|s| Vec::with_capacity(s.episodes as usize))
         .collect();
     // The setting whose driver each env has: all open with the first setting's.
     let mut driving = vec![0usize; k];
@@ -246,7 +259,7 @@ async fn drive_settings(
             driven.len(),
             envs.len()
         );
-        for (&(env, (s, number)), rest) in wave.iter().zip(&driven) {
+        for (&(env, played), rest) in wave.iter().zip(&driven) {
             let steps = rest.rewards.len();
             anyhow::ensure!(
                 rest.env == env
@@ -257,19 +270,9 @@ async fn drive_settings(
                 "the worker's driven episode of env {env} is malformed (env {}, {steps} steps)",
                 rest.env
             );
-            let transitions = driven_chunk(&first[env as usize], rest, obs_dim, act_dim);
-            done[s].push(Episode::from_chunk(
-                settings[s].index,
-                number,
-                seed_of((s, number)),
-                transitions,
-            ));
-            on_episode();
+            finish(played, driven_chunk(&first[env as usize], rest, obs_dim, act_dim));
         }
         next += wave.len();
     }
-    for episodes in &mut done {
-        episodes.sort_by_key(|e| e.number);
-    }
-    Ok(done)
+    Ok(())
 }

@@ -77,6 +77,11 @@ impl SessionState {
         Ok(envs.to_vec())
     }
 
+    /// The first of `envs` whose episode has ended.
+    fn first_finished(&self, envs: &[u32]) -> Option<u32> {
+        envs.iter().copied().find(|&env| self.finished[env as usize])
+    }
+
     pub fn check_reset(&self, reset: &Reset) -> Result<(Vec<u32>, Vec<u64>), SimError> {
         let envs = self.envs(&reset.envs)?;
         if reset.seeds.len() != envs.len() {
@@ -136,7 +141,7 @@ impl SessionState {
             }
         }
         if !self.auto_reset
-            && let Some(&env) = envs.iter().find(|&&env| self.finished[env as usize])
+            && let Some(env) = self.first_finished(&envs)
         {
             return Err(SimError::FailedPrecondition(format!(
                 "env {env} has finished its episode: reset it before stepping (or open the session with \
@@ -157,7 +162,7 @@ impl SessionState {
             ));
         }
         let envs = self.envs(&drive.envs)?;
-        if let Some(&env) = envs.iter().find(|&&env| self.finished[env as usize]) {
+        if let Some(env) = self.first_finished(&envs) {
             return Err(SimError::FailedPrecondition(format!(
                 "env {env} has finished its episode: reset it before driving it"
             )));

@@ -32,19 +32,12 @@ fn tiny_recipe(dir: &Path) -> std::path::PathBuf {
 
 /// `dsrl-admin collect` on one worker, two environments per session unless `extra` says otherwise.
 fn collect(recipe: &Path, state: &Path, extra: &[&str]) -> Command {
-    let mut cmd = Command::new(dsrl_e2e::bin("dsrl-admin"));
-    cmd.args(["collect", "--task", TASK, "--json", "--workers", "1"]);
-    if !extra.contains(&"--envs-per-session") {
-        cmd.args(["--envs-per-session", "2"]);
-    }
-    cmd.arg("--recipe")
-        .arg(recipe)
-        .arg("--state")
-        .arg(state)
-        .args(extra)
-        .env_remove("DSRL_SERVER")
-        .env_remove("DSRL_ADMIN_TOKEN");
-    cmd
+    let envs: &[&str] = if extra.contains(&"--envs-per-session") {
+        &[]
+    } else {
+        &["--envs-per-session", "2"]
+    };
+    crate::admin_collect(TASK, recipe, state, &[&["--workers", "1"], envs, extra].concat())
 }
 
 #[test]

@@ -32,18 +32,13 @@ fn small_recipe(dir: &Path, task: &str, envs: u32, every: u32) -> PathBuf {
 }
 
 fn collect(task: &str, recipe: &Path, state: &Path, budget: u64, workers: u32, extra: &[&str]) -> Command {
-    let mut cmd = Command::new(dsrl_e2e::bin("dsrl-admin"));
-    cmd.args(["collect", "--task", task, "--json", "--workers", &workers.to_string()])
-        .arg("--budget-steps")
-        .arg(budget.to_string())
-        .arg("--recipe")
-        .arg(recipe)
-        .arg("--state")
-        .arg(state)
-        .args(extra)
-        .env_remove("DSRL_SERVER")
-        .env_remove("DSRL_ADMIN_TOKEN");
-    cmd
+    let (workers, budget) = (workers.to_string(), budget.to_string());
+    let flags = [
+        &["--workers", workers.as_str(), "--budget-steps", budget.as_str()],
+        extra,
+    ]
+    .concat();
+    crate::admin_collect(task, recipe, state, &flags)
 }
 
 #[test]

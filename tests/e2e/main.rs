@@ -135,6 +135,19 @@ pub fn kill_once_saved(mut cmd: std::process::Command, saved: &Path, unfinished:
     assert!(!unfinished.exists(), "the run finished before it could be killed");
 }
 
+/// `dsrl-admin collect --task TASK --json` from `recipe` into `state`, with `extra` flags, kept off any server.
+pub fn admin_collect(task: &str, recipe: &Path, state: &Path, extra: &[&str]) -> std::process::Command {
+    let mut cmd = std::process::Command::new(dsrl_e2e::bin("dsrl-admin"));
+    cmd.args(["collect", "--task", task, "--json", "--recipe"])
+        .arg(recipe)
+        .arg("--state")
+        .arg(state)
+        .args(extra)
+        .env_remove("DSRL_SERVER")
+        .env_remove("DSRL_ADMIN_TOKEN");
+    cmd
+}
+
 /// Runs a `dsrl-admin` command that prints JSON (its progress goes to the test's stderr); asserts success.
 pub fn admin_json(mut cmd: std::process::Command) -> serde_json::Value {
     let out = cmd.stderr(std::process::Stdio::inherit()).output().unwrap();
