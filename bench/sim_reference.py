@@ -6,13 +6,14 @@ reset-on-done, with no RPC at all, and prints one JSON line like dsrl-sim-bench 
 --mode batch: dsrl_sim.batch.Batch, the exact code the worker runs, called directly (MetaDrive: one child process
               per env, as in the worker).
 --mode sweep: MetaDrive only, the raw loop doing a dataset sweep's work: one SafeMetaDrive env plays settings
-              FIRST..LAST-1 of the recipe's 50 noisy-IDM settings (acceleration factor 0.0..5.4 outer, target speed
-              5..21 km/h inner, as pipeline/src/recipe.rs orders them) with the recipe's episode seeds (recipe seed 0:
-              setting * 100000 + episode), switching the driver on reset. Timed whole, creating the env included,
-              as `dsrl-admin collect` is.
+              FIRST..LAST-1 of the task's recipe (data/recipes; easysparse: 50 noisy-IDM settings, acceleration
+              factor 0.0..5.4 outer, target speed 5..21 km/h inner, as pipeline/src/recipe.rs orders and computes
+              them) with the recipe's episode seeds, switching the driver on reset. Timed whole, creating the env
+              included, as `dsrl-admin collect` is.
 """
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -68,21 +69,35 @@ def batched(task, k, steps, warmup, seed, controller=None):
     return seconds, ended, None
 
 
-SPEEDS = [5.0, 9.0, 13.0, 17.0, 21.0]
-ACC_FACTORS = [round(0.6 * i, 1) for i in range(10)]
+def sweep_settings(task):
+    """The recipe's sweep as `dsrl-admin collect` plays it (pipeline/src/recipe.rs): (acceleration factor, target
+    speed) with the factor outer, each factor `start + i * step`, and the recipe's seed."""
+    import tomllib
+
+    name = task[len("SafeMetaDrive-"):]
+    recipe = Path(__file__).resolve().parent.parent / "data" / "recipes" / f"OfflineMetadrive-{name}.toml"
+    with open(recipe, "rb") as f:
+        toml = tomllib.load(f)
+    acc = toml["idm_sweep"]["acc_factor"]
+    n = max(0, math.ceil((acc["stop"] - acc["start"]) / acc["step"]))
+    factors = [acc["start"] + i * acc["step"] for i in range(n)]
+    speeds = [float(v) for v in toml["idm_sweep"]["target_speeds"]]
+    return [(speed, factor) for factor in factors for speed in speeds], int(toml["seed"])
 
 
 def sweep(task, first, last, episodes_per_setting):
     """-> (seconds, env-steps, episodes): the raw loop playing settings first..last-1, creating its env included."""
     started = time.perf_counter()
-    settings = [(speed, acc) for acc in ACC_FACTORS for speed in SPEEDS][first:last]
+    every, recipe_seed = sweep_settings(task)
+    settings = every[first:last]
     controller = lambda speed, acc: {"idm": {"target_speed": speed, "acc_factor": acc}}  # noqa: E731
     env = tasks.make_env(task, controller(*settings[0]))._env
     steps = episodes = 0
     for offset, (speed, acc) in enumerate(settings):
         env.set_controller(controller(speed, acc))
         for episode in range(episodes_per_setting):
-            env.reset(seed=(first + offset) * 100000 + episode)
+            # pipeline/src/recipe.rs episode_seed
+            env.reset(seed=(recipe_seed * 1_000_003 + (first + offset) * 100_000 + episode) % 2**64)
             while True:
                 _, _, terminated, truncated, _ = env.step([0.0, 0.0])
                 steps += 1
