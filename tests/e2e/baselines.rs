@@ -147,3 +147,72 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
     let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
     assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 6, "{board}");
 }
+
+/// `data/reference_entries.sh`, the one command that reproduces the reference table, end to end on a server hosting
+/// the BallRun starter: it trains every method (a few steps, two jobs at a time: one per threshold for the
+/// per-threshold methods), submits each entry in turn and waits for its score.
+#[test]
+fn the_reference_entries_script_trains_every_method_in_parallel_and_each_entry_is_scored() {
+    let env = scoring_env("60");
+    env.cli
+        .run(&["admin", "ingest", "--task", TASK, crate::s(&starter())])
+        .ok();
+    let token = create_user(&env, "reference");
+    let models = env.path("policies");
+    let output = Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
+        .args([
+            "--steps",
+            "3",
+            "--cdt-steps",
+            "1",
+            "--caps-steps",
+            "3",
+            "--batch-size",
+            "16",
+            "--jobs",
+            "2",
+        ])
+        .args(["--methods", "bc-all bc-safe cdt bcql bearl cpq coptidice caps", TASK])
+        .env("DSRL_SERVER", &env.server.url)
+        .env("DSRL_TOKEN", &token)
+        .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
+        .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
+        .env("DSRL_DATASET_DIR", env.path("cache"))
+        .env("OUT", &models)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "reference_entries.sh failed: {stderr}");
+    assert!(stderr.contains("training 18 models, 2 at a time"), "{stderr}");
+    // BEAR-Lag trains three times --steps, as OSRL's 300,000 against 100,000.
+    let bearl: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(models.join(TASK).join("seed-0/bearl/threshold-40/policy.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(bearl["training"]["steps"], 9, "{bearl}");
+
+    let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
+    let entries = board["tasks"][0]["entries"].as_array().unwrap();
+    let mut names: Vec<&str> = entries.iter().map(|e| e["name"].as_str().unwrap()).collect();
+    names.sort_unstable();
+    assert_eq!(
+        names,
+        [
+            "BC-All",
+            "BC-Safe",
+            "BCQ-Lag",
+            "BEAR-Lag",
+            "CAPS",
+            "CDT",
+            "COptiDICE",
+            "CPQ"
+        ],
+        "{board}"
+    );
+    assert!(
+        entries
+            .iter()
+            .all(|e| e["user"] == "reference" && e["normalized_cost"].as_f64().unwrap() >= 0.0),
+        "{board}"
+    );
+}
