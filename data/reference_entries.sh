@@ -23,13 +23,13 @@
 #   e.g. data/reference_entries.sh --steps 2000 --cdt-steps 50 --jobs 16 OfflineBallRun-v0 OfflineCarRun-v0
 # Every model records its budget, seed, dataset version and settings in policy.json; the leaderboard shows them.
 set -euo pipefail
-steps=100000 cdt_steps= caps_steps= batch=() seeds="0" jobs=1 methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=()
+steps=100000 cdt_steps= caps_steps= batch_size= seeds="0" jobs=1 methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=()
 while [ $# -gt 0 ]; do
   case $1 in
     --steps) steps=$2; shift 2 ;;
     --cdt-steps) cdt_steps=$2; shift 2 ;;
     --caps-steps) caps_steps=$2; shift 2 ;;
-    --batch-size) batch=(--batch-size "$2"); shift 2 ;;
+    --batch-size) batch_size=$2; shift 2 ;;
     --seeds) seeds=$2; shift 2 ;;
     --jobs) jobs=$2; shift 2 ;;
     --methods) methods=$2; shift 2 ;;
@@ -79,7 +79,8 @@ done
 
 train_unit() {
   local task=$1 seed=$2 method=$3 kappa=$4 args
-  args=(--task "$task" --server "$DSRL_SERVER" --seed "$seed" --out "$out/$task/seed-$seed" "${batch[@]}")
+  args=(--task "$task" --server "$DSRL_SERVER" --seed "$seed" --out "$out/$task/seed-$seed")
+  [ -z "$batch_size" ] || args+=(--batch-size "$batch_size")
   [ "$kappa" = - ] || args+=(--cost-threshold "$kappa")
   case $method in
     bc-all) "$train" bc --mode all --steps "$steps" "${args[@]}" ;;
@@ -95,16 +96,10 @@ train_unit() {
 # of racing to download it.
 for task in "${tasks[@]}"; do "$client" fetch "$task" >&2; done
 echo "training ${#units[@]} models, $jobs at a time" >&2
-if [ "$jobs" -eq 1 ]; then
-  for unit in "${units[@]}"; do train_unit $unit; done
-else
-  export -f train_unit
-  export steps cdt_steps caps_steps train out DSRL_SERVER
-  batch_arg=${batch[*]:-}
-  export batch_arg
-  printf '%s\n' "${units[@]}" |
-    xargs -P "$jobs" -L 1 bash -c 'batch=($batch_arg); train_unit "$@"' train_unit
-fi
+# A failed job stops new ones from starting (exit 255), and the script stops before submitting anything.
+export -f train_unit
+export steps cdt_steps caps_steps batch_size train out DSRL_SERVER
+printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit
 
 for task in "${tasks[@]}"; do
   for seed in $seeds; do
