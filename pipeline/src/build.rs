@@ -47,11 +47,16 @@ pub struct Run {
     pub out_dir: Option<PathBuf>,
     /// Write the output in the compact form (committed starters; the ingested version is the canonical one).
     pub compact: bool,
+    /// With `compact`: split the output into this many files of whole episodes (`<stem>.part-I-of-N.parquet`), for
+    /// a starter larger than one committed file may be. 1 writes one file.
+    pub parts: usize,
 }
 
 /// What a run produced.
 pub struct Built {
+    /// The dataset's file, or with parts the name they share (`files` are what was written).
     pub path: PathBuf,
+    pub files: Vec<PathBuf>,
     pub converted: Converted,
     pub provenance: Provenance,
     pub collected: usize,
@@ -363,17 +368,41 @@ impl Run {
             })
             .await??
         };
-        if self.compact {
-            // The committed form of a starter: ingested, it gives the canonical file and its version id.
-            let (task, canonical, compact) = (task.clone(), part.clone(), path.with_extension("parquet.compact"));
-            let target = compact.clone();
+        let files = if self.compact && self.parts > 1 {
+            // A starter over one file's budget: whole episodes in parts, joined back at ingest.
+            let name = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .context("output file name")?
+                .to_owned();
+            let files: Vec<PathBuf> = (1..=self.parts)
+                .map(|i| out_dir.join(dsrl_suite::convert::part_file_name(&name, i, self.parts)))
+                .collect();
+            let scratch: Vec<PathBuf> = files.iter().map(|f| f.with_extension("parquet.compact")).collect();
+            let (task, canonical, targets) = (task.clone(), part.clone(), scratch.clone());
             tokio::task::spawn_blocking(move || {
-                dsrl_suite::convert::compact_copy(&task, ObservationSpace::Simulator, &canonical, &target)
+                dsrl_suite::convert::split_compact(&task, ObservationSpace::Simulator, &canonical, &targets)
             })
             .await??;
-            std::fs::rename(&compact, &part)?;
-        }
-        std::fs::rename(&part, &path)?;
+            std::fs::remove_file(&part)?;
+            for (from, to) in scratch.iter().zip(&files) {
+                std::fs::rename(from, to)?;
+            }
+            files
+        } else {
+            if self.compact {
+                // The committed form of a starter: ingested, it gives the canonical file and its version id.
+                let (task, canonical, compact) = (task.clone(), part.clone(), path.with_extension("parquet.compact"));
+                let target = compact.clone();
+                tokio::task::spawn_blocking(move || {
+                    dsrl_suite::convert::compact_copy(&task, ObservationSpace::Simulator, &canonical, &target)
+                })
+                .await??;
+                std::fs::rename(&compact, &part)?;
+            }
+            std::fs::rename(&part, &path)?;
+            vec![path.clone()]
+        };
         let mut details = serde_json::json!({
             "recipe": self.recipe,
             "episodes_collected": collected,
@@ -399,6 +428,7 @@ impl Run {
         std::fs::write(provenance_path, serde_json::to_vec_pretty(&provenance)?)?;
         Ok(Built {
             path,
+            files,
             converted,
             provenance,
             collected,

@@ -121,6 +121,11 @@ struct CollectArgs {
     /// one. For committed starter files.
     #[arg(long)]
     compact: bool,
+    /// With --compact: split the output into N files of whole episodes, `<name>.part-I-of-N.parquet`, each a
+    /// dataset on its own and about 1/N of the rows. For a committed starter larger than one file may be (8 MB);
+    /// the server's starter loader joins them back into one version, the canonical file's.
+    #[arg(long, default_value_t = 1, requires = "compact", conflicts_with = "server")]
+    parts: usize,
     /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
     #[arg(long)]
     worker_binary: Option<PathBuf>,
@@ -286,6 +291,7 @@ async fn run() -> anyhow::Result<()> {
         max_episodes,
         out,
         compact,
+        parts,
         server,
         token,
         tag,
@@ -323,11 +329,13 @@ async fn run() -> anyhow::Result<()> {
         max_episodes,
         out_dir: out,
         compact,
+        parts: parts.max(1),
     };
     let built = run.execute(&catalog).await?;
     let mut report = serde_json::json!({
         "task": task,
         "file": built.path,
+        "files": built.files,
         "version": built.converted.version.to_string(),
         "episodes_collected": built.collected,
         "episodes_after_buffer": built.after_buffer,

@@ -248,3 +248,136 @@ fn check_space(task: &Task, space: ObservationSpace, chunk: &TransitionChunk) ->
 fn parquet_io(e: parquet::errors::ParquetError) -> ImportError {
     ImportError::Io(io::Error::other(e))
 }
+
+/// The name of part `index` (from 1) of `count` of a starter dataset named `name` (`<stem>.parquet`):
+/// `<stem>.part-<index>-of-<count>.parquet`. A dataset too large for one committed file is committed in parts of
+/// whole episodes, each a valid compact dataset on its own; ingest joins them back (see `join_compact_parts`).
+pub fn part_file_name(name: &str, index: usize, count: usize) -> String {
+    let stem = name.strip_suffix(".parquet").unwrap_or(name);
+    format!("{stem}.part-{index}-of-{count}.parquet")
+}
+
+/// The inverse of `part_file_name`: `(dataset name, index, count)` for a part's file name, `None` for any other.
+pub fn parse_part_file_name(file_name: &str) -> Option<(String, usize, usize)> {
+    let stem = file_name.strip_suffix(".parquet")?;
+    let (stem, part) = stem.rsplit_once(".part-")?;
+    let (index, count) = part.split_once("-of-")?;
+    let (index, count): (usize, usize) = (index.parse().ok()?, count.parse().ok()?);
+    (index >= 1 && index <= count).then(|| (format!("{stem}.parquet"), index, count))
+}
+
+/// Splits the canonical file `canonical` into `outs.len()` compact files of consecutive whole episodes, about the
+/// same number of rows each, numbered from episode 0 on their own; returns each file's size in bytes. Joined in
+/// order (`join_compact_parts`), they give the canonical file back, hence its version id.
+pub fn split_compact(
+    task: &Task,
+    space: ObservationSpace,
+    canonical: &Path,
+    outs: &[std::path::PathBuf],
+) -> Result<Vec<u64>, ImportError> {
+    let malformed = |e: ReadError| ImportError::Io(io::Error::other(e));
+    // Episode ends first (one pass over the done flags), so each part can end at the first episode end past its
+    // share of the rows.
+    let mut ends = Vec::new();
+    let mut rows = 0u64;
+    for chunk in ParquetTransitions::open(File::open(canonical)?).map_err(malformed)? {
+        let chunk = chunk.map_err(malformed)?;
+        ends.extend(
+            (0..chunk.len())
+                .filter(|&i| chunk.is_done(i))
+                .map(|i| rows + i as u64 + 1),
+        );
+        rows += chunk.len() as u64;
+    }
+    if outs.is_empty() || ends.len() < outs.len() {
+        return Err(ValidationError::column(
+            "terminals",
+            format!("{} episodes cannot be split into {} parts", ends.len(), outs.len()),
+        )
+        .into());
+    }
+    let mut bounds = Vec::with_capacity(outs.len());
+    let mut used = 0; // episodes already given to a part
+    for k in 1..=outs.len() {
+        let share = rows * k as u64 / outs.len() as u64;
+        // Leave at least one episode for each later part.
+        let last_allowed = ends.len() - (outs.len() - k) - 1;
+        let end = ends[used..=last_allowed]
+            .iter()
+            .position(|&e| e >= share)
+            .map_or(last_allowed, |p| used + p);
+        bounds.push(ends[end]);
+        used = end + 1;
+    }
+
+    let mut reader = ParquetTransitions::open(File::open(canonical)?).map_err(malformed)?;
+    let mut pending: Option<TransitionChunk> = None;
+    let mut sizes = Vec::with_capacity(outs.len());
+    let mut start = 0u64;
+    for (out, end) in outs.iter().zip(bounds) {
+        let mut remaining = (end - start) as usize;
+        start = end;
+        let rows_of_part = std::iter::from_fn(|| {
+            if remaining == 0 {
+                return None;
+            }
+            let mut chunk = match pending.take() {
+                Some(chunk) => chunk,
+                None => match reader.next()? {
+                    Ok(chunk) => chunk,
+                    Err(e) => return Some(Err(malformed(e))),
+                },
+            };
+            if chunk.len() > remaining {
+                // `take_front` leaves the rest in `chunk`: it waits for the next part.
+                let front = chunk.take_front(remaining);
+                pending = Some(std::mem::replace(&mut chunk, front));
+            }
+            remaining -= chunk.len();
+            // Each part numbers its episodes from 0: it is a dataset on its own.
+            chunk.episode = None;
+            chunk.step = None;
+            Some(Ok(chunk))
+        });
+        sizes.push(write_compact(task, space, rows_of_part, out)?);
+    }
+    Ok(sizes)
+}
+
+/// Joins the parts of a dataset (`split_compact`'s files, in order) into one compact file at `out`, validating
+/// every part's rows as any upload's; returns its size in bytes. Each part's episode numbers are checked against
+/// its own done flags, then continue the previous part's.
+pub fn join_compact_parts(
+    task: &Task,
+    space: ObservationSpace,
+    parts: &[std::path::PathBuf],
+    out: &Path,
+) -> Result<u64, ImportError> {
+    let mut readers = Vec::with_capacity(parts.len());
+    for part in parts {
+        readers.push(ParquetTransitions::open(File::open(part)?).map_err(ImportError::from_parquet)?);
+    }
+    let mut readers = readers.into_iter();
+    let mut current = readers.next();
+    // Episodes in the parts before the current one, and ended so far in the current one.
+    let (mut offset, mut ended) = (0u32, 0u32);
+    let chunks = std::iter::from_fn(move || {
+        loop {
+            match current.as_mut()?.next() {
+                Some(Ok(mut chunk)) => {
+                    if let Some(episodes) = &mut chunk.episode {
+                        episodes.iter_mut().for_each(|e| *e = e.saturating_add(offset));
+                    }
+                    ended += (0..chunk.len()).filter(|&i| chunk.is_done(i)).count() as u32;
+                    return Some(Ok(chunk));
+                }
+                Some(Err(e)) => return Some(Err(ImportError::from_parquet(e))),
+                None => {
+                    offset += std::mem::take(&mut ended);
+                    current = readers.next();
+                }
+            }
+        }
+    });
+    write_compact(task, space, chunks, out)
+}

@@ -91,6 +91,29 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
         "{file}"
     );
     assert!(Path::new(&format!("{file}.provenance.json")).exists());
+
+    // The same run cut into two compact parts (a starter over one file's budget): the version is the whole's.
+    let parts_dir = env.path("starter-parts");
+    let cut = crate::admin_json(collect(
+        &recipe,
+        &state,
+        &["--compact", "--parts", "2", "--out", parts_dir.to_str().unwrap()],
+    ));
+    assert_eq!(cut["version"], version.as_str());
+    let files: Vec<&str> = cut["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    assert_eq!(files.len(), 2, "{cut}");
+    assert!(files[0].ends_with("-85-4.part-1-of-2.parquet") && files[1].ends_with("-85-4.part-2-of-2.parquet"));
+    assert!(files.iter().all(|f| Path::new(f).exists()));
+    assert!(
+        !Path::new(cut["file"].as_str().unwrap()).exists(),
+        "only the parts are written"
+    );
+    assert!(Path::new(&format!("{}.provenance.json", cut["file"].as_str().unwrap())).exists());
 }
 
 /// Each episode's length in a stored setting (`<state>/settings/NNN.parquet`).

@@ -47,6 +47,46 @@ fn starter_datasets_load_once_and_never_move_latest_back() {
     );
 }
 
+/// A starter committed in parts (a dataset larger than one committed file may be) is joined back into one version:
+/// the canonical file's, with the provenance named after the whole.
+#[test]
+fn a_starter_committed_in_parts_loads_as_the_one_version_of_the_whole() {
+    use dsrl_suite::convert::{part_file_name, split_compact};
+    let dir = tempfile::tempdir().unwrap();
+    let starter = dir.path().join("starter");
+    let task = "OfflineMetadrive-easydense-v0";
+    std::fs::create_dir_all(starter.join(task)).unwrap();
+    let canonical = dir.path().join("canonical.parquet");
+    let made = dsrl_e2e::make_dataset(task, 7, 52, &canonical);
+    let name = "SafeMetaDrive-easydense-85-7.parquet";
+    let parts: Vec<_> = (1..=3)
+        .map(|i| starter.join(task).join(part_file_name(name, i, 3)))
+        .collect();
+    let catalog = dsrl_suite::Catalog::embedded().unwrap();
+    split_compact(
+        catalog.get(task).unwrap(),
+        dsrl_suite::ObservationSpace::Simulator,
+        &canonical,
+        &parts,
+    )
+    .unwrap();
+    let provenance = serde_json::json!({
+        "kind": "recipe", "recipe": "data/recipes/test.toml", "seeds": [52], "code_version": "test",
+        "details": {"episodes_kept": 7}
+    });
+    std::fs::write(
+        starter.join(task).join(format!("{name}.provenance.json")),
+        provenance.to_string(),
+    )
+    .unwrap();
+
+    let env = Env::with(&["--starter-datasets", s(&starter)], &[]);
+    let manifest = env.cli.run(&["--json", "show", task]).ok().json();
+    assert_eq!(manifest["version"], made.version.as_str(), "{manifest}");
+    assert_eq!(manifest["episodes"], 7);
+    assert_eq!(manifest["provenance"]["seeds"], serde_json::json!([52]));
+}
+
 #[test]
 fn every_committed_starter_dataset_loads_with_its_recipe_provenance() {
     // What the README's first command serves: every file under data/starter, validated and ingested at start-up.
@@ -56,10 +96,17 @@ fn every_committed_starter_dataset_loads_with_its_recipe_provenance() {
         let task = task.unwrap();
         for file in std::fs::read_dir(task.path()).unwrap() {
             let name = file.unwrap().file_name().into_string().unwrap();
-            if let Some(stem) = name.strip_suffix(".parquet") {
+            if name.ends_with(".parquet") {
                 let size = std::fs::metadata(task.path().join(&name)).unwrap().len();
                 assert!(size <= 8_000_000, "{name} is {size} bytes, over the 8 MB per file");
+                // A dataset in parts counts once, under the name its parts share.
+                let name = match dsrl_suite::convert::parse_part_file_name(&name) {
+                    Some((_, index, _)) if index > 1 => continue,
+                    Some((whole, _, _)) => whole,
+                    None => name,
+                };
                 // DSRL's naming: <prefix>-<cost cap>-<trajectories>.
+                let stem = name.strip_suffix(".parquet").unwrap();
                 let episodes = stem.rsplit('-').next().unwrap().parse().unwrap();
                 expected.push((task.file_name().into_string().unwrap(), episodes));
             }

@@ -360,6 +360,68 @@ fn wrong_task_dimensions_and_paper_space_metadrive() {
     assert!(err.to_string().contains("the same (33 features)"), "{err}");
 }
 
+/// A starter too large for one committed file is committed in parts of whole episodes: each part is a valid
+/// dataset on its own, and the parts joined in order ingest to the canonical file of the whole, hence its version.
+#[test]
+fn a_dataset_split_into_parts_joins_back_to_the_same_version() {
+    use dsrl_suite::convert::{join_compact_parts, parse_part_file_name, part_file_name, split_compact};
+    let t = task("OfflineMetadrive-hardmean-v0");
+    let dir = tempfile::tempdir().unwrap();
+    let canonical = dir.path().join("canonical.parquet");
+    let converted = write(&t, &synthetic(&t, 13, 22), &canonical);
+    let whole = read_all(&canonical);
+
+    let name = "SafeMetaDrive-hardmean-85-13.parquet";
+    let parts: Vec<_> = (1..=3).map(|i| dir.path().join(part_file_name(name, i, 3))).collect();
+    assert_eq!(
+        parts[1].file_name().unwrap().to_str().unwrap(),
+        "SafeMetaDrive-hardmean-85-13.part-2-of-3.parquet"
+    );
+    assert_eq!(
+        parse_part_file_name("SafeMetaDrive-hardmean-85-13.part-2-of-3.parquet"),
+        Some((name.to_owned(), 2, 3))
+    );
+    assert_eq!(parse_part_file_name(name), None);
+    assert_eq!(parse_part_file_name("x.part-4-of-3.parquet"), None);
+
+    let sizes = split_compact(&t, ObservationSpace::Simulator, &canonical, &parts).unwrap();
+    let mut episodes = 0;
+    let mut rows = Vec::new();
+    for (part, size) in parts.iter().zip(&sizes) {
+        assert_eq!(*size, std::fs::metadata(part).unwrap().len());
+        // Each part on its own: whole episodes, numbered from 0, about a third of the rows.
+        let (_, alone) = import_file(part, &t, ObservationSpace::Simulator, &dir.path().join("alone")).unwrap();
+        assert!(alone.episode_index.len() >= 3, "{}", alone.episode_index.len());
+        assert_eq!(alone.episode_index[0].start, 0);
+        episodes += alone.episode_index.len();
+        rows.push(alone.episode_index.iter().map(|e| e.length as usize).sum::<usize>());
+    }
+    assert_eq!(episodes, 13);
+    assert_eq!(rows.iter().sum::<usize>(), whole.len());
+    assert!(
+        rows.iter().all(|&r| r * 3 > whole.len() / 2),
+        "balanced by rows: {rows:?}"
+    );
+
+    let joined = dir.path().join("joined.parquet");
+    join_compact_parts(&t, ObservationSpace::Simulator, &parts, &joined).unwrap();
+    let (_, again) = import_file(&joined, &t, ObservationSpace::Simulator, &dir.path().join("again")).unwrap();
+    assert_eq!(again.version, converted.version);
+    assert_eq!(read_all(&joined).observations, whole.observations);
+
+    // Out of order, the parts are another dataset; more parts than episodes is refused.
+    let swapped = [parts[1].clone(), parts[0].clone(), parts[2].clone()];
+    join_compact_parts(&t, ObservationSpace::Simulator, &swapped, &joined).unwrap();
+    let (_, other) = import_file(&joined, &t, ObservationSpace::Simulator, &dir.path().join("other")).unwrap();
+    assert_ne!(other.version, converted.version);
+    let many: Vec<_> = (1..=14).map(|i| dir.path().join(format!("p{i}.parquet"))).collect();
+    let err = split_compact(&t, ObservationSpace::Simulator, &canonical, &many).unwrap_err();
+    assert!(
+        err.to_string().contains("13 episodes cannot be split into 14 parts"),
+        "{err}"
+    );
+}
+
 /// The compact form of a committed starter leaves out every next observation that the next row of its episode
 /// starts from, and ingesting it gives back the canonical file: the same rows and the same version id. MetaDrive's
 /// 259 features make the reader's batches end inside episodes, so a left-out row at a batch's end is filled from
