@@ -380,8 +380,9 @@ impl Run {
                 .collect();
             let scratch: Vec<PathBuf> = files.iter().map(|f| f.with_extension("parquet.compact")).collect();
             let (task, canonical, targets) = (task.clone(), part.clone(), scratch.clone());
+            let episodes = converted.episode_index.clone();
             tokio::task::spawn_blocking(move || {
-                dsrl_suite::convert::split_compact(&task, ObservationSpace::Simulator, &canonical, &targets)
+                dsrl_suite::convert::split_compact(&task, ObservationSpace::Simulator, &canonical, &episodes, &targets)
             })
             .await??;
             std::fs::remove_file(&part)?;

@@ -266,29 +266,21 @@ pub fn parse_part_file_name(file_name: &str) -> Option<(String, usize, usize)> {
     (index >= 1 && index <= count).then(|| (format!("{stem}.parquet"), index, count))
 }
 
-/// Splits the canonical file `canonical` into `outs.len()` compact files of consecutive whole episodes, about the
-/// same number of rows each, numbered from episode 0 on their own; returns each file's size in bytes. Joined in
-/// order (`join_compact_parts`), they give the canonical file back, hence its version id.
+/// Splits the canonical file `canonical`, whose episodes are `episodes` (its `Converted::episode_index`), into
+/// `outs.len()` compact files of consecutive whole episodes, about the same number of rows each, numbered from
+/// episode 0 on their own; returns each file's size in bytes. Joined in order (`join_compact_parts`), they give the
+/// canonical file back, hence its version id.
 pub fn split_compact(
     task: &Task,
     space: ObservationSpace,
     canonical: &Path,
+    episodes: &[EpisodeSummary],
     outs: &[std::path::PathBuf],
 ) -> Result<Vec<u64>, ImportError> {
     let malformed = |e: ReadError| ImportError::Io(io::Error::other(e));
-    // Episode ends first (one pass over the done flags), so each part can end at the first episode end past its
-    // share of the rows.
-    let mut ends = Vec::new();
-    let mut rows = 0u64;
-    for chunk in ParquetTransitions::open(File::open(canonical)?).map_err(malformed)? {
-        let chunk = chunk.map_err(malformed)?;
-        ends.extend(
-            (0..chunk.len())
-                .filter(|&i| chunk.is_done(i))
-                .map(|i| rows + i as u64 + 1),
-        );
-        rows += chunk.len() as u64;
-    }
+    // Each part ends at the first episode end past its share of the rows.
+    let ends: Vec<u64> = episodes.iter().map(|e| e.start + u64::from(e.length)).collect();
+    let rows = ends.last().copied().unwrap_or(0);
     if outs.is_empty() || ends.len() < outs.len() {
         return Err(ValidationError::column(
             "terminals",

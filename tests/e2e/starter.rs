@@ -67,6 +67,7 @@ fn a_starter_committed_in_parts_loads_as_the_one_version_of_the_whole() {
         catalog.get(task).unwrap(),
         dsrl_suite::ObservationSpace::Simulator,
         &canonical,
+        &made.episode_index,
         &parts,
     )
     .unwrap();

@@ -384,7 +384,14 @@ fn a_dataset_split_into_parts_joins_back_to_the_same_version() {
     assert_eq!(parse_part_file_name(name), None);
     assert_eq!(parse_part_file_name("x.part-4-of-3.parquet"), None);
 
-    let sizes = split_compact(&t, ObservationSpace::Simulator, &canonical, &parts).unwrap();
+    let sizes = split_compact(
+        &t,
+        ObservationSpace::Simulator,
+        &canonical,
+        &converted.episode_index,
+        &parts,
+    )
+    .unwrap();
     let mut episodes = 0;
     let mut rows = Vec::new();
     for (part, size) in parts.iter().zip(&sizes) {
@@ -415,7 +422,14 @@ fn a_dataset_split_into_parts_joins_back_to_the_same_version() {
     let (_, other) = import_file(&joined, &t, ObservationSpace::Simulator, &dir.path().join("other")).unwrap();
     assert_ne!(other.version, converted.version);
     let many: Vec<_> = (1..=14).map(|i| dir.path().join(format!("p{i}.parquet"))).collect();
-    let err = split_compact(&t, ObservationSpace::Simulator, &canonical, &many).unwrap_err();
+    let err = split_compact(
+        &t,
+        ObservationSpace::Simulator,
+        &canonical,
+        &converted.episode_index,
+        &many,
+    )
+    .unwrap_err();
     assert!(
         err.to_string().contains("13 episodes cannot be split into 14 parts"),
         "{err}"
