@@ -156,7 +156,7 @@ impl Run {
                     self.state_dir.display()
                 );
             }
-            Err(_) => std::fs::write(&identity_path, serde_json::to_vec_pretty(&identity)?)?,
+            Err(_) => crate::write_atomically(&identity_path, &serde_json::to_vec_pretty(&identity)?)?,
         }
 
         let (buffered, collected, method) = if self.recipe.expert.is_some() {
@@ -426,7 +426,7 @@ impl Run {
         };
         // `<file>.provenance.json`: the name the server's starter loader reads beside a dataset.
         let provenance_path = PathBuf::from(format!("{}.provenance.json", path.display()));
-        std::fs::write(provenance_path, serde_json::to_vec_pretty(&provenance)?)?;
+        crate::write_atomically(&provenance_path, &serde_json::to_vec_pretty(&provenance)?)?;
         Ok(Built {
             path,
             files,

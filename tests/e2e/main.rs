@@ -148,12 +148,24 @@ pub fn admin_collect(task: &str, recipe: &Path, state: &Path, extra: &[&str]) ->
     cmd
 }
 
-/// Runs a `dsrl-admin` command that prints JSON (its progress goes to the test's stderr); asserts success.
+/// Runs a `dsrl-admin` command that prints JSON; asserts success, naming the end of what it logged if it failed
+/// (kept in the failure itself: a log streamed to the test's stderr is lost among the other tests' output).
 pub fn admin_json(mut cmd: std::process::Command) -> serde_json::Value {
-    let out = cmd.stderr(std::process::Stdio::inherit()).output().unwrap();
+    let out = cmd.output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    let tail: String = log
+        .lines()
+        .rev()
+        .take(20)
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect::<Vec<_>>()
+        .join("\n");
     assert!(
         out.status.success(),
-        "dsrl-admin failed: {}",
+        "dsrl-admin failed ({}): {}\n{tail}",
+        out.status,
         String::from_utf8_lossy(&out.stdout)
     );
     serde_json::from_slice(&out.stdout).unwrap()

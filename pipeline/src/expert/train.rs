@@ -119,8 +119,9 @@ fn save(
         )
         .context("saving the trajectory buffer")?;
     }
-    // Written last: a folder without it is an unfinished save and is ignored.
-    std::fs::write(dir.join("state.json"), serde_json::to_vec(state)?)?;
+    // Written last, and whole (a kill between creating and filling it once left an empty state.json that the
+    // resumed run could not read): a folder without it is an unfinished save and is ignored.
+    crate::write_atomically(&dir.join("state.json"), &serde_json::to_vec(state)?)?;
     for old in checkpoint_dirs(root) {
         if old != dir {
             std::fs::remove_dir_all(old)?;
@@ -150,7 +151,7 @@ fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
             l.worker_idle_seconds
         ));
     }
-    std::fs::write(root.join("training.csv"), text)?;
+    crate::write_atomically(&root.join("training.csv"), text.as_bytes())?;
     Ok(())
 }
 
