@@ -153,15 +153,8 @@ pub fn admin_collect(task: &str, recipe: &Path, state: &Path, extra: &[&str]) ->
 pub fn admin_json(mut cmd: std::process::Command) -> serde_json::Value {
     let out = cmd.output().unwrap();
     let log = String::from_utf8_lossy(&out.stderr);
-    let tail: String = log
-        .lines()
-        .rev()
-        .take(20)
-        .collect::<Vec<_>>()
-        .into_iter()
-        .rev()
-        .collect::<Vec<_>>()
-        .join("\n");
+    let lines: Vec<&str> = log.lines().collect();
+    let tail = lines[lines.len().saturating_sub(20)..].join("\n");
     assert!(
         out.status.success(),
         "dsrl-admin failed ({}): {}\n{tail}",
