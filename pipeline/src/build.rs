@@ -469,6 +469,7 @@ mod tests {
             acc_factor: 1.2,
             target_speed: 13.0,
             episodes: 12,
+            maps: 1,
         };
         let episodes: Vec<Episode> = (0..12)
             .map(|n| synthetic_episode(task, 3, n, 900 + n as usize * 7))

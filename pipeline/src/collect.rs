@@ -77,6 +77,7 @@ fn driver(setting: &Setting) -> Controller {
         kind: Some(controller::Kind::Idm(Idm {
             target_speed: setting.target_speed,
             acc_factor: setting.acc_factor,
+            maps: setting.maps,
         })),
     }
 }

@@ -43,6 +43,19 @@ pub struct IdmSweep {
     pub acc_factor: Arange,
     pub target_speeds: Vec<f64>,
     pub episodes_per_setting: u32,
+    /// How many maps the episodes are drawn from, the task's own first (DSRL's `run_collect.sh` collected on 10;
+    /// the task's evaluation environment has its own map only). Left out: 1, which the recipes written before it
+    /// mean, so their provenance is unchanged.
+    #[serde(default = "one_map", skip_serializing_if = "is_one_map")]
+    pub maps: u32,
+}
+
+fn one_map() -> u32 {
+    1
+}
+
+fn is_one_map(maps: &u32) -> bool {
+    *maps == 1
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -193,6 +206,9 @@ pub struct Setting {
     pub acc_factor: f64,
     pub target_speed: f64,
     pub episodes: u32,
+    /// The sweep's maps (the same for every setting).
+    #[serde(default = "one_map")]
+    pub maps: u32,
 }
 
 impl Recipe {
@@ -222,6 +238,11 @@ impl Recipe {
                     "idm_sweep.acc_factor is an empty range"
                 );
                 anyhow::ensure!(!sweep.target_speeds.is_empty(), "idm_sweep.target_speeds is empty");
+                anyhow::ensure!(
+                    (1..=100).contains(&sweep.maps),
+                    "idm_sweep.maps must be from 1 to 100, got {}",
+                    sweep.maps
+                );
             }
             (Some(_), family) => anyhow::bail!("{}: an IDM sweep needs a MetaDrive task, not {family:?}", task.id),
             (None, _) => match &self.expert {
@@ -311,6 +332,7 @@ impl Recipe {
                     acc_factor,
                     target_speed,
                     episodes,
+                    maps: sweep.maps,
                 });
             }
         }

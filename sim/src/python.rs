@@ -59,7 +59,12 @@ pub struct DrivenBytes {
 /// A built-in driver instead of the client's actions (see `Controller` in the proto).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Controller {
-    Idm { target_speed: f64, acc_factor: f64 },
+    /// `maps`: how many of the task's maps, from its own on, the episodes are drawn from (at least 1).
+    Idm {
+        target_speed: f64,
+        acc_factor: f64,
+        maps: u32,
+    },
 }
 
 type Job = Box<dyn FnOnce() + Send>;
@@ -239,11 +244,12 @@ fn bytes_of(item: Bound<'_, PyAny>) -> PyResult<Vec<u8>> {
     Ok(item.cast_into::<PyBytes>()?.as_bytes().to_vec())
 }
 
-/// The Python form of a controller (`{"idm": {"target_speed": v, "acc_factor": a}}`), or None.
+/// The Python form of a controller (`{"idm": {"target_speed": v, "acc_factor": a, "maps": n}}`), or None.
 fn controller_dict(py: Python<'_>, controller: Option<Controller>) -> Result<Bound<'_, PyAny>, SimError> {
     let Some(Controller::Idm {
         target_speed,
         acc_factor,
+        maps,
     }) = controller
     else {
         return Ok(py.None().into_bound(py));
@@ -252,7 +258,8 @@ fn controller_dict(py: Python<'_>, controller: Option<Controller>) -> Result<Bou
     let inner = PyDict::new(py);
     let set = inner
         .set_item("target_speed", target_speed)
-        .and(inner.set_item("acc_factor", acc_factor));
+        .and(inner.set_item("acc_factor", acc_factor))
+        .and(inner.set_item("maps", maps));
     set.and(idm.set_item("idm", inner))
         .map_err(|e| simulator_error(py, "controller", e))?;
     Ok(idm.into_any())

@@ -20,6 +20,9 @@ use crate::error::SimError;
 use crate::python::{BatchShape, Controller, PyBatch, PythonHost, PythonThread};
 use crate::session::{Limits, SessionState, check_open};
 
+/// The most maps an IDM session may draw its episodes from (DSRL's collection used 10).
+const MAX_MAPS: u32 = 100;
+
 #[derive(Clone)]
 pub struct SimulatorService {
     inner: Arc<Inner>,
@@ -142,9 +145,17 @@ impl Inner {
                 idm.target_speed, idm.acc_factor
             )));
         }
+        // MetaDrive builds and keeps every map a session draws from (~1 s and some memory each).
+        if idm.maps > MAX_MAPS {
+            return Err(SimError::InvalidArgument(format!(
+                "IDM maps must be at most {MAX_MAPS}, got {}",
+                idm.maps
+            )));
+        }
         Ok(Some(Controller::Idm {
             target_speed: idm.target_speed,
             acc_factor: idm.acc_factor,
+            maps: idm.maps.max(1),
         }))
     }
 
@@ -221,7 +232,7 @@ async fn run_session(
     let sim_id = inner.simulator_id(&open.task)?;
     let seeds = check_open(&open, inner.limits)?;
     let controller = inner.controller(&sim_id, open.controller.as_ref())?;
-    let driven = controller.is_some();
+    let driven = controller;
     let reservation = inner.reserve(open.num_envs)?;
     let auto_reset = open.auto_reset == AutoReset::SameStep as i32;
     let k = seeds.len();
@@ -320,7 +331,7 @@ async fn run_session(
             Some(kind) => {
                 let switch = match &kind {
                     session_request::Kind::Reset(reset) => switch_driver(&inner, &sim_id, driven, reset),
-                    session_request::Kind::Drive(_) if !driven => Err(SimError::FailedPrecondition(
+                    session_request::Kind::Drive(_) if driven.is_none() => Err(SimError::FailedPrecondition(
                         "drive needs a session opened with a controller: without one, the client chooses the actions"
                             .into(),
                     )),
@@ -348,17 +359,31 @@ async fn run_session(
 }
 
 /// The driver a `Reset` switches its environments to, checked as an `Open`'s is. Only a session opened with a
-/// controller may switch: the client's own actions never silently give way to a driver.
-fn switch_driver(inner: &Inner, sim_id: &str, driven: bool, reset: &Reset) -> Result<Option<Controller>, SimError> {
+/// controller (`driven`) may switch: the client's own actions never silently give way to a driver. The maps are
+/// built when the session opens, so a switch keeps them.
+fn switch_driver(
+    inner: &Inner,
+    sim_id: &str,
+    driven: Option<Controller>,
+    reset: &Reset,
+) -> Result<Option<Controller>, SimError> {
     let Some(controller) = reset.controller.as_ref() else {
         return Ok(None);
     };
-    if !driven {
+    let Some(Controller::Idm { maps: opened, .. }) = driven else {
         return Err(SimError::FailedPrecondition(
             "a reset can switch the driver only in a session opened with a controller".into(),
         ));
+    };
+    let switch = inner.controller(sim_id, Some(controller))?;
+    if let Some(Controller::Idm { maps, .. }) = switch
+        && maps != opened
+    {
+        return Err(SimError::InvalidArgument(format!(
+            "a switch cannot change the maps a session plays ({opened}) to {maps}: open another session"
+        )));
     }
-    inner.controller(sim_id, Some(controller))
+    Ok(switch)
 }
 
 type Answer = tokio::sync::oneshot::Receiver<Result<session_response::Kind, SimError>>;

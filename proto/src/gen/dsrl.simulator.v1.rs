@@ -111,6 +111,12 @@ pub struct Idm {
     pub target_speed: f64,
     #[prost(double, tag = "2")]
     pub acc_factor: f64,
+    /// The maps episodes are drawn from: the task's own map and the next `maps - 1` (MetaDrive's start seeds), one
+    /// per episode, drawn from the episode's seed. DSRL's collection played 10 (`environment_num=10`); 0 or 1: the
+    /// task's own map only, as its evaluation environment has. Fixed when the session opens: a switch on reset must
+    /// name the same number.
+    #[prost(uint32, tag = "3")]
+    pub maps: u32,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]

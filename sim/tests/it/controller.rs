@@ -18,6 +18,7 @@ fn idm_open(task: &str, seeds: Vec<u64>) -> Open {
             kind: Some(controller::Kind::Idm(Idm {
                 target_speed: 13.0,
                 acc_factor: 1.2,
+                maps: 1,
             })),
         }),
     }
@@ -68,6 +69,7 @@ async fn the_idm_driver_drives_metadrive_reproducibly() {
         kind: Some(controller::Kind::Idm(Idm {
             target_speed: f64::NAN,
             acc_factor: 1.0,
+            maps: 1,
         })),
     });
     let status = SimulatorSession::open(worker.channel().await, bad).await.err().unwrap();
@@ -79,6 +81,7 @@ fn idm(target_speed: f64, acc_factor: f64) -> Controller {
         kind: Some(controller::Kind::Idm(Idm {
             target_speed,
             acc_factor,
+            maps: 1,
         })),
     }
 }
@@ -197,4 +200,56 @@ async fn a_drive_plays_the_episode_that_stepping_would_and_is_refused_where_it_c
     let (mut auto, _) = SimulatorSession::open(worker.channel().await, auto).await.unwrap();
     let status = auto.drive(&[]).await.err().unwrap();
     assert_eq!(status.code(), Code::FailedPrecondition, "{}", status.message());
+}
+
+/// The reward of one whole episode driven by the IDM driver inside the worker.
+async fn driven_return(worker: &Worker, task: &str, seed: u64, driver: Controller) -> (f64, usize) {
+    let mut open = idm_open(task, vec![seed]);
+    open.controller = Some(driver);
+    let (mut session, _) = SimulatorSession::open(worker.channel().await, open).await.unwrap();
+    let episode = session.drive(&[0]).await.unwrap().remove(0);
+    session.close().await.unwrap();
+    (episode.rewards.iter().sum(), episode.rewards.len())
+}
+
+/// MetaDrive 0.4.3 builds the hard maps' out-ramp across the carriageway once the road has turned, and the IDM driver
+/// left the road at 62% of every map-200 route (reward <= 197 against the paper's 487); the worker restores the
+/// geometry of DSRL's fork (`dsrl_sim.metadrive_tasks`). And DSRL collected on 10 maps, where map 203's 444 m route
+/// earns the paper's best return: a session opened with `maps = 10` draws each episode's map from its seed.
+#[tokio::test]
+async fn hard_map_routes_complete_on_the_forks_geometry_and_dsrls_ten_maps_reach_the_papers_best_return() {
+    let worker = Worker::start(&[]).await;
+    let task = "SafeMetaDrive-hardsparse-v0";
+    let (own_map, steps) = driven_return(&worker, task, 0, idm(13.0, 3.0)).await;
+    assert!(
+        (300.0..315.0).contains(&own_map) && steps < 1000,
+        "map 200's whole route earns ~306 (the fork: 306.0), got {own_map} in {steps} steps"
+    );
+    // Episode seed 36 draws map 203 among 10.
+    let ten_maps = Controller {
+        kind: Some(controller::Kind::Idm(Idm {
+            target_speed: 21.0,
+            acc_factor: 1.2,
+            maps: 10,
+        })),
+    };
+    let (best, _) = driven_return(&worker, task, 36, ten_maps).await;
+    assert!(
+        (480.0..495.0).contains(&best),
+        "map 203's whole route earns the paper's ~487 (the fork: 486.3-486.6), got {best}"
+    );
+    let (own, _) = driven_return(&worker, task, 36, idm(21.0, 1.2)).await;
+    assert!(own < 320.0, "with one map the same seed plays map 200: {own}");
+
+    // The maps are fixed when a session opens: a switch that names others is refused.
+    let (mut session, _) = SimulatorSession::open(worker.channel().await, {
+        let mut open = idm_open(task, vec![0]);
+        open.controller = Some(ten_maps);
+        open
+    })
+    .await
+    .unwrap();
+    let status = session.reset_with(&[0], &[1], Some(idm(5.0, 0.6))).await.err().unwrap();
+    assert_eq!(status.code(), Code::InvalidArgument, "{}", status.message());
+    assert!(status.message().contains("maps"), "{}", status.message());
 }
