@@ -551,6 +551,16 @@ mod tests {
                 task.paper_trajectories
             );
             assert_eq!(recipe.final_grid.cost_cap, task.paper_cost_cap);
+            // DSRL's 10 collection maps where the hard maps' best returns need them; the easy and medium starters
+            // were built on their own map (data/README.md, "Choices").
+            let maps = if task.id.as_str().contains("-hard") { 10 } else { 1 };
+            assert!(settings.iter().all(|s| s.maps == maps), "{}", task.id);
         }
+        // A recipe that leaves `maps` out serializes as before (provenance of earlier builds unchanged).
+        let easy = Recipe::load(&Recipe::default_path("OfflineMetadrive-easysparse-v0")).unwrap();
+        assert!(!serde_json::to_string(&easy).unwrap().contains("maps"));
+        let mut bad = easy.clone();
+        bad.idm_sweep.as_mut().unwrap().maps = 0;
+        assert!(bad.validate(&catalog).is_err());
     }
 }
