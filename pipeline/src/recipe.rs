@@ -239,8 +239,9 @@ impl Recipe {
                 );
                 anyhow::ensure!(!sweep.target_speeds.is_empty(), "idm_sweep.target_speeds is empty");
                 anyhow::ensure!(
-                    (1..=100).contains(&sweep.maps),
-                    "idm_sweep.maps must be from 1 to 100, got {}",
+                    (1..=dsrl_proto::simulator::v1::MAX_IDM_MAPS).contains(&sweep.maps),
+                    "idm_sweep.maps must be from 1 to {}, got {}",
+                    dsrl_proto::simulator::v1::MAX_IDM_MAPS,
                     sweep.maps
                 );
             }

@@ -17,6 +17,10 @@ pub mod leaderboard {
 pub mod simulator {
     pub mod v1 {
         include!("gen/dsrl.simulator.v1.rs");
+
+        /// The most maps an `Idm` controller may draw its episodes from (DSRL's collection used 10): MetaDrive
+        /// builds and keeps every map a session draws from. Workers refuse more; recipes are checked against it.
+        pub const MAX_IDM_MAPS: u32 = 100;
     }
 }
 

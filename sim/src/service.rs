@@ -20,9 +20,6 @@ use crate::error::SimError;
 use crate::python::{BatchShape, Controller, PyBatch, PythonHost, PythonThread};
 use crate::session::{Limits, SessionState, check_open};
 
-/// The most maps an IDM session may draw its episodes from (DSRL's collection used 10).
-const MAX_MAPS: u32 = 100;
-
 #[derive(Clone)]
 pub struct SimulatorService {
     inner: Arc<Inner>,
@@ -146,9 +143,10 @@ impl Inner {
             )));
         }
         // MetaDrive builds and keeps every map a session draws from (~1 s and some memory each).
-        if idm.maps > MAX_MAPS {
+        if idm.maps > pb::MAX_IDM_MAPS {
             return Err(SimError::InvalidArgument(format!(
-                "IDM maps must be at most {MAX_MAPS}, got {}",
+                "IDM maps must be at most {}, got {}",
+                pb::MAX_IDM_MAPS,
                 idm.maps
             )));
         }
