@@ -368,16 +368,20 @@ impl Run {
             })
             .await??
         };
-        let files = if self.compact && self.parts > 1 {
-            // A starter over one file's budget: whole episodes in parts, joined back at ingest.
+        let files = if self.compact {
+            // The committed form of a starter: ingested, it gives the canonical file and its version id. A starter
+            // over one file's budget is written in parts of whole episodes, joined back at ingest.
             let name = path
                 .file_name()
                 .and_then(|n| n.to_str())
                 .context("output file name")?
                 .to_owned();
-            let files: Vec<PathBuf> = (1..=self.parts)
-                .map(|i| out_dir.join(dsrl_suite::convert::part_file_name(&name, i, self.parts)))
-                .collect();
+            let files: Vec<PathBuf> = match self.parts {
+                0 | 1 => vec![path.clone()],
+                n => (1..=n)
+                    .map(|i| out_dir.join(dsrl_suite::convert::part_file_name(&name, i, n)))
+                    .collect(),
+            };
             let scratch: Vec<PathBuf> = files.iter().map(|f| f.with_extension("parquet.compact")).collect();
             let (task, canonical, targets) = (task.clone(), part.clone(), scratch.clone());
             let episodes = converted.episode_index.clone();
@@ -391,16 +395,6 @@ impl Run {
             }
             files
         } else {
-            if self.compact {
-                // The committed form of a starter: ingested, it gives the canonical file and its version id.
-                let (task, canonical, compact) = (task.clone(), part.clone(), path.with_extension("parquet.compact"));
-                let target = compact.clone();
-                tokio::task::spawn_blocking(move || {
-                    dsrl_suite::convert::compact_copy(&task, ObservationSpace::Simulator, &canonical, &target)
-                })
-                .await??;
-                std::fs::rename(&compact, &part)?;
-            }
             std::fs::rename(&part, &path)?;
             vec![path.clone()]
         };

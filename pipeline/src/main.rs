@@ -117,8 +117,8 @@ struct CollectArgs {
     #[arg(long)]
     out: Option<PathBuf>,
     /// Write the output in the compact form: `next_observations` left out (null) wherever the next row of the
-    /// episode starts from it, about half the size. Ingest fills it back in, so the version id is the canonical
-    /// one. For committed starter files.
+    /// episode starts from it, and `observations` one column per feature; less than half the size. Ingest
+    /// gives back the canonical rows, so the version id is the canonical one. For committed starter files.
     #[arg(long)]
     compact: bool,
     /// With --compact: split the output into N files of whole episodes, `<name>.part-I-of-N.parquet`, each a

@@ -157,14 +157,6 @@ pub fn write_compact(
     Ok(write_form(task, space, chunks, Vec::new(), out, true)?.byte_size)
 }
 
-/// The compact form of the canonical file `canonical`, written to `out`; returns its size in bytes.
-pub fn compact_copy(task: &Task, space: ObservationSpace, canonical: &Path, out: &Path) -> Result<u64, ImportError> {
-    let chunks = ParquetTransitions::open(File::open(canonical)?)
-        .map_err(|e| ImportError::Io(io::Error::other(e)))?
-        .map(|chunk| chunk.map_err(|e| ImportError::Io(io::Error::other(e))));
-    write_compact(task, space, chunks, out)
-}
-
 fn write_form(
     task: &Task,
     space: ObservationSpace,
@@ -269,7 +261,8 @@ pub fn parse_part_file_name(file_name: &str) -> Option<(String, usize, usize)> {
 /// Splits the canonical file `canonical`, whose episodes are `episodes` (its `Converted::episode_index`), into
 /// `outs.len()` compact files of consecutive whole episodes, about the same number of rows each, numbered from
 /// episode 0 on their own; returns each file's size in bytes. Joined in order (`join_compact_parts`), they give the
-/// canonical file back, hence its version id.
+/// canonical file back, hence its version id. With one output it is the compact form of the whole file: the
+/// committed single-file starters are byte-identical to it (checked on them when this replaced a separate copy).
 pub fn split_compact(
     task: &Task,
     space: ObservationSpace,

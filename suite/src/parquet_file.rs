@@ -6,10 +6,14 @@
 //! counters delta encoding; every row group holds whole episodes, so one episode is one row-group read.
 //! The writer is deterministic: the same rows always give the same bytes, hence the same version id.
 //!
-//! **Compact form** (committed starter files): the same layout, except that `next_observations` is null wherever
-//! it equals the next row's `observations` in the same episode, which is every step but an episode's last in
-//! collected data. Parquet stores nothing for a null list, so the file is about half the size. The reader fills
-//! the nulls back in, so ingesting a compact file gives exactly the canonical rows, hence the same version id.
+//! **Compact form** (committed starter files): the same rows, stored smaller in two ways. `next_observations` is
+//! null wherever it equals the next row's `observations` in the same episode, which is every step but an episode's
+//! last in collected data; Parquet stores nothing for a null list, which halves the file. And `observations` is a
+//! struct of one float32 field per feature (`"0"`, `"1"`, ...), so Parquet keeps each feature in its own column:
+//! a feature's values over time compress far better than the row-major mix of all features (13-18% less on
+//! Safety-Gymnasium and MetaDrive starters, measured on the committed files). The reader takes either form of
+//! `observations` and fills the nulls back in, so ingesting a compact file gives exactly the canonical rows, hence
+//! the same version id. Starters committed before the struct form keep the list form and read as before.
 
 use std::io::Write;
 use std::sync::Arc;
@@ -17,7 +21,9 @@ use std::sync::Arc;
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, Int8Type, Int16Type, Int32Type, Int64Type};
 use arrow_array::types::{UInt8Type, UInt16Type, UInt32Type, UInt64Type};
-use arrow_array::{Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, RecordBatch, UInt32Array};
+use arrow_array::{
+    Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, RecordBatch, StructArray, UInt32Array,
+};
 use arrow_schema::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
 use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
@@ -60,14 +66,19 @@ pub fn dataset_schema(obs_dim: usize, act_dim: usize) -> SchemaRef {
     schema_of(obs_dim, act_dim, false)
 }
 
-/// The schema, with `next_observations` nullable in the compact form.
+/// The schema; in the compact form `next_observations` is nullable and `observations` a struct of features.
 fn schema_of(obs_dim: usize, act_dim: usize, compact: bool) -> SchemaRef {
     let list =
         |dim: usize| DataType::FixedSizeList(Arc::new(Field::new_list_field(DataType::Float32, false)), dim as i32);
+    let observations = if compact {
+        DataType::Struct(feature_fields(obs_dim))
+    } else {
+        list(obs_dim)
+    };
     Arc::new(Schema::new(vec![
         Field::new(EPISODE, DataType::UInt32, false),
         Field::new(STEP, DataType::UInt32, false),
-        Field::new(OBSERVATIONS, list(obs_dim), false),
+        Field::new(OBSERVATIONS, observations, false),
         Field::new(NEXT_OBSERVATIONS, list(obs_dim), compact),
         Field::new(ACTIONS, list(act_dim), false),
         Field::new(REWARDS, DataType::Float32, false),
@@ -75,6 +86,13 @@ fn schema_of(obs_dim: usize, act_dim: usize, compact: bool) -> SchemaRef {
         Field::new(TERMINALS, DataType::Boolean, false),
         Field::new(TIMEOUTS, DataType::Boolean, false),
     ]))
+}
+
+/// The compact form's observation fields: one float32 per feature, named by its index.
+fn feature_fields(dim: usize) -> arrow_schema::Fields {
+    (0..dim)
+        .map(|j| Field::new(j.to_string(), DataType::Float32, false))
+        .collect()
 }
 
 fn row_bytes(obs_dim: usize, act_dim: usize) -> usize {
@@ -222,10 +240,24 @@ fn record_batch(
             })
             .collect::<Vec<bool>>()
     });
+    let observations = if compact {
+        // One column per feature: the row-major matrix transposed.
+        let (d, n) = (chunk.obs_dim, chunk.len());
+        let features: Vec<ArrayRef> = (0..d)
+            .map(|j| {
+                Arc::new(Float32Array::from_iter_values(
+                    (0..n).map(|i| chunk.observations[i * d + j]),
+                )) as ArrayRef
+            })
+            .collect();
+        Arc::new(StructArray::try_new(feature_fields(d), features, None)?) as ArrayRef
+    } else {
+        list(chunk.observations, chunk.obs_dim, None)?
+    };
     let columns: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from(episode)),
         Arc::new(UInt32Array::from(step)),
-        list(chunk.observations, chunk.obs_dim, None)?,
+        observations,
         list(chunk.next_observations, chunk.obs_dim, derivable)?,
         list(chunk.actions, chunk.act_dim, None)?,
         Arc::new(Float32Array::from(chunk.rewards)),
@@ -536,6 +568,13 @@ fn list_width(schema: &Schema, name: &str) -> Result<Option<usize>, ReadError> {
             check_float(name, item.data_type())?;
             return Ok(Some(*n as usize));
         }
+        // The compact form's observations: one float field per feature.
+        DataType::Struct(fields) if !fields.is_empty() => {
+            for field in fields {
+                check_float(name, field.data_type())?;
+            }
+            return Ok(Some(fields.len()));
+        }
         DataType::List(item) | DataType::LargeList(item) => item,
         other => {
             return Err(ReadError::Layout(format!(
@@ -582,10 +621,23 @@ fn floats_of(name: &str, values: &ArrayRef) -> Result<Vec<f32>, ReadError> {
     }
 }
 
-/// Row-major values of a list column and its width (`width == 0`: take it from the first row).
+/// Row-major values of a list column, or of a struct of one float field per feature, and its width
+/// (`width == 0`: take it from the first row).
 fn float_matrix(base: u64, name: &str, array: &ArrayRef, width: usize) -> Result<(Vec<f32>, usize), ReadError> {
     no_nulls(base, name, array.as_ref())?;
     match array.data_type() {
+        DataType::Struct(_) => {
+            let features = array.as_struct().columns();
+            let (d, n) = (features.len(), array.len());
+            let mut values = vec![0f32; n * d];
+            for (j, feature) in features.iter().enumerate() {
+                no_nulls(base, name, feature.as_ref())?;
+                for (i, v) in floats_of(name, feature)?.into_iter().enumerate() {
+                    values[i * d + j] = v;
+                }
+            }
+            Ok((values, d))
+        }
         DataType::FixedSizeList(_, _) => {
             let list = array.as_fixed_size_list();
             no_nulls(base, name, list.values().as_ref())?;

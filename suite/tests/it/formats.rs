@@ -457,8 +457,25 @@ fn the_compact_form_is_about_half_the_size_and_ingests_to_the_same_version() {
     let canonical = dir.path().join("canonical.parquet");
     let converted = write(&t, std::slice::from_ref(&all), &canonical);
     let compact = dir.path().join("compact.parquet");
-    let size = dsrl_suite::convert::compact_copy(&t, ObservationSpace::Simulator, &canonical, &compact).unwrap();
+    // A starter in one file is the one-part split.
+    let sizes = dsrl_suite::convert::split_compact(
+        &t,
+        ObservationSpace::Simulator,
+        &canonical,
+        &converted.episode_index,
+        std::slice::from_ref(&compact),
+    )
+    .unwrap();
+    let size = sizes[0];
     assert_eq!(size, std::fs::metadata(&compact).unwrap().len());
+    // Observations one column per feature (episode, step, d features, next observations, actions, 4 scalars).
+    let leaves = SerializedFileReader::new(std::fs::File::open(&compact).unwrap())
+        .unwrap()
+        .metadata()
+        .file_metadata()
+        .schema_descr()
+        .num_columns();
+    assert_eq!(leaves, d + 8);
     let canonical_size = std::fs::metadata(&canonical).unwrap().len();
     assert!(
         size * 10 < canonical_size * 6,
