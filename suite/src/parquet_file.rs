@@ -288,9 +288,9 @@ impl From<arrow_schema::ArrowError> for ReadError {
     }
 }
 
-/// Reads any Parquet file with DSRL's columns as transition chunks: the canonical layout, or a file written by
-/// pandas/pyarrow with float64 values, variable-length lists, or integer flags. Columns outside the format are
-/// reported, not read.
+/// Reads any Parquet file with DSRL's columns as transition chunks: the canonical layout, the compact form, or a
+/// file written by pandas/pyarrow with float64 values, variable-length lists, structs of one float per feature, or
+/// integer flags. Columns outside the format are reported, not read.
 pub struct ParquetTransitions {
     reader: ParquetRecordBatchReader,
     obs_dim: usize,
