@@ -99,6 +99,10 @@ pub struct ExpertSettings {
     /// compressed (see [`LooseFirst`]); absent, the paper's schedule.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loose_first: Option<LooseFirst>,
+    /// Feed the networks observations normalized by running statistics (see `expert::normalization`); absent,
+    /// raw observations as FSRL's experts.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub observation_normalization: bool,
     pub lagrangian: PidGains,
 }
 

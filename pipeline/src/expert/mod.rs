@@ -7,5 +7,6 @@
 
 pub mod advantage;
 pub mod lagrangian;
+pub mod normalization;
 pub mod ppo;
 pub mod train;

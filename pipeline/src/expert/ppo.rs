@@ -6,7 +6,7 @@ use std::collections::HashMap;
 
 use anyhow::Context;
 use dsrl_policy::adam::Adam;
-use dsrl_policy::checkpoint::{self, Architecture, PolicyConfig};
+use dsrl_policy::checkpoint::{self, Architecture, ObservationNormalization, PolicyConfig};
 use dsrl_policy::gaussian::{GaussianActor, matrix};
 use dsrl_policy::mlp::{Activation, Mlp};
 use dsrl_policy::noise::Noise;
@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use super::advantage::{StepValue, gae, normalize};
 use super::lagrangian::PidLagrangian;
+use super::normalization::ObservationStats;
 use crate::recipe::ExpertSettings;
 
 const ACTIVATION: Activation = Activation::Tanh;
@@ -63,6 +64,8 @@ pub struct Learner {
     actor_opt: Adam,
     critic_opt: Adam,
     pub lagrangian: PidLagrangian,
+    /// The running observation statistics the networks see their inputs through, when the recipe asks for them.
+    observation_stats: Option<ObservationStats>,
     settings: ExpertSettings,
 }
 
@@ -72,6 +75,8 @@ pub struct LearnerState {
     pub lagrangian: PidLagrangian,
     pub actor_steps: u64,
     pub critic_steps: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observation_stats: Option<ObservationStats>,
 }
 
 impl Learner {
@@ -102,6 +107,9 @@ impl Learner {
             actor_opt,
             critic_opt,
             lagrangian: PidLagrangian::new(gains.kp, gains.ki, gains.kd),
+            observation_stats: settings
+                .observation_normalization
+                .then(|| ObservationStats::new(obs_dim)),
             settings: settings.clone(),
         })
     }
@@ -125,6 +133,7 @@ impl Learner {
             lagrangian: self.lagrangian.clone(),
             actor_steps: self.actor_opt.steps(),
             critic_steps: self.critic_opt.steps(),
+            observation_stats: self.observation_stats.clone(),
         }
     }
 
@@ -135,6 +144,17 @@ impl Learner {
         tensors: &HashMap<String, Tensor>,
         state: &LearnerState,
     ) -> anyhow::Result<Learner> {
+        anyhow::ensure!(
+            settings.observation_normalization == state.observation_stats.is_some(),
+            "the saved expert was trained {} observation normalization but the recipe now says \
+             observation_normalization = {}: resume with the recipe it started with, or start a new state folder",
+            if state.observation_stats.is_some() {
+                "with"
+            } else {
+                "without"
+            },
+            settings.observation_normalization
+        );
         let mean_net = Mlp::from_tensors("actor.mu", tensors, ACTIVATION)?;
         let log_std = tensors.get("actor.log_std").context("actor.log_std is missing")?;
         let actor = GaussianActor {
@@ -158,6 +178,7 @@ impl Learner {
             actor_opt,
             critic_opt,
             lagrangian: state.lagrangian.clone(),
+            observation_stats: state.observation_stats.clone(),
             settings: settings.clone(),
         })
     }
@@ -174,7 +195,10 @@ impl Learner {
                 activation: ACTIVATION,
                 max_action: self.actor.max_action,
             },
-            observation_normalization: None,
+            observation_normalization: self.observation_stats.as_ref().map(|stats| {
+                let (mean, std) = stats.mean_and_std();
+                ObservationNormalization { mean, std }
+            }),
             conditioning: checkpoint::Conditioning::Unconditioned,
             training: Some(serde_json::json!({ "by": "dsrl-admin collect (PPO-Lagrangian expert)" })),
         };
@@ -182,21 +206,30 @@ impl Learner {
         Ok(())
     }
 
+    /// What the networks see of raw observations: normalized when the recipe asks for it.
+    fn inputs<'a>(&self, observations: &'a [f32]) -> std::borrow::Cow<'a, [f32]> {
+        match &self.observation_stats {
+            Some(stats) => std::borrow::Cow::Owned(stats.apply(observations)),
+            None => std::borrow::Cow::Borrowed(observations),
+        }
+    }
+
     /// Sampled actions and their log-probabilities for `[n, obs_dim]` observations.
     pub fn act(&self, observations: &[f32], n: usize, noise: &mut Noise) -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
-        let obs = matrix(observations, n, self.actor.mean_net.input_dim())?;
+        let obs = matrix(&self.inputs(observations), n, self.actor.mean_net.input_dim())?;
         Ok(self.actor.sample_with_log_prob(&obs, noise)?)
     }
 
-    fn values(critic: &Mlp, observations: &[f32], n: usize, obs_dim: usize) -> anyhow::Result<Vec<f64>> {
+    fn values(&self, critic: &Mlp, observations: &[f32], n: usize, obs_dim: usize) -> anyhow::Result<Vec<f64>> {
         let v = critic
-            .forward(&matrix(observations, n, obs_dim)?)?
+            .forward(&matrix(&self.inputs(observations), n, obs_dim)?)?
             .flatten_all()?
             .to_vec1::<f32>()?;
         Ok(v.into_iter().map(f64::from).collect())
     }
 
-    /// One PPO-Lagrangian update from a collect: first λ from the collect's episode costs against `cost_limit`.
+    /// One PPO-Lagrangian update from a collect: first λ from the collect's episode costs against `cost_limit`;
+    /// last, the observation statistics (if any) take in the collect's observations.
     pub fn update(
         &mut self,
         rollout: &Rollout,
@@ -209,8 +242,8 @@ impl Learner {
         anyhow::ensure!(n > 0, "an update needs steps");
         let s = &self.settings;
         let advantages = |critic: &Mlp, signal: &[f64]| -> anyhow::Result<(Vec<f64>, Vec<f64>)> {
-            let values = Self::values(critic, &rollout.observations, n, od)?;
-            let next = Self::values(critic, &rollout.next_observations, n, od)?;
+            let values = self.values(critic, &rollout.observations, n, od)?;
+            let next = self.values(critic, &rollout.next_observations, n, od)?;
             let steps: Vec<StepValue> = (0..n)
                 .map(|t| StepValue {
                     signal: signal[t],
@@ -232,7 +265,7 @@ impl Learner {
             .map(|(r, c)| self.lagrangian.mix(*r, *c) as f32)
             .collect();
         let dev = &Device::Cpu;
-        let obs = matrix(&rollout.observations, n, od)?;
+        let obs = matrix(&self.inputs(&rollout.observations), n, od)?;
         let actions = matrix(&rollout.actions, n, ad)?;
         let old_log_probs = Tensor::from_slice(&rollout.log_probs, n, dev)?;
         let mixed = Tensor::from_slice(&mixed, n, dev)?;
@@ -279,6 +312,9 @@ impl Learner {
             stats.approx_kl = kl_sum / f64::from(batches);
         }
         stats.std = f64::from(self.actor.log_std.as_tensor().exp()?.mean_all()?.to_scalar::<f32>()?);
+        if let Some(observation_stats) = &mut self.observation_stats {
+            observation_stats.observe(&rollout.observations);
+        }
         Ok(stats)
     }
 }
@@ -299,9 +335,22 @@ mod tests {
         s
     }
 
-    /// One-step episodes from observation 0 with reward `1 − (a − 0.5)²` and cost `cost(a)`.
+    /// One-step episodes with reward `1 − (a − 0.5)²` and cost `cost(a)`, whatever the observation (0, or with
+    /// `spread` −2, 0, 2 in turn, to give the observation statistics something to learn).
     fn bandit(learner: &Learner, noise: &mut Noise, n: usize, cost: impl Fn(f32) -> f64) -> (Rollout, Vec<f64>) {
-        let obs = vec![0.0f32; n];
+        bandit_from(learner, noise, n, cost, false)
+    }
+
+    fn bandit_from(
+        learner: &Learner,
+        noise: &mut Noise,
+        n: usize,
+        cost: impl Fn(f32) -> f64,
+        spread: bool,
+    ) -> (Rollout, Vec<f64>) {
+        let obs: Vec<f32> = (0..n)
+            .map(|i| if spread { 2.0 * (i % 3) as f32 - 2.0 } else { 0.0 })
+            .collect();
         let (actions, log_probs) = learner.act(&obs, n, noise).unwrap();
         let costs: Vec<f64> = actions.iter().map(|&a| cost(a)).collect();
         let rollout = Rollout {
@@ -319,10 +368,11 @@ mod tests {
         (rollout, costs)
     }
 
+    /// The deterministic action at observation 0.5.
     fn mean_action(learner: &Learner) -> f32 {
         learner
             .actor
-            .mean(&matrix(&[0.0], 1, 1).unwrap())
+            .mean(&matrix(&learner.inputs(&[0.5]), 1, 1).unwrap())
             .unwrap()
             .to_vec2::<f32>()
             .unwrap()[0][0]
@@ -361,27 +411,46 @@ mod tests {
     }
 
     #[test]
-    fn a_restored_learner_updates_exactly_like_the_original() {
-        let s = settings();
-        let mut noise = Noise::seeded(9);
-        let mut original = Learner::new(&s, 1, 1, 1.0, &mut noise).unwrap();
-        let (rollout, costs) = bandit(&original, &mut noise, 100, f64::from);
-        original.update(&rollout, &costs, 0.2, &mut noise).unwrap();
-        let tensors: HashMap<String, Tensor> = original.tensors().into_iter().collect();
-        let mut restored = Learner::restore(&s, 1.0, &tensors, &original.state()).unwrap();
-        let (rollout, costs) = bandit(&original, &mut noise, 100, f64::from);
-        let (mut n1, mut n2) = (noise, noise);
-        let a = original.update(&rollout, &costs, 0.2, &mut n1).unwrap();
-        let b = restored.update(&rollout, &costs, 0.2, &mut n2).unwrap();
-        assert_eq!(a, b);
-        assert_eq!(mean_action(&original), mean_action(&restored));
-        let dir = tempfile::tempdir().unwrap();
-        original.write_policy(dir.path(), "OfflineBallRun-v0").unwrap();
-        let (config, weights) = dsrl_policy::checkpoint::read(dir.path()).unwrap();
-        let policy = dsrl_policy::Policy::load(&config, &weights).unwrap();
-        assert_eq!(
-            policy.act(&matrix(&[0.0], 1, 1).unwrap()).unwrap(),
-            vec![mean_action(&original)]
-        );
+    fn a_restored_learner_updates_exactly_like_the_original_and_exports_what_it_acts() {
+        for normalized in [false, true] {
+            let mut s = settings();
+            s.observation_normalization = normalized;
+            let mut noise = Noise::seeded(9);
+            let mut original = Learner::new(&s, 1, 1, 1.0, &mut noise).unwrap();
+            let (rollout, costs) = bandit_from(&original, &mut noise, 100, f64::from, true);
+            original.update(&rollout, &costs, 0.2, &mut noise).unwrap();
+            let stats = original.state().observation_stats;
+            assert_eq!(stats.is_some(), normalized);
+            if let Some(stats) = stats {
+                assert_eq!(stats.count, 100.0, "the update took in the collect's observations");
+                assert!((stats.var[0] - 8.0 / 3.0).abs() < 0.1, "variance {:?}", stats.var);
+            }
+            let tensors: HashMap<String, Tensor> = original.tensors().into_iter().collect();
+            let mut restored = Learner::restore(&s, 1.0, &tensors, &original.state()).unwrap();
+            let (rollout, costs) = bandit_from(&original, &mut noise, 100, f64::from, true);
+            let (mut n1, mut n2) = (noise, noise);
+            let a = original.update(&rollout, &costs, 0.2, &mut n1).unwrap();
+            let b = restored.update(&rollout, &costs, 0.2, &mut n2).unwrap();
+            assert_eq!(a, b);
+            assert_eq!(mean_action(&original), mean_action(&restored));
+            assert_eq!(original.state(), restored.state());
+            // The exported expert declares the statistics, so it acts on raw observations as the learner did.
+            let dir = tempfile::tempdir().unwrap();
+            original.write_policy(dir.path(), "OfflineBallRun-v0").unwrap();
+            let (config, weights) = dsrl_policy::checkpoint::read(dir.path()).unwrap();
+            assert_eq!(config.observation_normalization.is_some(), normalized);
+            let policy = dsrl_policy::Policy::load(&config, &weights).unwrap();
+            assert_eq!(
+                policy.act(&matrix(&[0.5], 1, 1).unwrap()).unwrap(),
+                vec![mean_action(&original)]
+            );
+            // A save and a recipe that disagree about normalization are refused, not mixed.
+            let mut other = s.clone();
+            other.observation_normalization = !normalized;
+            let refused = Learner::restore(&other, 1.0, &tensors, &original.state())
+                .err()
+                .unwrap();
+            assert!(refused.to_string().contains("observation_normalization"), "{refused}");
+        }
     }
 }

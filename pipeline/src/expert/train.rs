@@ -465,6 +465,7 @@ pub async fn train(
                     ),
                     actor_steps: 0,
                     critic_steps: 0,
+                    observation_stats: None,
                 },
                 buffer: buffer.snapshot(),
                 buffered: Vec::new(),
