@@ -555,3 +555,94 @@ fn the_compact_form_is_about_half_the_size_and_ingests_to_the_same_version() {
     assert!(err.contains("null at an episode's last step"), "{err}");
     assert!(err.contains(&format!("row {last}")), "{err}");
 }
+
+/// The struct compact form's observations (one field per feature) get the list form's checks: a null feature
+/// value is refused with its row, and a feature that is not a float is refused by name and type.
+#[test]
+fn struct_observations_with_a_null_or_a_non_float_feature_are_refused() {
+    let t = task("OfflineBallRun-v0");
+    let small = concat(&synthetic(&t, 2, 5));
+    let (d, n) = (small.obs_dim, small.len());
+    let list = |values: &[f32], dim: usize| -> ArrayRef {
+        let field = Arc::new(Field::new_list_field(DataType::Float32, false));
+        Arc::new(
+            arrow_array::FixedSizeListArray::try_new(
+                field,
+                dim as i32,
+                Arc::new(arrow_array::Float32Array::from(values.to_vec())),
+                None,
+            )
+            .unwrap(),
+        )
+    };
+    let write_with = |features: Vec<ArrayRef>, path: &Path| {
+        let fields: Vec<Field> = features
+            .iter()
+            .enumerate()
+            .map(|(j, f)| Field::new(j.to_string(), f.data_type().clone(), true))
+            .collect();
+        let observations = arrow_array::StructArray::try_new(fields.clone().into(), features, None).unwrap();
+        let item = |dim| DataType::FixedSizeList(Arc::new(Field::new_list_field(DataType::Float32, false)), dim);
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("observations", DataType::Struct(fields.into()), false),
+            Field::new("next_observations", item(d as i32), false),
+            Field::new("actions", item(small.act_dim as i32), false),
+            Field::new("rewards", DataType::Float32, false),
+            Field::new("costs", DataType::Float32, false),
+            Field::new("terminals", DataType::Boolean, false),
+            Field::new("timeouts", DataType::Boolean, false),
+        ]));
+        let batch = RecordBatch::try_new(
+            schema.clone(),
+            vec![
+                Arc::new(observations) as ArrayRef,
+                list(&small.next_observations, d),
+                list(&small.actions, small.act_dim),
+                Arc::new(arrow_array::Float32Array::from(small.rewards.clone())),
+                Arc::new(arrow_array::Float32Array::from(small.costs.clone())),
+                Arc::new(BooleanArray::from(small.terminals.clone())),
+                Arc::new(BooleanArray::from(small.timeouts.clone())),
+            ],
+        )
+        .unwrap();
+        let mut writer = ArrowWriter::try_new(std::fs::File::create(path).unwrap(), schema, None).unwrap();
+        writer.write(&batch).unwrap();
+        writer.close().unwrap();
+    };
+    let feature = |j: usize, null_at: Option<usize>| -> ArrayRef {
+        Arc::new(arrow_array::Float32Array::from(
+            (0..n)
+                .map(|i| (Some(i) != null_at).then_some(small.observations[i * d + j]))
+                .collect::<Vec<_>>(),
+        ))
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let import = |path: &Path| match import_file(path, &t, ObservationSpace::Simulator, &dir.path().join("out")) {
+        Ok(_) => panic!("{} was accepted", path.display()),
+        Err(e) => e.to_string(),
+    };
+
+    // As written, the struct form reads back every observation.
+    let good = dir.path().join("good.parquet");
+    write_with((0..d).map(|j| feature(j, None)).collect(), &good);
+    assert_eq!(read_all(&good).observations, small.observations);
+
+    let null_row = n / 2;
+    let with_null = dir.path().join("null.parquet");
+    write_with(
+        (0..d).map(|j| feature(j, (j == 3).then_some(null_row))).collect(),
+        &with_null,
+    );
+    let err = import(&with_null);
+    assert!(err.contains("null value"), "{err}");
+    assert!(err.contains(&format!("row {null_row}")), "{err}");
+    assert!(err.contains("observations"), "{err}");
+
+    let not_float = dir.path().join("int.parquet");
+    let mut features: Vec<ArrayRef> = (0..d).map(|j| feature(j, None)).collect();
+    features[2] = Arc::new(arrow_array::Int32Array::from(vec![1; n]));
+    write_with(features, &not_float);
+    let err = import(&not_float);
+    assert!(err.contains("observations") && err.contains("Int32"), "{err}");
+    assert!(err.contains("expected float32 or float64"), "{err}");
+}
