@@ -50,6 +50,20 @@ fn read_all(path: &Path) -> TransitionChunk {
     all.unwrap()
 }
 
+/// A fixed-size list column of float32 vectors of `dim`, row `i` null where `valid[i]` is false.
+fn float_list(values: &[f32], dim: usize, valid: Option<Vec<bool>>) -> ArrayRef {
+    let field = Arc::new(Field::new_list_field(DataType::Float32, false));
+    Arc::new(
+        arrow_array::FixedSizeListArray::try_new(
+            field,
+            dim as i32,
+            Arc::new(arrow_array::Float32Array::from(values.to_vec())),
+            valid.map(arrow_buffer::NullBuffer::from),
+        )
+        .unwrap(),
+    )
+}
+
 fn concat(chunks: &[TransitionChunk]) -> TransitionChunk {
     let mut all = TransitionChunk::empty(chunks[0].obs_dim, chunks[0].act_dim);
     for c in chunks {
@@ -498,18 +512,6 @@ fn the_compact_form_is_about_half_the_size_and_ingests_to_the_same_version() {
     // A next observation left out at an episode's last step cannot come from the next row: refused with the row.
     let small = concat(&synthetic(&task("OfflineBallRun-v0"), 2, 3));
     let last = (0..small.len()).find(|&i| small.is_done(i)).unwrap();
-    let list = |values: &[f32], dim: usize, valid: Option<Vec<bool>>| -> ArrayRef {
-        let field = Arc::new(Field::new_list_field(DataType::Float32, false));
-        Arc::new(
-            arrow_array::FixedSizeListArray::try_new(
-                field,
-                dim as i32,
-                Arc::new(arrow_array::Float32Array::from(values.to_vec())),
-                valid.map(arrow_buffer::NullBuffer::from),
-            )
-            .unwrap(),
-        )
-    };
     let item = |nullable| {
         DataType::FixedSizeList(
             Arc::new(Field::new_list_field(DataType::Float32, false)),
@@ -529,9 +531,9 @@ fn the_compact_form_is_about_half_the_size_and_ingests_to_the_same_version() {
     let batch = RecordBatch::try_new(
         schema.clone(),
         vec![
-            list(&small.observations, 7, None),
-            list(&small.next_observations, 7, Some(valid)),
-            list(&small.actions, 2, None),
+            float_list(&small.observations, 7, None),
+            float_list(&small.next_observations, 7, Some(valid)),
+            float_list(&small.actions, 2, None),
             Arc::new(arrow_array::Float32Array::from(small.rewards.clone())),
             Arc::new(arrow_array::Float32Array::from(small.costs.clone())),
             Arc::new(BooleanArray::from(small.terminals.clone())),
@@ -563,18 +565,6 @@ fn struct_observations_with_a_null_or_a_non_float_feature_are_refused() {
     let t = task("OfflineBallRun-v0");
     let small = concat(&synthetic(&t, 2, 5));
     let (d, n) = (small.obs_dim, small.len());
-    let list = |values: &[f32], dim: usize| -> ArrayRef {
-        let field = Arc::new(Field::new_list_field(DataType::Float32, false));
-        Arc::new(
-            arrow_array::FixedSizeListArray::try_new(
-                field,
-                dim as i32,
-                Arc::new(arrow_array::Float32Array::from(values.to_vec())),
-                None,
-            )
-            .unwrap(),
-        )
-    };
     let write_with = |features: Vec<ArrayRef>, path: &Path| {
         let fields: Vec<Field> = features
             .iter()
@@ -596,8 +586,8 @@ fn struct_observations_with_a_null_or_a_non_float_feature_are_refused() {
             schema.clone(),
             vec![
                 Arc::new(observations) as ArrayRef,
-                list(&small.next_observations, d),
-                list(&small.actions, small.act_dim),
+                float_list(&small.next_observations, d, None),
+                float_list(&small.actions, small.act_dim, None),
                 Arc::new(arrow_array::Float32Array::from(small.rewards.clone())),
                 Arc::new(arrow_array::Float32Array::from(small.costs.clone())),
                 Arc::new(BooleanArray::from(small.terminals.clone())),
