@@ -220,9 +220,10 @@ impl Learner {
         Ok(self.actor.sample_with_log_prob(&obs, noise)?)
     }
 
-    fn values(&self, critic: &Mlp, observations: &[f32], n: usize, obs_dim: usize) -> anyhow::Result<Vec<f64>> {
+    /// A critic's values of `[n, obs_dim]` network inputs (already normalized where the recipe asks for it).
+    fn values(critic: &Mlp, inputs: &[f32], n: usize, obs_dim: usize) -> anyhow::Result<Vec<f64>> {
         let v = critic
-            .forward(&matrix(&self.inputs(observations), n, obs_dim)?)?
+            .forward(&matrix(inputs, n, obs_dim)?)?
             .flatten_all()?
             .to_vec1::<f32>()?;
         Ok(v.into_iter().map(f64::from).collect())
@@ -241,9 +242,12 @@ impl Learner {
         let (n, od, ad) = (rollout.len(), rollout.obs_dim, rollout.act_dim);
         anyhow::ensure!(n > 0, "an update needs steps");
         let s = &self.settings;
+        // Normalized once for both critics and the actor, with the statistics the collect was played with.
+        let inputs = self.inputs(&rollout.observations);
+        let next_inputs = self.inputs(&rollout.next_observations);
         let advantages = |critic: &Mlp, signal: &[f64]| -> anyhow::Result<(Vec<f64>, Vec<f64>)> {
-            let values = self.values(critic, &rollout.observations, n, od)?;
-            let next = self.values(critic, &rollout.next_observations, n, od)?;
+            let values = Self::values(critic, &inputs, n, od)?;
+            let next = Self::values(critic, &next_inputs, n, od)?;
             let steps: Vec<StepValue> = (0..n)
                 .map(|t| StepValue {
                     signal: signal[t],
@@ -265,7 +269,7 @@ impl Learner {
             .map(|(r, c)| self.lagrangian.mix(*r, *c) as f32)
             .collect();
         let dev = &Device::Cpu;
-        let obs = matrix(&self.inputs(&rollout.observations), n, od)?;
+        let obs = matrix(&inputs, n, od)?;
         let actions = matrix(&rollout.actions, n, ad)?;
         let old_log_probs = Tensor::from_slice(&rollout.log_probs, n, dev)?;
         let mixed = Tensor::from_slice(&mixed, n, dev)?;
