@@ -129,12 +129,20 @@ pub struct LooseFirst {
     pub hold_loose: f64,
     /// Fraction of the budget trained at the tightest limit, at the end.
     pub hold_tight: f64,
+    /// The limit held in the loose phase and walked down from, in place of the schedule's loosest; absent, the
+    /// schedule's loosest. Why: an expert whose episodes average the buffer's cost cap pays more than the cap on
+    /// about half of them, and the buffer drops those, so a task whose loosest limit is its cap (Hopper) keeps
+    /// almost none of its fast episodes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loose_limit: Option<f64>,
 }
 
 impl LooseFirst {
     pub fn limit_at(&self, schedule: &PaperSchedule, steps: u64, budget: u64) -> f64 {
-        let loose = schedule.cost_start.max(schedule.cost_end);
         let tight = schedule.cost_start.min(schedule.cost_end);
+        let loose = self
+            .loose_limit
+            .unwrap_or_else(|| schedule.cost_start.max(schedule.cost_end));
         let f = steps as f64 / budget.max(1) as f64;
         let descent = 1.0 - self.hold_loose - self.hold_tight;
         if f < self.hold_loose {
@@ -290,6 +298,18 @@ impl Recipe {
                             "expert.loose_first: hold_loose and hold_tight are fractions of the budget that sum to \
                              at most 1"
                         );
+                        if let Some(limit) = walk.loose_limit {
+                            let schedule = &expert.cost_limit;
+                            let (tight, loosest) = (
+                                schedule.cost_start.min(schedule.cost_end),
+                                schedule.cost_start.max(schedule.cost_end),
+                            );
+                            anyhow::ensure!(
+                                (tight..=loosest).contains(&limit),
+                                "expert.loose_first.loose_limit {limit} must lie between the schedule's tightest \
+                                 ({tight}) and loosest ({loosest}) limits"
+                            );
+                        }
                     }
                 }
                 None => anyhow::bail!(
@@ -511,6 +531,7 @@ mod tests {
         let walk = LooseFirst {
             hold_loose: 0.4,
             hold_tight: 0.2,
+            loose_limit: None,
         };
         let at = |steps| walk.limit_at(&schedule, steps, 1_000_000);
         assert_eq!(at(0), 200.0);
@@ -532,9 +553,20 @@ mod tests {
         let steps = LooseFirst {
             hold_loose: 0.5,
             hold_tight: 0.5,
+            loose_limit: None,
         };
         assert_eq!(steps.limit_at(&nav, 49, 100), 80.0);
         assert_eq!(steps.limit_at(&nav, 50, 100), 5.0);
+        // A loose limit inside the schedule's: held, then walked down from.
+        let inside = LooseFirst {
+            loose_limit: Some(150.0),
+            ..walk
+        };
+        let at = |steps| inside.limit_at(&schedule, steps, 1_000_000);
+        assert_eq!(at(0), 150.0);
+        assert_eq!(at(399_999), 150.0);
+        assert!((at(600_000) - 77.5).abs() < 1e-9);
+        assert_eq!(at(800_000), 5.0);
     }
 
     #[test]
@@ -567,5 +599,24 @@ mod tests {
         let mut bad = easy.clone();
         bad.idm_sweep.as_mut().unwrap().maps = 0;
         assert!(bad.validate(&catalog).is_err());
+    }
+
+    #[test]
+    fn a_loose_limit_must_lie_inside_the_schedule_and_is_left_out_when_absent() {
+        let catalog = Catalog::embedded().unwrap();
+        let recipe = Recipe::load(&Recipe::default_path("OfflineAntRun-v0")).unwrap();
+        // Absent, the recipe serializes as before (provenance of earlier builds unchanged).
+        assert!(!serde_json::to_string(&recipe).unwrap().contains("loose_limit"));
+        let with_limit = |limit| {
+            let mut r = recipe.clone();
+            let expert = r.expert.as_mut().unwrap();
+            expert.loose_first.as_mut().unwrap().loose_limit = Some(limit);
+            r
+        };
+        // AntRun's schedule runs between 5 and 200.
+        assert!(with_limit(150.0).validate(&catalog).is_ok());
+        let err = with_limit(250.0).validate(&catalog).unwrap_err().to_string();
+        assert!(err.contains("loose_limit 250"), "{err}");
+        assert!(with_limit(1.0).validate(&catalog).is_err());
     }
 }
