@@ -131,8 +131,8 @@ pub struct LooseFirst {
     pub hold_tight: f64,
     /// The limit held in the loose phase and walked down from, in place of the schedule's loosest; absent, the
     /// schedule's loosest. Why: an expert whose episodes average the buffer's cost cap pays more than the cap on
-    /// about half of them, and the buffer drops those, so a task whose loosest limit is its cap (Hopper) keeps
-    /// almost none of its fast episodes.
+    /// about half of them, and the buffer drops those, so a task whose loosest limit is its cap keeps few of its
+    /// fast episodes (Swimmer's recipe holds 170 of its cap of 200).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loose_limit: Option<f64>,
 }
