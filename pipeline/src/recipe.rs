@@ -139,10 +139,8 @@ pub struct LooseFirst {
 
 impl LooseFirst {
     pub fn limit_at(&self, schedule: &PaperSchedule, steps: u64, budget: u64) -> f64 {
-        let tight = schedule.cost_start.min(schedule.cost_end);
-        let loose = self
-            .loose_limit
-            .unwrap_or_else(|| schedule.cost_start.max(schedule.cost_end));
+        let (tight, loosest) = schedule.tightest_and_loosest();
+        let loose = self.loose_limit.unwrap_or(loosest);
         let f = steps as f64 / budget.max(1) as f64;
         let descent = 1.0 - self.hold_loose - self.hold_tight;
         if f < self.hold_loose {
@@ -175,6 +173,11 @@ pub struct PaperSchedule {
 }
 
 impl PaperSchedule {
+    /// The schedule's two limits, whichever way it walks them: (tightest, loosest).
+    pub fn tightest_and_loosest(&self) -> (f64, f64) {
+        (self.cost_start.min(self.cost_end), self.cost_start.max(self.cost_end))
+    }
+
     /// The paper's budget in environment steps.
     pub fn paper_steps(&self) -> u64 {
         u64::from(self.epochs) * self.steps_per_epoch
@@ -299,11 +302,7 @@ impl Recipe {
                              at most 1"
                         );
                         if let Some(limit) = walk.loose_limit {
-                            let schedule = &expert.cost_limit;
-                            let (tight, loosest) = (
-                                schedule.cost_start.min(schedule.cost_end),
-                                schedule.cost_start.max(schedule.cost_end),
-                            );
+                            let (tight, loosest) = expert.cost_limit.tightest_and_loosest();
                             anyhow::ensure!(
                                 (tight..=loosest).contains(&limit),
                                 "expert.loose_first.loose_limit {limit} must lie between the schedule's tightest \
