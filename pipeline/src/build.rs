@@ -456,7 +456,7 @@ mod tests {
     fn settings_saved_to_disk_read_back_as_the_same_episodes() {
         // Long MetaDrive-sized episodes, so the file is read back in several chunks.
         let catalog = Catalog::embedded().unwrap();
-        let recipe = Recipe::load(&Recipe::default_path("OfflineMetadrive-easysparse-v0")).unwrap();
+        let recipe = Recipe::load(&Recipe::committed_path("OfflineMetadrive-easysparse-v0")).unwrap();
         let task = recipe.validate(&catalog).unwrap();
         let setting = Setting {
             index: 3,

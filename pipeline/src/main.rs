@@ -76,7 +76,7 @@ struct CollectArgs {
     /// Offline task id, e.g. OfflineMetadrive-easysparse-v0.
     #[arg(long)]
     task: String,
-    /// Recipe file (default: data/recipes/<task>.toml).
+    /// Recipe file (default: data/recipes/<task>.toml under the current directory, the clone's root).
     #[arg(long)]
     recipe: Option<PathBuf>,
     /// State and output folder (default: ~/.dsrl/collect/<task>).
@@ -301,7 +301,22 @@ async fn run() -> anyhow::Result<()> {
         Command::Collect(args) => args,
     };
     let catalog = Catalog::embedded()?;
-    let recipe_path = recipe.unwrap_or_else(|| Recipe::default_path(&task));
+    let recipe_path = match recipe {
+        Some(path) => path,
+        None => {
+            let path = Recipe::default_path(&task);
+            anyhow::ensure!(
+                path.is_file(),
+                "no recipe at {} under {}: run dsrl-admin from the root of the clone whose recipes it builds, \
+                 or name one with --recipe",
+                path.display(),
+                std::env::current_dir()
+                    .map(|d| d.display().to_string())
+                    .unwrap_or_default()
+            );
+            path
+        }
+    };
     let recipe = Recipe::load(&recipe_path)?;
     anyhow::ensure!(
         recipe.task == task,

@@ -227,7 +227,16 @@ pub struct Setting {
 }
 
 impl Recipe {
+    /// `data/recipes/<task>.toml` under the current directory: `dsrl-admin collect` and the data scripts run from
+    /// the root of the clone whose recipes they build. (It used to be the source tree the binary was compiled
+    /// in, so a binary built in one clone silently built another clone's recipes.)
     pub fn default_path(task: &str) -> PathBuf {
+        Path::new("data/recipes").join(format!("{task}.toml"))
+    }
+
+    /// The committed recipe in this crate's own source tree, for the unit tests (which run in `pipeline/`).
+    #[cfg(test)]
+    pub fn committed_path(task: &str) -> PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../data/recipes")
             .join(format!("{task}.toml"))
@@ -436,7 +445,7 @@ mod tests {
             .collect();
         assert_eq!(experts.len(), 29);
         for task in experts {
-            let recipe = Recipe::load(&Recipe::default_path(task.id.as_str())).unwrap();
+            let recipe = Recipe::load(&Recipe::committed_path(task.id.as_str())).unwrap();
             assert_eq!(recipe.validate(&catalog).unwrap().id, task.id);
             let expert = recipe.expert.as_ref().expect("an expert recipe");
             assert_eq!(recipe.final_grid.cost_cap, task.paper_cost_cap, "{}", task.id);
@@ -586,7 +595,7 @@ mod tests {
             .collect();
         assert_eq!(metadrive.len(), 9);
         for task in metadrive {
-            let recipe = Recipe::load(&Recipe::default_path(task.id.as_str())).unwrap();
+            let recipe = Recipe::load(&Recipe::committed_path(task.id.as_str())).unwrap();
             assert_eq!(recipe.validate(&catalog).unwrap().id, task.id);
             let settings = recipe.settings(None);
             assert_eq!(settings.len(), 50);
@@ -601,7 +610,7 @@ mod tests {
             assert!(settings.iter().all(|s| s.maps == maps), "{}", task.id);
         }
         // A recipe that leaves `maps` out serializes as before (provenance of earlier builds unchanged).
-        let easy = Recipe::load(&Recipe::default_path("OfflineMetadrive-easysparse-v0")).unwrap();
+        let easy = Recipe::load(&Recipe::committed_path("OfflineMetadrive-easysparse-v0")).unwrap();
         assert!(!serde_json::to_string(&easy).unwrap().contains("maps"));
         let mut bad = easy.clone();
         bad.idm_sweep.as_mut().unwrap().maps = 0;
@@ -611,7 +620,7 @@ mod tests {
     #[test]
     fn a_loose_limit_must_lie_inside_the_schedule_and_is_left_out_when_absent() {
         let catalog = Catalog::embedded().unwrap();
-        let recipe = Recipe::load(&Recipe::default_path("OfflineAntRun-v0")).unwrap();
+        let recipe = Recipe::load(&Recipe::committed_path("OfflineAntRun-v0")).unwrap();
         // Absent, the recipe serializes as before (provenance of earlier builds unchanged).
         assert!(!serde_json::to_string(&recipe).unwrap().contains("loose_limit"));
         let with_limit = |limit| {

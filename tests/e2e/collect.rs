@@ -197,3 +197,40 @@ fn a_block_of_settings_per_session_drives_each_as_fresh_sessions_do_and_resumes_
     );
     assert_eq!(episode_lengths(&block, 1), fast_block);
 }
+
+#[test]
+fn without_recipe_flag_the_recipe_is_the_current_directorys() {
+    // The default is `data/recipes/<task>.toml` under the working directory, not the clone the binary was built
+    // in: a folder with no recipes is refused, naming the path, and a folder's own recipe is the one read (here
+    // one of another task, which is refused before anything is simulated).
+    let dir = tempfile::tempdir().unwrap();
+    let run = |cwd: &Path| {
+        let out = Command::new(dsrl_e2e::bin("dsrl-admin"))
+            .args(["collect", "--task", TASK, "--state"])
+            .arg(dir.path().join("state"))
+            .current_dir(cwd)
+            .env_remove("DSRL_SERVER")
+            .env_remove("DSRL_ADMIN_TOKEN")
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let refused = run(dir.path());
+    assert!(
+        refused.contains(&format!("no recipe at data/recipes/{TASK}.toml")) && refused.contains("--recipe"),
+        "{refused}"
+    );
+
+    let recipes = dir.path().join("clone/data/recipes");
+    std::fs::create_dir_all(&recipes).unwrap();
+    let other =
+        std::fs::read_to_string(dsrl_e2e::repo_root().join("data/recipes/OfflineMetadrive-easymean-v0.toml")).unwrap();
+    std::fs::write(recipes.join(format!("{TASK}.toml")), other).unwrap();
+    let read = run(&dir.path().join("clone"));
+    assert!(
+        read.contains(&format!("is the recipe of OfflineMetadrive-easymean-v0, not {TASK}")),
+        "{read}"
+    );
+    assert!(!dir.path().join("state").exists(), "nothing ran");
+}

@@ -329,7 +329,7 @@ mod tests {
     use crate::recipe::Recipe;
 
     fn settings() -> ExpertSettings {
-        let mut s = Recipe::load(&Recipe::default_path("OfflineBallRun-v0"))
+        let mut s = Recipe::load(&Recipe::committed_path("OfflineBallRun-v0"))
             .unwrap()
             .expert
             .unwrap();
