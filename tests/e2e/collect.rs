@@ -205,12 +205,8 @@ fn without_recipe_flag_the_recipe_is_the_current_directorys() {
     // one of another task, which is refused before anything is simulated).
     let dir = tempfile::tempdir().unwrap();
     let run = |cwd: &Path| {
-        let out = Command::new(dsrl_e2e::bin("dsrl-admin"))
-            .args(["collect", "--task", TASK, "--state"])
-            .arg(dir.path().join("state"))
+        let out = crate::admin_collect_default_recipe(TASK, &dir.path().join("state"))
             .current_dir(cwd)
-            .env_remove("DSRL_SERVER")
-            .env_remove("DSRL_ADMIN_TOKEN")
             .output()
             .unwrap();
         assert!(!out.status.success());

@@ -137,12 +137,16 @@ pub fn kill_once_saved(mut cmd: std::process::Command, saved: &Path, unfinished:
 
 /// `dsrl-admin collect --task TASK --json` from `recipe` into `state`, with `extra` flags, kept off any server.
 pub fn admin_collect(task: &str, recipe: &Path, state: &Path, extra: &[&str]) -> std::process::Command {
+    let mut cmd = admin_collect_default_recipe(task, state);
+    cmd.arg("--recipe").arg(recipe).args(extra);
+    cmd
+}
+
+/// `dsrl-admin collect --task TASK --json` into `state` with no `--recipe`: the working directory's recipe.
+pub fn admin_collect_default_recipe(task: &str, state: &Path) -> std::process::Command {
     let mut cmd = std::process::Command::new(dsrl_e2e::bin("dsrl-admin"));
-    cmd.args(["collect", "--task", task, "--json", "--recipe"])
-        .arg(recipe)
-        .arg("--state")
+    cmd.args(["collect", "--task", task, "--json", "--state"])
         .arg(state)
-        .args(extra)
         .env_remove("DSRL_SERVER")
         .env_remove("DSRL_ADMIN_TOKEN");
     cmd
