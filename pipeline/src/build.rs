@@ -50,6 +50,8 @@ pub struct Run {
     /// With `compact`: split the output into this many files of whole episodes (`<stem>.part-I-of-N.parquet`), for
     /// a starter larger than one committed file may be. 1 writes one file.
     pub parts: usize,
+    /// The state folder of the build a recipe's `warm_start` names (default: `<state>/../<its task>`).
+    pub warm_start_dir: Option<PathBuf>,
 }
 
 /// What a run produced.
@@ -201,11 +203,18 @@ impl Run {
             "{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} steps (eta {eta})",
         );
         bar.set_message(task.id.to_string());
+        let root = self.state_dir.join("expert");
+        let (warm_start, warm_record) = self.warm_start(&root)?;
         let pool = self.start_pool().await?;
         // One session per worker: every worker steps.
         let sessions = self.workers as usize + self.simulators.remote_workers.len();
-        let root = self.state_dir.join("expert");
-        let collection = crate::expert::train::train(&pool, &self.recipe, task, &root, budget, sessions, &bar).await?;
+        let training = crate::expert::train::Training {
+            root: &root,
+            budget,
+            sessions,
+            warm_start,
+        };
+        let collection = crate::expert::train::train(&pool, &self.recipe, task, training, &bar).await?;
         bar.finish();
         let seconds = |f: fn(&crate::expert::train::CollectLog) -> f64| -> f64 {
             collection.log.iter().map(f).sum::<f64>().round()
@@ -224,8 +233,51 @@ impl Run {
             "expert_policy": "expert/policy (policy.safetensors + policy.json)",
             "training_log": "expert/training.csv",
         });
+        let mut details = details;
+        if let Some(record) = warm_record {
+            details["warm_start"] = record;
+        }
         let offered = collection.offered as usize;
         Ok((collection.episodes, offered, details))
+    }
+
+    /// The recipe's warm start: the source build's weights where this run starts from nothing, and the record the
+    /// provenance keeps of them. The record is kept in `expert/warm_start.json` when the run starts, so a resumed
+    /// run needs the source no more.
+    fn warm_start(
+        &self,
+        root: &Path,
+    ) -> anyhow::Result<(
+        Option<crate::expert::train::WarmStartWeights>,
+        Option<serde_json::Value>,
+    )> {
+        let Some(warm) = self.recipe.expert.as_ref().and_then(|e| e.warm_start.as_ref()) else {
+            return Ok((None, None));
+        };
+        let record_path = root.join("warm_start.json");
+        if crate::expert::train::has_save(root) {
+            let record = std::fs::read(&record_path)
+                .with_context(|| format!("{} is missing from a warm-started run", record_path.display()))?;
+            return Ok((None, Some(serde_json::from_slice(&record)?)));
+        }
+        let source = match &self.warm_start_dir {
+            Some(dir) => dir.clone(),
+            None => self
+                .state_dir
+                .parent()
+                .map_or_else(|| PathBuf::from(&warm.task), |p| p.join(&warm.task)),
+        };
+        anyhow::ensure!(
+            source.canonicalize().ok() != self.state_dir.canonicalize().ok(),
+            "the warm start's build and this run cannot share the state folder {}",
+            source.display()
+        );
+        let weights = crate::expert::train::read_warm_start(&source, warm)?;
+        std::fs::create_dir_all(root)?;
+        crate::write_atomically(&record_path, &serde_json::to_vec_pretty(&weights.record)?)?;
+        tracing::info!(from = %source.display(), task = %warm.task, "warm-starting the expert");
+        let record = weights.record.clone();
+        Ok((Some(weights), Some(record)))
     }
 
     /// The IDM sweep: every setting (resumed from disk when already finished), then the trajectory buffer over all

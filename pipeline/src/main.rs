@@ -63,6 +63,11 @@ struct EvaluateArgs {
     /// environments: the leaderboard's layout, and the way to measure acting throughput (bench/acting.sh).
     #[arg(long)]
     sessions: Option<usize>,
+    /// Expert recipes with `warm_start`: the state folder of the finished build the expert starts from (default:
+    /// `<state>/../<the warm start's task>`, its sibling under the same collect folder). Read only when the run
+    /// starts; the provenance records the source's recipe, steps and the SHA-256 of its weights.
+    #[arg(long)]
+    warm_start: Option<PathBuf>,
     /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
     #[arg(long)]
     worker_binary: Option<PathBuf>,
@@ -126,6 +131,11 @@ struct CollectArgs {
     /// the server's starter loader joins them back into one version, the canonical file's.
     #[arg(long, default_value_t = 1, requires = "compact", conflicts_with = "server")]
     parts: usize,
+    /// Expert recipes with `warm_start`: the state folder of the finished build the expert starts from (default:
+    /// `<state>/../<the warm start's task>`, its sibling under the same collect folder). Read only when the run
+    /// starts; the provenance records the source's recipe, steps and the SHA-256 of its weights.
+    #[arg(long)]
+    warm_start: Option<PathBuf>,
     /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
     #[arg(long)]
     worker_binary: Option<PathBuf>,
@@ -292,6 +302,7 @@ async fn run() -> anyhow::Result<()> {
         out,
         compact,
         parts,
+        warm_start,
         server,
         token,
         tag,
@@ -345,6 +356,7 @@ async fn run() -> anyhow::Result<()> {
         out_dir: out,
         compact,
         parts: parts.max(1),
+        warm_start_dir: warm_start,
     };
     let built = run.execute(&catalog).await?;
     let mut report = serde_json::json!({

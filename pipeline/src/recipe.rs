@@ -103,7 +103,39 @@ pub struct ExpertSettings {
     /// raw observations as FSRL's experts.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub observation_normalization: bool,
+    /// Stop the actor's steps for the rest of an update once a minibatch's approximate KL from the collect's policy
+    /// passes 1.5x this (Spinning Up's PPO early stop; the critics keep all their passes). Why: the paper's
+    /// TRPO-Lagrangian experts bound each update's KL (target_kl 1e-3), and PPO with many steps per collect
+    /// otherwise drifts far from the policy that played (approximate KL past 0.5, sigma collapsing). Absent, no stop.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_kl: Option<f64>,
+    /// Weight of the policy's entropy bonus in the actor loss (`loss − coef·H(π)`); with the state-independent
+    /// sigma it only pushes log sigma up, against the collapse of exploration. Absent, no bonus (FSRL's experts).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub entropy_coef: Option<f64>,
+    /// Start from another build's trained expert instead of random weights (see [`WarmStart`]); absent, a fresh
+    /// expert as FSRL's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warm_start: Option<WarmStart>,
     pub lagrangian: PidGains,
+}
+
+/// Warm-starting (issue: reach DSRL's tempting corner cheaply): the expert starts from the networks (actor,
+/// critics, observation statistics) of a finished build of `task`'s recipe at `budget_steps`, with fresh optimizers
+/// and multiplier, then trains this recipe's schedule. Why: a level-2 navigation task is its level-1 task with more
+/// hazards, in the same observation space, and where a budget this machine can run teaches the level-1 expert to
+/// push the box but not the level-2 one, the level-1 pusher can start the level-2 expert's loose phase already
+/// pushing. The source build's folder is `<state>/../<task>` (its sibling under the same collect folder, as
+/// `data/build_datasets.sh` lays them out) unless `dsrl-admin collect --warm-start` names one; the provenance
+/// records the source's recipe, steps and the SHA-256 of the weights taken.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WarmStart {
+    /// The task whose build's expert this one starts from: same observation and action dimensions.
+    pub task: String,
+    /// The budget that build trained for (its `--budget-steps`, or its recipe's): a build of another budget is
+    /// refused, so the dataset stays reproducible from the two recipes and budgets.
+    pub budget_steps: u64,
 }
 
 impl ExpertSettings {
@@ -294,6 +326,35 @@ impl Recipe {
                         expert.lr > 0.0 && expert.clip_ratio > 0.0,
                         "expert.lr and clip_ratio must be positive"
                     );
+                    anyhow::ensure!(
+                        expert.target_kl.is_none_or(|kl| kl > 0.0),
+                        "expert.target_kl must be positive (leave it out for no early stop)"
+                    );
+                    anyhow::ensure!(
+                        expert.entropy_coef.is_none_or(|c| c >= 0.0),
+                        "expert.entropy_coef must not be negative"
+                    );
+                    if let Some(warm) = &expert.warm_start {
+                        let source = catalog
+                            .get(&warm.task)
+                            .map_err(|e| anyhow::anyhow!("expert.warm_start.task: {e}"))?;
+                        anyhow::ensure!(
+                            (source.obs_dim, source.act_dim) == (task.obs_dim, task.act_dim)
+                                && source.family != Family::MetaDrive,
+                            "expert.warm_start.task {} ({} observation and {} action features) cannot start an \
+                             expert of {} ({} and {}): the networks must have the same shapes",
+                            warm.task,
+                            source.obs_dim,
+                            source.act_dim,
+                            task.id,
+                            task.obs_dim,
+                            task.act_dim
+                        );
+                        anyhow::ensure!(
+                            warm.budget_steps > 0,
+                            "expert.warm_start.budget_steps must be at least 1"
+                        );
+                    }
                     anyhow::ensure!(
                         (0.0..=1.0).contains(&expert.gamma) && (0.0..=1.0).contains(&expert.gae_lambda),
                         "expert.gamma and expert.gae_lambda must lie in [0, 1]"
@@ -634,5 +695,39 @@ mod tests {
         let err = with_limit(250.0).validate(&catalog).unwrap_err().to_string();
         assert!(err.contains("loose_limit 250"), "{err}");
         assert!(with_limit(1.0).validate(&catalog).is_err());
+    }
+
+    #[test]
+    fn target_kl_and_entropy_coef_are_checked_and_left_out_when_absent() {
+        let catalog = Catalog::embedded().unwrap();
+        let recipe = Recipe::load(&Recipe::committed_path("OfflineDroneCircle-v0")).unwrap();
+        // Absent, the recipe serializes as before (provenance and state identities of earlier builds unchanged).
+        let json = serde_json::to_string(&recipe).unwrap();
+        assert!(!json.contains("target_kl") && !json.contains("entropy_coef"), "{json}");
+        let with = |target_kl, entropy_coef| {
+            let mut r = recipe.clone();
+            let expert = r.expert.as_mut().unwrap();
+            (expert.target_kl, expert.entropy_coef) = (target_kl, entropy_coef);
+            r
+        };
+        assert!(with(Some(0.02), Some(0.01)).validate(&catalog).is_ok());
+        for (kl, coef, field) in [
+            (Some(0.0), None, "target_kl"),
+            (Some(f64::NAN), None, "target_kl"),
+            (None, Some(-0.1), "entropy_coef"),
+        ] {
+            let err = with(kl, coef).validate(&catalog).unwrap_err().to_string();
+            assert!(err.contains(field), "{err}");
+        }
+        // A recipe file names them in [expert].
+        let text = std::fs::read_to_string(Recipe::committed_path("OfflineDroneCircle-v0"))
+            .unwrap()
+            .replace(
+                "clip_ratio = 0.2",
+                "clip_ratio = 0.2\ntarget_kl = 0.02\nentropy_coef = 0.005",
+            );
+        let parsed: Recipe = toml::from_str(&text).unwrap();
+        let expert = parsed.expert.unwrap();
+        assert_eq!((expert.target_kl, expert.entropy_coef), (Some(0.02), Some(0.005)));
     }
 }

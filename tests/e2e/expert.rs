@@ -217,6 +217,83 @@ fn a_killed_bullet_expert_run_resumes_to_the_same_dataset_and_ingests_with_prove
 }
 
 #[test]
+fn a_warm_started_expert_starts_from_its_source_build_and_records_it() {
+    const SOURCE: &str = "OfflineBallRun-v0";
+    // CarRun has BallRun's observation and action dimensions (7, 2), so a BallRun expert can start it.
+    const TASK: &str = "OfflineCarRun-v0";
+    let env = Env::new();
+    let collect_dir = env.path("collect");
+    // The source: BallRun, 2 environments of 100-step episodes, 4 collects, a save every 2.
+    let source = collect_dir.join(SOURCE);
+    crate::admin_json(collect(
+        SOURCE,
+        &small_recipe(env.dir.path(), SOURCE, 2, 2),
+        &source,
+        800,
+        1,
+        &[],
+    ));
+    let source_weights = source.join("expert/ckpt-000004/state.safetensors");
+    assert!(source_weights.is_file());
+
+    let fresh_recipe = small_recipe(env.dir.path(), TASK, 2, 2);
+    let warm_recipe = |budget: u64| {
+        let path = env.path(&format!("warm-{budget}.toml"));
+        let text = std::fs::read_to_string(&fresh_recipe).unwrap()
+            + &format!("\n[expert.warm_start]\ntask = \"{SOURCE}\"\nbudget_steps = {budget}\n");
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    let refused = |recipe: &Path, state: &Path| {
+        let out = collect(TASK, recipe, state, 800, 1, &[]).output().unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    // No source beside the state folder: refused with the command that builds it, before anything is simulated.
+    let err = refused(&warm_recipe(800), &env.path("elsewhere").join(TASK));
+    assert!(
+        err.contains("BUDGET_STEPS=800 data/build_datasets.sh OfflineBallRun-v0") && err.contains("--warm-start"),
+        "{err}"
+    );
+    assert!(!env.path("elsewhere").join(TASK).join("expert/ckpt-000002").exists());
+    // A source of another budget than the recipe names: refused.
+    let err = refused(&warm_recipe(1600), &collect_dir.join(TASK));
+    assert!(err.contains("holds a build of OfflineBallRun-v0 at 800 steps"), "{err}");
+
+    // Beside its source, and from a folder named with --warm-start: the same run, recorded in the provenance.
+    std::fs::remove_dir_all(collect_dir.join(TASK)).unwrap();
+    let warm = crate::admin_json(collect(TASK, &warm_recipe(800), &collect_dir.join(TASK), 800, 1, &[]));
+    let record = &warm["provenance"]["details"]["warm_start"];
+    assert_eq!(record["task"], SOURCE);
+    assert_eq!(record["steps_trained"], 800);
+    assert_eq!(record["recipe"]["task"], SOURCE);
+    assert_eq!(record["state_sha256"], crate::sha256_file(&source_weights).as_str());
+    let named = crate::admin_json(collect(
+        TASK,
+        &warm_recipe(800),
+        &env.path("named"),
+        800,
+        1,
+        &["--warm-start", crate::s(&source)],
+    ));
+    assert_eq!(named["version"], warm["version"]);
+
+    // A fresh expert plays its first collect with other weights: other returns, another dataset.
+    let fresh = crate::admin_json(collect(TASK, &fresh_recipe, &env.path("fresh"), 800, 1, &[]));
+    assert!(fresh["provenance"]["details"].get("warm_start").is_none());
+    assert_ne!(fresh["version"], warm["version"]);
+    let first_collect = |state: &Path| {
+        let log = std::fs::read_to_string(state.join("expert/training.csv")).unwrap();
+        log.lines().nth(1).unwrap().split(',').nth(3).unwrap().to_owned()
+    };
+    assert_ne!(
+        first_collect(&collect_dir.join(TASK)),
+        first_collect(&env.path("fresh")),
+        "the first collect's mean reward"
+    );
+}
+
+#[test]
 fn every_safety_gymnasium_recipe_collects_a_dataset_with_a_tiny_budget() {
     let env = Env::new();
     let recipes = dsrl_e2e::repo_root().join("data/recipes");

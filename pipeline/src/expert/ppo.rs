@@ -52,9 +52,14 @@ pub struct UpdateStats {
     pub lagrangian: f64,
     pub actor_loss: f64,
     pub critic_loss: f64,
-    /// Mean of `log π_old − log π_new` over the last pass.
+    /// Mean of `log π_old − log π_new` over the minibatches of the last pass the actor took part in, each measured
+    /// before its step.
     pub approx_kl: f64,
     pub std: f64,
+    /// The actor's optimizer steps in this update: `repeat_per_collect` x minibatches, fewer where `target_kl`
+    /// stopped it.
+    #[serde(default)]
+    pub actor_steps: u32,
 }
 
 pub struct Learner {
@@ -144,15 +149,36 @@ impl Learner {
         tensors: &HashMap<String, Tensor>,
         state: &LearnerState,
     ) -> anyhow::Result<Learner> {
+        let mut learner = Self::from_networks(settings, max_action, tensors, state.observation_stats.clone())?;
+        learner.actor_opt.restore("adam.actor", tensors, state.actor_steps)?;
+        learner.critic_opt.restore("adam.critic", tensors, state.critic_steps)?;
+        learner.lagrangian = state.lagrangian.clone();
+        Ok(learner)
+    }
+
+    /// A learner that starts from another training's networks (actor, critics) and observation statistics, with
+    /// fresh optimizers and a fresh multiplier (the recipe's `warm_start`).
+    pub fn warm_start(
+        settings: &ExpertSettings,
+        max_action: f64,
+        tensors: &HashMap<String, Tensor>,
+        observation_stats: Option<ObservationStats>,
+    ) -> anyhow::Result<Learner> {
+        Self::from_networks(settings, max_action, tensors, observation_stats)
+    }
+
+    /// The networks from `tensors` (optimizer moments, if any, are not read), fresh optimizers and multiplier.
+    fn from_networks(
+        settings: &ExpertSettings,
+        max_action: f64,
+        tensors: &HashMap<String, Tensor>,
+        observation_stats: Option<ObservationStats>,
+    ) -> anyhow::Result<Learner> {
         anyhow::ensure!(
-            settings.observation_normalization == state.observation_stats.is_some(),
+            settings.observation_normalization == observation_stats.is_some(),
             "the saved expert was trained {} observation normalization but the recipe now says \
              observation_normalization = {}: resume with the recipe it started with, or start a new state folder",
-            if state.observation_stats.is_some() {
-                "with"
-            } else {
-                "without"
-            },
+            if observation_stats.is_some() { "with" } else { "without" },
             settings.observation_normalization
         );
         let mean_net = Mlp::from_tensors("actor.mu", tensors, ACTIVATION)?;
@@ -164,21 +190,27 @@ impl Learner {
         };
         let reward_critic = Mlp::from_tensors("critic.reward", tensors, ACTIVATION)?;
         let cost_critic = Mlp::from_tensors("critic.cost", tensors, ACTIVATION)?;
+        let sizes = actor.mean_net.sizes();
+        let hidden = &sizes[1..sizes.len().saturating_sub(1).max(1)];
+        anyhow::ensure!(
+            hidden == settings.hidden_sizes,
+            "the saved networks have hidden sizes {hidden:?}, the recipe {:?}",
+            settings.hidden_sizes
+        );
         let clip = Some(settings.max_grad_norm);
-        let mut actor_opt = Adam::new(actor.named_vars(), settings.lr, clip)?;
-        actor_opt.restore("adam.actor", tensors, state.actor_steps)?;
+        let actor_opt = Adam::new(actor.named_vars(), settings.lr, clip)?;
         let mut critic_vars = reward_critic.named_vars();
         critic_vars.extend(cost_critic.named_vars());
-        let mut critic_opt = Adam::new(critic_vars, settings.lr, clip)?;
-        critic_opt.restore("adam.critic", tensors, state.critic_steps)?;
+        let critic_opt = Adam::new(critic_vars, settings.lr, clip)?;
+        let gains = settings.lagrangian;
         Ok(Learner {
             actor,
             reward_critic,
             cost_critic,
             actor_opt,
             critic_opt,
-            lagrangian: state.lagrangian.clone(),
-            observation_stats: state.observation_stats.clone(),
+            lagrangian: PidLagrangian::new(gains.kp, gains.ki, gains.kd),
+            observation_stats,
             settings: settings.clone(),
         })
     }
@@ -281,20 +313,50 @@ impl Learner {
             lagrangian,
             ..UpdateStats::default()
         };
+        // With `target_kl`, the actor stops for the rest of the update at the first minibatch whose KL (measured
+        // before its step) passes 1.5x the target; the critics go on with all their passes.
+        let kl_stop = s.target_kl.map(|kl| 1.5 * kl);
+        let mut actor_stopped = false;
         for pass in 0..s.repeat_per_collect {
             let order = noise.permutation(n);
-            let (mut kl_sum, mut actor_sum, mut critic_sum, mut batches) = (0.0, 0.0, 0.0, 0);
+            let (mut kl_sum, mut kl_batches, mut actor_sum, mut actor_batches) = (0.0, 0, 0.0, 0);
+            let (mut critic_sum, mut batches) = (0.0, 0);
             for chunk in order.chunks(s.minibatch_size) {
                 let idx = Tensor::from_slice(chunk, chunk.len(), dev)?;
                 let obs_b = obs.index_select(&idx, 0)?;
-                let log_probs = self.actor.log_prob(&obs_b, &actions.index_select(&idx, 0)?)?;
-                let old_b = old_log_probs.index_select(&idx, 0)?;
-                let adv_b = mixed.index_select(&idx, 0)?;
-                let ratio = log_probs.sub(&old_b)?.exp()?;
-                let clipped = ratio.clamp(1.0 - s.clip_ratio, 1.0 + s.clip_ratio)?;
-                let surrogate = ratio.mul(&adv_b)?.minimum(&clipped.mul(&adv_b)?)?;
-                let actor_loss = surrogate.mean_all()?.neg()?;
-                self.actor_opt.step(&actor_loss.backward()?)?;
+                if !actor_stopped {
+                    let log_probs = self.actor.log_prob(&obs_b, &actions.index_select(&idx, 0)?)?;
+                    let old_b = old_log_probs.index_select(&idx, 0)?;
+                    // Without a target the KL is only reported, from the last pass as before, so it is only
+                    // computed there.
+                    let kl = if kl_stop.is_some() || pass + 1 == s.repeat_per_collect {
+                        Some(f64::from(old_b.sub(&log_probs)?.mean_all()?.to_scalar::<f32>()?))
+                    } else {
+                        None
+                    };
+                    if let Some(kl) = kl {
+                        kl_sum += kl;
+                        kl_batches += 1;
+                    }
+                    if kl_stop.zip(kl).is_some_and(|(stop, kl)| kl > stop) {
+                        actor_stopped = true;
+                    } else {
+                        let adv_b = mixed.index_select(&idx, 0)?;
+                        let ratio = log_probs.sub(&old_b)?.exp()?;
+                        let clipped = ratio.clamp(1.0 - s.clip_ratio, 1.0 + s.clip_ratio)?;
+                        let surrogate = ratio.mul(&adv_b)?.minimum(&clipped.mul(&adv_b)?)?;
+                        let mut actor_loss = surrogate.mean_all()?.neg()?;
+                        if let Some(coef) = s.entropy_coef {
+                            // H(N(μ, σ)) = Σ log σ + const per state: the bonus only reaches log σ.
+                            let entropy = self.actor.log_std.as_tensor().sum_all()?;
+                            actor_loss = actor_loss.sub(&entropy.affine(coef, 0.0)?)?;
+                        }
+                        self.actor_opt.step(&actor_loss.backward()?)?;
+                        actor_sum += f64::from(actor_loss.to_scalar::<f32>()?);
+                        actor_batches += 1;
+                        stats.actor_steps += 1;
+                    }
+                }
 
                 let value_loss = |critic: &Mlp, target: &Tensor| -> anyhow::Result<Tensor> {
                     let v = critic.forward(&obs_b)?.flatten_all()?;
@@ -303,17 +365,16 @@ impl Learner {
                 let critic_loss =
                     value_loss(&self.reward_critic, &target_r)?.add(&value_loss(&self.cost_critic, &target_c)?)?;
                 self.critic_opt.step(&critic_loss.backward()?)?;
-
-                if pass + 1 == s.repeat_per_collect {
-                    kl_sum += f64::from(old_b.sub(&log_probs)?.mean_all()?.to_scalar::<f32>()?);
-                }
-                actor_sum += f64::from(actor_loss.to_scalar::<f32>()?);
                 critic_sum += f64::from(critic_loss.to_scalar::<f32>()?);
                 batches += 1;
             }
-            stats.actor_loss = actor_sum / f64::from(batches);
+            if actor_batches > 0 {
+                stats.actor_loss = actor_sum / f64::from(actor_batches);
+            }
+            if kl_batches > 0 {
+                stats.approx_kl = kl_sum / f64::from(kl_batches);
+            }
             stats.critic_loss = critic_sum / f64::from(batches);
-            stats.approx_kl = kl_sum / f64::from(batches);
         }
         stats.std = f64::from(self.actor.log_std.as_tensor().exp()?.mean_all()?.to_scalar::<f32>()?);
         if let Some(observation_stats) = &mut self.observation_stats {
@@ -456,5 +517,111 @@ mod tests {
                 .unwrap();
             assert!(refused.to_string().contains("observation_normalization"), "{refused}");
         }
+    }
+
+    /// Mean `log π_old − log π_new` over a collect: how far an update moved the policy from the one that played it.
+    fn kl_from_collect(learner: &Learner, rollout: &Rollout) -> f64 {
+        let n = rollout.len();
+        let new = learner
+            .actor
+            .log_prob(
+                &matrix(&learner.inputs(&rollout.observations), n, 1).unwrap(),
+                &matrix(&rollout.actions, n, 1).unwrap(),
+            )
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        rollout
+            .log_probs
+            .iter()
+            .zip(&new)
+            .map(|(o, n)| f64::from(o - n))
+            .sum::<f64>()
+            / n as f64
+    }
+
+    #[test]
+    fn target_kl_stops_the_actors_steps_and_bounds_how_far_an_update_moves_the_policy() {
+        let mut s = settings();
+        (s.repeat_per_collect, s.lr) = (10, 1e-2);
+        let one_update = |s: &ExpertSettings| {
+            let mut noise = Noise::seeded(3);
+            let mut learner = Learner::new(s, 1, 1, 1.0, &mut noise).unwrap();
+            let (rollout, costs) = bandit(&learner, &mut noise, 512, |_| 0.0);
+            let stats = learner.update(&rollout, &costs, 100.0, &mut noise).unwrap();
+            (stats, kl_from_collect(&learner, &rollout))
+        };
+        let (free, free_kl) = one_update(&s);
+        assert_eq!(free.actor_steps, 10 * 8, "10 passes of 8 minibatches of 64");
+        s.target_kl = Some(0.01);
+        let (stopped, stopped_kl) = one_update(&s);
+        assert!(
+            stopped.actor_steps > 0 && stopped.actor_steps < free.actor_steps,
+            "{} of {} steps",
+            stopped.actor_steps,
+            free.actor_steps
+        );
+        assert!(
+            free_kl > 0.1 && stopped_kl < 0.03,
+            "KL from the collect's policy: {free_kl} without a target, {stopped_kl} with 0.01"
+        );
+    }
+
+    #[test]
+    fn the_entropy_bonus_holds_sigma_up() {
+        let final_std = |entropy_coef| {
+            let mut s = settings();
+            s.entropy_coef = entropy_coef;
+            let mut noise = Noise::seeded(5);
+            let mut learner = Learner::new(&s, 1, 1, 1.0, &mut noise).unwrap();
+            let mut std = 0.0;
+            for _ in 0..40 {
+                let (rollout, costs) = bandit(&learner, &mut noise, 256, |_| 0.0);
+                std = learner.update(&rollout, &costs, 100.0, &mut noise).unwrap().std;
+            }
+            std
+        };
+        // The bandit's reward only falls with σ, so it takes a large weight to hold σ up against it (the advantages
+        // are normalized, so the weight is relative to a unit-scale surrogate).
+        let (without, with) = (final_std(None), final_std(Some(1.0)));
+        assert!(without < 0.2, "the bandit narrows σ from its initial 0.61: {without}");
+        assert!(with > 0.4, "σ {with} with the bonus, {without} without");
+    }
+
+    #[test]
+    fn a_warm_started_learner_acts_like_its_source_with_fresh_optimizers_and_multiplier() {
+        let mut s = settings();
+        s.observation_normalization = true;
+        let mut noise = Noise::seeded(11);
+        let mut source = Learner::new(&s, 1, 1, 1.0, &mut noise).unwrap();
+        for _ in 0..3 {
+            let (rollout, costs) = bandit_from(&source, &mut noise, 100, |a| 20.0 * f64::from(a.max(0.0)), true);
+            source.update(&rollout, &costs, 1.0, &mut noise).unwrap();
+        }
+        assert!(source.lagrangian.lagrangian > 0.0 && source.state().actor_steps > 0);
+        // The networks only, as `read_warm_start` takes them from a save.
+        let networks: HashMap<String, Tensor> = source
+            .tensors()
+            .into_iter()
+            .filter(|(name, _)| !name.starts_with("adam."))
+            .collect();
+        let stats = source.state().observation_stats;
+        let warm = Learner::warm_start(&s, 1.0, &networks, stats.clone()).unwrap();
+        assert_eq!(mean_action(&warm), mean_action(&source));
+        assert_eq!(warm.state().observation_stats, stats);
+        assert_eq!((warm.state().actor_steps, warm.state().critic_steps), (0, 0));
+        assert_eq!(
+            warm.lagrangian,
+            PidLagrangian::new(s.lagrangian.kp, s.lagrangian.ki, s.lagrangian.kd)
+        );
+        // Networks of other shapes, or a recipe that disagrees about normalization, are refused.
+        let mut wider = s.clone();
+        wider.hidden_sizes = vec![32, 32];
+        let err = Learner::warm_start(&wider, 1.0, &networks, stats.clone())
+            .err()
+            .unwrap();
+        assert!(err.to_string().contains("hidden sizes"), "{err}");
+        let err = Learner::warm_start(&s, 1.0, &networks, None).err().unwrap();
+        assert!(err.to_string().contains("observation_normalization"), "{err}");
     }
 }

@@ -26,7 +26,7 @@ use serde::{Deserialize, Serialize};
 
 use super::ppo::{Learner, LearnerState, Rollout, UpdateStats};
 use crate::collect::{Episode, record_step};
-use crate::recipe::{ExpertSettings, Recipe};
+use crate::recipe::{ExpertSettings, Recipe, WarmStart};
 
 /// What the training left in its buffer, with the numbers provenance records.
 pub struct ExpertCollection {
@@ -57,6 +57,10 @@ pub struct CollectLog {
     /// time each session had a request in flight (steps, and resets waited for).
     #[serde(default)]
     pub worker_idle_seconds: f64,
+    /// The actor's optimizer steps in the collect's update (fewer than passes x minibatches where the recipe's
+    /// `target_kl` stopped it; 0 in logs written before this column).
+    #[serde(default)]
+    pub actor_steps: u32,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -132,11 +136,11 @@ fn save(
 
 fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
     let mut text = String::from(
-        "collect,steps,cost_limit,mean_reward,mean_cost,lagrangian,approx_kl,std,simulator_seconds,acting_seconds,update_seconds,worker_idle_seconds\n",
+        "collect,steps,cost_limit,mean_reward,mean_cost,lagrangian,approx_kl,std,simulator_seconds,acting_seconds,update_seconds,worker_idle_seconds,actor_steps\n",
     );
     for l in log {
         text.push_str(&format!(
-            "{},{},{},{:.3},{:.3},{:.5},{:.6},{:.4},{:.3},{:.3},{:.3},{:.3}\n",
+            "{},{},{},{:.3},{:.3},{:.5},{:.6},{:.4},{:.3},{:.3},{:.3},{:.3},{}\n",
             l.collect,
             l.steps,
             l.cost_limit,
@@ -148,7 +152,8 @@ fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
             l.simulator_seconds,
             l.acting_seconds,
             l.update_seconds,
-            l.worker_idle_seconds
+            l.worker_idle_seconds,
+            l.actor_steps
         ));
     }
     crate::write_atomically(&root.join("training.csv"), text.as_bytes())?;
@@ -202,6 +207,85 @@ fn load(root: &Path) -> anyhow::Result<Option<Saved>> {
         );
     }
     Ok(Some((state, tensors, episodes)))
+}
+
+/// What a warm-started expert starts from (the recipe's `warm_start`): the source build's networks and
+/// observation statistics, and what the provenance records of them.
+pub struct WarmStartWeights {
+    tensors: HashMap<String, dsrl_policy::Tensor>,
+    observation_stats: Option<super::normalization::ObservationStats>,
+    pub record: serde_json::Value,
+}
+
+/// Whether `root` (an expert folder) holds a save, so that a run there resumes rather than starts.
+pub fn has_save(root: &Path) -> bool {
+    !checkpoint_dirs(root).is_empty()
+}
+
+/// Reads the finished build in `source` (a state folder of `dsrl-admin collect`) that the recipe's `warm_start`
+/// names: it must be a run of `warm.task` at `warm.budget_steps` that trained to the end.
+pub fn read_warm_start(source: &Path, warm: &WarmStart) -> anyhow::Result<WarmStartWeights> {
+    let missing = || {
+        format!(
+            "the recipe warm-starts from a finished {}-step build of {} and expects it in {}: build it there first \
+             (BUDGET_STEPS={} data/build_datasets.sh {} with the same DSRL_COLLECT_DIR), or name its state folder \
+             with --warm-start",
+            warm.budget_steps,
+            warm.task,
+            source.display(),
+            warm.budget_steps,
+            warm.task
+        )
+    };
+    let identity: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(source.join("run.json")).with_context(missing)?)
+            .with_context(|| format!("reading {}", source.join("run.json").display()))?;
+    let source_recipe: Recipe = serde_json::from_value(identity["recipe"].clone())
+        .with_context(|| format!("{}: not an expert build's run.json", source.display()))?;
+    let source_budget = identity["budget_steps"]
+        .as_u64()
+        .or(source_recipe.expert.as_ref().map(|e| e.budget_steps));
+    anyhow::ensure!(
+        source_recipe.task == warm.task && source_budget == Some(warm.budget_steps),
+        "{} holds a build of {} at {} steps, not the warm start's {} at {} steps",
+        source.display(),
+        source_recipe.task,
+        source_budget.map_or("unknown".to_owned(), |b| b.to_string()),
+        warm.task,
+        warm.budget_steps
+    );
+    let root = source.join("expert");
+    let dir = checkpoint_dirs(&root).pop().with_context(missing)?;
+    let (state, tensors, _) = load(&root)?.with_context(missing)?;
+    anyhow::ensure!(
+        state.steps >= warm.budget_steps,
+        "{}: the build of {} has trained {} of its {} steps; finish it first ({})",
+        source.display(),
+        warm.task,
+        state.steps,
+        warm.budget_steps,
+        missing()
+    );
+    use sha2::Digest;
+    let weights = dir.join("state.safetensors");
+    let sha256 = hex::encode(sha2::Sha256::digest(std::fs::read(&weights)?));
+    // The networks only: the optimizers' moments belong to the other task's training.
+    let tensors: HashMap<String, dsrl_policy::Tensor> = tensors
+        .into_iter()
+        .filter(|(name, _)| name.starts_with("actor.") || name.starts_with("critic."))
+        .collect();
+    Ok(WarmStartWeights {
+        tensors,
+        observation_stats: state.learner.observation_stats,
+        record: serde_json::json!({
+            "task": warm.task,
+            "budget_steps": warm.budget_steps,
+            "steps_trained": state.steps,
+            "collects": state.collects,
+            "recipe": source_recipe,
+            "state_sha256": sha256,
+        }),
+    })
 }
 
 /// The action bound of a task whose actions lie in `[-m, m]` in every dimension (true of every Bullet and
@@ -416,18 +500,33 @@ fn env_seed(recipe: &Recipe, collect: u64, env: u32) -> u64 {
     recipe.episode_seed(collect as usize, env)
 }
 
-/// Trains the recipe's expert for `budget` environment steps (resuming from `root` if a save is there) and
-/// returns what its trajectory buffer kept. The environments are spread over up to `sessions` sessions (one per
-/// worker); the result is the same for any number.
+/// Where and for how long an expert trains.
+pub struct Training<'a> {
+    /// The expert folder: saves, the training log and the final policy; a save there is resumed.
+    pub root: &'a Path,
+    /// Environment steps to train for.
+    pub budget: u64,
+    /// The environments are spread over up to this many sessions (one per worker); the result is the same for any
+    /// number.
+    pub sessions: usize,
+    /// The recipe's warm start, read by the caller; used only where the run starts (no save in `root`).
+    pub warm_start: Option<WarmStartWeights>,
+}
+
+/// Trains the recipe's expert and returns what its trajectory buffer kept.
 pub async fn train(
     pool: &SimulatorPool,
     recipe: &Recipe,
     task: &Task,
-    root: &Path,
-    budget: u64,
-    sessions: usize,
+    training: Training<'_>,
     bar: &ProgressBar,
 ) -> anyhow::Result<ExpertCollection> {
+    let Training {
+        root,
+        budget,
+        sessions,
+        warm_start,
+    } = training;
     let expert: &ExpertSettings = recipe.expert.as_ref().context("the recipe has no expert section")?;
     std::fs::create_dir_all(root)?;
     let (obs_dim, act_dim) = (task.obs_dim as usize, task.act_dim as usize);
@@ -465,7 +564,7 @@ pub async fn train(
                     ),
                     actor_steps: 0,
                     critic_steps: 0,
-                    observation_stats: None,
+                    observation_stats: warm_start.as_ref().and_then(|w| w.observation_stats.clone()),
                 },
                 buffer: buffer.snapshot(),
                 buffered: Vec::new(),
@@ -489,6 +588,12 @@ pub async fn train(
         .collect();
     let mut learner: Option<Learner> = None;
     let mut tensors = tensors;
+    // Only a run that starts here takes the warm start; a resumed one has it in its save already.
+    let mut warm = if tensors.is_none() && state.collects == 0 {
+        warm_start.map(|w| w.tensors)
+    } else {
+        None
+    };
     while state.steps < budget {
         // A segment: fresh sessions, `checkpoint_every_collects` collects, a save.
         let opens = members.iter().map(|envs| {
@@ -506,9 +611,12 @@ pub async fn train(
         state.max_action = Some(max_action);
         let learner = match &mut learner {
             Some(l) => l,
-            None => learner.insert(match tensors.take() {
-                Some(t) => Learner::restore(expert, max_action, &t, &state.learner)?,
-                None => Learner::new(expert, obs_dim, act_dim, max_action, &mut state.noise)?,
+            None => learner.insert(match (tensors.take(), warm.take()) {
+                (Some(t), _) => Learner::restore(expert, max_action, &t, &state.learner)?,
+                (None, Some(w)) => {
+                    Learner::warm_start(expert, max_action, &w, state.learner.observation_stats.clone())?
+                }
+                (None, None) => Learner::new(expert, obs_dim, act_dim, max_action, &mut state.noise)?,
             }),
         };
         let mut obs: Vec<f32> = sessions
@@ -591,6 +699,7 @@ pub async fn train(
                     - reset_seconds
                     - played.busy_seconds.iter().sum::<f64>() / played.busy_seconds.len().max(1) as f64)
                     .max(0.0),
+                actor_steps: stats.actor_steps,
             });
             state.collects += 1;
             bar.set_position(state.steps.min(budget));
