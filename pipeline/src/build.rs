@@ -219,7 +219,7 @@ impl Run {
         let seconds = |f: fn(&crate::expert::train::CollectLog) -> f64| -> f64 {
             collection.log.iter().map(f).sum::<f64>().round()
         };
-        let details = serde_json::json!({
+        let mut details = serde_json::json!({
             "budget_steps": budget,
             "paper_steps": expert.cost_limit.paper_steps(),
             "budget_scale": budget as f64 / expert.cost_limit.paper_steps() as f64,
@@ -233,7 +233,6 @@ impl Run {
             "expert_policy": "expert/policy (policy.safetensors + policy.json)",
             "training_log": "expert/training.csv",
         });
-        let mut details = details;
         if let Some(record) = warm_record {
             details["warm_start"] = record;
         }

@@ -160,18 +160,24 @@ fn write_log(root: &Path, log: &[CollectLog]) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Reads the latest complete save: its state, tensors and buffered episodes.
-/// A save as read back: the state, the learner's tensors and the buffered episodes.
-type Saved = (State, HashMap<String, dsrl_policy::Tensor>, Vec<Episode>);
-
-fn load(root: &Path) -> anyhow::Result<Option<Saved>> {
-    let Some(dir) = checkpoint_dirs(root).pop() else {
-        return Ok(None);
-    };
+/// A save's state and learner tensors (not its buffered episodes), and the bytes of its tensor file.
+fn load_learner(dir: &Path) -> anyhow::Result<(State, HashMap<String, dsrl_policy::Tensor>, Vec<u8>)> {
     let state: State = serde_json::from_slice(&std::fs::read(dir.join("state.json"))?)
         .with_context(|| format!("reading {}", dir.join("state.json").display()))?;
     let bytes = std::fs::read(dir.join("state.safetensors"))?;
     let tensors = dsrl_policy::checkpoint::parse_weights(&bytes)?;
+    Ok((state, tensors, bytes))
+}
+
+/// A save as read back: the state, the learner's tensors and the buffered episodes.
+type Saved = (State, HashMap<String, dsrl_policy::Tensor>, Vec<Episode>);
+
+/// Reads the latest complete save: its state, tensors and buffered episodes.
+fn load(root: &Path) -> anyhow::Result<Option<Saved>> {
+    let Some(dir) = checkpoint_dirs(root).pop() else {
+        return Ok(None);
+    };
+    let (state, tensors, _) = load_learner(&dir)?;
     let mut episodes = Vec::with_capacity(state.buffered.len());
     if !state.buffered.is_empty() {
         let path = dir.join("buffer.parquet");
@@ -254,9 +260,9 @@ pub fn read_warm_start(source: &Path, warm: &WarmStart) -> anyhow::Result<WarmSt
         warm.task,
         warm.budget_steps
     );
-    let root = source.join("expert");
-    let dir = checkpoint_dirs(&root).pop().with_context(missing)?;
-    let (state, tensors, _) = load(&root)?.with_context(missing)?;
+    // The latest save: the buffer the source kept is not needed.
+    let dir = checkpoint_dirs(&source.join("expert")).pop().with_context(missing)?;
+    let (state, tensors, bytes) = load_learner(&dir)?;
     anyhow::ensure!(
         state.steps >= warm.budget_steps,
         "{}: the build of {} has trained {} of its {} steps; finish it first ({})",
@@ -267,8 +273,7 @@ pub fn read_warm_start(source: &Path, warm: &WarmStart) -> anyhow::Result<WarmSt
         missing()
     );
     use sha2::Digest;
-    let weights = dir.join("state.safetensors");
-    let sha256 = hex::encode(sha2::Sha256::digest(std::fs::read(&weights)?));
+    let sha256 = hex::encode(sha2::Sha256::digest(&bytes));
     // The networks only: the optimizers' moments belong to the other task's training.
     let tensors: HashMap<String, dsrl_policy::Tensor> = tensors
         .into_iter()
