@@ -63,11 +63,6 @@ struct EvaluateArgs {
     /// environments: the leaderboard's layout, and the way to measure acting throughput (bench/acting.sh).
     #[arg(long)]
     sessions: Option<usize>,
-    /// Expert recipes with `warm_start`: the state folder of the finished build the expert starts from (default:
-    /// `<state>/../<the warm start's task>`, its sibling under the same collect folder). Read only when the run
-    /// starts; the provenance records the source's recipe, steps and the SHA-256 of its weights.
-    #[arg(long)]
-    warm_start: Option<PathBuf>,
     /// Worker binary (default: dsrl-sim-worker beside dsrl-admin).
     #[arg(long)]
     worker_binary: Option<PathBuf>,

@@ -149,7 +149,7 @@ impl Learner {
         tensors: &HashMap<String, Tensor>,
         state: &LearnerState,
     ) -> anyhow::Result<Learner> {
-        let mut learner = Self::from_networks(settings, max_action, tensors, state.observation_stats.clone())?;
+        let mut learner = Self::warm_start(settings, max_action, tensors, state.observation_stats.clone())?;
         learner.actor_opt.restore("adam.actor", tensors, state.actor_steps)?;
         learner.critic_opt.restore("adam.critic", tensors, state.critic_steps)?;
         learner.lagrangian = state.lagrangian.clone();
@@ -157,18 +157,9 @@ impl Learner {
     }
 
     /// A learner that starts from another training's networks (actor, critics) and observation statistics, with
-    /// fresh optimizers and a fresh multiplier (the recipe's `warm_start`).
+    /// fresh optimizers and a fresh multiplier (the recipe's `warm_start`; `restore` then adds the saved moments
+    /// and multiplier). Optimizer moments in `tensors`, if any, are not read.
     pub fn warm_start(
-        settings: &ExpertSettings,
-        max_action: f64,
-        tensors: &HashMap<String, Tensor>,
-        observation_stats: Option<ObservationStats>,
-    ) -> anyhow::Result<Learner> {
-        Self::from_networks(settings, max_action, tensors, observation_stats)
-    }
-
-    /// The networks from `tensors` (optimizer moments, if any, are not read), fresh optimizers and multiplier.
-    fn from_networks(
         settings: &ExpertSettings,
         max_action: f64,
         tensors: &HashMap<String, Tensor>,

@@ -594,7 +594,7 @@ pub async fn train(
     let mut learner: Option<Learner> = None;
     let mut tensors = tensors;
     // Only a run that starts here takes the warm start; a resumed one has it in its save already.
-    let mut warm = if tensors.is_none() && state.collects == 0 {
+    let mut warm = if tensors.is_none() {
         warm_start.map(|w| w.tensors)
     } else {
         None
