@@ -8,6 +8,7 @@
 
 pub mod build;
 pub mod collect;
+pub mod compact;
 pub mod expert;
 pub mod recipe;
 

@@ -37,6 +37,59 @@ enum Command {
     /// A per-threshold checkpoint is scored at its threshold; a conditioned one (target_cost, returns_to_go) plays
     /// its episodes at each threshold in turn, or at --cost-threshold.
     Evaluate(EvaluateArgs),
+    /// Rewrite a dataset (a committed starter, or its parts in order) in the compact form the starters are
+    /// committed in: the same rows, so ingest gives the same version id, checked before anything is replaced.
+    /// For starters cut before that form existed (with next_observations, observations as lists) it takes about
+    /// half the bytes. In place by default: the files given are replaced by the result.
+    Compact(CompactArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct CompactArgs {
+    /// The task the dataset belongs to; its rows are validated against it.
+    #[arg(long)]
+    task: String,
+    /// The dataset file, or the parts of one (<stem>.part-I-of-N.parquet) in order.
+    #[arg(required = true)]
+    files: Vec<PathBuf>,
+    /// Folder for the result, with the dataset's name (default: the files' own folder, replacing them).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the result as this many files of whole episodes (<stem>.part-I-of-N.parquet).
+    #[arg(long, default_value_t = 1)]
+    parts: usize,
+    /// Print a JSON report instead of a summary line.
+    #[arg(long)]
+    json: bool,
+}
+
+fn compact(args: CompactArgs) -> anyhow::Result<()> {
+    let catalog = Catalog::embedded()?;
+    let task = catalog.get(&args.task)?;
+    let out = match args.out {
+        Some(out) => out,
+        None => args.files[0]
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(std::path::Path::new("."))
+            .to_owned(),
+    };
+    let done = dsrl_pipeline::compact::rewrite(task, &args.files, &out, args.parts)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&done)?);
+    } else {
+        println!(
+            "{}: {} episodes, version {} kept; {} bytes -> {} bytes in {} file(s) under {}",
+            task.id,
+            done.episodes,
+            done.version,
+            done.bytes_before,
+            done.bytes_after,
+            done.files.len(),
+            out.display()
+        );
+    }
+    Ok(())
 }
 
 #[derive(clap::Args, Debug)]
@@ -304,6 +357,7 @@ async fn run() -> anyhow::Result<()> {
         json,
     } = match Args::parse().command {
         Command::Evaluate(args) => return evaluate(args).await,
+        Command::Compact(args) => return compact(args),
         Command::Collect(args) => args,
     };
     let catalog = Catalog::embedded()?;

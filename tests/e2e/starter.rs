@@ -150,3 +150,72 @@ fn walk_bytes(dir: &std::path::Path) -> u64 {
         })
         .sum()
 }
+
+/// `dsrl-admin compact` rewrites a starter cut before the compact form (the full canonical layout) row for row:
+/// smaller, the same version id once the server ingests it, in parts and back; a wrong task changes nothing.
+#[test]
+fn dsrl_admin_compact_rewrites_a_starter_smaller_under_the_same_version() {
+    let dir = tempfile::tempdir().unwrap();
+    let starter = dir.path().join("starter");
+    let task = "OfflineBallRun-v0";
+    let folder = starter.join(task);
+    std::fs::create_dir_all(&folder).unwrap();
+    let name = "SafetyBallRun-v0-80-12.parquet";
+    let file = folder.join(name);
+    let made = dsrl_e2e::make_dataset(task, 12, 53, &file);
+    let full_size = std::fs::metadata(&file).unwrap().len();
+    let provenance = serde_json::json!({
+        "kind": "recipe", "recipe": "data/recipes/test.toml", "seeds": [53], "code_version": "test",
+        "details": {"episodes_kept": 12}
+    });
+    std::fs::write(folder.join(format!("{name}.provenance.json")), provenance.to_string()).unwrap();
+    let compact = |args: &[&str]| {
+        let mut cmd = std::process::Command::new(dsrl_e2e::bin("dsrl-admin"));
+        cmd.args(["compact", "--json", "--task"]).args(args);
+        cmd
+    };
+
+    // A wrong task: refused with the reason, the file untouched and no scratch left behind.
+    let before = crate::sha256_file(&file);
+    let out = compact(&["OfflineDroneRun-v0", s(&file)]).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("OfflineDroneRun-v0"), "{err}");
+    assert_eq!(crate::sha256_file(&file), before);
+    assert_eq!(
+        std::fs::read_dir(&folder).unwrap().count(),
+        2,
+        "the file and its provenance only"
+    );
+
+    // Into two parts in another folder, the provenance copied along.
+    let split = dir.path().join("split");
+    let report = crate::admin_json(compact(&[task, "--parts", "2", "--out", s(&split), s(&file)]));
+    assert_eq!(report["version"], made.version.as_str());
+    let parts: Vec<std::path::PathBuf> = (1..=2)
+        .map(|i| split.join(dsrl_suite::convert::part_file_name(name, i, 2)))
+        .collect();
+    assert!(parts.iter().all(|p| p.is_file()), "{report}");
+    assert!(split.join(format!("{name}.provenance.json")).is_file());
+    assert_eq!(crate::sha256_file(&file), before, "--out leaves the input alone");
+
+    // The parts back into one file, in place: the parts are replaced.
+    let parts_args: Vec<&str> = parts.iter().map(|p| s(p)).collect();
+    let joined = crate::admin_json(compact(&[&[task][..], &parts_args].concat()));
+    assert_eq!(joined["version"], made.version.as_str());
+    assert!(split.join(name).is_file() && parts.iter().all(|p| !p.exists()));
+
+    // In place on the full-form file: smaller, and the server hosts it under the same version.
+    let report = crate::admin_json(compact(&[task, s(&file)]));
+    assert_eq!(report["version"], made.version.as_str());
+    let compact_size = std::fs::metadata(&file).unwrap().len();
+    assert_eq!(report["bytes_before"], full_size);
+    assert_eq!(report["bytes_after"], compact_size);
+    assert!(compact_size < full_size, "{compact_size} >= {full_size}");
+    assert_eq!(std::fs::read_dir(&folder).unwrap().count(), 2, "no scratch left behind");
+    let env = Env::with(&["--starter-datasets", s(&starter)], &[]);
+    let manifest = env.cli.run(&["--json", "show", task]).ok().json();
+    assert_eq!(manifest["version"], made.version.as_str(), "{manifest}");
+    assert_eq!(manifest["episodes"], 12);
+    assert_eq!(manifest["provenance"]["seeds"], serde_json::json!([53]));
+}
