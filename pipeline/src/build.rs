@@ -466,7 +466,15 @@ impl Run {
         let provenance = Provenance::Recipe {
             recipe: recipe_name(&self.recipe_path, task),
             seeds: vec![self.recipe.seed],
-            code_version: concat!("dsrl-pipeline ", env!("CARGO_PKG_VERSION")).to_owned(),
+            // The commit as well as the version: see build.rs.
+            code_version: concat!(
+                "dsrl-pipeline ",
+                env!("CARGO_PKG_VERSION"),
+                " (git ",
+                env!("DSRL_BUILD_COMMIT"),
+                ")"
+            )
+            .to_owned(),
             details,
         };
         // `<file>.provenance.json`: the name the server's starter loader reads beside a dataset.

@@ -73,6 +73,22 @@ fn a_killed_collection_resumes_to_the_same_dataset_and_ingests_with_provenance()
     assert_eq!(provenance["seeds"], serde_json::json!([0]));
     assert_eq!(provenance["details"]["episodes_collected"], 4);
     assert_eq!(manifest["episodes"], 4);
+    // The code that made it: the commit this clone's dsrl-admin was built from (pipeline/build.rs).
+    let head = std::process::Command::new("git")
+        .args(["rev-parse", "--short=12", "HEAD"])
+        .current_dir(dsrl_e2e::repo_root())
+        .output()
+        .unwrap();
+    let head = String::from_utf8(head.stdout).unwrap();
+    let code_version = provenance["code_version"].as_str().unwrap();
+    assert!(
+        code_version.starts_with(&format!(
+            "dsrl-pipeline {} (git {}",
+            env!("CARGO_PKG_VERSION"),
+            head.trim()
+        )),
+        "{code_version}"
+    );
 
     // A starter-sized cut of the finished run reuses its settings: nothing is simulated again.
     let starter = env.path("starter");
