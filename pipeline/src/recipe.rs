@@ -665,9 +665,9 @@ mod tests {
                 task.paper_trajectories
             );
             assert_eq!(recipe.final_grid.cost_cap, task.paper_cost_cap);
-            // DSRL's 10 collection maps where the hard maps' best returns need them; the easy and medium starters
-            // were built on their own map (data/README.md, "Choices").
-            let maps = if task.id.as_str().contains("-hard") { 10 } else { 1 };
+            // DSRL's 10 collection maps where the hard maps' best returns and the medium maps' cost spread need
+            // them; the easy starters were built on their own map (data/README.md, "Choices").
+            let maps = if task.id.as_str().contains("-easy") { 1 } else { 10 };
             assert!(settings.iter().all(|s| s.maps == maps), "{}", task.id);
         }
         // A recipe that leaves `maps` out serializes as before (provenance of earlier builds unchanged).
