@@ -1,7 +1,7 @@
 //! What the default server hosts, from the committed starters, for all 38 tasks: a version whose dimensions match
 //! the catalog, at least 50 trajectories, cost returns spread from 0 to at least 75% of the paper's cost cap, at
 //! least 10% of trajectories in DSRL's tempting corner, and the paper's filter presets (the noise filter at 1, 5 and
-//! 10%, every density preset DSRL defines for the task) applicable to it: the data issue's bar but the frontier's
+//! 10%, every density preset DSRL defines for the task) applicable to it: the data issue's bar except the frontier's
 //! shape, which data/README.md measures. Where this project's compute has not reached that bar yet, the task is
 //! listed in `data/starter_gaps.csv` with what is missing (its measured numbers are in data/README.md); the test
 //! holds both ways: a task that is not listed must pass, and a listed gap that now passes must come off the list.
@@ -9,6 +9,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use dsrl_suite::catalog::{Catalog, Task};
+use dsrl_suite::filters::plan::in_tempting_corner;
 use dsrl_suite::filters::spec::{canonical_number, density_presets};
 
 use crate::{Env, block_on, s};
@@ -41,8 +42,7 @@ const MIN_TRAJECTORIES: u64 = 50;
 /// a safe end), the highest at least the second.
 const COST_SPREAD: (f64, f64) = (0.1, 0.75);
 
-/// The smallest share of trajectories in DSRL's tempting corner (cost return >= max cost / 2 and reward return >=
-/// max reward / 2, the task's normalization constants, as the noise filter draws them).
+/// The smallest share of trajectories in DSRL's tempting corner ([`in_tempting_corner`], the noise filter's own).
 const MIN_CORNER_SHARE: f64 = 0.1;
 
 /// The bar's measures that need the episodes' returns: the cost spread and the share in the tempting corner.
@@ -67,7 +67,8 @@ fn returns_bar(task: &Task, episode_index: &[serde_json::Value]) -> BTreeMap<&'s
     }
     let corner = returns
         .iter()
-        .filter(|(r, c)| *c >= task.max_episode_cost / 2.0 && *r >= task.max_episode_reward / 2.0)
+        // The manifest's returns are float32 written as JSON numbers, so the casts give them back exactly.
+        .filter(|&&(r, c)| in_tempting_corner(task, c as f32, r as f32))
         .count();
     if (corner as f64) < MIN_CORNER_SHARE * returns.len() as f64 {
         failed.insert(

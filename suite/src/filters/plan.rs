@@ -193,6 +193,13 @@ fn grid_filter(
     Ok(kept)
 }
 
+/// Whether a trajectory lies in DSRL's tempting corner, where the noise filter draws its outliers: cost return at
+/// least half the task's `max_episode_cost` and reward return at least half its `max_episode_reward`, compared as
+/// NumPy compares float32 returns with a float threshold.
+pub fn in_tempting_corner(task: &Task, cost_return: f32, reward_return: f32) -> bool {
+    Threshold(task.max_episode_cost / 2.0).le(cost_return) && Threshold(task.max_episode_reward / 2.0).le(reward_return)
+}
+
 /// Computes the whole plan.
 pub fn plan(spec: &FilterSpec, task: &Task, episodes: &[EpisodeSummary]) -> Result<Plan, FilterError> {
     let mut counts = FilterCounts {
@@ -229,12 +236,8 @@ pub fn plan(spec: &FilterSpec, task: &Task, episodes: &[EpisodeSummary]) -> Resu
 
     if let Some(percent) = spec.outliers_percent {
         let wanted = ((n as f64 * percent) as usize).max(1);
-        let (cost_cut, reward_cut) = (
-            Threshold(task.max_episode_cost / 2.0),
-            Threshold(task.max_episode_reward / 2.0),
-        );
         let candidates: Vec<usize> = (0..n)
-            .filter(|&p| cost_cut.le(cost[p]) && reward_cut.le(reward[p]))
+            .filter(|&p| in_tempting_corner(task, cost[p], reward[p]))
             .collect();
         if candidates.len() < wanted {
             return Err(reject(format!(
