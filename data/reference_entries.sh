@@ -1,51 +1,71 @@
 #!/usr/bin/env bash
-# The leaderboard's reference entries: the paper's seven baselines trained in candle by dsrl-train on each task's
-# hosted dataset (fetched from the server, `latest`, into the dataset cache) and scored by that server's leaderboard
-# with the paper's protocol (3 thresholds x 20 held episodes):
-#   BC-All, BC-Safe (spec 5.5), CDT (5.4), BCQ-Lag (5.6), BEAR-Lag (5.7), CPQ and COptiDICE (5.8),
-# with OSRL's networks and hyperparameters; per-threshold methods train one model per benchmark threshold, CDT one
-# model conditioned on OSRL's return targets (data/cdt_targets.csv). Beyond the paper: CAPS (`caps`, AAAI 2025), one
-# model given each threshold as its episode's cost budget; not in the default --methods.
-# First every model is trained, --jobs at a time: one job per (task, seed, method, threshold) for the per-threshold
-# methods (each model is seeded on its own, so the weights do not depend on --jobs), one per (task, seed) for BC-All,
-# CDT and CAPS; each job is one single-threaded dsrl-train. Then the entries are submitted and waited for in turn, so
-# one submission is in flight at a time; a server's daily quota (leaderboard.submissions_per_day, default 10) must
-# allow 7 per task and seed (DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY on a server you run).
-# Needs DSRL_SERVER and a user token in DSRL_TOKEN (`dsrl-client admin create-user reference`).
+# The leaderboard's reference entries, as data: trains the paper's baselines with dsrl-train on each task's hosted
+# dataset, has a dsrl leaderboard score them (held seeds; the task's 3 thresholds x 20 episodes), and writes each
+# scored entry into the results file (data/reference/results.jsonl) with `dsrl-train reference-entry`: task, method,
+# seed, budget, dataset version, code commit, checkpoint digest, protocol version and every episode. Every reference
+# table in the documents is generated from that file (scripts/reference_tables.py), and every server imports it.
+#   Methods: BC-All, BC-Safe (spec 5.5), CDT (5.4), BCQ-Lag (5.6), BEAR-Lag (5.7), CPQ and COptiDICE (5.8) with OSRL's
+#   networks and hyperparameters, and CAPS (AAAI 2025, beyond the paper; not in the default --methods).
+#   Per-threshold methods train one model per benchmark threshold, CDT one model conditioned on OSRL's return
+#   targets (data/cdt_targets.csv), CAPS one model given each threshold as its episode's cost budget.
 #
-# Usage: data/reference_entries.sh [--steps N] [--cdt-steps N] [--batch-size B] [--seeds "0 1 2"] [--jobs J]
-#                                  [--methods "bc-all bc-safe cdt bcql bearl cpq coptidice caps"] TASK...
-#   --steps N        gradient steps per model (default 100000, OSRL's; BEAR-Lag trains 3 N as OSRL's 300000)
-#   --cdt-steps N    CDT's steps (default: --steps)
-#   --caps-steps N   CAPS's steps (default: --steps)
+# Resumable: all state lives in --state (default ~/.dsrl/reference), outside the clone. A model whose training
+# finished is not trained again (a marker names its budget); a submission already made is waited for, not made
+# again; a scored entry already in the results file with the same checkpoint is left alone. Kill it and run the
+# same command again.
+#
+# Scoring server: $DSRL_SERVER with a user token in $DSRL_TOKEN (its daily quota must allow the entries), or, when
+# DSRL_SERVER is unset, a private dsrl-server this script starts on the embedded defaults and the committed
+# starters, with its state under <state>/server (its own held-seed secret, kept between runs), reference import
+# off, quotas lifted and --evaluators evaluators; it is stopped at the end.
+#
+# Usage: data/reference_entries.sh [--steps N] [--cdt-steps N] [--caps-steps N] [--bearl-steps N] [--steps-for M=N]...
+#                                  [--batch-size B] [--seeds "0 1 2"] [--jobs J] [--evaluators E] [--methods "..."]
+#                                  [--state DIR] [--results FILE] [--train-only] TASK...
+#   --steps N        gradient steps per model (default 100000, OSRL's); BEAR-Lag trains 3 N (OSRL's 300000)
+#   --cdt-steps N    CDT's steps (default: --steps); --caps-steps N likewise; --bearl-steps N instead of 3 N
+#   --steps-for M=N  steps of method M (e.g. cpq=5000), over the options above
 #   --batch-size B   instead of OSRL's (512; CDT 2048), recorded with each model
+#   --seeds "S..."   training seeds (default 0)
 #   --jobs J         models trained at once (default 1); one core each
-#   e.g. data/reference_entries.sh --steps 2000 --cdt-steps 50 --jobs 16 OfflineBallRun-v0 OfflineCarRun-v0
-# Every model records its budget, seed, dataset version and settings in policy.json; the leaderboard shows them.
+#   --methods "..."  of bc-all bc-safe cdt bcql bearl cpq coptidice caps (default: the first seven)
+#   --train-only     train, submit nothing
+#   e.g. data/reference_entries.sh --steps 10000 --methods "bc-all bc-safe" OfflineBallRun-v0 OfflineCarRun-v0
+# Binaries: dsrl-train, dsrl-client, dsrl-server from PATH (scripts/serve.sh links them), or $DSRL_TRAIN,
+# $DSRL_CLIENT, $DSRL_SERVER_BIN.
 set -euo pipefail
-steps=100000 cdt_steps= caps_steps= batch_size= seeds="0" jobs=1 methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=()
+repo=$(cd "$(dirname "$0")/.." && pwd)
+steps=100000 cdt_steps= caps_steps= bearl_steps= batch_size= seeds="0" jobs=1 evaluators=1 train_only=no
+methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=() overrides=()
+state=${DSRL_REFERENCE_STATE:-$HOME/.dsrl/reference}
+results=$repo/data/reference/results.jsonl
 while [ $# -gt 0 ]; do
   case $1 in
     --steps) steps=$2; shift 2 ;;
     --cdt-steps) cdt_steps=$2; shift 2 ;;
     --caps-steps) caps_steps=$2; shift 2 ;;
+    --bearl-steps) bearl_steps=$2; shift 2 ;;
+    --steps-for) overrides+=("$2"); shift 2 ;;
     --batch-size) batch_size=$2; shift 2 ;;
     --seeds) seeds=$2; shift 2 ;;
     --jobs) jobs=$2; shift 2 ;;
+    --evaluators) evaluators=$2; shift 2 ;;
     --methods) methods=$2; shift 2 ;;
-    -h|--help) sed -n '2,24p' "$0"; exit 0 ;;
+    --state) state=$2; shift 2 ;;
+    --results) results=$2; shift 2 ;;
+    --train-only) train_only=yes; shift ;;
+    -h|--help) sed -n '2,38p' "$0"; exit 0 ;;
     *) tasks+=("$1"); shift ;;
   esac
 done
 [ ${#tasks[@]} -gt 0 ] || { echo "name at least one task" >&2; exit 2; }
 [[ $jobs =~ ^[1-9][0-9]*$ ]] || { echo "--jobs takes a positive count, not '$jobs'" >&2; exit 2; }
-: "${DSRL_SERVER:?set DSRL_SERVER}" "${DSRL_TOKEN:?set DSRL_TOKEN to a user token}"
-cdt_steps=${cdt_steps:-$steps}
-caps_steps=${caps_steps:-$steps}
 train=${DSRL_TRAIN:-dsrl-train}
 client=${DSRL_CLIENT:-dsrl-client}
-out=${OUT:-policies}
-catalog=$(dirname "$0")/tasks.csv
+server_bin=${DSRL_SERVER_BIN:-dsrl-server}
+catalog=$repo/data/tasks.csv
+out=$state/policies
+mkdir -p "$state" "$out" "$state/submissions"
 
 # name and dsrl-train arguments of a method (after --task ...); whether it trains per threshold
 method_name() {
@@ -56,6 +76,18 @@ method_name() {
   esac
 }
 for method in $methods; do method_name "$method" >/dev/null; done
+method_steps() {
+  local o
+  for o in "${overrides[@]+"${overrides[@]}"}"; do
+    [ "${o%%=*}" = "$1" ] && { echo "${o#*=}"; return; }
+  done
+  case $1 in
+    cdt) echo "${cdt_steps:-$steps}" ;;
+    caps) echo "${caps_steps:-$steps}" ;;
+    bearl) echo "${bearl_steps:-$((3 * steps))}" ;;
+    *) echo "$steps" ;;
+  esac
+}
 thresholds() {
   local t
   t=$(awk -F, -v task="$1" '$1 == task { print $12 }' "$catalog")
@@ -63,50 +95,107 @@ thresholds() {
   echo "${t//;/ }"
 }
 
-# Every training job, one line each: task seed method threshold (- where the method is trained once).
+# The scoring server: the given one, or a private one.
+server_pid=
+stop_server() { [ -z "$server_pid" ] || kill "$server_pid" 2>/dev/null || true; }
+trap stop_server EXIT
+if [ -z "${DSRL_SERVER:-}" ]; then
+  port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+  mkdir -p "$state/server"
+  echo "starting a private scoring server on 127.0.0.1:$port (state in $state/server, log $state/server.log)" >&2
+  DSRL__SERVER__DATA_DIR=$state/server DSRL__SERVER__LISTEN=127.0.0.1:$port \
+    DSRL__LEADERBOARD__IMPORT_REFERENCE_RESULTS=false DSRL__LEADERBOARD__EVALUATORS=$evaluators \
+    DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000000 DSRL__LEADERBOARD__CONCURRENT_SUBMISSIONS=1000000 \
+    "$server_bin" --starter-datasets "$repo/data/starter" >> "$state/server.log" 2>&1 &
+  server_pid=$!
+  export DSRL_SERVER=http://127.0.0.1:$port
+  for _ in $(seq 1 600); do
+    "$client" --server "$DSRL_SERVER" list >/dev/null 2>&1 && break
+    kill -0 "$server_pid" 2>/dev/null || { echo "the scoring server exited; see $state/server.log" >&2; exit 1; }
+    sleep 1
+  done
+  if [ ! -s "$state/user-token" ]; then
+    DSRL_ADMIN_TOKEN=$(cat "$state/server/admin-token") "$client" admin create-user reference-trainer \
+      > "$state/user-token.tmp"
+    mv "$state/user-token.tmp" "$state/user-token"
+  fi
+  export DSRL_TOKEN=$(cat "$state/user-token")
+fi
+: "${DSRL_TOKEN:?set DSRL_TOKEN to a user token of $DSRL_SERVER}"
+
+# Every training job, one line each: task seed method threshold (- where the method is trained once) steps.
 units=()
 for task in "${tasks[@]}"; do
   kappas=$(thresholds "$task")
   for seed in $seeds; do
     for method in $methods; do
+      n=$(method_steps "$method")
       case $method in
-        bc-all | cdt | caps) units+=("$task $seed $method -") ;;
-        *) for kappa in $kappas; do units+=("$task $seed $method $kappa"); done ;;
+        bc-all | cdt | caps) units+=("$task $seed $method - $n") ;;
+        *) for kappa in $kappas; do units+=("$task $seed $method $kappa $n"); done ;;
       esac
     done
   done
 done
 
+# A finished model leaves a marker naming its budget; a model trained to another budget is trained again.
 train_unit() {
-  local task=$1 seed=$2 method=$3 kappa=$4 args
-  args=(--task "$task" --server "$DSRL_SERVER" --seed "$seed" --out "$out/$task/seed-$seed")
+  local task=$1 seed=$2 method=$3 kappa=$4 n=$5 args marker
+  marker=$out/$task/seed-$seed/.trained-$method-$kappa-steps-$n-batch-${batch_size:-osrl}
+  [ -e "$marker" ] && return 0
+  args=(--task "$task" --server "$DSRL_SERVER" --seed "$seed" --out "$out/$task/seed-$seed" --steps "$n")
   [ -z "$batch_size" ] || args+=(--batch-size "$batch_size")
   [ "$kappa" = - ] || args+=(--cost-threshold "$kappa")
   case $method in
-    bc-all) "$train" bc --mode all --steps "$steps" "${args[@]}" ;;
-    bc-safe) "$train" bc --mode safe --steps "$steps" "${args[@]}" ;;
-    cdt) "$train" cdt --steps "$cdt_steps" "${args[@]}" ;;
-    caps) "$train" caps --steps "$caps_steps" "${args[@]}" ;;
-    bearl) "$train" bearl --steps $((3 * steps)) "${args[@]}" ;;
-    *) "$train" "$method" --steps "$steps" "${args[@]}" ;;
+    bc-all) "$train" bc --mode all "${args[@]}" ;;
+    bc-safe) "$train" bc --mode safe "${args[@]}" ;;
+    *) "$train" "$method" "${args[@]}" ;;
   esac
+  rm -f "$out/$task/seed-$seed/.trained-$method-$kappa-"*
+  touch "$marker"
 }
 
-# Each task's dataset is fetched once before the jobs start, so parallel jobs read one verified cached file instead
-# of racing to download it.
+# Each task's dataset is fetched once before the jobs start, so parallel jobs read one verified cached file.
 for task in "${tasks[@]}"; do "$client" fetch "$task" >&2; done
-echo "training ${#units[@]} models, $jobs at a time" >&2
+echo "$(date -u +%FT%TZ) training ${#units[@]} models ($jobs at a time) into $out" >&2
 # A failed job stops new ones from starting (exit 255), and the script stops before submitting anything.
 export -f train_unit
-export steps cdt_steps caps_steps batch_size train out DSRL_SERVER
+export batch_size train out DSRL_SERVER
 printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit
+echo "$(date -u +%FT%TZ) training done" >&2
+[ "$train_only" = no ] || exit 0
 
+# Submit every entry not yet submitted (the server queues them), then wait for each in turn and record it.
+entries=()
 for task in "${tasks[@]}"; do
   for seed in $seeds; do
-    for method in $methods; do
-      name=$(method_name "$method") model=$out/$task/seed-$seed/$method
-      echo "$task seed $seed: submitting $name ($model)" >&2
-      "$client" submit "$model" --task "$task" --name "$name" --wait
-    done
+    for method in $methods; do entries+=("$task $seed $method"); done
   done
+done
+for e in "${entries[@]}"; do
+  read -r task seed method <<< "$e"
+  name=$(method_name "$method") model=$out/$task/seed-$seed/$method
+  sub=$state/submissions/$task/seed-$seed/$method
+  mkdir -p "$(dirname "$sub")"
+  # A submission made for another training of this model is stale.
+  if [ -e "$sub.id" ] && [ "$sub.id" -ot "$model" ]; then rm -f "$sub.id" "$sub.json"; fi
+  [ -e "$sub.id" ] && continue
+  if answer=$("$client" --json submit "$model" --task "$task" --name "$name-seed$seed" 2> "$sub.err"); then
+    python3 -c 'import json, sys; print(json.load(sys.stdin)["id"])' <<< "$answer" > "$sub.id"
+  elif id=$(grep -o 'as submission [0-9]*' "$sub.err" | grep -o '[0-9]*$'); then
+    echo "$id" > "$sub.id"  # submitted before the script was stopped
+  else
+    cat "$sub.err" >&2; exit 1
+  fi
+  echo "$task seed $seed: $name submitted as $(cat "$sub.id")" >&2
+done
+for e in "${entries[@]}"; do
+  read -r task seed method <<< "$e"
+  name=$(method_name "$method") model=$out/$task/seed-$seed/$method
+  sub=$state/submissions/$task/seed-$seed/$method
+  if [ ! -s "$sub.json" ]; then
+    "$client" --json status "$(cat "$sub.id")" --wait > "$sub.json.tmp"
+    mv "$sub.json.tmp" "$sub.json"
+  fi
+  "$train" reference-entry --model "$model" --submission "$sub.json" --method "$name" --results "$results"
 done

@@ -47,6 +47,29 @@ pub struct CheckedSubmission {
     pub sha256: String,
 }
 
+impl CheckedSubmission {
+    /// The dataset version the checkpoints say they were trained on (`training.dataset_version` in policy.json,
+    /// which `dsrl-train` always writes): `None` when none says; the distinct versions joined by `,` when they
+    /// differ.
+    pub fn dataset_version(&self) -> Option<String> {
+        let mut versions: Vec<&str> = Vec::new();
+        for c in &self.checkpoints {
+            let said = c
+                .config
+                .training
+                .as_ref()
+                .and_then(|t| t.get("dataset_version"))
+                .and_then(|v| v.as_str());
+            if let Some(v) = said
+                && !versions.contains(&v)
+            {
+                versions.push(v);
+            }
+        }
+        (!versions.is_empty()).then(|| versions.join(","))
+    }
+}
+
 /// Largest slot name, and the characters allowed in it.
 const MAX_SLOT_CHARS: usize = 64;
 

@@ -39,7 +39,7 @@ pub async fn run(
         leaderboard_config,
         dsrl_service::seed_secret(&config)?,
         policy_program,
-    ));
+    )?);
     runner::spawn(leaderboard.clone());
     let mut registry = Registry::with_prefix("dsrl");
     let queue_depth = Arc::new(queue::register_depth_gauge(&mut registry));

@@ -9,16 +9,22 @@
 
 pub mod checkpoints;
 pub mod evaluator;
+pub mod protocol;
 pub mod queue;
+pub mod reference;
 pub mod runner;
 pub mod seeds;
 pub mod users;
 
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 
 use bytes::Bytes;
 use dsrl_suite::catalog::{Catalog, Family, Task};
-use dsrl_suite::leaderboard::{Interval, iqm_with_interval, rank};
+use dsrl_suite::leaderboard::{Interval, entry_interval, iqm_with_interval, rank, threshold_scores};
+use dsrl_suite::paper::{PAPER_LABEL, PaperResults, PaperRow};
+use dsrl_suite::protocol::Protocol;
+use dsrl_suite::reference::{Agreement, AgreementSummary, ScoredEntry, agreement, summarize};
 use dsrl_suite::score::NormalizedScore;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
@@ -26,6 +32,7 @@ use serde::Serialize;
 
 use self::checkpoints::CheckpointRecord;
 use self::queue::{EpisodeRow, Quotas};
+use self::reference::ReferenceRecord;
 use self::seeds::HeldSeeds;
 use self::users::User;
 use dsrl_evaluation::simulators::SimulatorPool;
@@ -45,15 +52,17 @@ pub struct Leaderboard {
     pub(crate) policy_program: Option<std::path::PathBuf>,
     /// Wakes idle evaluators when a submission arrives.
     pub(crate) wake: tokio::sync::Notify,
+    /// What results are scored under here; the tables rank only results of this version.
+    pub protocol: Protocol,
+    /// The paper's table, shown beside the entries.
+    pub paper: PaperResults,
+    /// Each finished submission's per-task bootstrap intervals (its episodes never change once finished).
+    intervals: Mutex<HashMap<i64, (Interval, Interval)>>,
 }
 
 /// The suite a task belongs to, as the leaderboard groups them (the paper's three families).
 pub fn suite_of(family: Family) -> &'static str {
-    match family {
-        Family::Bullet => "bullet",
-        Family::SafetyGymNavigation | Family::SafetyGymVelocity => "safety-gymnasium",
-        Family::MetaDrive => "metadrive",
-    }
+    family.suite()
 }
 
 /// One threshold's result.
@@ -87,6 +96,13 @@ pub struct SubmissionView {
     pub started_at: Option<String>,
     pub finished_at: Option<String>,
     pub episodes_per_threshold: u32,
+    /// The protocol version it was scored under (set when it finishes; absent for results scored before versions
+    /// were recorded).
+    pub protocol_version: Option<String>,
+    /// The dataset version its checkpoint says it was trained on.
+    pub dataset_version: Option<String>,
+    /// Set for a reference entry: its method, training seed and budget, code commit, and scoring.
+    pub reference: Option<ReferenceRecord>,
     /// Means over the thresholds (spec 4.1); safe iff the normalized cost is at most 1.
     pub normalized_reward: Option<f64>,
     pub normalized_cost: Option<f64>,
@@ -112,8 +128,16 @@ pub struct TaskEntry {
     pub name: String,
     pub normalized_reward: f64,
     pub normalized_cost: f64,
+    /// Percentile-bootstrap intervals over the entry's episodes (resampled within each threshold).
+    pub normalized_reward_interval: Interval,
+    pub normalized_cost_interval: Interval,
     pub safe: bool,
     pub finished_at: Option<String>,
+    pub protocol_version: String,
+    /// The dataset version its checkpoint says it was trained on.
+    pub dataset_version: Option<String>,
+    /// Set for a reference entry (its method, seed, budget).
+    pub reference: Option<ReferenceRecord>,
 }
 
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
@@ -121,7 +145,14 @@ pub struct TaskTable {
     pub task: String,
     pub family: &'static str,
     pub cost_thresholds: Vec<f64>,
+    /// Entries scored under the current protocol, ranked.
     pub entries: Vec<TaskEntry>,
+    /// Finished entries scored under an earlier protocol (or before versions were recorded): counted, not ranked.
+    pub earlier_protocol_entries: usize,
+    /// The paper's rows for the task (its self-reported numbers; see `Board::paper_label`).
+    pub paper: Vec<PaperRow>,
+    /// Our reference entries against the paper's rows, per method.
+    pub agreement: Vec<Agreement>,
 }
 
 /// One entry (a user's name for a method) across the tasks of a family.
@@ -133,6 +164,8 @@ pub struct FamilyEntry {
     /// Tasks of the family the entry was scored on, and on how many of them it was safe.
     pub tasks: usize,
     pub safe_tasks: usize,
+    /// A reference entry (the reference account's).
+    pub reference: bool,
     /// Interquartile mean across its tasks with a bootstrap interval.
     pub normalized_reward: Interval,
     pub normalized_cost: Interval,
@@ -146,11 +179,18 @@ pub struct FamilyTable {
 
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct Board {
+    /// The protocol the tables rank results of.
+    pub protocol: Protocol,
+    /// How the paper's rows were produced.
+    pub paper_label: &'static str,
     pub tasks: Vec<TaskTable>,
     pub families: Vec<FamilyTable>,
+    /// The share of our reference entries' safe/unsafe verdicts that agree with the paper's, per family and
+    /// overall (every task, whatever the request's task filter).
+    pub agreement: Vec<AgreementSummary>,
 }
 
-/// Bootstrap settings of the family aggregates (fixed, so a table is reproducible).
+/// Bootstrap settings of the family aggregates and the per-task intervals (fixed, so a table is reproducible).
 pub const BOOTSTRAP_RESAMPLES: u32 = 2000;
 pub const BOOTSTRAP_CONFIDENCE: f64 = 0.95;
 pub const BOOTSTRAP_SEED: u64 = 0;
@@ -164,8 +204,16 @@ impl Leaderboard {
         config: LeaderboardConfig,
         seed_secret: String,
         policy_program: Option<std::path::PathBuf>,
-    ) -> Leaderboard {
-        Leaderboard {
+    ) -> Result<Leaderboard, ApiError> {
+        // The paper's table is checked against the embedded catalog (all 38 tasks); a server with another catalog
+        // shows the rows of the tasks it has.
+        let paper = Catalog::embedded()
+            .map_err(ApiError::internal)
+            .and_then(|embedded| PaperResults::embedded(&embedded).map_err(ApiError::internal))?;
+        Ok(Leaderboard {
+            protocol: protocol::current(&catalog, config.episodes_per_threshold),
+            paper,
+            intervals: Mutex::new(HashMap::new()),
             db,
             store,
             catalog,
@@ -174,7 +222,26 @@ impl Leaderboard {
             seeds: HeldSeeds::new(seed_secret),
             policy_program,
             wake: tokio::sync::Notify::new(),
+        })
+    }
+
+    /// Imports the committed reference results (compiled in) when `leaderboard.import_reference_results` is on.
+    pub async fn import_reference_results(&self) -> Result<(), ApiError> {
+        if !self.config.import_reference_results {
+            return Ok(());
         }
+        let entries = dsrl_suite::reference::read_results(dsrl_suite::reference::EMBEDDED_RESULTS, &self.catalog)
+            .map_err(ApiError::internal)?;
+        let report = reference::import(self, &entries).await?;
+        tracing::info!(
+            imported = report.imported,
+            present = report.present,
+            held_by_submissions = report.held_by_submissions,
+            withdrawn = report.withdrawn,
+            protocol = %self.protocol.version,
+            "reference results"
+        );
+        Ok(())
     }
 
     pub fn task(&self, id: &str) -> Result<&Task, ApiError> {
@@ -197,6 +264,7 @@ impl Leaderboard {
         let checked = tokio::task::spawn_blocking(move || checkpoints::check(&owned, files))
             .await
             .map_err(ApiError::internal)??;
+        let dataset_version = checked.dataset_version();
         let mut records = Vec::new();
         for (i, c) in checked.checkpoints.iter().enumerate() {
             // Content-addressed, so storing the same checkpoint again rewrites identical bytes.
@@ -226,6 +294,7 @@ impl Leaderboard {
                 checkpoint_sha256: &checked.sha256,
                 checkpoints: &records,
                 episodes_per_threshold: self.config.episodes_per_threshold,
+                dataset_version: dataset_version.as_deref(),
             },
             &Quotas {
                 per_day: self.config.submissions_per_day,
@@ -270,6 +339,9 @@ impl Leaderboard {
             started_at: row.started_at,
             finished_at: row.finished_at,
             episodes_per_threshold: row.episodes_per_threshold,
+            protocol_version: row.protocol_version,
+            dataset_version: row.dataset_version,
+            reference: row.reference.as_deref().and_then(parse_record),
             normalized_reward: row.normalized_reward,
             normalized_cost: row.normalized_cost,
             safe: row.normalized_cost.map(|c| c <= 1.0),
@@ -278,21 +350,39 @@ impl Leaderboard {
         })
     }
 
-    /// The tables: every task with entries (or only `task`), and each family's aggregate.
+    /// The tables: every task of the catalog (or only `task`) with its ranked entries of the current protocol, the
+    /// paper's rows and the agreement with them; each family's aggregate; the agreement summary.
     pub async fn board(&self, task: Option<&str>) -> Result<Board, ApiError> {
         if let Some(task) = task {
             self.task(task)?;
         }
         let standing = queue::standing(&self.db).await?;
+        let current = self.protocol.version.as_str();
+        let (ranked, earlier): (Vec<&queue::SubmissionRow>, Vec<&queue::SubmissionRow>) = standing
+            .iter()
+            .partition(|r| r.protocol_version.as_deref() == Some(current));
+        // Our reference entries of the current protocol, by method, for the agreement with the paper.
+        let ours: Vec<ScoredEntry> = ranked
+            .iter()
+            .filter_map(|r| {
+                let record = parse_record(r.reference.as_deref()?)?;
+                Some(ScoredEntry {
+                    task: r.task.clone(),
+                    method: record.method,
+                    score: NormalizedScore {
+                        reward: r.normalized_reward?,
+                        cost: r.normalized_cost?,
+                    },
+                })
+            })
+            .collect();
+        let cells = agreement(&self.catalog, &self.paper, &ours);
         let mut tasks: Vec<TaskTable> = Vec::new();
         for t in self.catalog.tasks() {
             if task.is_some_and(|id| id != t.id.as_str()) {
                 continue;
             }
-            let rows: Vec<&queue::SubmissionRow> = standing.iter().filter(|r| r.task == t.id.as_str()).collect();
-            if rows.is_empty() && task.is_none() {
-                continue;
-            }
+            let rows: Vec<&queue::SubmissionRow> = ranked.iter().copied().filter(|r| r.task == t.id.as_str()).collect();
             let scores: Vec<NormalizedScore> = rows
                 .iter()
                 .map(|r| NormalizedScore {
@@ -300,25 +390,34 @@ impl Leaderboard {
                     cost: r.normalized_cost.unwrap_or(f64::NAN),
                 })
                 .collect();
-            let entries = rank(&scores)
-                .into_iter()
-                .enumerate()
-                .map(|(place, i)| TaskEntry {
+            let mut entries = Vec::new();
+            for (place, i) in rank(&scores).into_iter().enumerate() {
+                let row = rows[i];
+                let (reward_interval, cost_interval) = self.intervals(t, row.id).await?;
+                entries.push(TaskEntry {
                     rank: place + 1,
-                    submission: rows[i].id,
-                    user: rows[i].user.clone(),
-                    name: rows[i].name.clone(),
+                    submission: row.id,
+                    user: row.user.clone(),
+                    name: row.name.clone(),
                     normalized_reward: scores[i].reward,
                     normalized_cost: scores[i].cost,
+                    normalized_reward_interval: reward_interval,
+                    normalized_cost_interval: cost_interval,
                     safe: scores[i].is_safe(),
-                    finished_at: rows[i].finished_at.clone(),
-                })
-                .collect();
+                    finished_at: row.finished_at.clone(),
+                    protocol_version: current.to_owned(),
+                    dataset_version: row.dataset_version.clone(),
+                    reference: row.reference.as_deref().and_then(parse_record),
+                });
+            }
             tasks.push(TaskTable {
                 task: t.id.to_string(),
                 family: suite_of(t.family),
                 cost_thresholds: t.cost_thresholds.clone(),
                 entries,
+                earlier_protocol_entries: earlier.iter().filter(|r| r.task == t.id.as_str()).count(),
+                paper: self.paper.for_task(t.id.as_str()).into_iter().cloned().collect(),
+                agreement: cells.iter().filter(|c| c.task == t.id.as_str()).cloned().collect(),
             });
         }
         let families = ["bullet", "safety-gymnasium", "metadrive"]
@@ -326,7 +425,33 @@ impl Leaderboard {
             .map(|family| family_table(family, &tasks))
             .filter(|f| !f.entries.is_empty())
             .collect();
-        Ok(Board { tasks, families })
+        Ok(Board {
+            protocol: self.protocol.clone(),
+            paper_label: PAPER_LABEL,
+            tasks,
+            families,
+            agreement: summarize(&self.catalog, &cells),
+        })
+    }
+
+    /// A finished submission's bootstrap intervals over its episodes, computed once.
+    async fn intervals(&self, task: &Task, id: i64) -> Result<(Interval, Interval), ApiError> {
+        if let Some(found) = self.intervals.lock().map_err(ApiError::internal)?.get(&id) {
+            return Ok(found.clone());
+        }
+        let episodes = queue::episodes(&self.db, id).await?;
+        let owned = task.clone();
+        let computed = tokio::task::spawn_blocking(move || {
+            entry_interval(&owned, &episodes, BOOTSTRAP_RESAMPLES, BOOTSTRAP_CONFIDENCE, BOOTSTRAP_SEED)
+        })
+        .await
+        .map_err(ApiError::internal)?
+        .ok_or_else(|| ApiError::Internal(format!("finished submission {id} has no episodes")))?;
+        self.intervals
+            .lock()
+            .map_err(ApiError::internal)?
+            .insert(id, computed.clone());
+        Ok(computed)
     }
 
     /// The stored checkpoint bytes of a job.
@@ -349,28 +474,26 @@ impl Leaderboard {
 
 /// Per-threshold means and normalized scores of stored episodes, in threshold order.
 pub fn threshold_results(task: &Task, episodes: &[EpisodeRow]) -> Vec<ThresholdResult> {
-    task.cost_thresholds
-        .iter()
-        .filter_map(|&threshold| {
-            let rows: Vec<&EpisodeRow> = episodes.iter().filter(|e| e.cost_threshold == threshold).collect();
-            if rows.is_empty() {
-                return None;
-            }
-            let n = rows.len() as f64;
-            let reward = rows.iter().map(|e| e.reward_return).sum::<f64>() / n;
-            let cost = rows.iter().map(|e| e.cost_return).sum::<f64>() / n;
-            let score = task.normalized_score(reward, cost, threshold);
-            Some(ThresholdResult {
-                cost_threshold: threshold,
-                episodes: rows.len(),
-                mean_reward_return: reward,
-                mean_cost_return: cost,
-                normalized_reward: score.reward,
-                normalized_cost: score.cost,
-                safe: score.is_safe(),
-            })
+    threshold_scores(task, episodes)
+        .into_iter()
+        .map(|t| ThresholdResult {
+            cost_threshold: t.cost_threshold,
+            episodes: t.episodes,
+            mean_reward_return: t.mean_reward_return,
+            mean_cost_return: t.mean_cost_return,
+            normalized_reward: t.score.reward,
+            normalized_cost: t.score.cost,
+            safe: t.score.is_safe(),
         })
         .collect()
+}
+
+/// A reference entry's record from its JSON column; a row that does not parse is shown as a plain entry (and
+/// logged), never failing the table.
+fn parse_record(json: &str) -> Option<ReferenceRecord> {
+    serde_json::from_str(json)
+        .map_err(|e| tracing::warn!(error = %e, "a reference record that does not parse"))
+        .ok()
 }
 
 /// A family's entries: each (user, name) with its scores on the family's tasks, aggregated by the interquartile
@@ -379,9 +502,13 @@ fn family_table(family: &'static str, tasks: &[TaskTable]) -> FamilyTable {
     // (user, name) → (normalized reward, normalized cost, safe) per task, in first-seen order.
     type Scores = Vec<(f64, f64, bool)>;
     let mut by_entry: Vec<((String, String), Scores)> = Vec::new();
+    let mut references: Vec<(String, String)> = Vec::new();
     for table in tasks.iter().filter(|t| t.family == family) {
         for e in &table.entries {
             let key = (e.user.clone(), e.name.clone());
+            if e.reference.is_some() && !references.contains(&key) {
+                references.push(key.clone());
+            }
             let value = (e.normalized_reward, e.normalized_cost, e.safe);
             match by_entry.iter_mut().find(|(k, _)| *k == key) {
                 Some((_, values)) => values.push(value),
@@ -418,6 +545,7 @@ fn family_table(family: &'static str, tasks: &[TaskTable]) -> FamilyTable {
                 name: name.clone(),
                 tasks: values.len(),
                 safe_tasks: values.iter().filter(|v| v.2).count(),
+                reference: references.contains(&(user.clone(), name.clone())),
                 normalized_reward: aggregates[i].0.clone(),
                 normalized_cost: aggregates[i].1.clone(),
             }

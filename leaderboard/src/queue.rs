@@ -4,7 +4,6 @@
 //! so a job taken over by another evaluator is finished exactly once.
 
 use prometheus_client::metrics::gauge::Gauge;
-use serde::{Deserialize, Serialize};
 use sqlx::{AssertSqlSafe, Row};
 
 use dsrl_service::db::Db;
@@ -25,15 +24,8 @@ pub struct Job {
     pub attempts: u32,
 }
 
-/// One evaluated episode.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct EpisodeRow {
-    pub cost_threshold: f64,
-    pub episode: u32,
-    pub reward_return: f64,
-    pub cost_return: f64,
-    pub length: u32,
-}
+/// One evaluated episode (the suite's type: reference results hold the same rows).
+pub use dsrl_suite::score::EpisodeResult as EpisodeRow;
 
 pub struct NewSubmission<'a> {
     pub user_id: i64,
@@ -42,6 +34,8 @@ pub struct NewSubmission<'a> {
     pub checkpoint_sha256: &'a str,
     pub checkpoints: &'a [CheckpointRecord],
     pub episodes_per_threshold: u32,
+    /// The dataset version the checkpoint says it was trained on.
+    pub dataset_version: Option<&'a str>,
 }
 
 pub struct Quotas {
@@ -90,8 +84,8 @@ pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<
     }
     let inserted = sqlx::query(
         "INSERT INTO submissions (user_id, task, name, checkpoint_sha256, checkpoints, state, created_at, created_ms,
-                                  episodes_per_threshold)
-         VALUES ($1, $2, $3, $4, $5, 'queued', $6, $7, $8)
+                                  episodes_per_threshold, dataset_version)
+         VALUES ($1, $2, $3, $4, $5, 'queued', $6, $7, $8, $9)
          RETURNING id",
     )
     .bind(new.user_id)
@@ -102,6 +96,7 @@ pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<
     .bind(now_rfc3339())
     .bind(now)
     .bind(i64::from(new.episodes_per_threshold))
+    .bind(new.dataset_version)
     .fetch_one(&mut *tx)
     .await;
     let id: i64 = match inserted {
@@ -235,31 +230,43 @@ pub async fn heartbeat(db: &Db, id: i64, owner: &str, lease_ms: i64) -> Result<b
     Ok(done.rows_affected() == 1)
 }
 
+/// A job's result: every episode, the scores, and the protocol version they were scored under.
+pub struct Scores<'a> {
+    pub episodes: &'a [EpisodeRow],
+    pub normalized_reward: f64,
+    pub normalized_cost: f64,
+    pub protocol_version: &'a str,
+}
+
 /// Stores every episode and the scores, if this evaluator still holds the job; returns whether it did.
-pub async fn finish(
-    db: &Db,
-    id: i64,
-    owner: &str,
-    episodes: &[EpisodeRow],
-    normalized_reward: f64,
-    normalized_cost: f64,
-) -> Result<bool, ApiError> {
+pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Result<bool, ApiError> {
     let mut tx = db.begin().await?;
     let done = sqlx::query(
         "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = $3, reason = NULL,
-             normalized_reward = $4, normalized_cost = $5
+             normalized_reward = $4, normalized_cost = $5, protocol_version = $6
          WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
     .bind(now_rfc3339())
-    .bind(normalized_reward)
-    .bind(normalized_cost)
+    .bind(result.normalized_reward)
+    .bind(result.normalized_cost)
+    .bind(result.protocol_version)
     .execute(&mut *tx)
     .await?;
     if done.rows_affected() != 1 {
         return Ok(false);
     }
+    insert_episodes(&mut tx, id, result.episodes).await?;
+    tx.commit().await?;
+    Ok(true)
+}
+
+async fn insert_episodes(
+    tx: &mut sqlx::Transaction<'_, sqlx::Any>,
+    id: i64,
+    episodes: &[EpisodeRow],
+) -> Result<(), ApiError> {
     for e in episodes {
         sqlx::query(
             "INSERT INTO evaluation_episodes
@@ -272,11 +279,91 @@ pub async fn finish(
         .bind(e.reward_return)
         .bind(e.cost_return)
         .bind(i64::from(e.length))
-        .execute(&mut *tx)
+        .execute(&mut **tx)
         .await?;
     }
+    Ok(())
+}
+
+/// A finished result recorded elsewhere (a reference entry of `data/reference/results.jsonl`), stored as a
+/// finished submission of `user_id` with its episodes.
+pub struct Imported<'a> {
+    pub user_id: i64,
+    pub task: &'a str,
+    pub name: &'a str,
+    pub checkpoint_sha256: &'a str,
+    pub started_at: &'a str,
+    pub finished_at: &'a str,
+    pub episodes_per_threshold: u32,
+    pub dataset_version: &'a str,
+    /// The reference record (JSON).
+    pub reference: &'a str,
+    pub result: Scores<'a>,
+}
+
+/// Stores an imported result in one transaction; `false` when a live submission already holds its checkpoint for
+/// the task (nothing is stored then).
+pub async fn insert_finished(db: &Db, new: &Imported<'_>) -> Result<bool, ApiError> {
+    let mut tx = db.begin().await?;
+    let inserted = sqlx::query(
+        "INSERT INTO submissions (user_id, task, name, checkpoint_sha256, checkpoints, state, created_at, created_ms,
+                                  started_at, finished_at, episodes_per_threshold, normalized_reward, normalized_cost,
+                                  protocol_version, dataset_version, reference)
+         VALUES ($1, $2, $3, $4, '[]', 'finished', $5, $6, $5, $7, $8, $9, $10, $11, $12, $13)
+         RETURNING id",
+    )
+    .bind(new.user_id)
+    .bind(new.task)
+    .bind(new.name)
+    .bind(new.checkpoint_sha256)
+    .bind(new.started_at)
+    .bind(now_ms())
+    .bind(new.finished_at)
+    .bind(i64::from(new.episodes_per_threshold))
+    .bind(new.result.normalized_reward)
+    .bind(new.result.normalized_cost)
+    .bind(new.result.protocol_version)
+    .bind(new.dataset_version)
+    .bind(new.reference)
+    .fetch_one(&mut *tx)
+    .await;
+    let id: i64 = match inserted {
+        Ok(row) => row.try_get(0)?,
+        Err(sqlx::Error::Database(e)) if e.is_unique_violation() => return Ok(false),
+        Err(e) => return Err(e.into()),
+    };
+    insert_episodes(&mut tx, id, new.result.episodes).await?;
     tx.commit().await?;
     Ok(true)
+}
+
+/// Withdraws one finished submission (cancelled with the reason: kept in the database, off the tables).
+pub async fn withdraw(db: &Db, id: i64, reason: &str) -> Result<(), ApiError> {
+    sqlx::query("UPDATE submissions SET state = 'cancelled', reason = $2 WHERE id = $1 AND state = 'finished'")
+        .bind(id)
+        .bind(reason)
+        .execute(db.pool())
+        .await?;
+    Ok(())
+}
+
+/// Withdraws `user_id`'s finished submissions whose (task, checkpoint) is not in `keep` (cancelled, with the
+/// reason: kept in the database, off the tables); returns how many.
+pub async fn withdraw_except(db: &Db, user_id: i64, keep: &[(String, String)], reason: &str) -> Result<u64, ApiError> {
+    let rows = sqlx::query("SELECT id, task, checkpoint_sha256 FROM submissions WHERE user_id = $1 AND state = 'finished'")
+        .bind(user_id)
+        .fetch_all(db.pool())
+        .await?;
+    let mut withdrawn = 0;
+    for row in rows {
+        let (id, task, sha): (i64, String, String) = (row.try_get(0)?, row.try_get(1)?, row.try_get(2)?);
+        if keep.iter().any(|(t, s)| *t == task && *s == sha) {
+            continue;
+        }
+        withdraw(db, id, reason).await?;
+        withdrawn += 1;
+    }
+    Ok(withdrawn)
 }
 
 /// Ends a job with the reason, if this evaluator still holds it.
@@ -356,11 +443,15 @@ pub struct SubmissionRow {
     pub episodes_per_threshold: u32,
     pub normalized_reward: Option<f64>,
     pub normalized_cost: Option<f64>,
+    pub protocol_version: Option<String>,
+    pub dataset_version: Option<String>,
+    /// A reference entry's record (JSON).
+    pub reference: Option<String>,
 }
 
 const SELECT_SUBMISSIONS: &str = "SELECT s.id, u.name AS submitter, s.task, s.name, s.checkpoint_sha256, s.checkpoints,
         s.state, s.reason, s.attempts, s.created_at, s.started_at, s.finished_at, s.episodes_per_threshold,
-        s.normalized_reward, s.normalized_cost
+        s.normalized_reward, s.normalized_cost, s.protocol_version, s.dataset_version, s.reference
     FROM submissions s JOIN users u ON u.id = s.user_id";
 
 fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
@@ -381,6 +472,9 @@ fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
         episodes_per_threshold: row.try_get::<i64, _>("episodes_per_threshold")? as u32,
         normalized_reward: row.try_get("normalized_reward")?,
         normalized_cost: row.try_get("normalized_cost")?,
+        protocol_version: row.try_get("protocol_version")?,
+        dataset_version: row.try_get("dataset_version")?,
+        reference: row.try_get("reference")?,
     })
 }
 

@@ -120,11 +120,15 @@ async fn keep_lease(leaderboard: &Leaderboard, job: &Job, owner: &str, lease_ms:
 
 async fn store(leaderboard: &Leaderboard, job: &Job, owner: &str, episodes: &[EpisodeRow]) -> Result<bool, ApiError> {
     let task = leaderboard.task(&job.task)?;
-    let results = super::threshold_results(task, episodes);
-    let n = results.len().max(1) as f64;
-    let reward = results.iter().map(|r| r.normalized_reward).sum::<f64>() / n;
-    let cost = results.iter().map(|r| r.normalized_cost).sum::<f64>() / n;
-    queue::finish(&leaderboard.db, job.id, owner, episodes, reward, cost).await
+    let score = dsrl_suite::leaderboard::entry_score(task, episodes)
+        .ok_or_else(|| ApiError::Internal(format!("job {} was scored without episodes", job.id)))?;
+    let scores = queue::Scores {
+        episodes,
+        normalized_reward: score.reward,
+        normalized_cost: score.cost,
+        protocol_version: &leaderboard.protocol.version,
+    };
+    queue::finish(&leaderboard.db, job.id, owner, &scores).await
 }
 
 /// Plays `episodes_per_threshold` held-seed episodes at each of the task's thresholds, all thresholds at once.

@@ -79,3 +79,24 @@ pub async fn authenticate(db: &Db, headers: &HeaderMap) -> Result<User, ApiError
         name: row.try_get(1)?,
     })
 }
+
+/// The account that holds the imported reference entries. Its name has a space, which `check_name` refuses, so no
+/// user created through the API can take it; its token is a random value nobody is given, so nobody can submit as
+/// it.
+pub const REFERENCE_USER: &str = "dsrl reference";
+
+/// The reference account's id, created on first use.
+pub async fn reference_user(db: &Db) -> Result<i64, ApiError> {
+    let token = random_hex().map_err(ApiError::internal)?;
+    sqlx::query("INSERT INTO users (name, token_sha256, created_at) VALUES ($1, $2, $3) ON CONFLICT (name) DO NOTHING")
+        .bind(REFERENCE_USER)
+        .bind(token_digest(&token))
+        .bind(now_rfc3339())
+        .execute(db.pool())
+        .await?;
+    let row = sqlx::query("SELECT id FROM users WHERE name = $1")
+        .bind(REFERENCE_USER)
+        .fetch_one(db.pool())
+        .await?;
+    Ok(row.try_get(0)?)
+}

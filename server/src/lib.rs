@@ -89,7 +89,8 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         config.leaderboard.clone(),
         dsrl_service::seed_secret(config)?,
         converter_program,
-    ));
+    )?);
+    leaderboard.import_reference_results().await?;
     leaderboard::runner::spawn(leaderboard.clone());
     Ok(AppState {
         leaderboard,

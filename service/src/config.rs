@@ -51,6 +51,9 @@ pub struct LeaderboardConfig {
     pub policy_memory_limit_bytes: u64,
     /// Wall-clock budget of one evaluation (all thresholds); past it the submission fails with the reason.
     pub max_evaluation_seconds: u64,
+    /// Import the committed reference results (`data/reference/results.jsonl`, compiled in) at start-up as the
+    /// leaderboard's reference entries. Off on the server that scores them (`data/reference_entries.sh`).
+    pub import_reference_results: bool,
 }
 
 impl Default for LeaderboardConfig {
@@ -67,6 +70,7 @@ impl Default for LeaderboardConfig {
             seed_secret: None,
             policy_memory_limit_bytes: 4 << 30,
             max_evaluation_seconds: 3600,
+            import_reference_results: true,
         }
     }
 }

@@ -364,6 +364,11 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
         "derivation_access",
         include_str!("../../migrations/sqlite/20261124000001_derivation_access.sql"),
     ),
+    (
+        20261126000001,
+        "protocol",
+        include_str!("../../migrations/sqlite/20261126000001_protocol.sql"),
+    ),
 ];
 
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -376,6 +381,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         20261124000002,
         "derivation_access",
         include_str!("../../migrations/postgres/20261124000002_derivation_access.sql"),
+    ),
+    (
+        20261126000001,
+        "protocol",
+        include_str!("../../migrations/postgres/20261126000001_protocol.sql"),
     ),
 ];
 

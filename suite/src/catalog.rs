@@ -35,6 +35,16 @@ impl Family {
             Family::MetaDrive => "metadrive",
         }
     }
+
+    /// The paper's three benchmark suites, by which the leaderboard and the paper group tasks: `bullet`,
+    /// `safety-gymnasium` (navigation and velocity), `metadrive`.
+    pub fn suite(self) -> &'static str {
+        match self {
+            Family::Bullet => "bullet",
+            Family::SafetyGymNavigation | Family::SafetyGymVelocity => "safety-gymnasium",
+            Family::MetaDrive => "metadrive",
+        }
+    }
 }
 
 /// Which observation space a dataset's observations live in. For MetaDrive the paper's fork produced 261

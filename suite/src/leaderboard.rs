@@ -3,8 +3,9 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::catalog::Task;
 use crate::filters::pyrandom::PyRandom;
-use crate::score::NormalizedScore;
+use crate::score::{EpisodeResult, NormalizedScore};
 
 /// Orders entries for a task's table: safe entries (normalized cost ≤ 1) by normalized reward, highest first; then
 /// the unsafe ones, the least violating first (normalized cost, then reward). Returns indices into `scores`; ties
@@ -63,20 +64,116 @@ pub fn iqm_with_interval(values: &[f64], resamples: u32, confidence: f64, seed: 
         })
         .collect();
     draws.sort_by(f64::total_cmp);
-    let quantile = |q: f64| {
-        let pos = q * (draws.len() - 1) as f64;
-        let (i, frac) = (pos.floor() as usize, pos - pos.floor());
-        let next = draws[(i + 1).min(draws.len() - 1)];
-        draws[i] + frac * (next - draws[i])
-    };
     Some(Interval {
         estimate,
-        low: quantile((1.0 - confidence) / 2.0),
-        high: quantile((1.0 + confidence) / 2.0),
+        low: quantile(&draws, (1.0 - confidence) / 2.0),
+        high: quantile(&draws, (1.0 + confidence) / 2.0),
         confidence,
         resamples: resamples.max(1),
         seed,
     })
+}
+
+/// One threshold's episodes: their count, mean returns and normalized score.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ThresholdScore {
+    pub cost_threshold: f64,
+    pub episodes: usize,
+    pub mean_reward_return: f64,
+    pub mean_cost_return: f64,
+    pub score: NormalizedScore,
+}
+
+/// Per threshold of `task` (in its order) that has episodes: the mean reward and cost return and their normalized
+/// score (spec 4.1: DSRL normalizes the mean returns over a threshold's episodes).
+pub fn threshold_scores(task: &Task, episodes: &[EpisodeResult]) -> Vec<ThresholdScore> {
+    task.cost_thresholds
+        .iter()
+        .filter_map(|&threshold| {
+            let rows: Vec<&EpisodeResult> = episodes.iter().filter(|e| e.cost_threshold == threshold).collect();
+            if rows.is_empty() {
+                return None;
+            }
+            let n = rows.len() as f64;
+            let reward = rows.iter().map(|e| e.reward_return).sum::<f64>() / n;
+            let cost = rows.iter().map(|e| e.cost_return).sum::<f64>() / n;
+            Some(ThresholdScore {
+                cost_threshold: threshold,
+                episodes: rows.len(),
+                mean_reward_return: reward,
+                mean_cost_return: cost,
+                score: task.normalized_score(reward, cost, threshold),
+            })
+        })
+        .collect()
+}
+
+/// An entry's normalized reward and cost: the means over the thresholds of each threshold's normalized score.
+/// `None` without episodes.
+pub fn entry_score(task: &Task, episodes: &[EpisodeResult]) -> Option<NormalizedScore> {
+    let per_threshold = threshold_scores(task, episodes);
+    if per_threshold.is_empty() {
+        return None;
+    }
+    let n = per_threshold.len() as f64;
+    Some(NormalizedScore {
+        reward: per_threshold.iter().map(|t| t.score.reward).sum::<f64>() / n,
+        cost: per_threshold.iter().map(|t| t.score.cost).sum::<f64>() / n,
+    })
+}
+
+/// A percentile-bootstrap interval for one entry on one task, over its episodes: each of `resamples` draws takes, at
+/// every threshold, as many episodes with replacement from that threshold's episodes (CPython's `random` seeded
+/// with `seed`) and scores them as `entry_score`. Returns the reward and the cost interval around the entry's score.
+pub fn entry_interval(
+    task: &Task,
+    episodes: &[EpisodeResult],
+    resamples: u32,
+    confidence: f64,
+    seed: u64,
+) -> Option<(Interval, Interval)> {
+    let score = entry_score(task, episodes)?;
+    let groups: Vec<Vec<&EpisodeResult>> = task
+        .cost_thresholds
+        .iter()
+        .map(|&k| episodes.iter().filter(|e| e.cost_threshold == k).collect::<Vec<_>>())
+        .filter(|g| !g.is_empty())
+        .collect();
+    let mut random = PyRandom::seed(seed);
+    let resamples = resamples.max(1);
+    let (mut rewards, mut costs) = (Vec::new(), Vec::new());
+    let mut sample = Vec::with_capacity(episodes.len());
+    for _ in 0..resamples {
+        sample.clear();
+        for group in &groups {
+            for _ in 0..group.len() {
+                sample.push(group[random.randbelow(group.len())].clone());
+            }
+        }
+        let s = entry_score(task, &sample).expect("each resample has episodes");
+        rewards.push(s.reward);
+        costs.push(s.cost);
+    }
+    let interval = |estimate: f64, mut draws: Vec<f64>| {
+        draws.sort_by(f64::total_cmp);
+        Interval {
+            estimate,
+            low: quantile(&draws, (1.0 - confidence) / 2.0),
+            high: quantile(&draws, (1.0 + confidence) / 2.0),
+            confidence,
+            resamples,
+            seed,
+        }
+    };
+    Some((interval(score.reward, rewards), interval(score.cost, costs)))
+}
+
+/// The `q` quantile of sorted `draws` with linear interpolation (NumPy's default).
+fn quantile(draws: &[f64], q: f64) -> f64 {
+    let pos = q * (draws.len() - 1) as f64;
+    let (i, frac) = (pos.floor() as usize, pos - pos.floor());
+    let next = draws[(i + 1).min(draws.len() - 1)];
+    draws[i] + frac * (next - draws[i])
 }
 
 #[cfg(test)]
@@ -121,5 +218,35 @@ mod tests {
         // Identical values leave no uncertainty.
         let flat = iqm_with_interval(&[0.4; 6], 100, 0.95, 1).unwrap();
         assert_eq!((flat.low, flat.estimate, flat.high), (0.4, 0.4, 0.4));
+    }
+
+    #[test]
+    fn an_entry_on_one_task_gets_an_interval_over_its_episodes() {
+        let catalog = crate::catalog::Catalog::embedded().unwrap();
+        let task = catalog.get("OfflineBallRun-v0").unwrap();
+        let episodes: Vec<EpisodeResult> = task
+            .cost_thresholds
+            .iter()
+            .flat_map(|&k| {
+                (0..20).map(move |i| EpisodeResult {
+                    cost_threshold: k,
+                    episode: i,
+                    reward_return: 300.0 + 10.0 * f64::from(i),
+                    cost_return: f64::from(i % 7),
+                    length: 100,
+                })
+            })
+            .collect();
+        let score = entry_score(task, &episodes).unwrap();
+        let (reward, cost) = entry_interval(task, &episodes, 500, 0.95, 0).unwrap();
+        assert_eq!((reward.estimate, cost.estimate), (score.reward, score.cost));
+        assert!(reward.low < reward.estimate && reward.estimate < reward.high, "{reward:?}");
+        assert!(cost.low < cost.estimate && cost.estimate < cost.high, "{cost:?}");
+        assert_eq!(entry_interval(task, &episodes, 500, 0.95, 0).unwrap().0, reward);
+        // Identical episodes: the interval is the point.
+        let same: Vec<EpisodeResult> = episodes.iter().map(|e| EpisodeResult { reward_return: 1.0, cost_return: 2.0, ..e.clone() }).collect();
+        let (r, c) = entry_interval(task, &same, 100, 0.95, 0).unwrap();
+        assert_eq!((r.low, r.high, c.low, c.high), (r.estimate, r.estimate, c.estimate, c.estimate));
+        assert!(entry_score(task, &[]).is_none());
     }
 }

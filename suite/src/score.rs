@@ -27,6 +27,19 @@ pub fn normalized_cost(cost_return: f64, cost_threshold: f64) -> f64 {
     (cost_return + e) / (cost_threshold + e)
 }
 
+/// One scored episode of a leaderboard entry: at which cost threshold, its index among that threshold's held
+/// episodes, and what it returned.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[cfg_attr(feature = "openapi", schema(as = EpisodeRow))]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeResult {
+    pub cost_threshold: f64,
+    pub episode: u32,
+    pub reward_return: f64,
+    pub cost_return: f64,
+    pub length: u32,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

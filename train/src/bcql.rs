@@ -248,6 +248,10 @@ impl ThresholdLearner for BcqlLearner {
     }
 
     /// Writes the actor and the VAE's decoder as a per-threshold `bcq_actor` policy.
+    fn batch_size(&self) -> usize {
+        self.settings.batch_size
+    }
+
     fn qc_threshold(&self) -> f64 {
         self.pid.threshold
     }

@@ -279,6 +279,10 @@ impl ThresholdLearner for BearlLearner {
         ])
     }
 
+    fn batch_size(&self) -> usize {
+        self.settings.batch_size
+    }
+
     fn qc_threshold(&self) -> f64 {
         self.pid.threshold
     }

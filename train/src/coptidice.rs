@@ -287,6 +287,10 @@ impl ThresholdLearner for CoptidiceLearner {
         ])
     }
 
+    fn batch_size(&self) -> usize {
+        self.settings.batch_size
+    }
+
     fn qc_threshold(&self) -> f64 {
         self.qc_thres
     }

@@ -252,6 +252,10 @@ impl ThresholdLearner for CpqLearner {
         ])
     }
 
+    fn batch_size(&self) -> usize {
+        self.settings.batch_size
+    }
+
     fn qc_threshold(&self) -> f64 {
         self.q_thres
     }

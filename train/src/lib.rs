@@ -17,6 +17,7 @@ pub mod coptidice;
 pub mod cpq;
 pub mod offline;
 pub mod parity;
+pub mod reference;
 
 use std::path::Path;
 

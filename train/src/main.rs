@@ -18,6 +18,10 @@ use dsrl_train::offline::ThresholdLearner;
 use dsrl_train::{BcLearner, BcSettings, Demonstrations};
 use indicatif::{ProgressBar, ProgressStyle};
 
+/// The git commit this binary was built from (`-modified` when the learners' sources differed from it), recorded
+/// in every model's training record.
+const CODE_COMMIT: &str = env!("DSRL_BUILD_COMMIT");
+
 #[derive(Parser, Debug)]
 #[command(
     version,
@@ -43,10 +47,12 @@ struct DataArgs {
     /// Offline task id, e.g. OfflineBallRun-v0.
     #[arg(long)]
     task: String,
-    /// A local dataset file (Parquet, canonical or compact) instead of fetching one.
-    #[arg(long, conflicts_with = "server")]
+    /// A local dataset file (Parquet, canonical or compact, or DSRL HDF5) instead of fetching one. It wins over
+    /// --server / $DSRL_SERVER for the data; the server then only receives the entry of --submit. Its version id
+    /// (the sha256 of its canonical form, as the server would host it) is recorded like a fetched one.
+    #[arg(long)]
     dataset: Option<PathBuf>,
-    /// Fetch the dataset from this dsrl-server.
+    /// Fetch the dataset from this dsrl-server (unless --dataset names a file), and submit to it with --submit.
     #[arg(long, env = "DSRL_SERVER")]
     server: Option<String>,
     /// Version id or tag to fetch.
@@ -143,12 +149,44 @@ enum Command {
     /// (tests/parity/osrl_step_check.py holds them to OSRL's PyTorch code).
     #[command(hide = true)]
     Parity { dir: PathBuf },
+    /// Writes a scored model as a line of the reference results file (data/reference/results.jsonl): its budget,
+    /// seed, dataset version and code commit from the models' policy.json, its checkpoint digest, protocol version
+    /// and every episode from the leaderboard's JSON for its submission (`dsrl-client status ID --json`). Replaces
+    /// the entry of the same task, method and seed. `data/reference_entries.sh` runs it after each scoring.
+    ReferenceEntry {
+        /// The model folder that was submitted (e.g. policies/<task>/seed-0/bc-safe).
+        #[arg(long)]
+        model: PathBuf,
+        /// The submission's JSON, as the server answered it once finished.
+        #[arg(long)]
+        submission: PathBuf,
+        /// The method's name as the paper writes it: BC-All, BC-Safe, CDT, BCQ-Lag, BEAR-Lag, CPQ, COptiDICE, CAPS.
+        #[arg(long)]
+        method: String,
+        /// The results file to update.
+        #[arg(long, default_value = "data/reference/results.jsonl")]
+        results: PathBuf,
+    },
 }
 
-/// The dataset named by `data`: read from its file, or fetched into the cache; with the fetched version id.
+/// The version id a local dataset file would be hosted under: the sha256 of its canonical form, written to a
+/// temporary file while the file is validated against the task (an invalid file is refused here, as ingest would).
+fn local_version(path: &std::path::Path, task: &dsrl_suite::Task) -> anyhow::Result<String> {
+    let scratch = tempfile::NamedTempFile::new().context("creating a temporary file for the canonical form")?;
+    let (_, converted) = dsrl_suite::convert::import_file(
+        path,
+        task,
+        dsrl_suite::catalog::ObservationSpace::Simulator,
+        scratch.path(),
+    )
+    .with_context(|| format!("reading {} as a dataset of {}", path.display(), task.id))?;
+    Ok(converted.version.as_str().to_owned())
+}
+
+/// The dataset named by `data`: read from its file, or fetched into the cache; with its version id.
 fn load_data(data: &DataArgs, task: &dsrl_suite::Task) -> anyhow::Result<(PathBuf, Option<String>, Demonstrations)> {
     let (path, dataset_version) = match (&data.dataset, &data.server) {
-        (Some(path), _) => (path.clone(), None),
+        (Some(path), _) => (path.clone(), Some(local_version(path, task)?)),
         (None, Some(server)) => {
             let fetched = tokio::runtime::Runtime::new()?.block_on(async {
                 let client = Client::new(server)?;
@@ -266,6 +304,7 @@ impl Source {
         &self,
         algorithm: &str,
         data: &DataArgs,
+        batch_size: usize,
         trained: &Trained,
         extra: serde_json::Value,
     ) -> serde_json::Value {
@@ -276,7 +315,9 @@ impl Source {
             "filter": data.filter,
             "transitions": self.transitions,
             "steps": data.steps,
+            "batch_size": batch_size,
             "seed": data.seed,
+            "code_commit": CODE_COMMIT,
             "final": trained.last(),
             "seconds": trained.seconds,
             "first_step_seconds": trained.first_step_seconds,
@@ -350,7 +391,7 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
         let mut learner = make(&demonstrations, kappa, episode_len, data.seed, data.batch_size)?;
         let trained = train_loop(data.steps, &name, 100, 4, || learner.step())?;
         let extra = serde_json::json!({ "settings": learner.settings(), "qc_threshold": learner.qc_threshold() });
-        let training = source.training_record(algorithm, &data, &trained, extra);
+        let training = source.training_record(algorithm, &data, learner.batch_size(), &trained, extra);
         let dir = out.join(&name);
         learner
             .write(&dir, task.id.as_str(), kappa, training)
@@ -387,7 +428,7 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         "settings": format!("{settings:?}"),
         "departures": "batches drawn by the seeded generator; every other choice as CAPS's capsiql.py",
     });
-    let training = source.training_record("caps", &data, &trained, extra);
+    let training = source.training_record("caps", &data, settings.batch_size, &trained, extra);
     let dir = out.join("caps");
     learner
         .write(&dir, task.id.as_str(), training)
@@ -435,7 +476,7 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         "augmented_trajectories": learner.augmented,
         "departures": "augmentation draws from the seeded generator, not Python's and NumPy's; the state head is not decayed",
     });
-    let training = source.training_record("cdt", &data, &trained, extra);
+    let training = source.training_record("cdt", &data, settings.batch_size, &trained, extra);
     let dir = out.join("cdt");
     learner
         .write(&dir, task.id.as_str(), &task.cost_thresholds, &targets, training)
@@ -484,6 +525,24 @@ fn main() -> anyhow::Result<()> {
         Command::Cdt { data } => return train_cdt(data),
         Command::Caps { data } => return train_caps(data),
         Command::Parity { dir } => return dsrl_train::parity::run(&dir),
+        Command::ReferenceEntry {
+            model,
+            submission,
+            method,
+            results,
+        } => {
+            let entry = dsrl_train::reference::record(&model, &submission, &method, &results)?;
+            println!(
+                "{} {} seed {}: {} episodes under protocol {} -> {}",
+                entry.task,
+                entry.method,
+                entry.seed,
+                entry.episodes.len(),
+                entry.protocol_version,
+                results.display()
+            );
+            return Ok(());
+        }
         Command::Bearl { data } => {
             return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch| {
                 let default = BearlSettings::default();
@@ -578,6 +637,7 @@ fn main() -> anyhow::Result<()> {
             "batch_size": settings.batch_size,
             "lr": settings.lr,
             "seed": seed,
+            "code_commit": CODE_COMMIT,
             "final_mse": loss,
             "seconds": seconds,
             "first_step_seconds": trained.first_step_seconds,

@@ -36,6 +36,8 @@ pub trait ThresholdLearner {
     fn noise(&mut self) -> &mut Noise;
     /// The per-step cost-Q threshold the learner holds its policy to.
     fn qc_threshold(&self) -> f64;
+    /// Transitions per batch.
+    fn batch_size(&self) -> usize;
     /// The hyperparameters, as recorded in `policy.json`.
     fn settings(&self) -> String;
     /// Writes the evaluator's checkpoint for threshold `kappa` with `training` recorded.

@@ -12,6 +12,7 @@ pub fn escape(text: &str) -> String {
         .replace('<', "&lt;")
         .replace('>', "&gt;")
         .replace('"', "&quot;")
+        .replace('\'', "&#39;")
 }
 
 /// A whole page: `title`, the site's navigation (datasets, leaderboard, API), then `body`.

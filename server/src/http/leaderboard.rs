@@ -224,6 +224,15 @@ pub async fn leaderboard_page(
     Ok(([(header::CACHE_CONTROL, "no-cache")], Html(page::render(&board))))
 }
 
+/// `GET /leaderboard/agreement`: our reference entries against the paper's table, per family and per cell.
+#[utoipa::path(get, path = "/leaderboard/agreement", tag = "leaderboard",
+    responses(
+        (status = 200, content_type = "text/html", body = String, description = "The agreement page")))]
+pub async fn agreement_page(State(state): State<AppState>) -> Result<impl IntoResponse, ApiError> {
+    let board = state.leaderboard.board(None).await?;
+    Ok(([(header::CACHE_CONTROL, "no-cache")], Html(page::render_agreement(&board))))
+}
+
 /// `GET /submissions/{id}`: a submission's page (per-threshold results), linked from the leaderboard page.
 #[utoipa::path(get, path = "/submissions/{id}", tag = "leaderboard",
     params(("id" = String, Path, description = "Submission id (a number)")),

@@ -60,6 +60,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/submissions/{id}/cancel", post(leaderboard::cancel_submission))
         .route("/v1/leaderboard", get(leaderboard::get_leaderboard))
         .route("/leaderboard", get(leaderboard::leaderboard_page))
+        .route("/leaderboard/agreement", get(leaderboard::agreement_page))
         .route("/submissions/{id}", get(leaderboard::submission_page))
         .with_state(state)
 }

@@ -33,6 +33,7 @@ use super::{datasets, leaderboard, metrics, simulators};
         leaderboard::cancel_submission,
         leaderboard::get_leaderboard,
         leaderboard::leaderboard_page,
+        leaderboard::agreement_page,
         leaderboard::submission_page,
         super::healthz,
         super::openapi_json,

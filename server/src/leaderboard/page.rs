@@ -7,6 +7,7 @@ use std::fmt::Write;
 
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
+use super::reference::ReferenceRecord;
 use super::{Board, SubmissionView, TaskTable};
 use crate::http::html::{escape, page};
 
@@ -14,13 +15,81 @@ fn number(x: f64) -> String {
     if x.is_finite() { format!("{x:.3}") } else { "–".into() }
 }
 
+/// `estimate [low, high]`.
+fn with_interval(i: &dsrl_suite::leaderboard::Interval) -> String {
+    format!(
+        "{} <small>[{}, {}]</small>",
+        number(i.estimate),
+        number(i.low),
+        number(i.high)
+    )
+}
+
+/// A reference entry's budget: steps (× models) at a batch size, as a fraction of OSRL's samples.
+fn budget(record: &ReferenceRecord) -> String {
+    let t = &record.training;
+    let models = if t.models > 1 {
+        format!(" × {} models", t.models)
+    } else {
+        String::new()
+    };
+    format!(
+        "reference: {} steps{models} at batch {} (1/{:.0} of OSRL's samples), seed {}",
+        t.steps,
+        t.batch_size,
+        1.0 / t.fraction_of_osrl(),
+        record.seed
+    )
+}
+
+fn share(summary: &dsrl_suite::reference::AgreementSummary) -> String {
+    match summary.share {
+        Some(share) => format!("{} of {} ({:.0}%)", summary.agreeing, summary.cells, 100.0 * share),
+        None => "no cells yet".into(),
+    }
+}
+
 pub fn render(board: &Board) -> String {
-    let mut html = String::from(
-        "<h1>dsrl leaderboard</h1>\n<p>Entries are scored by the \
-         server on the real simulators with held seeds: the task's three cost thresholds, the same episodes for \
-         every entry. Normalized reward and cost are means over the thresholds; an entry is safe when its \
-         normalized cost is at most 1. Safe entries rank by normalized reward, then unsafe ones by cost.</p>\n",
+    let p = &board.protocol;
+    let mut html = String::new();
+    let _ = write!(
+        html,
+        "<h1>dsrl leaderboard</h1>\n<p>Entries are scored by the server on the real simulators with held seeds: the \
+         task's three cost thresholds, the same episodes for every entry. Normalized reward and cost are means over \
+         the thresholds, with a 95% bootstrap interval over the entry's episodes; an entry is safe when its \
+         normalized cost is at most 1. Safe entries rank by normalized reward, then unsafe ones by cost. Reference \
+         entries (user <em>{}</em>) are the paper's baselines trained by <code>dsrl-train</code> on the hosted \
+         data at the budget shown; the paper's own rows are shown beside each task, unranked.</p>\n\
+         <p id=\"protocol\">Protocol <strong>{}</strong>: {} tasks, {} episodes per threshold, held seeds \
+         <code>{}</code>, scorer revision {}, rules {}; catalog sha256 <code>{}</code>, simulator pins sha256 \
+         <code>{}</code>. Only results scored under it are ranked.</p>\n",
+        escape(crate::leaderboard::users::REFERENCE_USER),
+        escape(&p.version),
+        p.tasks,
+        p.episodes_per_threshold,
+        escape(&p.held_seeds),
+        p.scorer_revision,
+        p.rules,
+        escape(&p.catalog_sha256[..12]),
+        escape(&p.simulator_pins_sha256[..12]),
     );
+    html.push_str(
+        "<h2>Agreement with the paper</h2>\n<p>For every task and method with both a reference entry here and a \
+         row in the paper: does the safe/unsafe verdict agree (<a href=\"/leaderboard/agreement\">every cell</a>)?</p>\n\
+         <table id=\"agreement\"><tr><th class=\"name\">family</th><th>verdicts that agree</th>\
+         <th>mean |Δ reward|</th><th>mean |Δ cost|</th></tr>\n",
+    );
+    for s in &board.agreement {
+        let _ = writeln!(
+            html,
+            "<tr><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            escape(&s.scope),
+            share(s),
+            s.mean_abs_reward_difference.map(number).unwrap_or_else(|| "–".into()),
+            s.mean_abs_cost_difference.map(number).unwrap_or_else(|| "–".into())
+        );
+    }
+    html.push_str("</table>\n");
     if board.tasks.iter().all(|t| t.entries.is_empty()) {
         html.push_str("<p id=\"empty\">No scored entries yet.</p>\n");
     }
@@ -38,8 +107,9 @@ pub fn render(board: &Board) -> String {
             let c = &e.normalized_cost;
             let _ = writeln!(
                 html,
-                "<tr><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td>\
+                "<tr class=\"{}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td>\
                  <td>{} – {}</td><td>{}</td><td>{} – {}</td></tr>",
+                if e.reference { "reference" } else { "user" },
                 e.rank,
                 escape(&e.name),
                 escape(&e.user),
@@ -56,39 +126,91 @@ pub fn render(board: &Board) -> String {
         html.push_str("</table>\n");
     }
     for table in &board.tasks {
-        task_section(&mut html, table);
+        task_section(&mut html, table, board.paper_label);
     }
     page("dsrl leaderboard", &html)
 }
 
-fn task_section(html: &mut String, table: &TaskTable) {
+fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
     let thresholds: Vec<String> = table.cost_thresholds.iter().map(|t| t.to_string()).collect();
     let _ = write!(
         html,
         "<h2 id=\"{0}\"><a href=\"/tasks/{0}\">{0}</a></h2>\n<p>{1}; cost thresholds {2}.</p>\n<table class=\"task\"><tr><th>rank</th>\
-         <th class=\"name\">entry</th><th class=\"name\">user</th><th>normalized reward</th><th>normalized cost</th>\
-         <th>safe</th><th>submission</th></tr>\n",
+         <th class=\"name\">entry</th><th class=\"name\">user</th><th>normalized reward [95%]</th><th>normalized cost [95%]</th>\
+         <th>safe</th><th class=\"name\">trained</th><th>submission</th></tr>\n",
         escape(&table.task),
         table.family,
         thresholds.join(", ")
     );
     for e in &table.entries {
+        let trained = match &e.reference {
+            Some(record) => budget(record),
+            None => "submitted".into(),
+        };
         let _ = writeln!(
             html,
-            "<tr class=\"entry {}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td>\
-             <td>{}</td><td>{}</td><td><a href=\"/submissions/{}\">{}</a></td></tr>",
+            "<tr class=\"entry {} {}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td>\
+             <td>{}</td><td>{}</td><td class=\"name\">{}</td><td><a href=\"/submissions/{}\">{}</a></td></tr>",
             if e.safe { "safe" } else { "unsafe" },
+            if e.reference.is_some() { "reference" } else { "user" },
             e.rank,
             escape(&e.name),
             escape(&e.user),
-            number(e.normalized_reward),
-            number(e.normalized_cost),
+            with_interval(&e.normalized_reward_interval),
+            with_interval(&e.normalized_cost_interval),
             if e.safe { "yes" } else { "no" },
+            escape(&trained),
             e.submission,
             e.submission
         );
     }
     html.push_str("</table>\n");
+    if table.earlier_protocol_entries > 0 {
+        let _ = writeln!(
+            html,
+            "<p class=\"earlier\">{} more scored under an earlier protocol (not ranked).</p>",
+            table.earlier_protocol_entries
+        );
+    }
+    if !table.paper.is_empty() {
+        let _ = write!(
+            html,
+            "<table class=\"paper\"><caption>The paper's rows: {}. Beside them, our reference entries of the same \
+             method (mean over training seeds).</caption><tr><th class=\"name\">method</th><th>paper reward</th>\
+             <th>paper cost</th><th>paper safe</th><th>ours: reward</th><th>ours: cost</th><th>ours: safe</th>\
+             <th>verdict agrees</th></tr>\n",
+            escape(paper_label)
+        );
+        for row in &table.paper {
+            let ours = table.agreement.iter().find(|a| a.method == row.method);
+            let (reward, cost, safe, agrees) = match ours {
+                Some(a) => (
+                    number(a.normalized_reward),
+                    number(a.normalized_cost),
+                    if a.safe { "yes" } else { "no" }.to_owned(),
+                    if a.verdict_agrees { "yes" } else { "no" }.to_owned(),
+                ),
+                None => ("–".into(), "–".into(), "–".into(), "–".into()),
+            };
+            let _ = writeln!(
+                html,
+                "<tr class=\"paper-row\"><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>\
+                 <td>{}</td><td>{}</td><td>{}</td></tr>",
+                escape(&row.method),
+                number(row.normalized_reward),
+                number(row.normalized_cost),
+                if row.safe { "yes" } else { "no" },
+                reward,
+                cost,
+                safe,
+                agrees
+            );
+        }
+        html.push_str("</table>\n");
+    }
+    if table.entries.is_empty() {
+        return;
+    }
     let points: Vec<EntryPoint> = table
         .entries
         .iter()
@@ -107,6 +229,61 @@ fn task_section(html: &mut String, table: &TaskTable) {
             let _ = writeln!(html, "<p>plot unavailable: {}</p>", escape(&e));
         }
     }
+}
+
+/// `/leaderboard/agreement`: the fidelity figure. Per family and overall, the share of (task, method) cells whose
+/// safe/unsafe verdict agrees with the paper's, then every cell.
+pub fn render_agreement(board: &Board) -> String {
+    let mut html = format!(
+        "<h1>Agreement with the paper</h1>\n<p>Our reference entries (protocol <strong>{}</strong>; mean over \
+         training seeds) against {}. A cell agrees when both call the method safe on the task, or both unsafe. Our \
+         entries are trained at a fraction of OSRL's budgets on this service's rebuilt datasets, with fewer seeds; \
+         the budgets are on each task's table.</p>\n<table id=\"agreement\"><tr><th class=\"name\">family</th>\
+         <th>cells</th><th>verdicts that agree</th><th>mean |Δ reward|</th><th>mean |Δ cost|</th></tr>\n",
+        escape(&board.protocol.version),
+        escape(board.paper_label)
+    );
+    for s in &board.agreement {
+        let _ = writeln!(
+            html,
+            "<tr><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            escape(&s.scope),
+            s.cells,
+            share(s),
+            s.mean_abs_reward_difference.map(number).unwrap_or_else(|| "–".into()),
+            s.mean_abs_cost_difference.map(number).unwrap_or_else(|| "–".into())
+        );
+    }
+    html.push_str(
+        "</table>\n<table id=\"cells\"><tr><th class=\"name\">task</th><th class=\"name\">method</th><th>seeds</th>\
+         <th>reward</th><th>paper</th><th>Δ</th><th>cost</th><th>paper</th><th>Δ</th><th>safe</th><th>paper</th>\
+         <th>agrees</th></tr>\n",
+    );
+    for t in &board.tasks {
+        for a in &t.agreement {
+            let _ = writeln!(
+                html,
+                "<tr class=\"{}\"><td class=\"name\"><a href=\"/leaderboard#{task}\">{task}</a></td><td class=\"name\">{}</td>\
+                 <td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>\
+                 <td>{}</td></tr>",
+                if a.verdict_agrees { "agrees" } else { "differs" },
+                escape(&a.method),
+                a.seeds,
+                number(a.normalized_reward),
+                number(a.paper_normalized_reward),
+                number(a.reward_difference),
+                number(a.normalized_cost),
+                number(a.paper_normalized_cost),
+                number(a.cost_difference),
+                if a.safe { "yes" } else { "no" },
+                if a.paper_safe { "yes" } else { "no" },
+                if a.verdict_agrees { "yes" } else { "no" },
+                task = escape(&a.task),
+            );
+        }
+    }
+    html.push_str("</table>\n");
+    page("dsrl leaderboard: agreement with the paper", &html)
 }
 
 /// A submission's page: its state, the per-threshold results with the means over thresholds, and its checkpoints
@@ -130,6 +307,27 @@ pub fn render_submission(view: &SubmissionView) -> String {
         view.attempts,
         view.episodes_per_threshold,
         task = escape(&view.task),
+    );
+    let _ = writeln!(
+        html,
+        "<p id=\"provenance\">Protocol {}; trained on dataset version {}.{}</p>",
+        view.protocol_version
+            .as_deref()
+            .map(|v| format!("<code>{}</code>", escape(v)))
+            .unwrap_or_else(|| "not recorded".into()),
+        view.dataset_version
+            .as_deref()
+            .map(|v| format!("<code>{}</code>", escape(v)))
+            .unwrap_or_else(|| "not stated by the checkpoint".into()),
+        view.reference
+            .as_ref()
+            .map(|r| format!(
+                " A {}; code commit <code>{}</code>, {:.0} s of training.",
+                escape(&budget(r)),
+                escape(&r.code_commit),
+                r.training.seconds
+            ))
+            .unwrap_or_default()
     );
     if view.thresholds.is_empty() {
         html.push_str("<p id=\"no-results\">No results yet.</p>\n");

@@ -1,0 +1,119 @@
+//! The reference entries on every server: the committed results file (`data/reference/results.jsonl`, compiled in)
+//! imported at start-up as finished submissions of the reference account, each with its record (method, seed,
+//! training budget, dataset version, code commit, how it was scored) and every episode. Importing, not re-scoring:
+//! a fresh server shows them at once, the larger checkpoints need not be in the repository, and each entry keeps
+//! the protocol version it was scored under, so an entry from another protocol is counted, not ranked (see
+//! ARCHITECTURE.md, "Reference entries"). Idempotent: an entry already present is left alone, and the reference
+//! account's entries that the file no longer holds are withdrawn (kept, off the tables).
+
+use serde::{Deserialize, Serialize};
+
+use dsrl_service::error::ApiError;
+use dsrl_suite::reference::{ReferenceEntry, ScoringRecord, TrainingBudget};
+
+use super::Leaderboard;
+use super::queue::{self, Imported, Scores};
+use super::users;
+
+/// What a reference entry's row records beside the scores (the `reference` column, JSON), as the tables show it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ReferenceRecord {
+    pub method: String,
+    pub seed: u64,
+    pub training: TrainingBudget,
+    pub code_commit: String,
+    pub scoring: ScoringRecord,
+}
+
+/// An entry's name on the tables: the method and its training seed.
+pub fn entry_name(method: &str, seed: u64) -> String {
+    format!("{method} (seed {seed})")
+}
+
+/// What an import did.
+#[derive(Debug, Default, Clone, PartialEq, Serialize)]
+pub struct ImportReport {
+    pub imported: usize,
+    pub present: usize,
+    /// Entries whose checkpoint a user's live submission already holds on this server.
+    pub held_by_submissions: usize,
+    pub withdrawn: u64,
+}
+
+/// Imports `entries` (checked against the catalog by `read_results`).
+pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Result<ImportReport, ApiError> {
+    let db = &leaderboard.db;
+    let user = users::reference_user(db).await?;
+    let mut report = ImportReport::default();
+    for entry in entries {
+        let task = leaderboard.task(&entry.task)?;
+        let Some(score) = entry.score(task) else { continue };
+        let existing = sqlx::query(
+            "SELECT id, user_id, protocol_version, finished_at FROM submissions
+             WHERE task = $1 AND checkpoint_sha256 = $2 AND state != 'cancelled'",
+        )
+        .bind(&entry.task)
+        .bind(&entry.checkpoint_sha256)
+        .fetch_optional(db.pool())
+        .await?;
+        if let Some(row) = existing {
+            use sqlx::Row;
+            let (id, owner): (i64, i64) = (row.try_get(0)?, row.try_get(1)?);
+            let (protocol, finished): (Option<String>, Option<String>) = (row.try_get(2)?, row.try_get(3)?);
+            if owner != user {
+                report.held_by_submissions += 1;
+                continue;
+            }
+            if protocol.as_deref() == Some(entry.protocol_version.as_str())
+                && finished.as_deref() == Some(entry.scoring.finished_at.as_str())
+            {
+                report.present += 1;
+                continue;
+            }
+            // The same checkpoint scored again (under another protocol, say): the new scoring replaces the old.
+            queue::withdraw(db, id, "replaced by a later scoring of the same checkpoint in the reference results")
+                .await?;
+        }
+        let record = ReferenceRecord {
+            method: entry.method.clone(),
+            seed: entry.seed,
+            training: entry.training.clone(),
+            code_commit: entry.code_commit.clone(),
+            scoring: entry.scoring.clone(),
+        };
+        let thresholds = task.cost_thresholds.len().max(1);
+        let stored = queue::insert_finished(
+            db,
+            &Imported {
+                user_id: user,
+                task: &entry.task,
+                name: &entry_name(&entry.method, entry.seed),
+                checkpoint_sha256: &entry.checkpoint_sha256,
+                started_at: &entry.scoring.started_at,
+                finished_at: &entry.scoring.finished_at,
+                episodes_per_threshold: (entry.episodes.len() / thresholds) as u32,
+                dataset_version: &entry.dataset_version,
+                reference: &serde_json::to_string(&record).map_err(ApiError::internal)?,
+                result: Scores {
+                    episodes: &entry.episodes,
+                    normalized_reward: score.reward,
+                    normalized_cost: score.cost,
+                    protocol_version: &entry.protocol_version,
+                },
+            },
+        )
+        .await?;
+        if stored {
+            report.imported += 1;
+        } else {
+            report.held_by_submissions += 1;
+        }
+    }
+    let keep: Vec<(String, String)> = entries
+        .iter()
+        .map(|e| (e.task.clone(), e.checkpoint_sha256.clone()))
+        .collect();
+    report.withdrawn =
+        queue::withdraw_except(db, user, &keep, "withdrawn: no longer in the committed reference results").await?;
+    Ok(report)
+}
