@@ -4,12 +4,15 @@
 //! - `simulators`: the pool of `dsrl-sim-worker` processes (local ones supervised, remote ones health-checked);
 //! - `evaluator`: episodes from given seeds, played with a policy's deterministic actions, and the checks a policy
 //!   passes before it is played;
-//! - `inference`: where a submitted policy computes its actions (in a memory-capped child process).
+//! - `inference`: where a submitted policy computes its actions (in a memory-capped child process);
+//! - `seeds` and `protocol`: the held episode seeds and the protocol version results are scored under.
 
 mod config;
 mod error;
 pub mod evaluator;
 pub mod inference;
+pub mod protocol;
+pub mod seeds;
 pub mod simulators;
 
 pub use config::SimulatorsConfig;
@@ -66,7 +69,7 @@ mod tests {
     use super::*;
 
     /// The digest of `SCORER_SOURCES` when `SCORER_REVISION` was last reviewed.
-    const REVIEWED_SCORER_SOURCES_SHA256: &str = "unset";
+    const REVIEWED_SCORER_SOURCES_SHA256: &str = "5d9afa44d4d4eea21d5d821d1104b62c8ad5a0d168f27d239749ca6ca639e005";
 
     /// A drift check like the generated gRPC code's: a change to the scoring code fails here until someone decides
     /// whether it changes what an episode scores (then `SCORER_REVISION` is bumped, which changes the protocol

@@ -9,12 +9,12 @@
 
 pub mod checkpoints;
 pub mod evaluator;
-pub mod protocol;
 pub mod queue;
 pub mod reference;
 pub mod runner;
-pub mod seeds;
 pub mod users;
+
+pub use dsrl_evaluation::{protocol, seeds};
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -230,7 +230,7 @@ impl Leaderboard {
         if !self.config.import_reference_results {
             return Ok(());
         }
-        let entries = dsrl_suite::reference::read_results(dsrl_suite::reference::EMBEDDED_RESULTS, &self.catalog)
+        let entries = dsrl_suite::reference::read_results(reference::EMBEDDED_RESULTS, &self.catalog)
             .map_err(ApiError::internal)?;
         let report = reference::import(self, &entries).await?;
         tracing::info!(

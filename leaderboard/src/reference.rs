@@ -15,6 +15,10 @@ use super::Leaderboard;
 use super::queue::{self, Imported, Scores};
 use super::users;
 
+/// `data/reference/results.jsonl`, compiled in (here, not in the suite, so a new results file rebuilds only the
+/// leaderboard and what links it): what a fresh server imports.
+pub const EMBEDDED_RESULTS: &str = include_str!("../../data/reference/results.jsonl");
+
 /// What a reference entry's row records beside the scores (the `reference` column, JSON), as the tables show it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ReferenceRecord {

@@ -9,6 +9,7 @@
 pub mod build;
 pub mod collect;
 pub mod compact;
+pub mod docs;
 pub mod expert;
 pub mod recipe;
 

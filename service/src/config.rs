@@ -60,7 +60,7 @@ impl Default for LeaderboardConfig {
     fn default() -> Self {
         LeaderboardConfig {
             evaluators: 1,
-            episodes_per_threshold: 20,
+            episodes_per_threshold: dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD,
             envs_per_session: 5,
             lease_seconds: 60,
             max_attempts: 3,

@@ -30,9 +30,6 @@ pub const REFERENCE_METHODS: [&str; 8] = [
     "CAPS",
 ];
 
-/// `data/reference/results.jsonl`, compiled in: what a fresh server imports.
-pub const EMBEDDED_RESULTS: &str = include_str!("../../data/reference/results.jsonl");
-
 /// OSRL's training budget for `method` on `task`: gradient steps per model and batch size (spec 5.4–5.8: 100,000
 /// steps, MetaDrive 200,000, BEAR-Lag 300,000 outside MetaDrive; batch 512, CDT 2048). CAPS: its own paper's 100,000
 /// steps at batch 512.
@@ -60,6 +57,9 @@ pub struct TrainingBudget {
     pub models: u32,
     /// Wall-clock seconds of training, all models together, each on one thread.
     pub seconds: f64,
+    /// CPU seconds of training (each model's training thread, user + system), all models together: the compute,
+    /// whatever else shared the machine.
+    pub cpu_seconds: f64,
     /// OSRL's steps and batch size for the method on the task, for the fraction of its budget.
     pub osrl_steps: u64,
     pub osrl_batch_size: usize,
@@ -71,9 +71,9 @@ impl TrainingBudget {
         (self.steps as f64 * self.batch_size as f64) / (self.osrl_steps as f64 * self.osrl_batch_size as f64)
     }
 
-    /// Seconds OSRL's full budget would take at this entry's measured speed (one thread per model).
-    pub fn osrl_seconds(&self) -> f64 {
-        self.seconds / self.fraction_of_osrl()
+    /// CPU seconds OSRL's full budget would take at this entry's measured compute per sample (one thread per model).
+    pub fn osrl_cpu_seconds(&self) -> f64 {
+        self.cpu_seconds / self.fraction_of_osrl()
     }
 }
 
@@ -354,6 +354,7 @@ mod tests {
                 batch_size: 512,
                 models: 1,
                 seconds: 1.0,
+                cpu_seconds: 1.0,
                 osrl_steps: 100_000,
                 osrl_batch_size: 512,
             },

@@ -181,6 +181,10 @@ fn spawn_server(program: &str, data_dir: &Path, args: &[String], envs: &[(String
         .expect("opening the server log");
     // No simulator workers unless a test asks for them (tests/e2e/simulators.rs does); `envs` may override.
     cmd.env("DSRL__SIMULATORS__LOCAL_WORKERS", "0");
+    // Nor the committed reference results (tests/e2e/reference.rs imports them); `envs` may override.
+    if program == "dsrl-server" {
+        cmd.env("DSRL__LEADERBOARD__IMPORT_REFERENCE_RESULTS", "false");
+    }
     cmd.args(args)
         .envs(envs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
         .env("DSRL_LOG", "info")

@@ -267,6 +267,9 @@ fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
 struct Trained {
     figures: Vec<(&'static str, f64)>,
     seconds: f64,
+    /// CPU seconds of the training thread (user + system) over the same steps: the compute, whatever else shares
+    /// the machine.
+    cpu_seconds: f64,
     /// The first step alone (page faults, first allocations): benchmarks leave it out as PyTorch's warm-up.
     first_step_seconds: Option<f64>,
 }
@@ -320,6 +323,7 @@ impl Source {
             "code_commit": CODE_COMMIT,
             "final": trained.last(),
             "seconds": trained.seconds,
+            "cpu_seconds": trained.cpu_seconds,
             "first_step_seconds": trained.first_step_seconds,
         });
         if let (Some(record), serde_json::Value::Object(extra)) = (record.as_object_mut(), extra) {
@@ -327,6 +331,14 @@ impl Source {
         }
         record
     }
+}
+
+/// CPU seconds (user + system) this thread has used; training runs on one thread (`pin_candle_threads`).
+fn thread_cpu_seconds() -> f64 {
+    let mut t = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes into the valid timespec it is given.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    if rc == 0 { t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9 } else { f64::NAN }
 }
 
 /// Runs `step` `steps` times under a progress bar labelled `label` (its first `shown` figures every `every` steps).
@@ -339,6 +351,7 @@ fn train_loop(
 ) -> anyhow::Result<Trained> {
     let bar = progress(steps);
     let started = std::time::Instant::now();
+    let cpu_started = thread_cpu_seconds();
     let mut figures = Vec::new();
     let mut first_step_seconds = None;
     for i in 0..steps {
@@ -354,6 +367,7 @@ fn train_loop(
     Ok(Trained {
         figures,
         seconds: started.elapsed().as_secs_f64(),
+        cpu_seconds: thread_cpu_seconds() - cpu_started,
         first_step_seconds,
     })
 }
@@ -640,6 +654,7 @@ fn main() -> anyhow::Result<()> {
             "code_commit": CODE_COMMIT,
             "final_mse": loss,
             "seconds": seconds,
+            "cpu_seconds": trained.cpu_seconds,
             "first_step_seconds": trained.first_step_seconds,
         });
         learner

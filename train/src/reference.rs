@@ -24,6 +24,7 @@ struct Training {
     dataset_version: Option<String>,
     code_commit: Option<String>,
     seconds: f64,
+    cpu_seconds: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -126,6 +127,11 @@ pub fn record(model: &Path, submission: &Path, method: &str, results: &Path) -> 
             batch_size: first.batch_size,
             models: models.len() as u32,
             seconds: models.iter().map(|m| m.seconds).sum(),
+            cpu_seconds: models
+                .iter()
+                .map(|m| m.cpu_seconds)
+                .sum::<Option<f64>>()
+                .with_context(|| format!("{}: a training record has no cpu_seconds (an older dsrl-train)", model.display()))?,
             osrl_steps,
             osrl_batch_size,
         },

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The committed reference results (data/reference/results.jsonl) as one command: the runs of
+# data/reference_entries.sh that produced them, in the order they were run. Each phase adds its entries to the
+# results file when its scoring is done; the whole sweep resumes where it stopped (state in ~/.dsrl/reference).
+# Budgets, as fractions of OSRL's (data/reference/README.md has every cell's compute):
+#   1. BC-All and BC-Safe on all 38 tasks at 1/10 of OSRL's steps (10,000; MetaDrive 20,000 of 200,000), seed 0.
+#   2. CDT, BCQ-Lag, BEAR-Lag, CPQ, COptiDICE and CAPS on six tasks (4 Bullet, 1 Safety-Gymnasium, 1 MetaDrive),
+#      seed 0: BCQ-Lag 2,000 steps per threshold, BEAR-Lag 6,000, CPQ and COptiDICE 5,000 (1/20), CDT 600 at batch
+#      512, CAPS 2,000 (BallRun 20,000); batch 512 throughout (OSRL's, but CDT's 2048).
+#   3. Training seeds 1 and 2 of all eight on BallRun and CarCircle, at the same budgets.
+# Usage: data/reference_sweep.sh [--jobs J] [--phases "1 2 3"]   (J models trained at once, one core each; 2)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+jobs=2 phases="1 2 3"
+while [ $# -gt 0 ]; do
+  case $1 in
+    --jobs) jobs=$2; shift 2 ;;
+    --phases) phases=$2; shift 2 ;;
+    -h|--help) sed -n '2,14p' "$0"; exit 0 ;;
+    *) echo "unknown argument $1" >&2; exit 2 ;;
+  esac
+done
+run() { data/reference_entries.sh --jobs "$jobs" "$@"; }
+metadrive=()
+others=()
+for task in $(awk -F, 'NR > 1 { print $1 }' data/tasks.csv); do
+  case $task in OfflineMetadrive-*) metadrive+=("$task") ;; *) others+=("$task") ;; esac
+done
+six=(OfflineBallRun-v0 OfflineCarRun-v0 OfflineBallCircle-v0 OfflineCarCircle-v0 OfflinePointGoal1Gymnasium-v0
+     OfflineMetadrive-easysparse-v0)
+offline=(--batch-size 512 --steps 2000 --bearl-steps 6000 --steps-for cpq=5000 --steps-for coptidice=5000
+         --cdt-steps 600 --caps-steps 2000)
+for phase in $phases; do
+  echo "$(date -u +%FT%TZ) reference sweep: phase $phase" >&2
+  case $phase in
+    1)
+      run --methods "bc-all bc-safe" --steps 10000 "${others[@]}"
+      run --methods "bc-all bc-safe" --steps 20000 "${metadrive[@]}"
+      ;;
+    2)
+      run "${offline[@]}" --methods "cdt bcql cpq coptidice caps" "${six[@]:1}"
+      run "${offline[@]}" --methods "cdt bcql cpq coptidice" OfflineBallRun-v0
+      run "${offline[@]}" --methods caps --caps-steps 20000 OfflineBallRun-v0
+      run "${offline[@]}" --methods bearl "${six[@]}"
+      ;;
+    3)
+      run --seeds "1 2" --methods "bc-all bc-safe" --steps 10000 OfflineBallRun-v0 OfflineCarCircle-v0
+      run --seeds "1 2" "${offline[@]}" --methods "cdt bcql cpq coptidice bearl" OfflineBallRun-v0 OfflineCarCircle-v0
+      run --seeds "1 2" "${offline[@]}" --methods caps OfflineCarCircle-v0
+      run --seeds "1 2" "${offline[@]}" --methods caps --caps-steps 20000 OfflineBallRun-v0
+      ;;
+    *) echo "no phase $phase" >&2; exit 2 ;;
+  esac
+done
