@@ -5,7 +5,8 @@ use sha2::{Digest, Sha256};
 
 /// The held-seed policy as the protocol version names it: how `HeldSeeds::seeds` derives a seed. A change to the
 /// derivation must change this name (and so the protocol version).
-pub const POLICY: &str = "sha256(\"dsrl-evaluation-seed/1\", server secret, task, threshold index, episode) & (2^31 - 1)";
+pub const POLICY: &str =
+    "sha256(\"dsrl-evaluation-seed/1\", server secret, task, threshold index, episode) & (2^31 - 1)";
 
 pub struct HeldSeeds {
     secret: String,

@@ -55,6 +55,7 @@ async fn main() -> anyhow::Result<()> {
                 checkpoint_sha256: &digest,
                 checkpoints: &[],
                 episodes_per_threshold: 20,
+                dataset_version: None,
             },
             &quotas,
         )
@@ -82,8 +83,14 @@ async fn main() -> anyhow::Result<()> {
             let owner = format!("bench-{run}-{e}");
             let mut done = 0usize;
             while let Some(job) = queue::claim(&db, &owner, 60_000, 3).await? {
+                let scores = queue::Scores {
+                    episodes: &episodes,
+                    normalized_reward: 0.5,
+                    normalized_cost: 0.5,
+                    protocol_version: "bench",
+                };
                 anyhow::ensure!(
-                    queue::finish(&db, job.id, &owner, &episodes, 0.5, 0.5).await?,
+                    queue::finish(&db, job.id, &owner, &scores).await?,
                     "lost job {}",
                     job.id
                 );

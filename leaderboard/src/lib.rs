@@ -442,7 +442,13 @@ impl Leaderboard {
         let episodes = queue::episodes(&self.db, id).await?;
         let owned = task.clone();
         let computed = tokio::task::spawn_blocking(move || {
-            entry_interval(&owned, &episodes, BOOTSTRAP_RESAMPLES, BOOTSTRAP_CONFIDENCE, BOOTSTRAP_SEED)
+            entry_interval(
+                &owned,
+                &episodes,
+                BOOTSTRAP_RESAMPLES,
+                BOOTSTRAP_CONFIDENCE,
+                BOOTSTRAP_SEED,
+            )
         })
         .await
         .map_err(ApiError::internal)?

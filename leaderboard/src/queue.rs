@@ -350,10 +350,11 @@ pub async fn withdraw(db: &Db, id: i64, reason: &str) -> Result<(), ApiError> {
 /// Withdraws `user_id`'s finished submissions whose (task, checkpoint) is not in `keep` (cancelled, with the
 /// reason: kept in the database, off the tables); returns how many.
 pub async fn withdraw_except(db: &Db, user_id: i64, keep: &[(String, String)], reason: &str) -> Result<u64, ApiError> {
-    let rows = sqlx::query("SELECT id, task, checkpoint_sha256 FROM submissions WHERE user_id = $1 AND state = 'finished'")
-        .bind(user_id)
-        .fetch_all(db.pool())
-        .await?;
+    let rows =
+        sqlx::query("SELECT id, task, checkpoint_sha256 FROM submissions WHERE user_id = $1 AND state = 'finished'")
+            .bind(user_id)
+            .fetch_all(db.pool())
+            .await?;
     let mut withdrawn = 0;
     for row in rows {
         let (id, task, sha): (i64, String, String) = (row.try_get(0)?, row.try_get(1)?, row.try_get(2)?);

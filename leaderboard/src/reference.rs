@@ -75,8 +75,12 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
                 continue;
             }
             // The same checkpoint scored again (under another protocol, say): the new scoring replaces the old.
-            queue::withdraw(db, id, "replaced by a later scoring of the same checkpoint in the reference results")
-                .await?;
+            queue::withdraw(
+                db,
+                id,
+                "replaced by a later scoring of the same checkpoint in the reference results",
+            )
+            .await?;
         }
         let record = ReferenceRecord {
             method: entry.method.clone(),
@@ -117,7 +121,12 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
         .iter()
         .map(|e| (e.task.clone(), e.checkpoint_sha256.clone()))
         .collect();
-    report.withdrawn =
-        queue::withdraw_except(db, user, &keep, "withdrawn: no longer in the committed reference results").await?;
+    report.withdrawn = queue::withdraw_except(
+        db,
+        user,
+        &keep,
+        "withdrawn: no longer in the committed reference results",
+    )
+    .await?;
     Ok(report)
 }

@@ -43,6 +43,21 @@ fn generated_code_is_up_to_date() {
             }
         }
     }
+    // A committed file that the protos no longer generate (a removed or renamed package) is stale too.
+    let fresh_names: Vec<std::ffi::OsString> = std::fs::read_dir(fresh.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    for entry in std::fs::read_dir(&committed).unwrap() {
+        let name = entry.unwrap().file_name();
+        if !fresh_names.contains(&name) {
+            if update {
+                std::fs::remove_file(committed.join(&name)).unwrap();
+            } else {
+                stale.push(format!("{} (no proto generates it)", name.to_string_lossy()));
+            }
+        }
+    }
     assert!(
         stale.is_empty(),
         "generated gRPC code is stale: {stale:?}; run `DSRL_UPDATE_CODEGEN=1 cargo test -p dsrl-proto --test codegen` and commit"

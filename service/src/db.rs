@@ -134,8 +134,16 @@ impl Db {
         sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
     }
 
+    /// A write transaction. On SQLite it takes the write lock at its start (`BEGIN IMMEDIATE`): a deferred one that
+    /// reads first (quota counts, a lookup) and then writes must upgrade its read lock, and under WAL SQLite refuses
+    /// that upgrade at once with SQLITE_BUSY when another writer went first — `busy_timeout` does not apply to it —
+    /// so concurrent submissions got "database is locked". Taken at the start, the lock is waited for (up to
+    /// `busy_timeout`) like any other.
     pub async fn begin(&self) -> Result<Transaction<'static, Any>, sqlx::Error> {
-        self.pool.begin().await
+        match self.backend {
+            Backend::Sqlite => self.pool.begin_with("BEGIN IMMEDIATE").await,
+            Backend::Postgres => self.pool.begin().await,
+        }
     }
 
     /// Runs `work` holding the lock named `key` across every process that shares this database, so that a

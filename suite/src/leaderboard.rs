@@ -240,13 +240,26 @@ mod tests {
         let score = entry_score(task, &episodes).unwrap();
         let (reward, cost) = entry_interval(task, &episodes, 500, 0.95, 0).unwrap();
         assert_eq!((reward.estimate, cost.estimate), (score.reward, score.cost));
-        assert!(reward.low < reward.estimate && reward.estimate < reward.high, "{reward:?}");
+        assert!(
+            reward.low < reward.estimate && reward.estimate < reward.high,
+            "{reward:?}"
+        );
         assert!(cost.low < cost.estimate && cost.estimate < cost.high, "{cost:?}");
         assert_eq!(entry_interval(task, &episodes, 500, 0.95, 0).unwrap().0, reward);
         // Identical episodes: the interval is the point.
-        let same: Vec<EpisodeResult> = episodes.iter().map(|e| EpisodeResult { reward_return: 1.0, cost_return: 2.0, ..e.clone() }).collect();
+        let same: Vec<EpisodeResult> = episodes
+            .iter()
+            .map(|e| EpisodeResult {
+                reward_return: 1.0,
+                cost_return: 2.0,
+                ..e.clone()
+            })
+            .collect();
         let (r, c) = entry_interval(task, &same, 100, 0.95, 0).unwrap();
-        assert_eq!((r.low, r.high, c.low, c.high), (r.estimate, r.estimate, c.estimate, c.estimate));
+        assert_eq!(
+            (r.low, r.high, c.low, c.high),
+            (r.estimate, r.estimate, c.estimate, c.estimate)
+        );
         assert!(entry_score(task, &[]).is_none());
     }
 }

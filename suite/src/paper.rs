@@ -130,10 +130,7 @@ impl PaperResults {
 
     /// The paper's rows of one task, in the paper's method order.
     pub fn for_task(&self, task: &str) -> Vec<&PaperRow> {
-        PAPER_METHODS
-            .iter()
-            .filter_map(|m| self.get(task, m))
-            .collect()
+        PAPER_METHODS.iter().filter_map(|m| self.get(task, m)).collect()
     }
 
     pub fn get(&self, task: &str, method: &str) -> Option<&PaperRow> {
@@ -166,7 +163,10 @@ mod tests {
         assert_eq!(paper.family_averages().len(), 3 * 7);
         // One cell, as the paper prints it.
         let row = paper.get("OfflinePointButton1Gymnasium-v0", "BC-Safe").unwrap();
-        assert_eq!((row.normalized_reward, row.normalized_cost, row.safe), (0.06, 0.52, true));
+        assert_eq!(
+            (row.normalized_reward, row.normalized_cost, row.safe),
+            (0.06, 0.52, true)
+        );
     }
 
     #[test]
@@ -177,7 +177,10 @@ mod tests {
             ("OfflineBallRun-v0,CPQ,0.2,1.5,yes\n", "disagrees"),
             ("OfflineBallRunn-v0,CPQ,0.2,0.5,yes\n", "unknown task"),
             ("OfflineBallRun-v0,PPO,0.2,0.5,yes\n", "unknown method"),
-            ("OfflineBallRun-v0,CPQ,0.2,0.5,yes\nOfflineBallRun-v0,CPQ,0.2,0.5,yes\n", "twice"),
+            (
+                "OfflineBallRun-v0,CPQ,0.2,0.5,yes\nOfflineBallRun-v0,CPQ,0.2,0.5,yes\n",
+                "twice",
+            ),
         ] {
             let e = PaperResults::from_csv(format!("{header}{body}").as_bytes(), &catalog).unwrap_err();
             assert!(e.to_string().contains(expected), "{e}");

@@ -126,7 +126,11 @@ mod tests {
         };
         let version = base.protocol().version;
         assert!(version.starts_with("p1.") && version.len() == 13, "{version}");
-        assert_eq!(base.protocol().version, version, "the version is a function of its parts");
+        assert_eq!(
+            base.protocol().version,
+            version,
+            "the version is a function of its parts"
+        );
 
         // A task's thresholds, then its normalization constant.
         let mut tasks = catalog.tasks().to_vec();
@@ -136,12 +140,30 @@ mod tests {
         tasks[3].max_episode_reward += 1.0;
         let constants = Catalog::new(tasks).unwrap();
         let changed = [
-            ProtocolParts { catalog: &thresholds, ..base.clone() },
-            ProtocolParts { catalog: &constants, ..base.clone() },
-            ProtocolParts { simulator_pins: "safety-gymnasium==1.0.1\n", ..base.clone() },
-            ProtocolParts { episodes_per_threshold: 10, ..base.clone() },
-            ProtocolParts { held_seeds: "held-seeds/2", ..base.clone() },
-            ProtocolParts { scorer_revision: 2, ..base.clone() },
+            ProtocolParts {
+                catalog: &thresholds,
+                ..base.clone()
+            },
+            ProtocolParts {
+                catalog: &constants,
+                ..base.clone()
+            },
+            ProtocolParts {
+                simulator_pins: "safety-gymnasium==1.0.1\n",
+                ..base.clone()
+            },
+            ProtocolParts {
+                episodes_per_threshold: 10,
+                ..base.clone()
+            },
+            ProtocolParts {
+                held_seeds: "held-seeds/2",
+                ..base.clone()
+            },
+            ProtocolParts {
+                scorer_revision: 2,
+                ..base.clone()
+            },
         ];
         let mut seen = vec![version];
         for parts in changed {

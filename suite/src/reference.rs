@@ -160,8 +160,9 @@ pub fn read_results(text: &str, catalog: &Catalog) -> Result<Vec<ReferenceEntry>
             return Err(invalid("no episodes".into()));
         }
         if let Some(e) = entry.episodes.iter().find(|e| {
-            !task.cost_thresholds.contains(&e.cost_threshold)
-                || !(e.reward_return.is_finite() && e.cost_return.is_finite())
+            !(task.cost_thresholds.contains(&e.cost_threshold)
+                && e.reward_return.is_finite()
+                && e.cost_return.is_finite())
         }) {
             return Err(invalid(format!(
                 "episode {} at threshold {} is not a finite episode at one of {}'s thresholds",
@@ -261,7 +262,9 @@ pub fn agreement(catalog: &Catalog, paper: &PaperResults, ours: &[ScoredEntry]) 
     let mut cells = Vec::new();
     for task in catalog.tasks() {
         for method in PAPER_METHODS {
-            let Some(row) = paper.get(task.id.as_str(), method) else { continue };
+            let Some(row) = paper.get(task.id.as_str(), method) else {
+                continue;
+            };
             let seeds: Vec<&ScoredEntry> = ours
                 .iter()
                 .filter(|e| e.task == task.id.as_str() && e.method == method)
@@ -383,7 +386,9 @@ mod tests {
         let text = write_results(&entries);
         let read = read_results(&text, &catalog).unwrap();
         assert_eq!(
-            read.iter().map(|e| (e.task.as_str(), e.method.as_str())).collect::<Vec<_>>(),
+            read.iter()
+                .map(|e| (e.task.as_str(), e.method.as_str()))
+                .collect::<Vec<_>>(),
             [
                 ("OfflineBallRun-v0", "BC-All"),
                 ("OfflineBallRun-v0", "CDT"),
@@ -393,7 +398,12 @@ mod tests {
         upsert(&mut entries, entry("OfflineCarRun-v0", "CPQ", 0, 5.0));
         assert_eq!(entries.len(), 3);
         let twice = format!("{text}{}", text.lines().next().unwrap());
-        assert!(read_results(&twice, &catalog).unwrap_err().to_string().contains("twice"));
+        assert!(
+            read_results(&twice, &catalog)
+                .unwrap_err()
+                .to_string()
+                .contains("twice")
+        );
         let mut wrong = entry("OfflineBallRun-v0", "BC-All", 0, 0.0);
         wrong.episodes[0].cost_threshold = 15.0;
         let e = read_results(&write_results(&[wrong]), &catalog).unwrap_err();

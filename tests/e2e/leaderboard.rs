@@ -480,8 +480,9 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
             page.contains("BC-Safe") && page.contains("<svg") && page.contains(TASK),
             "{page}"
         );
+        // One task's table (the whole page lists every task with the paper's rows).
         page_in_chromium(
-            &format!("{}/leaderboard", env.server.url),
+            &format!("{}/leaderboard?task={TASK}", env.server.url),
             &["BC-All", "BC-Safe", "CDT-untrained"],
         );
         // One site with the dataset browser: its navigation, each task's heading linking to the dataset card, each
@@ -633,7 +634,7 @@ pub(crate) fn pixels_of_colour(png_file: &Path, rgb: [u8; 3]) -> usize {
         .count()
 }
 
-fn reqwest_text(url: &str) -> String {
+pub(crate) fn reqwest_text(url: &str) -> String {
     let url = url.to_owned();
     block_on(async move { reqwest::get(&url).await.unwrap().text().await.unwrap() })
 }

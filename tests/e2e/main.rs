@@ -19,6 +19,7 @@ mod http;
 mod ingest;
 mod leaderboard;
 mod python_package;
+mod reference;
 mod replicas;
 mod s3;
 mod services;

@@ -473,6 +473,7 @@ async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
             checkpoint_sha256: &digest,
             checkpoints: &[],
             episodes_per_threshold: 20,
+            dataset_version: None,
         };
         queue::insert(&db, new, &unlimited).await.unwrap();
     }
@@ -484,7 +485,13 @@ async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
             let owner = format!("evaluator-{e}");
             let mut claimed = Vec::new();
             while let Some(job) = queue::claim(&db, &owner, 60_000, 3).await.unwrap() {
-                assert!(queue::finish(&db, job.id, &owner, &[], 0.0, 0.0).await.unwrap());
+                let scores = queue::Scores {
+                    episodes: &[],
+                    normalized_reward: 0.0,
+                    normalized_cost: 0.0,
+                    protocol_version: "p1.test",
+                };
+                assert!(queue::finish(&db, job.id, &owner, &scores).await.unwrap());
                 claimed.push(job.id);
             }
             claimed
@@ -525,6 +532,7 @@ async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
                 checkpoint_sha256: &digest,
                 checkpoints: &[],
                 episodes_per_threshold: 20,
+                dataset_version: None,
             };
             together.wait().await;
             queue::insert(&db, new, &limited).await.map_err(|e| e.to_string())

@@ -9,8 +9,7 @@ use anyhow::{Context, bail, ensure};
 use dsrl_policy::checkpoint::CONFIG_FILE;
 use dsrl_suite::Catalog;
 use dsrl_suite::reference::{
-    REFERENCE_METHODS, ReferenceEntry, ScoringRecord, TrainingBudget, osrl_budget, read_results, upsert,
-    write_results,
+    REFERENCE_METHODS, ReferenceEntry, ScoringRecord, TrainingBudget, osrl_budget, read_results, upsert, write_results,
 };
 use dsrl_suite::score::EpisodeResult;
 use serde::Deserialize;
@@ -57,7 +56,11 @@ fn model_configs(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
         .filter(|p| p.is_file())
         .collect();
     found.sort();
-    ensure!(!found.is_empty(), "{} holds no policy.json (nor threshold folders with one)", dir.display());
+    ensure!(
+        !found.is_empty(),
+        "{} holds no policy.json (nor threshold folders with one)",
+        dir.display()
+    );
     Ok(found)
 }
 
@@ -95,7 +98,11 @@ pub fn record(model: &Path, submission: &Path, method: &str, results: &Path) -> 
     for path in model_configs(model)? {
         let parsed: TrainingOnly = serde_json::from_slice(&std::fs::read(&path)?)
             .with_context(|| format!("{}: no readable training record", path.display()))?;
-        models.push(parsed.training.with_context(|| format!("{}: no training record", path.display()))?);
+        models.push(
+            parsed
+                .training
+                .with_context(|| format!("{}: no training record", path.display()))?,
+        );
     }
     let first = &models[0];
     for m in &models {
@@ -111,7 +118,10 @@ pub fn record(model: &Path, submission: &Path, method: &str, results: &Path) -> 
         bail!("{}: the training record names no dataset version", model.display())
     };
     let Some(code_commit) = first.code_commit.clone() else {
-        bail!("{}: the training record names no code commit (trained by an older dsrl-train)", model.display())
+        bail!(
+            "{}: the training record names no code commit (trained by an older dsrl-train)",
+            model.display()
+        )
     };
     let (osrl_steps, osrl_batch_size) = osrl_budget(method, task).context("a reference method has a budget")?;
     let (started_at, finished_at) = (
@@ -131,7 +141,12 @@ pub fn record(model: &Path, submission: &Path, method: &str, results: &Path) -> 
                 .iter()
                 .map(|m| m.cpu_seconds)
                 .sum::<Option<f64>>()
-                .with_context(|| format!("{}: a training record has no cpu_seconds (an older dsrl-train)", model.display()))?,
+                .with_context(|| {
+                    format!(
+                        "{}: a training record has no cpu_seconds (an older dsrl-train)",
+                        model.display()
+                    )
+                })?,
             osrl_steps,
             osrl_batch_size,
         },

@@ -105,6 +105,43 @@ pub struct Submission {
     pub thresholds: ::prost::alloc::vec::Vec<ThresholdResult>,
     #[prost(message, repeated, tag = "17")]
     pub episodes: ::prost::alloc::vec::Vec<Episode>,
+    /// The protocol version it was scored under (once finished; absent for results scored before versions were
+    /// recorded).
+    #[prost(string, optional, tag = "18")]
+    pub protocol_version: ::core::option::Option<::prost::alloc::string::String>,
+    /// The dataset version its checkpoint says it was trained on.
+    #[prost(string, optional, tag = "19")]
+    pub dataset_version: ::core::option::Option<::prost::alloc::string::String>,
+    /// Set for a reference entry.
+    #[prost(message, optional, tag = "20")]
+    pub reference: ::core::option::Option<ReferenceRecord>,
+}
+/// A reference entry's record: the method, its training seed and budget, and the code that trained it.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct ReferenceRecord {
+    #[prost(string, tag = "1")]
+    pub method: ::prost::alloc::string::String,
+    #[prost(uint64, tag = "2")]
+    pub seed: u64,
+    /// Gradient steps per model, batch size, models (1, or one per threshold).
+    #[prost(uint64, tag = "3")]
+    pub steps: u64,
+    #[prost(uint32, tag = "4")]
+    pub batch_size: u32,
+    #[prost(uint32, tag = "5")]
+    pub models: u32,
+    #[prost(double, tag = "6")]
+    pub training_seconds: f64,
+    #[prost(double, tag = "7")]
+    pub training_cpu_seconds: f64,
+    /// OSRL's steps and batch for the method on the task.
+    #[prost(uint64, tag = "8")]
+    pub osrl_steps: u64,
+    #[prost(uint32, tag = "9")]
+    pub osrl_batch_size: u32,
+    #[prost(string, tag = "10")]
+    pub code_commit: ::prost::alloc::string::String,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
@@ -129,6 +166,55 @@ pub struct TaskEntry {
     pub normalized_cost: f64,
     #[prost(bool, tag = "7")]
     pub safe: bool,
+    #[prost(string, tag = "8")]
+    pub protocol_version: ::prost::alloc::string::String,
+    #[prost(string, optional, tag = "9")]
+    pub dataset_version: ::core::option::Option<::prost::alloc::string::String>,
+    #[prost(message, optional, tag = "10")]
+    pub reference: ::core::option::Option<ReferenceRecord>,
+    /// Percentile-bootstrap intervals over the entry's episodes.
+    #[prost(message, optional, tag = "11")]
+    pub normalized_reward_interval: ::core::option::Option<Interval>,
+    #[prost(message, optional, tag = "12")]
+    pub normalized_cost_interval: ::core::option::Option<Interval>,
+}
+/// One (task, method) cell of the paper's table: its self-reported numbers.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct PaperRow {
+    #[prost(string, tag = "1")]
+    pub method: ::prost::alloc::string::String,
+    #[prost(double, tag = "2")]
+    pub normalized_reward: f64,
+    #[prost(double, tag = "3")]
+    pub normalized_cost: f64,
+    #[prost(bool, tag = "4")]
+    pub safe: bool,
+}
+/// Our reference entries of a method (mean over training seeds) against the paper's row.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct Agreement {
+    #[prost(string, tag = "1")]
+    pub task: ::prost::alloc::string::String,
+    #[prost(string, tag = "2")]
+    pub method: ::prost::alloc::string::String,
+    #[prost(uint32, tag = "3")]
+    pub seeds: u32,
+    #[prost(double, tag = "4")]
+    pub normalized_reward: f64,
+    #[prost(double, tag = "5")]
+    pub normalized_cost: f64,
+    #[prost(double, tag = "6")]
+    pub paper_normalized_reward: f64,
+    #[prost(double, tag = "7")]
+    pub paper_normalized_cost: f64,
+    #[prost(bool, tag = "8")]
+    pub safe: bool,
+    #[prost(bool, tag = "9")]
+    pub paper_safe: bool,
+    #[prost(bool, tag = "10")]
+    pub verdict_agrees: bool,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]
@@ -139,8 +225,16 @@ pub struct TaskTable {
     pub family: ::prost::alloc::string::String,
     #[prost(double, repeated, tag = "3")]
     pub cost_thresholds: ::prost::alloc::vec::Vec<f64>,
+    /// Entries scored under the current protocol, ranked.
     #[prost(message, repeated, tag = "4")]
     pub entries: ::prost::alloc::vec::Vec<TaskEntry>,
+    /// Finished entries scored under an earlier protocol: counted, not ranked.
+    #[prost(uint32, tag = "5")]
+    pub earlier_protocol_entries: u32,
+    #[prost(message, repeated, tag = "6")]
+    pub paper: ::prost::alloc::vec::Vec<PaperRow>,
+    #[prost(message, repeated, tag = "7")]
+    pub agreement: ::prost::alloc::vec::Vec<Agreement>,
 }
 /// An interquartile mean across tasks with its percentile-bootstrap interval and how it was drawn.
 #[allow(clippy::all)]
@@ -176,6 +270,8 @@ pub struct FamilyEntry {
     pub normalized_reward: ::core::option::Option<Interval>,
     #[prost(message, optional, tag = "7")]
     pub normalized_cost: ::core::option::Option<Interval>,
+    #[prost(bool, tag = "8")]
+    pub reference: bool,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]
@@ -185,6 +281,45 @@ pub struct FamilyTable {
     #[prost(message, repeated, tag = "2")]
     pub entries: ::prost::alloc::vec::Vec<FamilyEntry>,
 }
+/// The share of agreeing safe/unsafe verdicts over a family (bullet, safety-gymnasium, metadrive) or all.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct AgreementSummary {
+    #[prost(string, tag = "1")]
+    pub scope: ::prost::alloc::string::String,
+    #[prost(uint32, tag = "2")]
+    pub cells: u32,
+    #[prost(uint32, tag = "3")]
+    pub agreeing: u32,
+    #[prost(double, optional, tag = "4")]
+    pub share: ::core::option::Option<f64>,
+    #[prost(double, optional, tag = "5")]
+    pub mean_abs_reward_difference: ::core::option::Option<f64>,
+    #[prost(double, optional, tag = "6")]
+    pub mean_abs_cost_difference: ::core::option::Option<f64>,
+}
+/// What makes results comparable: one version over the catalog, the simulator pins, the episodes per threshold,
+/// the held-seed policy and the scorer's revision.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct Protocol {
+    #[prost(string, tag = "1")]
+    pub version: ::prost::alloc::string::String,
+    #[prost(uint32, tag = "2")]
+    pub rules: u32,
+    #[prost(uint32, tag = "3")]
+    pub tasks: u32,
+    #[prost(string, tag = "4")]
+    pub catalog_sha256: ::prost::alloc::string::String,
+    #[prost(string, tag = "5")]
+    pub simulator_pins_sha256: ::prost::alloc::string::String,
+    #[prost(uint32, tag = "6")]
+    pub episodes_per_threshold: u32,
+    #[prost(string, tag = "7")]
+    pub held_seeds: ::prost::alloc::string::String,
+    #[prost(uint32, tag = "8")]
+    pub scorer_revision: u32,
+}
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]
 pub struct Leaderboard {
@@ -192,6 +327,13 @@ pub struct Leaderboard {
     pub tasks: ::prost::alloc::vec::Vec<TaskTable>,
     #[prost(message, repeated, tag = "2")]
     pub families: ::prost::alloc::vec::Vec<FamilyTable>,
+    #[prost(message, optional, tag = "3")]
+    pub protocol: ::core::option::Option<Protocol>,
+    /// How the paper's rows were produced.
+    #[prost(string, tag = "4")]
+    pub paper_label: ::prost::alloc::string::String,
+    #[prost(message, repeated, tag = "5")]
+    pub agreement: ::prost::alloc::vec::Vec<AgreementSummary>,
 }
 /// Generated client implementations.
 pub mod leaderboard_service_client {

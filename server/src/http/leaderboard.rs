@@ -230,7 +230,10 @@ pub async fn leaderboard_page(
         (status = 200, content_type = "text/html", body = String, description = "The agreement page")))]
 pub async fn agreement_page(State(state): State<AppState>) -> Result<impl IntoResponse, ApiError> {
     let board = state.leaderboard.board(None).await?;
-    Ok(([(header::CACHE_CONTROL, "no-cache")], Html(page::render_agreement(&board))))
+    Ok((
+        [(header::CACHE_CONTROL, "no-cache")],
+        Html(page::render_agreement(&board)),
+    ))
 }
 
 /// `GET /submissions/{id}`: a submission's page (per-threshold results), linked from the leaderboard page.

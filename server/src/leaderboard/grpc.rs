@@ -68,6 +68,24 @@ fn submission(view: SubmissionView, with_episodes: bool) -> pb::Submission {
         } else {
             Vec::new()
         },
+        protocol_version: view.protocol_version,
+        dataset_version: view.dataset_version,
+        reference: view.reference.map(reference),
+    }
+}
+
+fn reference(r: crate::leaderboard::reference::ReferenceRecord) -> pb::ReferenceRecord {
+    pb::ReferenceRecord {
+        method: r.method,
+        seed: r.seed,
+        steps: r.training.steps,
+        batch_size: r.training.batch_size as u32,
+        models: r.training.models,
+        training_seconds: r.training.seconds,
+        training_cpu_seconds: r.training.cpu_seconds,
+        osrl_steps: r.training.osrl_steps,
+        osrl_batch_size: r.training.osrl_batch_size as u32,
+        code_commit: r.code_commit,
     }
 }
 
@@ -102,6 +120,38 @@ fn board(board: Board) -> pb::Leaderboard {
                         normalized_reward: e.normalized_reward,
                         normalized_cost: e.normalized_cost,
                         safe: e.safe,
+                        protocol_version: e.protocol_version,
+                        dataset_version: e.dataset_version,
+                        reference: e.reference.map(reference),
+                        normalized_reward_interval: Some(interval(e.normalized_reward_interval)),
+                        normalized_cost_interval: Some(interval(e.normalized_cost_interval)),
+                    })
+                    .collect(),
+                earlier_protocol_entries: t.earlier_protocol_entries as u32,
+                paper: t
+                    .paper
+                    .into_iter()
+                    .map(|p| pb::PaperRow {
+                        method: p.method,
+                        normalized_reward: p.normalized_reward,
+                        normalized_cost: p.normalized_cost,
+                        safe: p.safe,
+                    })
+                    .collect(),
+                agreement: t
+                    .agreement
+                    .into_iter()
+                    .map(|a| pb::Agreement {
+                        task: a.task,
+                        method: a.method,
+                        seeds: a.seeds as u32,
+                        normalized_reward: a.normalized_reward,
+                        normalized_cost: a.normalized_cost,
+                        paper_normalized_reward: a.paper_normalized_reward,
+                        paper_normalized_cost: a.paper_normalized_cost,
+                        safe: a.safe,
+                        paper_safe: a.paper_safe,
+                        verdict_agrees: a.verdict_agrees,
                     })
                     .collect(),
             })
@@ -122,8 +172,32 @@ fn board(board: Board) -> pb::Leaderboard {
                         safe_tasks: e.safe_tasks as u32,
                         normalized_reward: Some(interval(e.normalized_reward)),
                         normalized_cost: Some(interval(e.normalized_cost)),
+                        reference: e.reference,
                     })
                     .collect(),
+            })
+            .collect(),
+        protocol: Some(pb::Protocol {
+            version: board.protocol.version,
+            rules: board.protocol.rules,
+            tasks: board.protocol.tasks as u32,
+            catalog_sha256: board.protocol.catalog_sha256,
+            simulator_pins_sha256: board.protocol.simulator_pins_sha256,
+            episodes_per_threshold: board.protocol.episodes_per_threshold,
+            held_seeds: board.protocol.held_seeds,
+            scorer_revision: board.protocol.scorer_revision,
+        }),
+        paper_label: board.paper_label.to_owned(),
+        agreement: board
+            .agreement
+            .into_iter()
+            .map(|a| pb::AgreementSummary {
+                scope: a.scope,
+                cells: a.cells as u32,
+                agreeing: a.agreeing as u32,
+                share: a.share,
+                mean_abs_reward_difference: a.mean_abs_reward_difference,
+                mean_abs_cost_difference: a.mean_abs_cost_difference,
             })
             .collect(),
     }

@@ -173,12 +173,12 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
         );
     }
     if !table.paper.is_empty() {
-        let _ = write!(
+        let _ = writeln!(
             html,
             "<table class=\"paper\"><caption>The paper's rows: {}. Beside them, our reference entries of the same \
              method (mean over training seeds).</caption><tr><th class=\"name\">method</th><th>paper reward</th>\
              <th>paper cost</th><th>paper safe</th><th>ours: reward</th><th>ours: cost</th><th>ours: safe</th>\
-             <th>verdict agrees</th></tr>\n",
+             <th>verdict agrees</th></tr>",
             escape(paper_label)
         );
         for row in &table.paper {
