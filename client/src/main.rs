@@ -587,6 +587,30 @@ fn report_submission(s: &serde_json::Value, json: bool, episodes: bool) -> u8 {
         if let Some(reason) = s["reason"].as_str() {
             out!("  reason: {reason}");
         }
+        let q = &s["queue"];
+        if q.is_object() {
+            out!(
+                "  queue position {} ({} jobs ahead, {} being scored); estimated start {}, finish {}",
+                q["position"],
+                q["jobs_ahead"].as_array().map_or(0, Vec::len),
+                q["running"],
+                q["estimated_start"].as_str().unwrap_or("?"),
+                q["estimated_finish"].as_str().unwrap_or("?")
+            );
+        }
+        let p = &s["progress"];
+        if p.is_object() {
+            out!(
+                "  scoring: {} of {} episodes done, evaluator {}, last heartbeat {}",
+                p["episodes_done"],
+                p["episodes_total"],
+                p["evaluator"].as_str().unwrap_or("?"),
+                p["last_heartbeat"].as_str().unwrap_or("?")
+            );
+        }
+        if let Some(n) = s["author_submissions_to_task"].as_u64() {
+            out!("  {n} submission(s) by this user to this task");
+        }
         if state == "finished" {
             out!(
                 "  normalized reward {}, normalized cost {} ({})",

@@ -93,10 +93,44 @@ pub async fn play_episodes(
     envs_per_session: usize,
     sessions: usize,
 ) -> Result<Vec<EpisodeScore>, EvaluationError> {
+    let progress = std::sync::atomic::AtomicU32::new(0);
+    play_episodes_counted(
+        pool,
+        task,
+        policy,
+        cost_threshold,
+        seeds,
+        envs_per_session,
+        sessions,
+        &progress,
+    )
+    .await
+}
+
+/// [`play_episodes`], adding one to `progress` as each episode ends (what the leaderboard shows while it scores).
+#[allow(clippy::too_many_arguments)]
+pub async fn play_episodes_counted(
+    pool: &SimulatorPool,
+    task: &Task,
+    policy: PolicySource<'_>,
+    cost_threshold: f64,
+    seeds: &[u64],
+    envs_per_session: usize,
+    sessions: usize,
+    progress: &std::sync::atomic::AtomicU32,
+) -> Result<Vec<EpisodeScore>, EvaluationError> {
     let run = seeds.len().div_ceil(sessions.max(1)).max(1);
-    let groups = seeds
-        .chunks(run)
-        .map(|group| play_group(pool, task, policy, cost_threshold, group, envs_per_session.max(1)));
+    let groups = seeds.chunks(run).map(|group| {
+        play_group(
+            pool,
+            task,
+            policy,
+            cost_threshold,
+            group,
+            envs_per_session.max(1),
+            progress,
+        )
+    });
     let results = futures::future::try_join_all(groups).await?;
     Ok(results.into_iter().flatten().collect())
 }
@@ -116,6 +150,7 @@ async fn play_group(
     cost_threshold: f64,
     seeds: &[u64],
     envs: usize,
+    progress: &std::sync::atomic::AtomicU32,
 ) -> Result<Vec<EpisodeScore>, EvaluationError> {
     let k = seeds.len().min(envs);
     let mut rollout = Player::new(policy, cost_threshold, k).await?;
@@ -168,7 +203,11 @@ async fn play_group(
                     score.length += 1;
                     obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
                         .copy_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
-                    if !(step.terminated[row] || step.truncated[row]) {
+                    let ended = step.terminated[row] || step.truncated[row];
+                    if ended {
+                        progress.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
+                    if !ended {
                         still.push(i);
                     } else if next < seeds.len() {
                         playing[i as usize] = next;

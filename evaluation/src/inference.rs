@@ -36,6 +36,8 @@ pub struct IsolatedPolicy {
     /// The `dsrl-server` binary.
     pub program: PathBuf,
     pub memory_limit_bytes: u64,
+    /// Every request must be answered within this; a process that does not is stopped and the evaluation fails.
+    pub request_timeout: std::time::Duration,
     pub config: Bytes,
     pub weights: Bytes,
 }
@@ -126,6 +128,7 @@ pub struct ChildPlayer {
     stdin: tokio::process::ChildStdin,
     stdout: tokio::process::ChildStdout,
     memory_limit_bytes: u64,
+    request_timeout: std::time::Duration,
 }
 
 impl ChildPlayer {
@@ -148,6 +151,7 @@ impl ChildPlayer {
             stdin,
             stdout,
             memory_limit_bytes: policy.memory_limit_bytes,
+            request_timeout: policy.request_timeout,
         };
         let mut payload = BytesMut::with_capacity(policy.config.len() + policy.weights.len() + 16);
         payload.put_u32_le(policy.config.len() as u32);
@@ -160,23 +164,66 @@ impl ChildPlayer {
     }
 
     async fn call(&mut self, op: u8, payload: &[u8]) -> Result<Bytes, EvaluationError> {
-        match self.exchange(op, payload).await {
-            Ok(Ok(answer)) => Ok(answer),
-            // The policy itself failed (a shape it cannot handle): not worth a retry.
-            Ok(Err(message)) => Err(policy_error(message)),
+        let what = match op {
+            LOAD => "load",
+            START => "start",
+            ACT => "act",
+            _ => "observe",
+        };
+        match tokio::time::timeout(self.request_timeout, self.exchange(op, payload)).await {
+            Ok(Ok(Ok(answer))) => Ok(answer),
+            // The policy itself failed (a shape it cannot handle, a non-finite action): not worth a retry.
+            Ok(Ok(Err(message))) => Err(policy_error(message)),
             Err(_) => {
-                // The pipe broke: the child died, most likely at its memory limit.
-                let status = match tokio::time::timeout(std::time::Duration::from_secs(5), self.child.wait()).await {
-                    Ok(Ok(status)) => status.to_string(),
-                    _ => "no exit status".to_owned(),
-                };
+                let _ = self.child.start_kill();
                 Err(EvaluationError::InvalidArgument(format!(
-                    "the policy process died while acting ({status}); a network that needs more than the \
-                     {} MB memory limit cannot be scored",
-                    self.memory_limit_bytes >> 20
+                    "the policy process did not answer a {what} request within {} s \
+                     (leaderboard.policy_request_seconds); it was stopped",
+                    self.request_timeout.as_secs_f64()
                 )))
             }
+            Ok(Err(_)) => Err(self.died(what).await),
         }
+    }
+
+    /// Why the pipe broke, from the child's exit status, as observed: killed by a signal it did not raise itself
+    /// (SIGKILL from outside: an operator, the kernel's OOM killer) is not the checkpoint's fault and the job goes
+    /// back to the queue; an abort is what an allocation past the process's own memory limit ends in.
+    async fn died(&mut self, what: &str) -> EvaluationError {
+        let status = match tokio::time::timeout(std::time::Duration::from_secs(5), self.child.wait()).await {
+            Ok(Ok(status)) => status,
+            _ => {
+                return EvaluationError::Unavailable(format!(
+                    "the policy process stopped answering during a {what} request and gave no exit status"
+                ));
+            }
+        };
+        #[cfg(unix)]
+        {
+            use std::os::unix::process::ExitStatusExt;
+            match status.signal() {
+                Some(libc::SIGKILL) => {
+                    return EvaluationError::Unavailable(format!(
+                        "the policy process was killed by SIGKILL from outside the evaluator during a {what} \
+                         request (not by its own limits); the job goes back to the queue"
+                    ));
+                }
+                Some(libc::SIGABRT) => {
+                    return EvaluationError::InvalidArgument(format!(
+                        "the policy process aborted during a {what} request, as it does when an allocation fails \
+                         under its {} MB memory limit",
+                        self.memory_limit_bytes >> 20
+                    ));
+                }
+                Some(signal) => {
+                    return EvaluationError::InvalidArgument(format!(
+                        "the policy process ended on signal {signal} during a {what} request"
+                    ));
+                }
+                None => {}
+            }
+        }
+        EvaluationError::InvalidArgument(format!("the policy process exited ({status}) during a {what} request"))
     }
 
     async fn exchange(&mut self, op: u8, payload: &[u8]) -> std::io::Result<Result<Bytes, String>> {

@@ -103,8 +103,37 @@ pub fn file_limit(name: &str) -> Option<u64> {
     })
 }
 
-/// Checks uploaded `(name, bytes)` files as a submission for `task`.
-pub fn check(task: &Task, files: Vec<(String, Bytes)>) -> Result<CheckedSubmission, ApiError> {
+/// What scoring one submission may cost in all.
+pub struct JobBudget {
+    pub episodes_per_threshold: u32,
+    pub max_multiply_adds: u64,
+}
+
+impl JobBudget {
+    /// Refuses a checkpoint whose scoring would take more than the budget: its cost per action × the task's horizon
+    /// × the episodes it plays (per threshold; each threshold for a checkpoint scored at all of them).
+    fn check(&self, task: &Task, config: &PolicyConfig, thresholds: usize) -> Result<(), ApiError> {
+        let input_dim = config.obs_dim + usize::from(matches!(config.conditioning, Conditioning::TargetCost));
+        let per_action = config.architecture.step_cost(input_dim, config.act_dim).multiply_adds;
+        let actions = u64::from(task.max_episode_steps) * u64::from(self.episodes_per_threshold) * thresholds as u64;
+        let total = per_action.saturating_mul(actions);
+        if total > self.max_multiply_adds {
+            return Err(ApiError::InvalidArgument(format!(
+                "scoring this {} would take up to {total} multiply-adds ({per_action} per action × {actions} actions: \
+                 {} steps × {} episodes × {thresholds} thresholds); a submission's budget is {} \
+                 (leaderboard.max_job_multiply_adds): use a smaller network or context",
+                config.architecture.name(),
+                task.max_episode_steps,
+                self.episodes_per_threshold,
+                self.max_multiply_adds
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Checks uploaded `(name, bytes)` files as a submission for `task`, within `budget`.
+pub fn check(task: &Task, files: Vec<(String, Bytes)>, budget: &JobBudget) -> Result<CheckedSubmission, ApiError> {
     let bad = |m: String| ApiError::InvalidArgument(m);
     let mut slots: BTreeMap<String, (Option<Bytes>, Option<Bytes>)> = BTreeMap::new();
     for (name, bytes) in files {
@@ -155,6 +184,23 @@ pub fn check(task: &Task, files: Vec<(String, Bytes)>) -> Result<CheckedSubmissi
         });
     }
     check_thresholds(task, &mut checkpoints)?;
+    for c in &checkpoints {
+        let thresholds = if c.config.conditioning.cost_threshold().is_some() {
+            1
+        } else {
+            task.cost_thresholds.len()
+        };
+        budget.check(task, &c.config, thresholds).map_err(|e| {
+            ApiError::InvalidArgument(format!(
+                "{}{e}",
+                if c.slot.is_empty() {
+                    String::new()
+                } else {
+                    format!("{}: ", c.slot)
+                }
+            ))
+        })?;
+    }
     let mut digest = Sha256::new();
     for c in &checkpoints {
         let canonical = serde_json::to_vec(&PolicyConfig {

@@ -31,7 +31,7 @@ pub async fn run(
     let simulators = Arc::new(SimulatorPool::start(&config.simulators));
     let mut leaderboard_config = config.leaderboard.clone();
     leaderboard_config.evaluators = leaderboard_config.evaluators.max(1);
-    let leaderboard = Arc::new(Leaderboard::new(
+    let leaderboard = Leaderboard::new(
         db,
         store,
         catalog,
@@ -39,9 +39,15 @@ pub async fn run(
         leaderboard_config,
         dsrl_service::seed_secret(&config)?,
         policy_program,
-    )?);
-    runner::spawn(leaderboard.clone());
+    )?;
     let mut registry = Registry::with_prefix("dsrl");
+    registry.register(
+        "evaluator_restarts",
+        "Evaluator tasks of this process started again after a panic",
+        leaderboard.evaluators.restarts.clone(),
+    );
+    let leaderboard = Arc::new(leaderboard);
+    runner::spawn(leaderboard.clone());
     let queue_depth = Arc::new(queue::register_depth_gauge(&mut registry));
     let registry = Arc::new(registry);
     let probes = Router::new()
@@ -49,7 +55,15 @@ pub async fn run(
             "/healthz",
             axum::routing::get({
                 let leaderboard = leaderboard.clone();
-                move || async move { dsrl_service::database_health(&leaderboard.db).await }
+                move || async move {
+                    let (healthy, health) = leaderboard.health().await;
+                    let status = if healthy {
+                        axum::http::StatusCode::OK
+                    } else {
+                        axum::http::StatusCode::SERVICE_UNAVAILABLE
+                    };
+                    (status, axum::Json(health))
+                }
             }),
         )
         .route(

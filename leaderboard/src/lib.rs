@@ -9,9 +9,11 @@
 
 pub mod checkpoints;
 pub mod evaluator;
+pub mod export;
 pub mod queue;
 pub mod reference;
 pub mod runner;
+pub mod supervision;
 pub mod users;
 
 pub use dsrl_evaluation::{protocol, seeds};
@@ -58,6 +60,10 @@ pub struct Leaderboard {
     pub paper: PaperResults,
     /// Each finished submission's per-task bootstrap intervals (its episodes never change once finished).
     intervals: Mutex<HashMap<i64, (Interval, Interval)>>,
+    /// What this process's evaluators are doing (`runner`), for `/healthz`, `/metrics` and the views.
+    pub evaluators: supervision::Evaluators,
+    /// Wakes this process's evaluators when one of their jobs may have been cancelled.
+    pub(crate) cancelled: tokio::sync::Notify,
 }
 
 /// The suite a task belongs to, as the leaderboard groups them (the paper's three families).
@@ -109,6 +115,41 @@ pub struct SubmissionView {
     pub safe: Option<bool>,
     pub thresholds: Vec<ThresholdResult>,
     pub episodes: Vec<EpisodeRow>,
+    /// Why a failed job failed: `checkpoint` (it would fail again) or `infrastructure` (something outside it; the
+    /// same checkpoint may be submitted again).
+    pub failure: Option<String>,
+    /// While queued: where it stands and when it should start and finish.
+    pub queue: Option<QueuePlace>,
+    /// While running: who scores it and how far it is.
+    pub progress: Option<Progress>,
+    /// Submissions its author has made to this task, whatever became of them (this one included).
+    pub author_submissions_to_task: u32,
+}
+
+/// A queued submission's place: its position in the order evaluators claim jobs (1: next), the jobs ahead of it,
+/// and estimates from the recent scoring times of each job's task.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct QueuePlace {
+    pub position: usize,
+    pub jobs_ahead: Vec<i64>,
+    /// Jobs being scored now.
+    pub running: usize,
+    pub estimated_start: String,
+    pub estimated_finish: String,
+    /// Seconds this task's jobs recently took (the mean of the last five), or the default guess when none was scored.
+    pub task_scoring_seconds: f64,
+}
+
+/// A running submission's progress.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct Progress {
+    /// The lease owner scoring it (`<pid>-<random>-<evaluator index>`).
+    pub evaluator: Option<String>,
+    pub last_heartbeat: Option<String>,
+    /// Episodes finished in this attempt, of all it plays.
+    pub episodes_done: u32,
+    pub episodes_total: u32,
+    pub estimated_finish: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
@@ -128,6 +169,8 @@ pub struct TaskEntry {
     pub name: String,
     pub normalized_reward: f64,
     pub normalized_cost: f64,
+    /// Submissions its author has made to this task, whatever became of them: a best of many tries shows as one.
+    pub author_submissions_to_task: u32,
     /// Percentile-bootstrap intervals over the entry's episodes (resampled within each threshold).
     pub normalized_reward_interval: Interval,
     pub normalized_cost_interval: Interval,
@@ -190,6 +233,50 @@ pub struct Board {
     pub agreement: Vec<AgreementSummary>,
 }
 
+/// A job in the queue as the leaderboard page lists it.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct QueuedJob {
+    pub id: i64,
+    pub task: String,
+    pub name: String,
+    pub user: String,
+    /// `running` or `queued`.
+    pub state: String,
+    /// Queued: 1 for the next to be claimed.
+    pub position: Option<usize>,
+    pub episodes_done: u32,
+    pub episodes_total: u32,
+}
+
+/// One submission in a user's list.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct UserSubmission {
+    pub id: i64,
+    pub task: String,
+    pub name: String,
+    pub state: String,
+    pub reason: Option<String>,
+    pub created_at: String,
+    pub finished_at: Option<String>,
+    pub normalized_reward: Option<f64>,
+    pub normalized_cost: Option<f64>,
+    pub protocol_version: Option<String>,
+}
+
+/// A task's scoring time when none of its jobs has been scored yet (and no task's has): a guess, said to be one.
+const DEFAULT_SCORING_SECONDS: f64 = 300.0;
+
+struct Estimates {
+    recent: HashMap<String, f64>,
+    default: f64,
+}
+
+impl Estimates {
+    fn seconds(&self, task: &str) -> f64 {
+        self.recent.get(task).copied().unwrap_or(self.default)
+    }
+}
+
 /// Bootstrap settings of the family aggregates and the per-task intervals (fixed, so a table is reproducible).
 pub const BOOTSTRAP_RESAMPLES: u32 = 2000;
 pub const BOOTSTRAP_CONFIDENCE: f64 = 0.95;
@@ -214,6 +301,8 @@ impl Leaderboard {
             protocol: protocol::current(&catalog, config.episodes_per_threshold),
             paper,
             intervals: Mutex::new(HashMap::new()),
+            evaluators: supervision::Evaluators::default(),
+            cancelled: tokio::sync::Notify::new(),
             db,
             store,
             catalog,
@@ -261,7 +350,11 @@ impl Leaderboard {
         // Parsing the weights and building the networks is CPU work: off the async runtime, so a hostile upload
         // cannot stall other requests.
         let owned = task.clone();
-        let checked = tokio::task::spawn_blocking(move || checkpoints::check(&owned, files))
+        let budget = checkpoints::JobBudget {
+            episodes_per_threshold: self.config.episodes_per_threshold,
+            max_multiply_adds: self.config.max_job_multiply_adds,
+        };
+        let checked = tokio::task::spawn_blocking(move || checkpoints::check(&owned, files, &budget))
             .await
             .map_err(ApiError::internal)??;
         let dataset_version = checked.dataset_version();
@@ -309,7 +402,45 @@ impl Leaderboard {
 
     pub async fn cancel(&self, user: &User, id: i64) -> Result<SubmissionView, ApiError> {
         queue::cancel(&self.db, id, user.id).await?;
+        // An evaluator of this process scoring it stops at once (others within a second).
+        self.cancelled.notify_waiters();
         self.view(id).await
+    }
+
+    /// How long a job of `task` may run: `deadline_factor` times the task's recent mean scoring time (at least
+    /// `min_deadline_seconds`), never past `max_evaluation_seconds`.
+    pub async fn deadline(&self, task: &str) -> std::time::Duration {
+        let max = self.config.max_evaluation_seconds.max(1) as f64;
+        let recent = queue::recent_scoring_seconds(&self.db, 5)
+            .await
+            .ok()
+            .and_then(|m| m.get(task).copied());
+        let seconds = match recent {
+            Some(mean) => (mean * self.config.deadline_factor).max(self.config.min_deadline_seconds as f64),
+            None => max,
+        };
+        std::time::Duration::from_secs_f64(seconds.min(max))
+    }
+
+    /// `/healthz` of a process with evaluators: the database, and every evaluator's state; degraded when the
+    /// database does not answer or none of the configured evaluators is running.
+    pub async fn health(&self) -> (bool, supervision::Health) {
+        let database = match self.db.ping().await {
+            Ok(()) => "ok".to_owned(),
+            Err(e) => format!("unavailable: {e}"),
+        };
+        let evaluators = self.evaluators.states();
+        let configured = self.config.evaluators;
+        let healthy = database == "ok" && (configured == 0 || evaluators.iter().any(|e| e.running));
+        (
+            healthy,
+            supervision::Health {
+                status: if healthy { "ok" } else { "degraded" },
+                database,
+                evaluators_configured: configured,
+                evaluators,
+            },
+        )
     }
 
     pub async fn view(&self, id: i64) -> Result<SubmissionView, ApiError> {
@@ -317,6 +448,30 @@ impl Leaderboard {
         let episodes = queue::episodes(&self.db, id).await?;
         let task = self.task(&row.task)?;
         let thresholds = threshold_results(task, &episodes);
+        let episodes_total = row.episodes_per_threshold * task.cost_thresholds.len() as u32;
+        let (queue_place, progress) = match row.state.as_str() {
+            "queued" => (self.queue_place(id, &row.task).await?, None),
+            "running" => {
+                let estimate = self.estimates().await?;
+                let per = estimate.seconds(&row.task);
+                let left = per * (1.0 - f64::from(row.episodes_done) / f64::from(episodes_total.max(1)));
+                (
+                    None,
+                    Some(Progress {
+                        evaluator: row.lease_owner.clone(),
+                        last_heartbeat: row.heartbeat_ms.map(dsrl_service::db::rfc3339_at_ms),
+                        episodes_done: row.episodes_done,
+                        episodes_total,
+                        estimated_finish: Some(dsrl_service::db::rfc3339_at_ms(
+                            queue::now_ms() + (left.max(0.0) * 1000.0) as i64,
+                        )),
+                    }),
+                )
+            }
+            _ => (None, None),
+        };
+        let counts = queue::submission_counts(&self.db).await?;
+        let author_submissions_to_task = counts.get(&(row.user_id, row.task.clone())).copied().unwrap_or(1);
         Ok(SubmissionView {
             id: row.id,
             task: row.task,
@@ -347,7 +502,126 @@ impl Leaderboard {
             safe: row.normalized_cost.map(|c| c <= 1.0),
             thresholds,
             episodes,
+            failure: row.failure,
+            queue: queue_place,
+            progress,
+            author_submissions_to_task,
         })
+    }
+
+    /// Recent scoring times per task and the number of evaluators at work, for the queue's estimates.
+    async fn estimates(&self) -> Result<Estimates, ApiError> {
+        let recent = queue::recent_scoring_seconds(&self.db, 5).await?;
+        let default = if recent.is_empty() {
+            DEFAULT_SCORING_SECONDS
+        } else {
+            recent.values().sum::<f64>() / recent.len() as f64
+        };
+        Ok(Estimates { recent, default })
+    }
+
+    /// Where a queued job stands: its position in the claim order, the jobs ahead, and when it should start and
+    /// finish if the evaluators at work take the jobs in that order, each as long as its task recently took.
+    async fn queue_place(&self, id: i64, task: &str) -> Result<Option<QueuePlace>, ApiError> {
+        let order = queue::waiting_in_order(&self.db).await?;
+        let Some(position) = order.iter().position(|(j, _)| *j == id) else {
+            return Ok(None);
+        };
+        let running = queue::running(&self.db).await?;
+        let estimate = self.estimates().await?;
+        let now = queue::now_ms() as f64 / 1000.0;
+        // When each evaluator is next free: the running jobs' remaining time; idle evaluators now.
+        let evaluators = (self.config.evaluators as usize).max(running.len()).max(1);
+        let mut free: Vec<f64> = running
+            .iter()
+            .map(|(_, t, claimed, _, _)| {
+                let end = *claimed as f64 / 1000.0 + estimate.seconds(t);
+                (end - now).max(0.0)
+            })
+            .collect();
+        free.resize(evaluators, 0.0);
+        for (_, t) in &order[..position] {
+            let next = free
+                .iter_mut()
+                .min_by(|a, b| a.total_cmp(b))
+                .expect("at least one evaluator");
+            *next += estimate.seconds(t);
+        }
+        let start = free.iter().copied().fold(f64::INFINITY, f64::min);
+        let own = estimate.seconds(task);
+        let at = |s: f64| dsrl_service::db::rfc3339_at_ms(((now + s) * 1000.0) as i64);
+        Ok(Some(QueuePlace {
+            position: position + 1,
+            jobs_ahead: order[..position].iter().map(|(j, _)| *j).collect(),
+            running: running.len(),
+            estimated_start: at(start),
+            estimated_finish: at(start + own),
+            task_scoring_seconds: own,
+        }))
+    }
+
+    /// The jobs being scored and those waiting, in the order they will be claimed (the leaderboard page's queue).
+    pub async fn queue_summary(&self) -> Result<Vec<QueuedJob>, ApiError> {
+        let running = queue::running(&self.db).await?;
+        let waiting = queue::waiting_in_order(&self.db).await?;
+        let mut jobs = Vec::new();
+        for (id, _, _, done, per_threshold) in running {
+            let row = queue::get(&self.db, id).await?;
+            let thresholds = self.task(&row.task).map_or(3, |t| t.cost_thresholds.len()) as u32;
+            jobs.push(QueuedJob {
+                id,
+                task: row.task,
+                name: row.name,
+                user: row.user,
+                state: "running".into(),
+                position: None,
+                episodes_done: done,
+                episodes_total: per_threshold * thresholds,
+            });
+        }
+        for (position, (id, _)) in waiting.into_iter().enumerate() {
+            let row = queue::get(&self.db, id).await?;
+            jobs.push(QueuedJob {
+                id,
+                task: row.task,
+                name: row.name,
+                user: row.user,
+                state: "queued".into(),
+                position: Some(position + 1),
+                episodes_done: 0,
+                episodes_total: 0,
+            });
+        }
+        Ok(jobs)
+    }
+
+    /// Every submission of the user named `user`, newest first.
+    pub async fn user_submissions(&self, user: &str) -> Result<Vec<UserSubmission>, ApiError> {
+        let rows = queue::by_user(&self.db, user).await?;
+        if rows.is_empty() {
+            let known = sqlx::query("SELECT 1 FROM users WHERE name = $1")
+                .bind(user)
+                .fetch_optional(self.db.pool())
+                .await?;
+            if known.is_none() {
+                return Err(ApiError::NotFound(format!("no user {user}")));
+            }
+        }
+        Ok(rows
+            .into_iter()
+            .map(|r| UserSubmission {
+                id: r.id,
+                task: r.task,
+                name: r.name,
+                state: r.state,
+                reason: r.reason,
+                created_at: r.created_at,
+                finished_at: r.finished_at,
+                normalized_reward: r.normalized_reward,
+                normalized_cost: r.normalized_cost,
+                protocol_version: r.protocol_version,
+            })
+            .collect())
     }
 
     /// The tables: every task of the catalog (or only `task`) with its ranked entries of the current protocol, the
@@ -377,6 +651,7 @@ impl Leaderboard {
             })
             .collect();
         let cells = agreement(&self.catalog, &self.paper, &ours);
+        let counts = queue::submission_counts(&self.db).await?;
         let mut tasks: Vec<TaskTable> = Vec::new();
         for t in self.catalog.tasks() {
             if task.is_some_and(|id| id != t.id.as_str()) {
@@ -401,6 +676,7 @@ impl Leaderboard {
                     name: row.name.clone(),
                     normalized_reward: scores[i].reward,
                     normalized_cost: scores[i].cost,
+                    author_submissions_to_task: counts.get(&(row.user_id, row.task.clone())).copied().unwrap_or(1),
                     normalized_reward_interval: reward_interval,
                     normalized_cost_interval: cost_interval,
                     safe: scores[i].is_safe(),

@@ -27,6 +27,27 @@ pub struct Job {
 /// One evaluated episode (the suite's type: reference results hold the same rows).
 pub use dsrl_suite::score::EpisodeResult as EpisodeRow;
 
+/// A submission that holds its checkpoint against resubmission (the dedupe index's condition): not cancelled, and
+/// not failed for a reason outside the checkpoint.
+pub const HOLDS_CHECKPOINT: &str = "state != 'cancelled' AND NOT (state = 'failed' AND failure = 'infrastructure')";
+
+/// Why a failed job failed: its checkpoint (it would fail again), or something outside it (the same checkpoint may
+/// be submitted again).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Failure {
+    Checkpoint,
+    Infrastructure,
+}
+
+impl Failure {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Failure::Checkpoint => "checkpoint",
+            Failure::Infrastructure => "infrastructure",
+        }
+    }
+}
+
 pub struct NewSubmission<'a> {
     pub user_id: i64,
     pub task: &'a str,
@@ -119,9 +140,9 @@ pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<
 
 /// The error for a checkpoint that a live submission already holds, naming that submission.
 async fn already_submitted(db: &Db, new: &NewSubmission<'_>) -> Result<Option<ApiError>, ApiError> {
-    let existing = sqlx::query(
-        "SELECT id, state FROM submissions WHERE task = $1 AND checkpoint_sha256 = $2 AND state != 'cancelled'",
-    )
+    let existing = sqlx::query(AssertSqlSafe(format!(
+        "SELECT id, state FROM submissions WHERE task = $1 AND checkpoint_sha256 = $2 AND {HOLDS_CHECKPOINT}"
+    )))
     .bind(new.task)
     .bind(new.checkpoint_sha256)
     .fetch_optional(db.pool())
@@ -134,13 +155,15 @@ async fn already_submitted(db: &Db, new: &NewSubmission<'_>) -> Result<Option<Ap
     ))))
 }
 
-/// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the oldest runnable job.
-/// On PostgreSQL the pick skips rows another evaluator is claiming (`FOR UPDATE SKIP LOCKED`), so concurrent claims
-/// neither wait for each other nor take the same job.
+/// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the next runnable job: of the
+/// waiting jobs' users, the one served longest ago (never served first), then that user's oldest job. So one user's
+/// queue of slow submissions delays another user's by at most the job being scored. On PostgreSQL the pick skips
+/// rows another evaluator is claiming (`FOR UPDATE SKIP LOCKED`), so concurrent claims neither wait for each other
+/// nor take the same job.
 pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Result<Option<Job>, ApiError> {
     let now = now_ms();
     sqlx::query(
-        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = $3,
+        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = $3, failure = 'infrastructure',
              reason = 'the evaluation was interrupted ' || attempts || ' times (evaluator or simulator lost)'
          WHERE state = 'running' AND lease_expires_ms < $1 AND attempts >= $2",
     )
@@ -152,10 +175,12 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
     let row = sqlx::query(AssertSqlSafe(format!(
         "UPDATE submissions
          SET state = 'running', attempts = attempts + 1, lease_owner = $1, lease_expires_ms = $2,
-             started_at = COALESCE(started_at, $3)
-         WHERE id = (SELECT id FROM submissions
+             started_at = COALESCE(started_at, $3), claimed_ms = $4, heartbeat_ms = $4, episodes_done = 0
+         WHERE id = (SELECT s.id FROM submissions s
                      WHERE {}
-                     ORDER BY id LIMIT 1{})
+                     ORDER BY (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = s.user_id),
+                              s.id
+                     LIMIT 1{})
          RETURNING id, task, checkpoints, episodes_per_threshold, attempts",
         waiting("$4"),
         db.backend().skip_locked()
@@ -217,17 +242,33 @@ pub async fn refresh_depth_gauge(gauge: &Gauge, db: &Db) {
     }
 }
 
-/// Extends the lease; `false` when the job is no longer this evaluator's (taken over, or cancelled).
-pub async fn heartbeat(db: &Db, id: i64, owner: &str, lease_ms: i64) -> Result<bool, ApiError> {
+/// Extends the lease and records the episodes scored so far; `false` when the job is no longer this evaluator's
+/// (taken over, or cancelled).
+pub async fn heartbeat(db: &Db, id: i64, owner: &str, lease_ms: i64, episodes_done: u32) -> Result<bool, ApiError> {
+    let now = now_ms();
     let done = sqlx::query(
-        "UPDATE submissions SET lease_expires_ms = $3 WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
+        "UPDATE submissions SET lease_expires_ms = $3, heartbeat_ms = $4, episodes_done = $5
+         WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
-    .bind(now_ms() + lease_ms)
+    .bind(now + lease_ms)
+    .bind(now)
+    .bind(i64::from(episodes_done))
     .execute(db.pool())
     .await?;
     Ok(done.rows_affected() == 1)
+}
+
+/// Whether the job is still this evaluator's to play (a read, cheap enough to ask every second: a cancel stops the
+/// job's children within that).
+pub async fn still_held(db: &Db, id: i64, owner: &str) -> Result<bool, ApiError> {
+    let row = sqlx::query("SELECT 1 FROM submissions WHERE id = $1 AND lease_owner = $2 AND state = 'running'")
+        .bind(id)
+        .bind(owner)
+        .fetch_optional(db.pool())
+        .await?;
+    Ok(row.is_some())
 }
 
 /// A job's result: every episode, the scores, and the protocol version they were scored under.
@@ -242,8 +283,9 @@ pub struct Scores<'a> {
 pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Result<bool, ApiError> {
     let mut tx = db.begin().await?;
     let done = sqlx::query(
-        "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = $3, reason = NULL,
-             normalized_reward = $4, normalized_cost = $5, protocol_version = $6
+        "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = $3, reason = NULL, failure = NULL,
+             normalized_reward = $4, normalized_cost = $5, protocol_version = $6, scoring_ms = $7 - claimed_ms,
+             episodes_done = $8
          WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
@@ -252,6 +294,8 @@ pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Resul
     .bind(result.normalized_reward)
     .bind(result.normalized_cost)
     .bind(result.protocol_version)
+    .bind(now_ms())
+    .bind(result.episodes.len() as i64)
     .execute(&mut *tx)
     .await?;
     if done.rows_affected() != 1 {
@@ -367,16 +411,39 @@ pub async fn withdraw_except(db: &Db, user_id: i64, keep: &[(String, String)], r
     Ok(withdrawn)
 }
 
-/// Ends a job with the reason, if this evaluator still holds it.
-pub async fn fail(db: &Db, id: i64, owner: &str, reason: &str) -> Result<(), ApiError> {
+/// Ends a job with the reason and the kind of failure, if this evaluator still holds it.
+pub async fn fail(db: &Db, id: i64, owner: &str, reason: &str, failure: Failure) -> Result<(), ApiError> {
     sqlx::query(
-        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = $3, reason = $4
+        "UPDATE submissions SET state = 'failed', lease_owner = NULL, finished_at = $3, reason = $4, failure = $5
          WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
     .bind(owner)
     .bind(now_rfc3339())
     .bind(reason)
+    .bind(failure.as_str())
+    .execute(db.pool())
+    .await?;
+    Ok(())
+}
+
+/// Gives a job back to the queue after something outside its checkpoint failed, or fails it (an infrastructure
+/// failure, so it may be submitted again) once it has been claimed `max_attempts` times.
+pub async fn release_or_fail(db: &Db, id: i64, owner: &str, reason: &str, max_attempts: u32) -> Result<(), ApiError> {
+    sqlx::query(
+        "UPDATE submissions
+         SET state = CASE WHEN attempts >= $4 THEN 'failed' ELSE 'queued' END,
+             failure = CASE WHEN attempts >= $4 THEN 'infrastructure' ELSE NULL END,
+             finished_at = CASE WHEN attempts >= $4 THEN $5 ELSE NULL END,
+             lease_owner = NULL,
+             reason = CASE WHEN attempts >= $4 THEN $3 || ' (the last of ' || attempts || ' attempts)' ELSE $3 END
+         WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
+    )
+    .bind(id)
+    .bind(owner)
+    .bind(reason)
+    .bind(i64::from(max_attempts))
+    .bind(now_rfc3339())
     .execute(db.pool())
     .await?;
     Ok(())
@@ -448,11 +515,18 @@ pub struct SubmissionRow {
     pub dataset_version: Option<String>,
     /// A reference entry's record (JSON).
     pub reference: Option<String>,
+    pub lease_owner: Option<String>,
+    pub claimed_ms: Option<i64>,
+    pub heartbeat_ms: Option<i64>,
+    pub episodes_done: u32,
+    pub failure: Option<String>,
+    pub user_id: i64,
 }
 
 const SELECT_SUBMISSIONS: &str = "SELECT s.id, u.name AS submitter, s.task, s.name, s.checkpoint_sha256, s.checkpoints,
         s.state, s.reason, s.attempts, s.created_at, s.started_at, s.finished_at, s.episodes_per_threshold,
-        s.normalized_reward, s.normalized_cost, s.protocol_version, s.dataset_version, s.reference
+        s.normalized_reward, s.normalized_cost, s.protocol_version, s.dataset_version, s.reference, s.lease_owner,
+        s.claimed_ms, s.heartbeat_ms, s.episodes_done, s.failure, s.user_id
     FROM submissions s JOIN users u ON u.id = s.user_id";
 
 fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
@@ -476,6 +550,12 @@ fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
         protocol_version: row.try_get("protocol_version")?,
         dataset_version: row.try_get("dataset_version")?,
         reference: row.try_get("reference")?,
+        lease_owner: row.try_get("lease_owner")?,
+        claimed_ms: row.try_get("claimed_ms")?,
+        heartbeat_ms: row.try_get("heartbeat_ms")?,
+        episodes_done: row.try_get::<i64, _>("episodes_done")? as u32,
+        failure: row.try_get("failure")?,
+        user_id: row.try_get("user_id")?,
     })
 }
 
@@ -521,4 +601,82 @@ pub async fn episodes(db: &Db, id: i64) -> Result<Vec<EpisodeRow>, ApiError> {
             })
         })
         .collect()
+}
+
+/// The jobs waiting for an evaluator in the order evaluators will claim them (the claim's fair order), with their
+/// tasks.
+pub async fn waiting_in_order(db: &Db) -> Result<Vec<(i64, String)>, ApiError> {
+    let rows = sqlx::query(AssertSqlSafe(format!(
+        "SELECT s.id, s.task FROM submissions s WHERE {}
+         ORDER BY (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = s.user_id), s.id",
+        waiting("$1")
+    )))
+    .bind(now_ms())
+    .fetch_all(db.pool())
+    .await?;
+    rows.iter().map(|r| Ok((r.try_get(0)?, r.try_get(1)?))).collect()
+}
+
+/// The running jobs (with a live lease): id, task, claimed at (ms), episodes done, episodes in all.
+pub async fn running(db: &Db) -> Result<Vec<(i64, String, i64, u32, u32)>, ApiError> {
+    let rows = sqlx::query(
+        "SELECT id, task, COALESCE(claimed_ms, 0), episodes_done, episodes_per_threshold FROM submissions
+         WHERE state = 'running' AND lease_expires_ms >= $1 ORDER BY id",
+    )
+    .bind(now_ms())
+    .fetch_all(db.pool())
+    .await?;
+    rows.iter()
+        .map(|r| {
+            Ok((
+                r.try_get(0)?,
+                r.try_get(1)?,
+                r.try_get(2)?,
+                r.try_get::<i64, _>(3)? as u32,
+                r.try_get::<i64, _>(4)? as u32,
+            ))
+        })
+        .collect()
+}
+
+/// Mean scoring time in seconds of the last `last` finished jobs of each task that has any.
+pub async fn recent_scoring_seconds(db: &Db, last: i64) -> Result<std::collections::HashMap<String, f64>, ApiError> {
+    let rows = sqlx::query(
+        "SELECT task, scoring_ms FROM submissions s
+         WHERE state = 'finished' AND scoring_ms IS NOT NULL AND s.id IN (
+             SELECT t.id FROM submissions t WHERE t.task = s.task AND t.state = 'finished' AND t.scoring_ms IS NOT NULL
+             ORDER BY t.id DESC LIMIT $1)",
+    )
+    .bind(last)
+    .fetch_all(db.pool())
+    .await?;
+    let mut sums: std::collections::HashMap<String, (f64, f64)> = std::collections::HashMap::new();
+    for r in rows {
+        let (task, ms): (String, i64) = (r.try_get(0)?, r.try_get(1)?);
+        let entry = sums.entry(task).or_default();
+        entry.0 += ms as f64 / 1000.0;
+        entry.1 += 1.0;
+    }
+    Ok(sums.into_iter().map(|(t, (sum, n))| (t, sum / n)).collect())
+}
+
+/// How many submissions each (user id, task) has made, whatever became of them.
+pub async fn submission_counts(db: &Db) -> Result<std::collections::HashMap<(i64, String), u32>, ApiError> {
+    let rows = sqlx::query("SELECT user_id, task, COUNT(*) FROM submissions GROUP BY user_id, task")
+        .fetch_all(db.pool())
+        .await?;
+    rows.iter()
+        .map(|r| Ok(((r.try_get(0)?, r.try_get(1)?), r.try_get::<i64, _>(2)? as u32)))
+        .collect()
+}
+
+/// Every submission of the user named `user`, newest first.
+pub async fn by_user(db: &Db, user: &str) -> Result<Vec<SubmissionRow>, ApiError> {
+    let rows = sqlx::query(AssertSqlSafe(format!(
+        "{SELECT_SUBMISSIONS} WHERE u.name = $1 ORDER BY s.id DESC"
+    )))
+    .bind(user)
+    .fetch_all(db.pool())
+    .await?;
+    rows.iter().map(submission_row).collect()
 }

@@ -52,10 +52,11 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
     for entry in entries {
         let task = leaderboard.task(&entry.task)?;
         let Some(score) = entry.score(task) else { continue };
-        let existing = sqlx::query(
+        let existing = sqlx::query(sqlx::AssertSqlSafe(format!(
             "SELECT id, user_id, protocol_version, finished_at FROM submissions
-             WHERE task = $1 AND checkpoint_sha256 = $2 AND state != 'cancelled'",
-        )
+             WHERE task = $1 AND checkpoint_sha256 = $2 AND {}",
+            queue::HOLDS_CHECKPOINT
+        )))
         .bind(&entry.task)
         .bind(&entry.checkpoint_sha256)
         .fetch_optional(db.pool())

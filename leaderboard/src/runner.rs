@@ -1,9 +1,16 @@
 //! Evaluators: tasks that drain the submission queue. Each claims a job with a lease, heartbeats while it plays the
-//! job's episodes through the simulator pool, and stores the result only while it still holds the lease. An
-//! evaluator that dies (with its server) leaves a lease that runs out; any evaluator then re-runs the job from the
-//! start, with the same held seeds, so the result is the same.
+//! job's episodes through the simulator pool (recording how many are done), and stores the result only while it
+//! still holds the lease. An evaluator that dies with its server leaves a lease that runs out; any evaluator then
+//! re-runs the job from the start, with the same held seeds, so the result is the same.
+//!
+//! Every evaluator runs under a supervisor (`spawn`): one that panics is logged, counted
+//! (`dsrl_evaluator_restarts_total`), shown in `/healthz`, its job put back in the queue (or failed once it has had
+//! `max_attempts` claims), and it is started again. A job that runs past its deadline (a multiple of its task's
+//! recent scoring time, within `max_evaluation_seconds`) fails with the reason; a cancelled one is stopped within a
+//! second, its policy processes with it.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Duration;
 
 use dsrl_policy::Policy;
@@ -12,8 +19,8 @@ use dsrl_policy::checkpoint;
 use dsrl_evaluation::inference::{IsolatedPolicy, PolicySource};
 
 use super::Leaderboard;
-use super::queue::{self, EpisodeRow, Job};
-use dsrl_evaluation::evaluator::play_episodes;
+use super::queue::{self, EpisodeRow, Failure, Job};
+use dsrl_evaluation::evaluator::play_episodes_counted;
 use dsrl_service::error::{ApiError, ErrorCode};
 
 /// How a job ended.
@@ -21,26 +28,64 @@ enum Outcome {
     Scored(Vec<EpisodeRow>),
     /// The checkpoint cannot be evaluated (it would fail again).
     Failed(String),
-    /// Something outside the checkpoint failed (a simulator worker died): the job goes back to the queue.
+    /// Something outside the checkpoint failed (a simulator worker died, a policy process was killed from
+    /// outside): the job goes back to the queue.
     Interrupted(String),
 }
 
-/// Starts `config.evaluators` evaluators; they run until the runtime stops.
+/// Starts `config.evaluators` supervised evaluators; they run until the runtime stops.
 pub fn spawn(leaderboard: Arc<Leaderboard>) {
-    for i in 0..leaderboard.config.evaluators {
-        let owner = format!(
-            "{}-{}-{i}",
-            std::process::id(),
-            dsrl_service::secrets::random_hex()
-                .unwrap_or_default()
-                .get(..8)
-                .unwrap_or("0")
-        );
-        tokio::spawn(evaluator(leaderboard.clone(), owner));
+    for index in 0..leaderboard.config.evaluators as usize {
+        leaderboard.evaluators.add(index);
+        tokio::spawn(supervise(leaderboard.clone(), index));
     }
 }
 
-async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
+fn new_owner(index: usize) -> String {
+    format!(
+        "{}-{}-{index}",
+        std::process::id(),
+        dsrl_service::secrets::random_hex()
+            .unwrap_or_default()
+            .get(..8)
+            .unwrap_or("0")
+    )
+}
+
+/// Runs evaluator `index`, starting it again whenever it panics.
+async fn supervise(leaderboard: Arc<Leaderboard>, index: usize) {
+    loop {
+        let owner = new_owner(index);
+        leaderboard.evaluators.started(index, &owner);
+        let run = tokio::spawn(evaluator(leaderboard.clone(), index, owner.clone()));
+        let panic = match run.await {
+            Ok(()) => return,
+            Err(e) if e.is_panic() => {
+                let payload = e.into_panic();
+                payload
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| payload.downcast_ref::<&str>().map(|s| (*s).to_owned()))
+                    .unwrap_or_else(|| "a panic without a message".to_owned())
+            }
+            // Cancelled: the runtime is shutting down.
+            Err(_) => return,
+        };
+        let job = leaderboard.evaluators.panicked(index, &panic);
+        tracing::error!(evaluator = index, %owner, job, panic = %panic, "an evaluator panicked; starting it again");
+        if let Some(id) = job {
+            let reason = format!("the evaluator scoring it failed ({panic}); the job went back to the queue");
+            let max = leaderboard.config.max_attempts;
+            if let Err(e) = queue::release_or_fail(&leaderboard.db, id, &owner, &reason, max).await {
+                tracing::error!(id, error = %e, "returning a panicked evaluator's job");
+            }
+        }
+        leaderboard.wake.notify_waiters();
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+}
+
+async fn evaluator(leaderboard: Arc<Leaderboard>, index: usize, owner: String) {
     let lease_ms = (leaderboard.config.lease_seconds.max(1) * 1000) as i64;
     loop {
         // Waits for a simulator worker before taking a job, so a server without workers only queues.
@@ -61,19 +106,25 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
                 continue;
             }
         };
+        leaderboard.evaluators.claimed(index, job.id);
         tracing::info!(id = job.id, task = %job.task, attempt = job.attempts, %owner, "evaluation started");
         let started = std::time::Instant::now();
-        // A wall-clock budget per evaluation: a policy that is legal but slow fails with the reason instead of
-        // holding an evaluator for ever.
-        let budget = Duration::from_secs(leaderboard.config.max_evaluation_seconds.max(1));
+        let deadline = leaderboard.deadline(&job.task).await;
+        let progress = AtomicU32::new(0);
         let outcome = tokio::select! {
-            outcome = tokio::time::timeout(budget, evaluate(&leaderboard, &job)) => Some(outcome.unwrap_or_else(|_| {
-                Outcome::Failed(format!(
-                    "the evaluation ran past its wall-clock budget of {} s (leaderboard.max_evaluation_seconds)",
-                    budget.as_secs()
-                ))
-            })),
-            () = keep_lease(&leaderboard, &job, &owner, lease_ms) => None,
+            outcome = tokio::time::timeout(deadline, evaluate(&leaderboard, &job, &progress)) => {
+                Some(outcome.unwrap_or_else(|_| {
+                    Outcome::Failed(format!(
+                        "the evaluation ran past its deadline of {} s ({} episodes of {} done; the deadline is \
+                         leaderboard.deadline_factor times the task's recent scoring time, at most \
+                         leaderboard.max_evaluation_seconds)",
+                        deadline.as_secs(),
+                        progress.load(Ordering::Relaxed),
+                        job.episodes_per_threshold as usize * leaderboard.task(&job.task).map_or(3, |t| t.cost_thresholds.len())
+                    ))
+                }))
+            }
+            () = keep_lease(&leaderboard, index, &job, &owner, lease_ms, &progress) => None,
         };
         let stored = match outcome {
             None => {
@@ -90,7 +141,7 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
             }),
             Some(Outcome::Failed(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation failed");
-                queue::fail(&leaderboard.db, job.id, &owner, &reason).await
+                queue::fail(&leaderboard.db, job.id, &owner, &reason, Failure::Checkpoint).await
             }
             Some(Outcome::Interrupted(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation interrupted; the job goes back to the queue");
@@ -102,14 +153,37 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, owner: String) {
         if let Err(e) = stored {
             tracing::error!(id = job.id, error = %e, "recording an evaluation result");
         }
+        leaderboard.evaluators.idle(index);
     }
 }
 
-/// Heartbeats every third of the lease; returns when the job is no longer this evaluator's.
-async fn keep_lease(leaderboard: &Leaderboard, job: &Job, owner: &str, lease_ms: i64) {
+/// Checks every second that the job is still this evaluator's (a cancel stops it within that, and at once when it
+/// was cancelled on this server), and heartbeats with the episodes done every third of the lease; returns when the
+/// job is no longer this evaluator's.
+async fn keep_lease(
+    leaderboard: &Leaderboard,
+    index: usize,
+    job: &Job,
+    owner: &str,
+    lease_ms: i64,
+    progress: &AtomicU32,
+) {
+    let beat = Duration::from_millis((lease_ms / 3).max(100) as u64);
+    let mut last_beat = std::time::Instant::now();
     loop {
-        tokio::time::sleep(Duration::from_millis((lease_ms / 3).max(100) as u64)).await;
-        match queue::heartbeat(&leaderboard.db, job.id, owner, lease_ms).await {
+        let _ = tokio::time::timeout(Duration::from_secs(1), leaderboard.cancelled.notified()).await;
+        let held = if last_beat.elapsed() >= beat {
+            last_beat = std::time::Instant::now();
+            let done = progress.load(Ordering::Relaxed);
+            let beat = queue::heartbeat(&leaderboard.db, job.id, owner, lease_ms, done).await;
+            if beat.is_ok() {
+                leaderboard.evaluators.heartbeat(index);
+            }
+            beat
+        } else {
+            queue::still_held(&leaderboard.db, job.id, owner).await
+        };
+        match held {
             Ok(true) => {}
             Ok(false) => return,
             // A database hiccup: the lease has two more beats before it runs out.
@@ -131,8 +205,22 @@ async fn store(leaderboard: &Leaderboard, job: &Job, owner: &str, episodes: &[Ep
     queue::finish(&leaderboard.db, job.id, owner, &scores).await
 }
 
+/// A test-only fault, compiled into debug builds alone: a submission named `DSRL_TEST_PANIC_ON_NAME` makes its
+/// evaluator panic, so the end-to-end tests can check the supervisor.
+#[cfg(debug_assertions)]
+async fn injected_fault(leaderboard: &Leaderboard, job: &Job) {
+    if let Ok(name) = std::env::var("DSRL_TEST_PANIC_ON_NAME")
+        && let Ok(row) = queue::get(&leaderboard.db, job.id).await
+        && row.name == name
+    {
+        panic!("test fault: DSRL_TEST_PANIC_ON_NAME={name}");
+    }
+}
+
 /// Plays `episodes_per_threshold` held-seed episodes at each of the task's thresholds, all thresholds at once.
-async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
+async fn evaluate(leaderboard: &Leaderboard, job: &Job, progress: &AtomicU32) -> Outcome {
+    #[cfg(debug_assertions)]
+    injected_fault(leaderboard, job).await;
     let task = match leaderboard.task(&job.task) {
         Ok(task) => task,
         Err(e) => return Outcome::Failed(e.to_string()),
@@ -152,6 +240,7 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
             Some(program) => Ok(Loaded::Isolated(IsolatedPolicy {
                 program: program.clone(),
                 memory_limit_bytes: leaderboard.config.policy_memory_limit_bytes,
+                request_timeout: Duration::from_secs(leaderboard.config.policy_request_seconds.max(1)),
                 config: config_bytes,
                 weights: weights_bytes,
             })),
@@ -181,7 +270,7 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
         async move {
             let policy =
                 policy.ok_or_else(|| ApiError::Internal(format!("no checkpoint for threshold {threshold}")))?;
-            let scores = play_episodes(
+            let scores = play_episodes_counted(
                 &leaderboard.simulators,
                 task,
                 policy,
@@ -189,6 +278,7 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job) -> Outcome {
                 &seeds,
                 leaderboard.config.envs_per_session as usize,
                 1,
+                progress,
             )
             .await?;
             Ok::<_, ApiError>(

@@ -11,7 +11,9 @@
 //! whose text differs from what the data gives (the test `docs_are_generated_from_the_committed_data` runs it). A
 //! number in a document outside such a section is not a measurement.
 //!
-//! Sections: `reference-*` from the reference results (`data/reference/results.jsonl`) and the paper's table.
+//! Sections: `reference-*` from the reference results (`data/reference/results.jsonl`) and the paper's table;
+//! `hosted-*` from the committed starters (`data/starter/`, `crate::hosted`). Whole generated files:
+//! `data/starter_gaps.csv`.
 
 use std::collections::BTreeMap;
 use std::fmt::Write;
@@ -24,7 +26,10 @@ use dsrl_suite::paper::PaperResults;
 use dsrl_suite::reference::{ReferenceEntry, agreement, read_results, scored_entries, summarize};
 
 /// The documents that hold generated sections, relative to the repository root.
-pub const DOCUMENTS: [&str; 1] = ["data/reference/README.md"];
+pub const DOCUMENTS: [&str; 2] = ["data/README.md", "data/reference/README.md"];
+
+/// Files generated whole.
+pub const GENERATED_FILES: [&str; 1] = ["data/starter_gaps.csv"];
 
 /// Bootstrap settings of the documents' intervals: the leaderboard's.
 const RESAMPLES: u32 = 2000;
@@ -250,8 +255,8 @@ pub fn reference_sections(
     sections
 }
 
-/// Every generated section the committed data gives, from the repository at `root`.
-pub fn sections(root: &Path) -> anyhow::Result<BTreeMap<String, String>> {
+/// Every generated section the committed data gives, from the repository at `root`, and the whole generated files.
+pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeMap<String, String>)> {
     let catalog = Catalog::embedded()?;
     let paper = PaperResults::embedded(&catalog)?;
     let results_path = root.join("data/reference/results.jsonl");
@@ -261,7 +266,14 @@ pub fn sections(root: &Path) -> anyhow::Result<BTreeMap<String, String>> {
     )?;
     let protocol =
         dsrl_evaluation::protocol::current(&catalog, dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD);
-    Ok(reference_sections(&catalog, &paper, &entries, &protocol.version))
+    let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version);
+    let starters = crate::hosted::read_starters(&catalog, &root.join("data/starter"))?;
+    all.extend(crate::hosted::sections(&catalog, &starters));
+    let files = BTreeMap::from([(
+        "data/starter_gaps.csv".to_owned(),
+        crate::hosted::gaps_csv(&catalog, &starters),
+    )]);
+    Ok((all, files))
 }
 
 /// What `dsrl-admin docs` did: the documents it changed (or, with `check`, would change) and their sections.
@@ -271,8 +283,19 @@ pub struct DocsReport {
 
 /// Regenerates the sections of `DOCUMENTS` under `root`; with `check`, writes nothing and reports what differs.
 pub fn run(root: &Path, check: bool) -> anyhow::Result<DocsReport> {
-    let sections = sections(root)?;
+    let (sections, files) = sections(root)?;
     let mut stale = Vec::new();
+    for (name, text) in &files {
+        let path = root.join(name);
+        if std::fs::read_to_string(&path).ok().as_deref() != Some(text.as_str()) {
+            if !check {
+                let tmp = path.with_extension("tmp");
+                std::fs::write(&tmp, text)?;
+                std::fs::rename(&tmp, &path)?;
+            }
+            stale.push((path, vec!["the whole file".to_owned()]));
+        }
+    }
     let mut used = std::collections::BTreeSet::new();
     for doc in DOCUMENTS {
         let path = root.join(doc);

@@ -500,6 +500,16 @@ impl Rollout<'_> {
                 policy.act_dim
             )));
         }
+        // A non-finite value anywhere in the forward pass reaches the actions (NaN propagates through every layer,
+        // ReLU included, as in PyTorch): the evaluation fails with the reason rather than play a broken network.
+        if let Some(i) = actions.iter().position(|a| !a.is_finite()) {
+            return Err(format_error(format!(
+                "the policy produced a non-finite action ({}) for environment {}: a NaN or infinity in its forward \
+                 pass",
+                actions[i],
+                envs[i / policy.act_dim.max(1)]
+            )));
+        }
         Ok(actions)
     }
 

@@ -421,6 +421,24 @@ pub fn parse_weights(bytes: &[u8]) -> Result<HashMap<String, Tensor>> {
             tensors.len()
         )));
     }
+    // A non-finite weight makes every action it touches NaN (or, behind a ReLU in a framework that drops NaN, a
+    // silent zero): refused here, with the tensor named.
+    let mut names: Vec<&String> = tensors.keys().collect();
+    names.sort();
+    for name in names {
+        let values = tensors[name]
+            .to_dtype(candle_core::DType::F32)
+            .and_then(|t| t.flatten_all())
+            .and_then(|t| t.to_vec1::<f32>())
+            .map_err(|e| PolicyError::Format(format!("{WEIGHTS_FILE}: tensor {name}: {e}")))?;
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(PolicyError::Format(format!(
+                "{WEIGHTS_FILE}: tensor {name} holds a non-finite value ({} at flat index {i}); every weight must be \
+                 finite",
+                values[i]
+            )));
+        }
+    }
     Ok(tensors)
 }
 

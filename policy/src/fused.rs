@@ -131,10 +131,11 @@ fn normal_cdf_pdf(x: f32) -> (f32, f32) {
 
 /// `max(x, 0)`, with candle's gradient convention (`g` where `x ≥ 0`) so that results do not change from `relu()`;
 /// candle's own backward builds a comparison tensor, a type conversion and a product, each a pass over the batch.
+/// NaN stays NaN, as in PyTorch (`f32::max` would turn it into 0 and hide a broken network behind finite actions).
 pub fn relu(x: &Tensor) -> CResult<Tensor> {
     x.contiguous()?.apply_op1(Elementwise {
         name: "relu",
-        value: |x| x.max(0.),
+        value: |x| if x.is_nan() { x } else { x.max(0.) },
         slope: |x| if x >= 0. { 1. } else { 0. },
     })
 }
@@ -468,6 +469,14 @@ mod tests {
         x[3] = 0.0;
         let x = Var::from_vec(x, (4, 5), &Device::Cpu).unwrap();
         same_as_primitive(&[x], |t| relu(&t[0]).unwrap(), |t| t[0].relu().unwrap(), "relu");
+    }
+
+    #[test]
+    fn relu_keeps_nan_as_pytorch_does() {
+        let x = Tensor::new(&[f32::NAN, -1.0, 2.0], &Device::Cpu).unwrap();
+        let y = relu(&x).unwrap().to_vec1::<f32>().unwrap();
+        assert!(y[0].is_nan());
+        assert_eq!(&y[1..], &[0.0, 2.0]);
     }
 
     #[test]

@@ -140,6 +140,24 @@ pub struct SimulatorSession {
     next_id: u64,
     spec: TaskSpec,
     num_envs: usize,
+    /// What each request in flight asked for, in order: every answer is checked against it before it is used.
+    pending: std::collections::VecDeque<Asked>,
+}
+
+/// A request in flight: what kind, for which environments (already resolved: empty means all).
+#[derive(Debug, Clone)]
+enum Asked {
+    Step(Vec<u32>),
+    Reset(Vec<u32>),
+    Drive(Vec<u32>),
+    Close,
+    Raw,
+}
+
+/// A worker's answer that does not fit its request: an error for that session (the worker is at fault, not the
+/// policy), never a panic where the answer is indexed.
+fn bad_answer(message: String) -> Status {
+    Status::data_loss(format!("the simulator worker answered out of protocol: {message}"))
 }
 
 impl SimulatorSession {
@@ -176,6 +194,7 @@ impl SimulatorSession {
                 next_id: 1,
                 spec,
                 num_envs,
+                pending: std::collections::VecDeque::new(),
             },
             observations,
         ))
@@ -189,7 +208,24 @@ impl SimulatorSession {
         self.num_envs
     }
 
+    /// The environments a request names (empty: all of the session's).
+    fn resolve(&self, envs: &[u32]) -> Vec<u32> {
+        if envs.is_empty() {
+            (0..self.num_envs as u32).collect()
+        } else {
+            envs.to_vec()
+        }
+    }
+
     async fn send(&mut self, kind: session_request::Kind) -> Result<u64, Status> {
+        let asked = match &kind {
+            session_request::Kind::Step(step) => Asked::Step(self.resolve(&step.envs)),
+            session_request::Kind::Reset(reset) => Asked::Reset(self.resolve(&reset.envs)),
+            session_request::Kind::Drive(drive) => Asked::Drive(self.resolve(&drive.envs)),
+            session_request::Kind::Close(_) => Asked::Close,
+            _ => Asked::Raw,
+        };
+        self.pending.push_back(asked);
         let id = self.next_id;
         self.next_id += 1;
         if self
@@ -250,7 +286,110 @@ impl SimulatorSession {
         self.send(kind).await
     }
 
+    /// The next answer, in the order the requests were sent, checked against its request: one row per environment
+    /// asked for, in that order, with the spec's dimensions, finite observations, rewards and costs (costs also
+    /// non-negative). An answer that does not fit is an error (`DATA_LOSS`, naming what was wrong).
     pub async fn receive(&mut self) -> Result<Reply, Status> {
+        let reply = self.receive_unchecked().await?;
+        let asked = self.pending.pop_front();
+        if let Some(asked) = asked {
+            self.check(&asked, &reply)?;
+        }
+        Ok(reply)
+    }
+
+    fn check(&self, asked: &Asked, reply: &Reply) -> Result<(), Status> {
+        let (obs_dim, act_dim) = (self.spec.obs_dim as usize, self.spec.act_dim as usize);
+        let rows = |what: &str, got: usize, want: usize| {
+            if got == want {
+                Ok(())
+            } else {
+                Err(bad_answer(format!("{what}: {got} values where {want} were due")))
+            }
+        };
+        fn finite(what: &str, values: impl IntoIterator<Item = f64>) -> Result<(), Status> {
+            match values.into_iter().position(|v| !v.is_finite()) {
+                Some(i) => Err(bad_answer(format!("{what}: a non-finite value at index {i}"))),
+                None => Ok(()),
+            }
+        }
+        match (asked, reply) {
+            (Asked::Step(envs), Reply::Step(r)) => {
+                if &r.envs != envs {
+                    return Err(bad_answer(format!(
+                        "a step for environments {envs:?} answered for {:?}",
+                        r.envs
+                    )));
+                }
+                let n = envs.len();
+                rows("observations", r.observations.len(), n * obs_dim)?;
+                rows("rewards", r.rewards.len(), n)?;
+                rows("costs", r.costs.len(), n)?;
+                rows("terminated", r.terminated.len(), n)?;
+                rows("truncated", r.truncated.len(), n)?;
+                rows("applied_actions", r.applied_actions.len(), n * act_dim)?;
+                if let Some(f) = &r.final_observations {
+                    rows("final_observations", f.len(), n * obs_dim)?;
+                }
+                finite("observations", r.observations.iter().map(|&v| f64::from(v)))?;
+                finite("rewards", r.rewards.iter().copied())?;
+                finite("costs", r.costs.iter().copied())?;
+                if let Some(c) = r.costs.iter().find(|&&c| c < 0.0) {
+                    return Err(bad_answer(format!("costs: a negative cost {c}")));
+                }
+                Ok(())
+            }
+            (
+                Asked::Reset(envs),
+                Reply::Reset {
+                    envs: got,
+                    observations,
+                },
+            ) => {
+                if got != envs {
+                    return Err(bad_answer(format!(
+                        "a reset of environments {envs:?} answered for {got:?}"
+                    )));
+                }
+                rows("observations", observations.len(), envs.len() * obs_dim)?;
+                finite("observations", observations.iter().map(|&v| f64::from(v)))
+            }
+            (Asked::Drive(envs), Reply::Drive(episodes)) => {
+                let got: Vec<u32> = episodes.iter().map(|e| e.env).collect();
+                if &got != envs {
+                    return Err(bad_answer(format!(
+                        "a drive of environments {envs:?} answered for {got:?}"
+                    )));
+                }
+                for e in episodes {
+                    let t = e.rewards.len();
+                    rows("driven observations", e.observations.len(), t * obs_dim)?;
+                    rows("driven costs", e.costs.len(), t)?;
+                    rows("driven applied_actions", e.applied_actions.len(), t * act_dim)?;
+                }
+                Ok(())
+            }
+            (Asked::Close, Reply::Closed) | (Asked::Raw, _) => Ok(()),
+            (asked, reply) => Err(bad_answer(format!(
+                "a {} request was answered with a {} reply",
+                match asked {
+                    Asked::Step(_) => "step",
+                    Asked::Reset(_) => "reset",
+                    Asked::Drive(_) => "drive",
+                    Asked::Close => "close",
+                    Asked::Raw => "raw",
+                },
+                match reply {
+                    Reply::Step(_) => "step",
+                    Reply::Reset { .. } => "reset",
+                    Reply::Drive(_) => "drive",
+                    Reply::Closed => "closed",
+                }
+            ))),
+        }
+    }
+
+    async fn receive_unchecked(&mut self) -> Result<Reply, Status> {
         let response = next_response(&mut self.responses).await?;
         match response.kind {
             Some(session_response::Kind::Reset(reset)) => Ok(Reply::Reset {

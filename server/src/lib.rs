@@ -81,7 +81,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     }
     metrics.dataset_versions.set(datasets.db().version_count().await?);
     let simulators = Arc::new(SimulatorPool::start(&config.simulators));
-    let leaderboard = Arc::new(Leaderboard::new(
+    let mut leaderboard = Leaderboard::new(
         datasets.db().clone(),
         leaderboard_store,
         catalog,
@@ -89,7 +89,9 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         config.leaderboard.clone(),
         dsrl_service::seed_secret(config)?,
         converter_program,
-    )?);
+    )?;
+    leaderboard.evaluators.restarts = metrics.evaluator_restarts.clone();
+    let leaderboard = Arc::new(leaderboard);
     leaderboard.import_reference_results().await?;
     leaderboard::runner::spawn(leaderboard.clone());
     Ok(AppState {

@@ -40,6 +40,8 @@ pub struct Metrics {
     pub queue_depth: Gauge,
     /// Request handlers that panicked, by route (each also counts as a 500 / INTERNAL in `requests`).
     pub panics: Family<RouteLabels, Counter>,
+    /// Evaluators of this process started again after a panic (the leaderboard's supervisor counts into it).
+    pub evaluator_restarts: Counter,
 }
 
 impl Metrics {
@@ -92,7 +94,14 @@ impl Metrics {
             "Request handlers that panicked, by route (answered 500 / INTERNAL)",
             panics.clone(),
         );
+        let evaluator_restarts = Counter::default();
+        registry.register(
+            "evaluator_restarts",
+            "Evaluator tasks of this process started again after a panic",
+            evaluator_restarts.clone(),
+        );
         Metrics {
+            evaluator_restarts,
             panics,
             registry,
             requests,

@@ -85,7 +85,18 @@ fn starter_datasets(dir: &Path) -> anyhow::Result<Vec<StarterDataset>> {
     let mut found: BTreeMap<(String, PathBuf), Vec<FoundPart>> = BTreeMap::new();
     for task_dir in std::fs::read_dir(dir)? {
         let task_dir = task_dir?;
-        if !task_dir.file_type()?.is_dir() {
+        // Followed through symbolic links (a starter folder linked in from elsewhere is a starter folder); a link
+        // that leads nowhere is an error, not a task silently skipped.
+        if task_dir.file_type()?.is_symlink() && std::fs::metadata(task_dir.path()).is_err() {
+            anyhow::bail!(
+                "starter folder {} is a symbolic link to nothing ({})",
+                task_dir.path().display(),
+                std::fs::read_link(task_dir.path())
+                    .map(|t| t.display().to_string())
+                    .unwrap_or_default()
+            );
+        }
+        if !task_dir.path().is_dir() {
             continue;
         }
         let task = task_dir.file_name().to_string_lossy().into_owned();
@@ -165,5 +176,24 @@ mod tests {
         std::fs::remove_file(task.join("B-250-60.part-1-of-2.parquet")).unwrap();
         let err = starter_datasets(dir.path()).unwrap_err().to_string();
         assert!(err.contains("B-250-60.parquet: parts [2] of 2 found"), "{err}");
+    }
+
+    #[test]
+    fn a_task_folder_behind_a_symbolic_link_is_followed_and_a_dangling_one_refused() {
+        let real = tempfile::tempdir().unwrap();
+        let folder = real.path().join("OfflineBallRun-v0");
+        std::fs::create_dir_all(&folder).unwrap();
+        std::fs::write(folder.join("A-80-10.parquet"), b"").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        std::os::unix::fs::symlink(&folder, dir.path().join("OfflineBallRun-v0")).unwrap();
+        let found = starter_datasets(dir.path()).unwrap();
+        assert_eq!(found.len(), 1);
+        assert_eq!(found[0].task, "OfflineBallRun-v0");
+        std::os::unix::fs::symlink(real.path().join("gone"), dir.path().join("OfflineCarRun-v0")).unwrap();
+        let err = starter_datasets(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("OfflineCarRun-v0") && err.contains("symbolic link to nothing"),
+            "{err}"
+        );
     }
 }

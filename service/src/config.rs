@@ -51,6 +51,16 @@ pub struct LeaderboardConfig {
     pub policy_memory_limit_bytes: u64,
     /// Wall-clock budget of one evaluation (all thresholds); past it the submission fails with the reason.
     pub max_evaluation_seconds: u64,
+    /// A job may run this many times its task's recent mean scoring time (at least `min_deadline_seconds`, at most
+    /// `max_evaluation_seconds`) before it fails with the reason.
+    pub deadline_factor: f64,
+    pub min_deadline_seconds: u64,
+    /// Every request to a submitted policy's process (load, act, observe) must be answered within this; a process
+    /// that does not is stopped and its job fails with the reason.
+    pub policy_request_seconds: u64,
+    /// The most multiply-adds a submission's scoring may take in all (its network's cost per action × the task's
+    /// horizon × episodes per threshold × thresholds), checked before it is queued: a job's worst case is minutes.
+    pub max_job_multiply_adds: u64,
     /// Import the committed reference results (`data/reference/results.jsonl`, compiled in) at start-up as the
     /// leaderboard's reference entries. Off on the server that scores them (`data/reference_entries.sh`).
     pub import_reference_results: bool,
@@ -70,6 +80,11 @@ impl Default for LeaderboardConfig {
             seed_secret: None,
             policy_memory_limit_bytes: 4 << 30,
             max_evaluation_seconds: 3600,
+            deadline_factor: 4.0,
+            min_deadline_seconds: 600,
+            policy_request_seconds: 30,
+            // OSRL's CDT on a 1000-step task takes 1.5e12 (about 4 minutes on one core).
+            max_job_multiply_adds: 2_000_000_000_000,
             import_reference_results: true,
         }
     }

@@ -377,6 +377,11 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
         "protocol",
         include_str!("../../migrations/sqlite/20261126000001_protocol.sql"),
     ),
+    (
+        20261126000002,
+        "queue_operations",
+        include_str!("../../migrations/sqlite/20261126000002_queue_operations.sql"),
+    ),
 ];
 
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -394,6 +399,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         20261126000001,
         "protocol",
         include_str!("../../migrations/postgres/20261126000001_protocol.sql"),
+    ),
+    (
+        20261126000002,
+        "queue_operations",
+        include_str!("../../migrations/postgres/20261126000002_queue_operations.sql"),
     ),
 ];
 
@@ -564,6 +574,14 @@ pub fn now_rfc3339() -> String {
         .expect("0 is a valid nanosecond");
     now.format(&time::format_description::well_known::Rfc3339)
         .expect("formattable")
+}
+
+/// A time in milliseconds since the Unix epoch as RFC 3339, to the second (heartbeats, estimates).
+pub fn rfc3339_at_ms(ms: i64) -> String {
+    time::OffsetDateTime::from_unix_timestamp(ms.div_euclid(1000))
+        .unwrap_or(time::OffsetDateTime::UNIX_EPOCH)
+        .format(&time::format_description::well_known::Rfc3339)
+        .unwrap_or_default()
 }
 
 /// Now in milliseconds since the Unix epoch (last-use times, leases).

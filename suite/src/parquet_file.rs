@@ -288,6 +288,57 @@ impl From<arrow_schema::ArrowError> for ReadError {
     }
 }
 
+/// The episode index of dataset files read in order (a whole file, or the parts of one), from their reward, cost
+/// and done columns only: observations and actions are never decoded. The returns are summed as the manifest's
+/// index sums them (float32, `np.sum`'s order), episode by episode; an episode left open at a file's end is an
+/// error. For tools that need a dataset's returns without ingesting it (`dsrl-admin docs`).
+pub fn read_episode_index(files: &[std::path::PathBuf]) -> Result<Vec<crate::episode::EpisodeSummary>, ReadError> {
+    use crate::episode::{EpisodeSummary, numpy_sum_f32};
+    let mut episodes = Vec::new();
+    let (mut rewards, mut costs) = (Vec::<f32>::new(), Vec::<f32>::new());
+    let mut row = 0u64;
+    for path in files {
+        let builder = ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(path).map_err(ParquetError::from)?)?;
+        let schema = builder.schema().clone();
+        let roots = [REWARDS, COSTS, TERMINALS, TIMEOUTS]
+            .iter()
+            .map(|k| schema.index_of(k))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mask = ProjectionMask::roots(builder.parquet_schema(), roots);
+        for batch in builder.with_projection(mask).with_batch_size(1 << 16).build()? {
+            let batch = batch?;
+            let col = |name: &str| batch.column_by_name(name).expect("projected column").clone();
+            let r = float_vector(row, REWARDS, &col(REWARDS))?;
+            let c = float_vector(row, COSTS, &col(COSTS))?;
+            let t = flag_vector(row, TERMINALS, &col(TERMINALS))?;
+            let o = flag_vector(row, TIMEOUTS, &col(TIMEOUTS))?;
+            for i in 0..r.len() {
+                rewards.push(r[i]);
+                costs.push(c[i]);
+                if t[i] || o[i] {
+                    let length = rewards.len() as u32;
+                    episodes.push(EpisodeSummary {
+                        start: row + i as u64 + 1 - u64::from(length),
+                        length,
+                        reward_return: numpy_sum_f32(&rewards),
+                        cost_return: numpy_sum_f32(&costs),
+                    });
+                    rewards.clear();
+                    costs.clear();
+                }
+            }
+            row += r.len() as u64;
+        }
+        if !rewards.is_empty() {
+            return Err(ReadError::Layout(format!(
+                "{} ends inside an episode (no terminal or timeout flag on its last row)",
+                path.display()
+            )));
+        }
+    }
+    Ok(episodes)
+}
+
 /// Reads any Parquet file with DSRL's columns as transition chunks: the canonical layout, the compact form, or a
 /// file written by pandas/pyarrow with float64 values, variable-length lists, structs of one float per feature, or
 /// integer flags. Columns outside the format are reported, not read.

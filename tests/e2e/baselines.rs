@@ -152,51 +152,61 @@ fn each_per_threshold_baseline_trains_on_a_starter_and_is_scored_by_the_leaderbo
 /// the BallRun starter: it trains every method (a few steps, two jobs at a time: one per threshold for the
 /// per-threshold methods), submits each entry in turn and waits for its score.
 #[test]
-fn the_reference_entries_script_trains_every_method_in_parallel_and_each_entry_is_scored() {
+fn the_reference_entries_script_trains_scores_and_records_every_method_and_resumes() {
     let env = scoring_env("60");
     env.cli
         .run(&["admin", "ingest", "--task", TASK, crate::s(&starter())])
         .ok();
     let token = create_user(&env, "reference");
-    let models = env.path("policies");
-    let output = Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
-        .args([
-            "--steps",
-            "3",
-            "--cdt-steps",
-            "1",
-            "--caps-steps",
-            "3",
-            "--batch-size",
-            "16",
-            "--jobs",
-            "2",
-        ])
-        .args(["--methods", "bc-all bc-safe cdt bcql bearl cpq coptidice caps", TASK])
-        .env("DSRL_SERVER", &env.server.url)
-        .env("DSRL_TOKEN", &token)
-        .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
-        .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
-        .env("DSRL_DATASET_DIR", env.path("cache"))
-        .env("OUT", &models)
-        .output()
-        .unwrap();
+    let state = env.path("reference-state");
+    let results = env.path("results.jsonl");
+    let run = || {
+        Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
+            .args([
+                "--steps",
+                "3",
+                "--cdt-steps",
+                "1",
+                "--caps-steps",
+                "3",
+                "--batch-size",
+                "16",
+                "--jobs",
+                "2",
+            ])
+            .args(["--methods", "bc-all bc-safe cdt bcql bearl cpq coptidice caps", TASK])
+            .arg("--state")
+            .arg(&state)
+            .arg("--results")
+            .arg(&results)
+            .env("DSRL_SERVER", &env.server.url)
+            .env("DSRL_TOKEN", &token)
+            .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
+            .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
+            .env("DSRL_DATASET_DIR", env.path("cache"))
+            .output()
+            .unwrap()
+    };
+    let output = run();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "reference_entries.sh failed: {stderr}");
-    assert!(stderr.contains("training 18 models, 2 at a time"), "{stderr}");
+    assert!(stderr.contains("training 18 models (2 at a time)"), "{stderr}");
     // BEAR-Lag trains three times --steps, as OSRL's 300,000 against 100,000.
-    let bearl: serde_json::Value = serde_json::from_slice(
-        &std::fs::read(models.join(TASK).join("seed-0/bearl/threshold-40/policy.json")).unwrap(),
-    )
-    .unwrap();
+    let policies = state.join("policies").join(TASK).join("seed-0");
+    let bearl: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(policies.join("bearl/threshold-40/policy.json")).unwrap()).unwrap();
     assert_eq!(bearl["training"]["steps"], 9, "{bearl}");
 
+    // Every entry was scored and recorded, under the server's protocol, with its budget and episodes.
     let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
-    let entries = board["tasks"][0]["entries"].as_array().unwrap();
-    let mut names: Vec<&str> = entries.iter().map(|e| e["name"].as_str().unwrap()).collect();
-    names.sort_unstable();
+    let protocol = board["protocol"]["version"].as_str().unwrap().to_owned();
+    let catalog = dsrl_suite::Catalog::embedded().unwrap();
+    let text = std::fs::read_to_string(&results).unwrap();
+    let entries = dsrl_suite::reference::read_results(&text, &catalog).unwrap();
+    let mut methods: Vec<&str> = entries.iter().map(|e| e.method.as_str()).collect();
+    methods.sort_unstable();
     assert_eq!(
-        names,
+        methods,
         [
             "BC-All",
             "BC-Safe",
@@ -206,13 +216,38 @@ fn the_reference_entries_script_trains_every_method_in_parallel_and_each_entry_i
             "CDT",
             "COptiDICE",
             "CPQ"
-        ],
-        "{board}"
+        ]
     );
-    assert!(
-        entries
-            .iter()
-            .all(|e| e["user"] == "reference" && e["normalized_cost"].as_f64().unwrap() >= 0.0),
-        "{board}"
-    );
+    let shown = board["tasks"][0]["entries"].as_array().unwrap();
+    for e in &entries {
+        assert_eq!(e.protocol_version, protocol);
+        assert_eq!(e.episodes.len(), 60, "{}", e.method);
+        assert_eq!(
+            e.training.models,
+            if ["BC-All", "CDT", "CAPS"].contains(&e.method.as_str()) {
+                1
+            } else {
+                3
+            }
+        );
+        assert!(
+            e.training.cpu_seconds > 0.0 && !e.code_commit.is_empty(),
+            "{}",
+            e.method
+        );
+        // The line's scores are the server's.
+        let row = shown.iter().find(|r| r["submission"] == e.scoring.submission).unwrap();
+        let score = e.score(catalog.get(TASK).unwrap()).unwrap();
+        assert_eq!(row["normalized_reward"].as_f64().unwrap(), score.reward);
+        assert_eq!(row["dataset_version"], e.dataset_version.as_str());
+    }
+
+    // A second run finds everything done: it trains, submits and changes nothing.
+    let again = run();
+    let stderr = String::from_utf8_lossy(&again.stderr);
+    assert!(again.status.success(), "{stderr}");
+    assert!(!stderr.contains("submitted as"), "{stderr}");
+    assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
+    let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
+    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 8);
 }

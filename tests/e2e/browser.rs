@@ -52,6 +52,19 @@ fn the_dataset_browser_lists_every_task_and_its_card_plans_filters() {
     );
     assert!(card.contains("id=\"download-parquet\"") && card.contains("id=\"download-hdf5\""));
     assert!(card.contains("id=\"provenance\""));
+    // The corner count is the noise filter's own predicate on the served index.
+    let manifest = crate::get_json(&format!("{url}/v1/datasets/OfflineBallRun-v0/versions/latest"));
+    let catalog = dsrl_suite::Catalog::embedded().unwrap();
+    let task = catalog.get("OfflineBallRun-v0").unwrap();
+    let index: Vec<dsrl_suite::EpisodeSummary> = serde_json::from_value(manifest["episode_index"].clone()).unwrap();
+    let corner = index
+        .iter()
+        .filter(|e| dsrl_suite::filters::plan::in_tempting_corner(task, e.cost_return, e.reward_return))
+        .count();
+    assert!(
+        card.contains(&format!("reward ≥ max reward/2)</td><td>{corner}</td>")),
+        "the card's corner count is not {corner}"
+    );
 
     // The screenshot shows the redrawn plot: kept trajectories in blue and the relabelled ones in tomato red.
     let shot = dir.path().join("card.png");

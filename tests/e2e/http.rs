@@ -101,15 +101,18 @@ async fn health_metrics_and_openapi() {
     env.ingest_synthetic("OfflineBallRun-v0", 2, 31);
     let http = env.http();
     let url = &env.server.url;
+    let health: serde_json::Value = http
+        .get(format!("{url}/healthz"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
     assert_eq!(
-        http.get(format!("{url}/healthz"))
-            .send()
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap(),
-        "ok\n"
+        (&health["status"], &health["database"]),
+        (&"ok".into(), &"ok".into()),
+        "{health}"
     );
     http.get(format!("{url}/v1/datasets/OfflineBallRun-v0/versions/latest/download"))
         .send()

@@ -219,13 +219,11 @@ pub async fn card(
         return Ok((StatusCode::OK, Html(page(task.id.as_str(), &body))).into_response());
     };
     let manifest = state.datasets.manifest(latest).await?;
+    // The noise filter's own corner (one predicate for the filter, the hosted bar and this page).
     let corner = manifest
         .episode_index
         .iter()
-        .filter(|e| {
-            f64::from(e.cost_return) >= task.paper_cost_cap / 2.0
-                && f64::from(e.reward_return) >= task.max_episode_reward / 2.0
-        })
+        .filter(|e| dsrl_suite::filters::plan::in_tempting_corner(task, e.cost_return, e.reward_return))
         .count();
     let version = escape(manifest.version.as_str());
     let _ = write!(
@@ -234,7 +232,7 @@ pub async fn card(
          </th></tr><tr><td class=\"name\">trajectories</td><td>{}</td><td>{}</td></tr><tr><td class=\"name\">\
          reward return</td><td>{:.1} – {:.1}</td><td>{:.1} – {:.1}</td></tr><tr><td class=\"name\">cost return\
          </td><td>{:.1} – {:.1}</td><td>0 – {}</td></tr><tr><td class=\"name\">in the tempting corner (cost ≥ \
-         cap/2, reward ≥ max/2)</td><td>{corner}</td><td></td></tr></table>\n<p>Version <code id=\"version\">\
+         max cost/2, reward ≥ max reward/2)</td><td>{corner}</td><td></td></tr></table>\n<p>Version <code id=\"version\">\
          {version}</code>, {} transitions, {}, license {}, created {}.</p>\n",
         manifest.episodes,
         task.paper_trajectories,

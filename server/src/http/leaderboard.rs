@@ -153,6 +153,92 @@ pub async fn get_submission(
     Ok(Json(state.leaderboard.view(submission_id(&id)?).await?))
 }
 
+/// `GET /v1/submissions/{id}/episodes.csv`: every scored episode of a submission as CSV.
+#[utoipa::path(get, path = "/v1/submissions/{id}/episodes.csv", tag = "leaderboard",
+    params(("id" = String, Path, description = "Submission id (a number)")),
+    responses(
+        (status = 200, content_type = "text/csv", body = String,
+         description = "cost_threshold, episode, reward_return, cost_return, length: one line per scored episode"),
+        (status = 400, description = "Not a submission id"),
+        (status = 404, description = "No such submission")))]
+pub async fn submission_episodes_csv(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<impl IntoResponse, ApiError> {
+    let view = state.leaderboard.view(submission_id(&id)?).await?;
+    let body = crate::leaderboard::export::episodes_csv(&view.episodes)?;
+    Ok(([(header::CONTENT_TYPE, "text/csv; charset=utf-8")], body))
+}
+
+/// `GET /v1/leaderboard.csv`: the whole board (each task's entries and the paper's rows, each family's aggregate)
+/// as one CSV table with the protocol version on every row.
+#[utoipa::path(get, path = "/v1/leaderboard.csv", tag = "leaderboard",
+    responses((status = 200, content_type = "text/csv", body = String,
+        description = "One row per ranked entry, paper row and family entry (columns: protocol_version, scope, table, \
+                       kind, rank, user, name, reference, normalized_reward, reward_low, reward_high, \
+                       normalized_cost, cost_low, cost_high, safe, author_submissions_to_task, tasks, submission, \
+                       dataset_version, finished_at)")))]
+pub async fn leaderboard_csv(State(state): State<AppState>) -> Result<impl IntoResponse, ApiError> {
+    let board = state.leaderboard.board(None).await?;
+    let body = crate::leaderboard::export::csv(&crate::leaderboard::export::rows(&board))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "text/csv; charset=utf-8"),
+            (
+                header::CONTENT_DISPOSITION,
+                "attachment; filename=\"dsrl-leaderboard.csv\"",
+            ),
+        ],
+        body,
+    ))
+}
+
+/// `GET /v1/leaderboard.parquet`: the same table as `/v1/leaderboard.csv`, as Parquet.
+#[utoipa::path(get, path = "/v1/leaderboard.parquet", tag = "leaderboard",
+    responses((status = 200, content_type = "application/vnd.apache.parquet", body = Vec<u8>,
+        description = "The board's rows as one Parquet file (the CSV's columns)")))]
+pub async fn leaderboard_parquet(State(state): State<AppState>) -> Result<impl IntoResponse, ApiError> {
+    let board = state.leaderboard.board(None).await?;
+    let body = crate::leaderboard::export::parquet(&crate::leaderboard::export::rows(&board))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/vnd.apache.parquet"),
+            (
+                header::CONTENT_DISPOSITION,
+                "attachment; filename=\"dsrl-leaderboard.parquet\"",
+            ),
+        ],
+        body,
+    ))
+}
+
+/// `GET /v1/users/{name}/submissions`: every submission of a user, newest first.
+#[utoipa::path(get, path = "/v1/users/{name}/submissions", tag = "leaderboard",
+    params(("name" = String, Path, description = "User name")),
+    responses(
+        (status = 200, body = Vec<crate::leaderboard::UserSubmission>, description = "The user's submissions"),
+        (status = 404, description = "No such user")))]
+pub async fn user_submissions(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<impl IntoResponse, ApiError> {
+    Ok(Json(state.leaderboard.user_submissions(&name).await?))
+}
+
+/// `GET /users/{name}`: a user's page, every submission they made.
+#[utoipa::path(get, path = "/users/{name}", tag = "leaderboard",
+    params(("name" = String, Path, description = "User name")),
+    responses(
+        (status = 200, content_type = "text/html", body = String, description = "The user's page"),
+        (status = 404, description = "No such user")))]
+pub async fn user_page(State(state): State<AppState>, Path(name): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    let submissions = state.leaderboard.user_submissions(&name).await?;
+    Ok((
+        [(header::CACHE_CONTROL, "no-cache")],
+        Html(page::render_user(&name, &submissions)),
+    ))
+}
+
 /// `POST /v1/submissions/{id}/cancel` (the submitter's token).
 #[utoipa::path(post, path = "/v1/submissions/{id}/cancel", tag = "leaderboard",
     params(("id" = String, Path, description = "Submission id (a number)")),
@@ -221,7 +307,11 @@ pub async fn leaderboard_page(
     Query(query): Query<BoardQuery>,
 ) -> Result<impl IntoResponse, ApiError> {
     let board = state.leaderboard.board(query.task.as_deref()).await?;
-    Ok(([(header::CACHE_CONTROL, "no-cache")], Html(page::render(&board))))
+    let queue = state.leaderboard.queue_summary().await?;
+    Ok((
+        [(header::CACHE_CONTROL, "no-cache")],
+        Html(page::render(&board, &queue)),
+    ))
 }
 
 /// `GET /leaderboard/agreement`: our reference entries against the paper's table, per family and per cell.

@@ -20,7 +20,6 @@ use axum::response::IntoResponse;
 use axum::routing::{get, post, put};
 
 use crate::AppState;
-use crate::error::ApiError;
 
 pub fn router(state: AppState) -> Router {
     Router::new()
@@ -59,18 +58,35 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/submissions/{id}", get(leaderboard::get_submission))
         .route("/v1/submissions/{id}/cancel", post(leaderboard::cancel_submission))
         .route("/v1/leaderboard", get(leaderboard::get_leaderboard))
+        .route("/v1/leaderboard.csv", get(leaderboard::leaderboard_csv))
+        .route("/v1/leaderboard.parquet", get(leaderboard::leaderboard_parquet))
+        .route(
+            "/v1/submissions/{id}/episodes.csv",
+            get(leaderboard::submission_episodes_csv),
+        )
+        .route("/v1/users/{name}/submissions", get(leaderboard::user_submissions))
+        .route("/users/{name}", get(leaderboard::user_page))
         .route("/leaderboard", get(leaderboard::leaderboard_page))
         .route("/leaderboard/agreement", get(leaderboard::agreement_page))
         .route("/submissions/{id}", get(leaderboard::submission_page))
+        .layer(axum::middleware::map_response(html::defensive_headers))
         .with_state(state)
 }
 
-/// 200 when the database answers, 503 otherwise.
+/// The database and this server's evaluators: 200 when the database answers and, where the server should evaluate
+/// (`leaderboard.evaluators` > 0), at least one evaluator runs; 503 (`degraded`) otherwise.
 #[utoipa::path(get, path = "/healthz", tag = "operations",
-    responses((status = 200, content_type = "text/plain", body = String, description = "ok"),
-        (status = 503, description = "The database does not answer")))]
-pub async fn healthz(State(state): State<AppState>) -> Result<&'static str, ApiError> {
-    dsrl_service::database_health(state.datasets.db()).await
+    responses((status = 200, body = crate::leaderboard::supervision::Health, description = "ok"),
+        (status = 503, body = crate::leaderboard::supervision::Health,
+         description = "Degraded: the database does not answer, or no evaluator runs where some should")))]
+pub async fn healthz(State(state): State<AppState>) -> impl IntoResponse {
+    let (healthy, health) = state.leaderboard.health().await;
+    let status = if healthy {
+        StatusCode::OK
+    } else {
+        StatusCode::SERVICE_UNAVAILABLE
+    };
+    (status, axum::Json(health))
 }
 
 #[utoipa::path(get, path = "/openapi.json", tag = "operations",

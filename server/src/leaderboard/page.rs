@@ -8,7 +8,7 @@ use std::fmt::Write;
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
 use super::reference::ReferenceRecord;
-use super::{Board, SubmissionView, TaskTable};
+use super::{Board, QueuedJob, SubmissionView, TaskTable, UserSubmission};
 use crate::http::html::{escape, page};
 
 fn number(x: f64) -> String {
@@ -49,7 +49,68 @@ fn share(summary: &dsrl_suite::reference::AgreementSummary) -> String {
     }
 }
 
-pub fn render(board: &Board) -> String {
+/// The queue: jobs being scored with their progress, then the waiting ones in claim order.
+fn queue_section(html: &mut String, queue: &[QueuedJob]) {
+    html.push_str("<h2>Queue</h2>\n");
+    if queue.is_empty() {
+        html.push_str("<p id=\"queue-empty\">Nothing is waiting or being scored.</p>\n");
+        return;
+    }
+    html.push_str(
+        "<table id=\"queue\"><tr><th>submission</th><th class=\"name\">task</th><th class=\"name\">entry</th>\
+         <th class=\"name\">user</th><th class=\"name\">state</th></tr>\n",
+    );
+    for j in queue {
+        let state = match j.position {
+            Some(p) => format!("queued, position {p}"),
+            None => format!("scoring: {} of {} episodes", j.episodes_done, j.episodes_total),
+        };
+        let _ = writeln!(
+            html,
+            "<tr class=\"job {}\"><td><a href=\"/submissions/{id}\">{id}</a></td><td class=\"name\">{}</td>\
+             <td class=\"name\">{}</td><td class=\"name\"><a href=\"/users/{user}\">{user}</a></td><td class=\"name\">{}</td></tr>",
+            escape(&j.state),
+            escape(&j.task),
+            escape(&j.name),
+            escape(&state),
+            id = j.id,
+            user = escape(&j.user),
+        );
+    }
+    html.push_str("</table>\n");
+}
+
+/// A user's page: every submission, newest first.
+pub fn render_user(name: &str, submissions: &[UserSubmission]) -> String {
+    let mut html = format!(
+        "<h1>{}</h1>\n<p>{} submissions, newest first (every one is kept: the leaderboard shows each entry's count \
+         beside its score). <a href=\"/v1/users/{}/submissions\">JSON</a></p>\n<table id=\"submissions\"><tr>\
+         <th>submission</th><th class=\"name\">task</th><th class=\"name\">entry</th><th class=\"name\">state</th>\
+         <th>normalized reward</th><th>normalized cost</th><th class=\"name\">protocol</th><th class=\"name\">submitted</th></tr>\n",
+        escape(name),
+        submissions.len(),
+        escape(name)
+    );
+    for s in submissions {
+        let _ = writeln!(
+            html,
+            "<tr><td><a href=\"/submissions/{id}\">{id}</a></td><td class=\"name\">{}</td><td class=\"name\">{}</td>\
+             <td class=\"name\">{}</td><td>{}</td><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td></tr>",
+            escape(&s.task),
+            escape(&s.name),
+            escape(&s.state),
+            s.normalized_reward.map(number).unwrap_or_else(|| "–".into()),
+            s.normalized_cost.map(number).unwrap_or_else(|| "–".into()),
+            escape(s.protocol_version.as_deref().unwrap_or("–")),
+            escape(&s.created_at),
+            id = s.id,
+        );
+    }
+    html.push_str("</table>\n");
+    page(&format!("{name}: submissions"), &html)
+}
+
+pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
     let p = &board.protocol;
     let mut html = String::new();
     let _ = write!(
@@ -90,6 +151,11 @@ pub fn render(board: &Board) -> String {
         );
     }
     html.push_str("</table>\n");
+    html.push_str(
+        "<p>The board as data: <a href=\"/v1/leaderboard.csv\">CSV</a>, <a href=\"/v1/leaderboard.parquet\">Parquet\
+         </a>, <a href=\"/v1/leaderboard\">JSON</a>.</p>\n",
+    );
+    queue_section(&mut html, queue);
     if board.tasks.iter().all(|t| t.entries.is_empty()) {
         html.push_str("<p id=\"empty\">No scored entries yet.</p>\n");
     }
@@ -137,7 +203,7 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
         html,
         "<h2 id=\"{0}\"><a href=\"/tasks/{0}\">{0}</a></h2>\n<p>{1}; cost thresholds {2}.</p>\n<table class=\"task\"><tr><th>rank</th>\
          <th class=\"name\">entry</th><th class=\"name\">user</th><th>normalized reward [95%]</th><th>normalized cost [95%]</th>\
-         <th>safe</th><th class=\"name\">trained</th><th>submission</th></tr>\n",
+         <th>safe</th><th>author's submissions to the task</th><th class=\"name\">trained</th><th>submission</th></tr>\n",
         escape(&table.task),
         table.family,
         thresholds.join(", ")
@@ -149,19 +215,20 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
         };
         let _ = writeln!(
             html,
-            "<tr class=\"entry {} {}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td>\
-             <td>{}</td><td>{}</td><td class=\"name\">{}</td><td><a href=\"/submissions/{}\">{}</a></td></tr>",
+            "<tr class=\"entry {} {}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\"><a href=\"/users/{user}\">{user}</a></td><td>{}</td>\
+             <td>{}</td><td>{}</td><td class=\"count\">{}</td><td class=\"name\">{}</td><td><a href=\"/submissions/{}\">{}</a></td></tr>",
             if e.safe { "safe" } else { "unsafe" },
             if e.reference.is_some() { "reference" } else { "user" },
             e.rank,
             escape(&e.name),
-            escape(&e.user),
             with_interval(&e.normalized_reward_interval),
             with_interval(&e.normalized_cost_interval),
             if e.safe { "yes" } else { "no" },
+            e.author_submissions_to_task,
             escape(&trained),
             e.submission,
-            e.submission
+            e.submission,
+            user = escape(&e.user),
         );
     }
     html.push_str("</table>\n");
@@ -329,6 +396,29 @@ pub fn render_submission(view: &SubmissionView) -> String {
             ))
             .unwrap_or_default()
     );
+    if let Some(q) = &view.queue {
+        let _ = writeln!(
+            html,
+            "<p id=\"queue-place\">Queued at position {} ({} jobs ahead, {} being scored); estimated start {}, \
+             finish {} (this task's jobs recently took {:.0} s).</p>",
+            q.position,
+            q.jobs_ahead.len(),
+            q.running,
+            escape(&q.estimated_start),
+            escape(&q.estimated_finish),
+            q.task_scoring_seconds
+        );
+    }
+    if let Some(p) = &view.progress {
+        let _ = writeln!(
+            html,
+            "<p id=\"progress\">Scoring: {} of {} episodes done; evaluator <code>{}</code>, last heartbeat {}.</p>",
+            p.episodes_done,
+            p.episodes_total,
+            escape(p.evaluator.as_deref().unwrap_or("–")),
+            escape(p.last_heartbeat.as_deref().unwrap_or("–"))
+        );
+    }
     if view.thresholds.is_empty() {
         html.push_str("<p id=\"no-results\">No results yet.</p>\n");
     } else {

@@ -28,15 +28,46 @@ async fn run_tasks(tasks: Vec<dsrl_suite::catalog::Task>) -> Vec<String> {
             failures.push(format!("{id}: spec {spec:?} disagrees with the catalog"));
             continue;
         }
-        let (mut session, _) = worker.open(&id, &[0], AutoReset::SameStep).await;
+        let (mut session, first) = worker.open(&id, &[0], AutoReset::SameStep).await;
+        if first.len() != task.obs_dim as usize || first.iter().any(|x| !x.is_finite()) {
+            failures.push(format!(
+                "{id}: reset gave {} values, not {} finite ones",
+                first.len(),
+                task.obs_dim
+            ));
+        }
         let mut actions = Actions::new(0);
-        for _ in 0..5 {
-            if let Err(status) = session
+        for step in 0..5 {
+            match session
                 .step(&[], &actions.batch(&spec.action_low, &spec.action_high, 1))
                 .await
             {
-                failures.push(format!("{id}: step: {status}"));
-                break;
+                // One environment: one row of the catalog's dimensions, finite, answered for environment 0.
+                Ok(r) => {
+                    let shapes = (r.envs.len(), r.observations.len(), r.rewards.len(), r.costs.len());
+                    let flags = (r.terminated.len(), r.truncated.len(), r.applied_actions.len());
+                    if shapes != (1, task.obs_dim as usize, 1, 1)
+                        || flags != (1, 1, task.act_dim as usize)
+                        || r.envs != [0]
+                    {
+                        failures.push(format!("{id}: step {step} answered shapes {shapes:?} {flags:?}"));
+                        break;
+                    }
+                    let finite = r.observations.iter().all(|x| x.is_finite())
+                        && r.rewards[0].is_finite()
+                        && r.costs[0].is_finite()
+                        && r.costs[0] >= 0.0;
+                    if !finite {
+                        failures.push(format!(
+                            "{id}: step {step} answered a non-finite value or a negative cost"
+                        ));
+                        break;
+                    }
+                }
+                Err(status) => {
+                    failures.push(format!("{id}: step: {status}"));
+                    break;
+                }
             }
         }
         session.close().await.ok();

@@ -18,7 +18,7 @@ async fn smoke(offline_id: &str, simulator: &str, steps: usize) {
     assert_eq!(spec.max_episode_steps, task.max_episode_steps);
     assert_eq!(first.len(), 2 * task.obs_dim as usize);
     let mut actions = Actions::new(1);
-    let mut cost = 0.0;
+    let (mut rewards, mut last) = (Vec::new(), first.clone());
     for _ in 0..steps {
         let out = session
             .step(&[], &actions.batch(&spec.action_low, &spec.action_high, 2))
@@ -28,9 +28,18 @@ async fn smoke(offline_id: &str, simulator: &str, steps: usize) {
         assert!(out.observations.iter().all(|v| v.is_finite()));
         assert!(out.rewards.iter().all(|r| r.is_finite()));
         assert!(out.costs.iter().all(|&c| c >= 0.0 && c.is_finite()));
-        cost += out.costs.iter().sum::<f64>();
+        assert_eq!(
+            (out.rewards.len(), out.terminated.len(), out.truncated.len()),
+            (2, 2, 2)
+        );
+        rewards.extend(out.rewards.iter().copied());
+        last = out.observations;
     }
-    assert!(cost.is_finite());
+    // The simulator moved: the observations changed and the rewards are not one constant.
+    assert_ne!(last, first, "{offline_id}: the observations never changed");
+    rewards.sort_by(f64::total_cmp);
+    rewards.dedup();
+    assert!(rewards.len() > 1, "{offline_id}: every reward was {rewards:?}");
     session.close().await.unwrap();
 }
 
