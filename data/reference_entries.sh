@@ -165,37 +165,51 @@ printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || 
 echo "$(date -u +%FT%TZ) training done" >&2
 [ "$train_only" = no ] || exit 0
 
-# Submit every entry not yet submitted (the server queues them), then wait for each in turn and record it.
+# Submit every entry not yet submitted (the server queues them), then wait for each in turn and record it. A server's
+# quota of submissions in flight (leaderboard.concurrent_submissions) is met by waiting for the oldest one first.
 entries=()
 for task in "${tasks[@]}"; do
   for seed in $seeds; do
     for method in $methods; do entries+=("$task $seed $method"); done
   done
 done
+sub_of() { echo "$state/submissions/$1/seed-$2/$3"; }
+# Waits for the submission whose state files start with $1 and keeps its final JSON.
+finish() {
+  [ -s "$1.json" ] && return 0
+  "$client" --json status "$(cat "$1.id")" --wait > "$1.json.tmp"
+  mv "$1.json.tmp" "$1.json"
+}
+in_flight=()
 for e in "${entries[@]}"; do
   read -r task seed method <<< "$e"
   name=$(method_name "$method") model=$out/$task/seed-$seed/$method
-  sub=$state/submissions/$task/seed-$seed/$method
+  sub=$(sub_of "$task" "$seed" "$method")
   mkdir -p "$(dirname "$sub")"
   # A submission made for another training of this model is stale.
   if [ -e "$sub.id" ] && [ "$sub.id" -ot "$model" ]; then rm -f "$sub.id" "$sub.json"; fi
   [ -e "$sub.id" ] && continue
-  if answer=$("$client" --json submit "$model" --task "$task" --name "$name-seed$seed" 2> "$sub.err"); then
-    python3 -c 'import json, sys; print(json.load(sys.stdin)["id"])' <<< "$answer" > "$sub.id"
-  elif id=$(grep -o 'as submission [0-9]*' "$sub.err" | grep -o '[0-9]*$'); then
-    echo "$id" > "$sub.id"  # submitted before the script was stopped
-  else
-    cat "$sub.err" >&2; exit 1
-  fi
+  while true; do
+    if answer=$("$client" --json submit "$model" --task "$task" --name "$name-seed$seed" 2> "$sub.err"); then
+      python3 -c 'import json, sys; print(json.load(sys.stdin)["id"])' <<< "$answer" > "$sub.id"
+      break
+    elif id=$(grep -o 'as submission [0-9]*' "$sub.err" | grep -o '[0-9]*$'); then
+      echo "$id" > "$sub.id"  # submitted before the script was stopped
+      break
+    elif grep -q 'queued or running' "$sub.err" && [ ${#in_flight[@]} -gt 0 ]; then
+      finish "${in_flight[0]}"  # the in-flight quota: wait for the oldest
+      in_flight=("${in_flight[@]:1}")
+    else
+      cat "$sub.err" >&2; exit 1
+    fi
+  done
+  in_flight+=("$sub")
   echo "$task seed $seed: $name submitted as $(cat "$sub.id")" >&2
 done
 for e in "${entries[@]}"; do
   read -r task seed method <<< "$e"
   name=$(method_name "$method") model=$out/$task/seed-$seed/$method
-  sub=$state/submissions/$task/seed-$seed/$method
-  if [ ! -s "$sub.json" ]; then
-    "$client" --json status "$(cat "$sub.id")" --wait > "$sub.json.tmp"
-    mv "$sub.json.tmp" "$sub.json"
-  fi
+  sub=$(sub_of "$task" "$seed" "$method")
+  finish "$sub"
   "$train" reference-entry --model "$model" --submission "$sub.json" --method "$name" --results "$results"
 done

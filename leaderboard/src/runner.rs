@@ -145,7 +145,8 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, index: usize, owner: String) {
             }
             Some(Outcome::Interrupted(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation interrupted; the job goes back to the queue");
-                let released = queue::release(&leaderboard.db, job.id, &owner, &reason).await;
+                let max = leaderboard.config.max_attempts;
+                let released = queue::release_or_fail(&leaderboard.db, job.id, &owner, &reason, max).await;
                 tokio::time::sleep(Duration::from_secs(1)).await;
                 released
             }

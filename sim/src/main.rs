@@ -36,6 +36,9 @@ struct Args {
     /// Task catalog CSV (default: the catalog built into the binary, data/tasks.csv).
     #[arg(long)]
     tasks: Option<PathBuf>,
+    /// Tests only: `short-step-answers=N` makes the next N step answers leave out a row.
+    #[arg(long, hide = true)]
+    inject_fault: Option<String>,
 }
 
 #[tokio::main]
@@ -47,6 +50,13 @@ async fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
+    if let Some(fault) = &args.inject_fault {
+        let n = fault
+            .strip_prefix("short-step-answers=")
+            .and_then(|n| n.parse().ok())
+            .ok_or_else(|| anyhow::anyhow!("unknown fault {fault:?}; the one fault is short-step-answers=N"))?;
+        dsrl_sim::service::inject_short_step_answers(n);
+    }
     let catalog = match &args.tasks {
         Some(path) => Catalog::load(path)?,
         None => Catalog::embedded()?,

@@ -386,6 +386,21 @@ fn switch_driver(
 
 type Answer = tokio::sync::oneshot::Receiver<Result<session_response::Kind, SimError>>;
 
+/// A test-only fault (`dsrl-sim-worker --inject-fault short-step-answers=N`, hidden): the next N step answers of this
+/// process leave out their last reward, as a faulty worker might, so the tests can check that the evaluators refuse
+/// such an answer instead of indexing past it.
+static SHORT_STEP_ANSWERS: AtomicU32 = AtomicU32::new(0);
+
+pub fn inject_short_step_answers(n: u32) {
+    SHORT_STEP_ANSWERS.store(n, Ordering::SeqCst);
+}
+
+fn take_short_step_answer() -> bool {
+    SHORT_STEP_ANSWERS
+        .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+        .is_ok()
+}
+
 /// A session's rules and whether it has failed, owned by its jobs on the Python thread.
 struct Jobs {
     state: SessionState,
@@ -447,7 +462,17 @@ fn respond(
                     4,
                     "observations",
                 )?),
-                rewards: Some(tensor(DType::Float64, &[n], out.rewards, 8, "rewards")?),
+                rewards: Some(if take_short_step_answer() && n > 0 {
+                    tensor(
+                        DType::Float64,
+                        &[n - 1],
+                        out.rewards[..(n - 1) * 8].to_vec(),
+                        8,
+                        "rewards",
+                    )?
+                } else {
+                    tensor(DType::Float64, &[n], out.rewards, 8, "rewards")?
+                }),
                 costs: Some(tensor(DType::Float64, &[n], out.costs, 8, "costs")?),
                 terminated: Some(tensor(DType::Bool, &[n], out.terminated, 1, "terminated")?),
                 truncated: Some(tensor(DType::Bool, &[n], out.truncated, 1, "truncated")?),

@@ -18,6 +18,7 @@ mod hosted;
 mod http;
 mod ingest;
 mod leaderboard;
+mod operations;
 mod python_package;
 mod reference;
 mod replicas;

@@ -1,0 +1,292 @@
+//! The leaderboard's operations, on real simulator workers with two episodes per threshold (the protocol's count
+//! does not matter here, only the queue's behaviour): supervised evaluators, checked worker answers, policy
+//! processes with deadlines, failures classified by whose they are, a fair queue that shows positions and
+//! estimates, counts beside scores, and the board as data.
+
+use std::time::Duration;
+
+use crate::leaderboard::{TASK, client, create_user, submit, train_bc};
+use crate::{Env, get_json, make_policy, s};
+
+/// A scoring server for these tests: `workers` local simulator workers, two episodes per threshold, and `extra`.
+fn ops_env(workers: &str, extra: &[(&str, &str)]) -> Env {
+    let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
+    let mut envs = vec![
+        ("DSRL__SIMULATORS__LOCAL_WORKERS", workers),
+        ("DSRL__SIMULATORS__WORKER_BINARY", binary.as_str()),
+        ("DSRL__LEADERBOARD__EPISODES_PER_THRESHOLD", "2"),
+        ("DSRL__LEADERBOARD__ENVS_PER_SESSION", "2"),
+        ("DSRL__LEADERBOARD__LEASE_SECONDS", "6"),
+    ];
+    envs.extend_from_slice(extra);
+    Env::with(&[], &envs)
+}
+
+fn status(env: &Env, id: &serde_json::Value) -> serde_json::Value {
+    get_json(&format!("{}/v1/submissions/{id}", env.server.url))
+}
+
+fn wait_for_state(env: &Env, id: &serde_json::Value, states: &[&str], within: Duration) -> serde_json::Value {
+    let mut last = serde_json::Value::Null;
+    let reached = dsrl_e2e::wait_for(within, || {
+        last = status(env, id);
+        states.iter().any(|s| last["state"] == *s)
+    });
+    assert!(reached, "submission {id} never reached {states:?}: {last}");
+    last
+}
+
+/// The pid of a `play-policy` child of the process `parent`.
+fn policy_child(parent: u32) -> Option<u32> {
+    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
+        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+        let stat = std::fs::read_to_string(entry.path().join("stat")).ok()?;
+        let ppid: u32 = stat.rsplit(')').next()?.split_whitespace().nth(1)?.parse().ok()?;
+        let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+        (ppid == parent && cmdline.windows(11).any(|w| w == b"play-policy")).then_some(pid)
+    })
+}
+
+fn signal(pid: u32, signal: i32) {
+    // SAFETY: kill(2) with a pid this test found among its server's children.
+    assert_eq!(unsafe { libc_kill(pid as i32, signal) }, 0, "kill {pid}");
+}
+
+unsafe extern "C" {
+    #[link_name = "kill"]
+    fn libc_kill(pid: i32, sig: i32) -> i32;
+}
+const SIGKILL: i32 = 9;
+const SIGSTOP: i32 = 19;
+
+fn metric(env: &Env, name: &str) -> f64 {
+    let text = crate::leaderboard::reqwest_text(&format!("{}/metrics", env.server.url));
+    text.lines()
+        .find(|l| l.starts_with(name) && l[name.len()..].starts_with(' '))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.0)
+}
+
+#[test]
+fn a_panicking_evaluator_is_restarted_its_job_ends_with_the_reason_and_the_next_is_scored() {
+    let models = tempfile::tempdir().unwrap();
+    train_bc(models.path(), "all", 0);
+    train_bc(models.path(), "safe", 0);
+    // The test-only fault hook of debug builds: the evaluator that claims a submission of this name panics.
+    let env = ops_env(
+        "1",
+        &[
+            ("DSRL_TEST_PANIC_ON_NAME", "panic-me"),
+            ("DSRL__LEADERBOARD__MAX_ATTEMPTS", "2"),
+        ],
+    );
+    let alice = create_user(&env, "alice");
+    let bad = submit(&env, &alice, &models.path().join("bc-all"), "panic-me")
+        .ok()
+        .json();
+    let good = submit(&env, &alice, &models.path().join("bc-safe"), "BC-Safe")
+        .ok()
+        .json();
+    let failed = wait_for_state(&env, &bad["id"], &["failed"], Duration::from_secs(120));
+    let reason = failed["reason"].as_str().unwrap();
+    assert!(reason.contains("test fault") && reason.contains("attempts"), "{failed}");
+    assert_eq!(failed["failure"], "infrastructure", "{failed}");
+    let done = wait_for_state(&env, &good["id"], &["finished"], Duration::from_secs(180));
+    assert_eq!(done["episodes"].as_array().unwrap().len(), 6, "{done}");
+    // Counted and shown, and running again.
+    assert!(metric(&env, "dsrl_evaluator_restarts_total") >= 2.0);
+    let health = get_json(&format!("{}/healthz", env.server.url));
+    assert_eq!(health["status"], "ok", "{health}");
+    let evaluator = &health["evaluators"][0];
+    assert_eq!(evaluator["running"], true, "{health}");
+    assert!(evaluator["restarts"].as_u64().unwrap() >= 2, "{health}");
+    assert!(
+        evaluator["last_panic"].as_str().unwrap().contains("test fault"),
+        "{health}"
+    );
+}
+
+#[test]
+fn a_worker_answering_out_of_protocol_fails_the_job_as_infrastructure_and_it_may_be_submitted_again() {
+    let models = tempfile::tempdir().unwrap();
+    train_bc(models.path(), "all", 0);
+    // A real worker with a test-only fault: its first step answer leaves out a row.
+    let mut worker = std::process::Command::new(dsrl_e2e::bin("dsrl-sim-worker"))
+        .args(["--listen", "127.0.0.1:0", "--inject-fault", "short-step-answers=1"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .stdin(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(worker.stdout.take().unwrap()), &mut line).unwrap();
+    let address = line.trim().rsplit(' ').next().unwrap().to_owned();
+    let env = ops_env(
+        "0",
+        &[
+            ("DSRL__SIMULATORS__REMOTE_WORKERS", &format!("[\"{address}\"]")),
+            ("DSRL__LEADERBOARD__MAX_ATTEMPTS", "1"),
+        ],
+    );
+    let alice = create_user(&env, "alice");
+    let first = submit(&env, &alice, &models.path().join("bc-all"), "BC-All")
+        .ok()
+        .json();
+    let failed = wait_for_state(&env, &first["id"], &["failed"], Duration::from_secs(120));
+    let reason = failed["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("out of protocol") && reason.contains("simulator worker remote-0"),
+        "the reason names the fault and the worker: {failed}"
+    );
+    assert_eq!(failed["failure"], "infrastructure");
+    // Not the checkpoint's fault: the same checkpoint may be submitted again, and it is scored.
+    let again = submit(&env, &alice, &models.path().join("bc-all"), "BC-All")
+        .ok()
+        .json();
+    let done = wait_for_state(&env, &again["id"], &["finished"], Duration::from_secs(180));
+    assert_eq!(done["checkpoint_sha256"], failed["checkpoint_sha256"]);
+    let _ = worker.kill();
+    let _ = worker.wait();
+}
+
+#[test]
+fn a_policy_process_that_stops_answering_fails_its_job_and_one_killed_from_outside_is_requeued() {
+    let models = tempfile::tempdir().unwrap();
+    train_bc(models.path(), "all", 0);
+    train_bc(models.path(), "safe", 1);
+    let env = ops_env("1", &[("DSRL__LEADERBOARD__POLICY_REQUEST_SECONDS", "3")]);
+    let alice = create_user(&env, "alice");
+    let stopped = submit(&env, &alice, &models.path().join("bc-all"), "BC-All")
+        .ok()
+        .json();
+    wait_for_state(&env, &stopped["id"], &["running"], Duration::from_secs(120));
+    let mut child = None;
+    assert!(dsrl_e2e::wait_for(Duration::from_secs(30), || {
+        child = policy_child(env.server.pid());
+        child.is_some()
+    }));
+    // Stopped (as a process in swap, or stuck in a call, would be): the job ends at the request deadline.
+    let started = std::time::Instant::now();
+    signal(child.unwrap(), SIGSTOP);
+    let failed = wait_for_state(&env, &stopped["id"], &["failed"], Duration::from_secs(60));
+    assert!(started.elapsed() < Duration::from_secs(30), "{:?}", started.elapsed());
+    let reason = failed["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("did not answer") && reason.contains("within 3 s"),
+        "{failed}"
+    );
+    assert_eq!(failed["failure"], "checkpoint");
+
+    // Killed from outside: not the checkpoint's fault; the job goes back to the queue and is scored.
+    let killed = submit(&env, &alice, &models.path().join("bc-safe"), "BC-Safe")
+        .ok()
+        .json();
+    wait_for_state(&env, &killed["id"], &["running"], Duration::from_secs(120));
+    let mut child = None;
+    assert!(dsrl_e2e::wait_for(Duration::from_secs(30), || {
+        child = policy_child(env.server.pid());
+        child.is_some()
+    }));
+    signal(child.unwrap(), SIGKILL);
+    let done = wait_for_state(&env, &killed["id"], &["finished", "failed"], Duration::from_secs(180));
+    assert_eq!(done["state"], "finished", "{done}");
+    assert_eq!(done["attempts"], 2, "re-run after the kill: {done}");
+}
+
+#[test]
+fn the_queue_is_fair_shows_positions_and_counts_and_the_board_downloads_as_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let env = ops_env("1", &[("DSRL__LEADERBOARD__CONCURRENT_SUBMISSIONS", "5")]);
+    let (alice, bob) = (create_user(&env, "alice"), create_user(&env, "bob"));
+    let policy = |seed: u64| make_policy(&dir.path().join(format!("p{seed}")), TASK, "target-cost-mlp", seed);
+    // Alice queues three, then Bob one: Bob's waits behind at most the job being scored.
+    let a: Vec<serde_json::Value> = (1..=3)
+        .map(|seed| {
+            submit(&env, &alice, &policy(seed), &format!("alice-{seed}"))
+                .ok()
+                .json()
+        })
+        .collect();
+    let b = submit(&env, &bob, &policy(9), "bob").ok().json();
+    let queued = status(&env, &b["id"]);
+    if queued["state"] == "queued" {
+        let place = &queued["queue"];
+        assert!(place["position"].as_u64().unwrap() <= 2, "{queued}");
+        assert!(place["estimated_start"].as_str().is_some() && place["estimated_finish"].as_str().is_some());
+        // The CLI shows the same.
+        let out = client(&env, &bob, &["status", &b["id"].to_string()]).ok();
+        assert!(out.stdout.contains("queue position"), "{}", out.stdout);
+    }
+    // A later job's position falls as jobs finish.
+    let last = &a[2]["id"];
+    let first_position = status(&env, last)["queue"]["position"].as_u64();
+    let done: Vec<serde_json::Value> = a
+        .iter()
+        .chain([&b])
+        .map(|s| wait_for_state(&env, &s["id"], &["finished"], Duration::from_secs(300)))
+        .collect();
+    if let Some(p) = first_position {
+        assert!(p >= 2, "alice's third job was behind at least one other: {p}");
+    }
+    // Fairness: Bob's job started before Alice's second and third.
+    let started = |v: &serde_json::Value| v["started_at"].as_str().unwrap().to_owned();
+    assert!(
+        started(&done[3]) <= started(&done[1]),
+        "bob {} alice-2 {}",
+        started(&done[3]),
+        started(&done[1])
+    );
+    assert!(done.iter().all(|d| d["author_submissions_to_task"].as_u64().is_some()));
+
+    // Counts beside scores, on the table and on the user's page.
+    let board = get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
+    let entries = board["tasks"][0]["entries"].as_array().unwrap();
+    for e in entries {
+        let expected = if e["user"] == "alice" { 3 } else { 1 };
+        assert_eq!(e["author_submissions_to_task"], expected, "{e}");
+    }
+    let mine = get_json(&format!("{}/v1/users/alice/submissions", env.server.url));
+    assert_eq!(mine.as_array().unwrap().len(), 3);
+    let page = crate::leaderboard::reqwest_text(&format!("{}/users/alice", env.server.url));
+    assert_eq!(page.matches("href=\"/submissions/").count(), 3, "{page}");
+
+    // The board as data: CSV and Parquet read back by pyarrow hold every entry and the paper's rows.
+    let csv = dir.path().join("board.csv");
+    let parquet = dir.path().join("board.parquet");
+    for (url, file) in [
+        (format!("{}/v1/leaderboard.csv", env.server.url), &csv),
+        (format!("{}/v1/leaderboard.parquet", env.server.url), &parquet),
+    ] {
+        let bytes = crate::block_on(async move { reqwest::get(url).await.unwrap().bytes().await.unwrap() });
+        std::fs::write(file, bytes).unwrap();
+    }
+    let episodes = dir.path().join("episodes.csv");
+    let url = format!("{}/v1/submissions/{}/episodes.csv", env.server.url, b["id"]);
+    let bytes = crate::block_on(async move { reqwest::get(url).await.unwrap().bytes().await.unwrap() });
+    std::fs::write(&episodes, bytes).unwrap();
+    let out = std::process::Command::new(dsrl_e2e::python())
+        .arg("-c")
+        .arg(
+            "import sys, pyarrow.csv as c, pyarrow.parquet as p\n\
+             a = c.read_csv(sys.argv[1]).to_pylist(); b = p.read_table(sys.argv[2]).to_pylist()\n\
+             e = c.read_csv(sys.argv[3]).to_pylist()\n\
+             entries = [r for r in a if r['scope'] == 'task' and r['kind'] == 'entry']\n\
+             paper = [r for r in a if r['kind'] == 'paper']\n\
+             print(len(a), len(b), len(entries), len(paper), len(e), sorted({r['protocol_version'] for r in b}))",
+        )
+        .args([s(&csv), s(&parquet), s(&episodes)])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let fields: Vec<&str> = stdout.trim().splitn(6, ' ').collect();
+    assert_eq!(fields[0], fields[1], "CSV and Parquet hold the same rows: {stdout}");
+    assert_eq!(fields[2], "4", "{stdout}");
+    assert_eq!(fields[3], (38 * 7).to_string(), "{stdout}");
+    assert_eq!(fields[4], "6", "2 episodes x 3 thresholds: {stdout}");
+    assert!(
+        fields[5].contains(board["protocol"]["version"].as_str().unwrap()),
+        "{stdout}"
+    );
+}
