@@ -358,18 +358,29 @@ impl Leaderboard {
             .await
             .map_err(ApiError::internal)??;
         let dataset_version = checked.dataset_version();
+        // Each request stores its own copy (keyed by a random id beside the digest), so a refused one deletes what it
+        // stored without touching another request's objects: nothing of a refused request stays behind.
+        let request = dsrl_service::secrets::random_hex().map_err(ApiError::internal)?;
         let mut records = Vec::new();
+        let mut stored: Vec<ObjectPath> = Vec::new();
+        let mut put = async |key: &str, bytes: &Bytes| -> Result<(), ApiError> {
+            let path = ObjectPath::from(key);
+            self.store.put(&path, bytes.clone().into()).await?;
+            stored.push(path);
+            Ok(())
+        };
         for (i, c) in checked.checkpoints.iter().enumerate() {
-            // Content-addressed, so storing the same checkpoint again rewrites identical bytes.
-            let base = format!("submissions/{}/{}/{i}", task.id, checked.sha256);
+            let base = format!("submissions/{}/{}/{}/{i}", task.id, checked.sha256, &request[..16]);
             let config_key = format!("{base}/{}", dsrl_policy::checkpoint::CONFIG_FILE);
             let weights_key = format!("{base}/{}", dsrl_policy::checkpoint::WEIGHTS_FILE);
-            self.store
-                .put(&ObjectPath::from(weights_key.as_str()), c.weights_bytes.clone().into())
-                .await?;
-            self.store
-                .put(&ObjectPath::from(config_key.as_str()), c.config_bytes.clone().into())
-                .await?;
+            let written = match put(&weights_key, &c.weights_bytes).await {
+                Ok(()) => put(&config_key, &c.config_bytes).await,
+                Err(e) => Err(e),
+            };
+            if let Err(e) = written {
+                self.forget(&stored).await;
+                return Err(e);
+            }
             records.push(CheckpointRecord {
                 slot: c.slot.clone(),
                 cost_threshold: c.cost_threshold(),
@@ -378,7 +389,7 @@ impl Leaderboard {
                 weights_key,
             });
         }
-        let id = queue::insert(
+        let inserted = queue::insert(
             &self.db,
             queue::NewSubmission {
                 user_id: user.id,
@@ -394,10 +405,27 @@ impl Leaderboard {
                 concurrent: self.config.concurrent_submissions,
             },
         )
-        .await?;
+        .await;
+        let id = match inserted {
+            Ok(id) => id,
+            Err(e) => {
+                self.forget(&stored).await;
+                return Err(e);
+            }
+        };
         tracing::info!(id, task = %task.id, name, user = %user.name, sha256 = %checked.sha256, "submission queued");
         self.wake.notify_waiters();
         self.view(id).await
+    }
+
+    /// Deletes the objects a refused submission stored (best effort: a leftover is logged, never an error for the
+    /// request, which already has its answer).
+    async fn forget(&self, stored: &[ObjectPath]) {
+        for path in stored {
+            if let Err(e) = self.store.delete(path).await {
+                tracing::warn!(%path, error = %e, "removing a refused submission's object");
+            }
+        }
     }
 
     pub async fn cancel(&self, user: &User, id: i64) -> Result<SubmissionView, ApiError> {

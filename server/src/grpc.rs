@@ -28,6 +28,12 @@ impl DatasetGrpc {
     pub fn new(state: AppState) -> Self {
         DatasetGrpc { state }
     }
+
+    /// Whether the request carries a token this server knows (its `authorization` metadata).
+    async fn requester<T>(&self, request: &Request<T>) -> crate::storage::datasets::Requester {
+        let headers = request.metadata().clone().into_headers();
+        crate::http::auth::requester(&self.state, &headers).await
+    }
 }
 
 fn hosted(v: VersionRecord) -> pb::HostedVersion {
@@ -91,11 +97,12 @@ impl DatasetService for DatasetGrpc {
         &self,
         request: Request<pb::GetManifestRequest>,
     ) -> Result<Response<pb::GetManifestResponse>, Status> {
+        let requester = self.requester(&request).await;
         let r = request.get_ref();
         let (_, record) = self
             .state
             .datasets
-            .resolve_filtered(&r.task, &r.version, Some(&r.filter))
+            .resolve_filtered(&r.task, &r.version, Some(&r.filter), requester)
             .await?;
         let manifest_json = self.state.datasets.manifest_json(&record).await?;
         Ok(Response::new(pb::GetManifestResponse {
@@ -110,12 +117,14 @@ impl DatasetService for DatasetGrpc {
         &self,
         request: Request<pb::StreamTransitionsRequest>,
     ) -> Result<Response<Self::StreamTransitionsStream>, Status> {
+        let requester = self.requester(&request).await;
         let r = request.get_ref();
         let (task, record) = self
             .state
             .datasets
-            .resolve_filtered(&r.task, &r.version, Some(&r.filter))
+            .resolve_filtered(&r.task, &r.version, Some(&r.filter), requester)
             .await?;
+        let serving = self.state.datasets.serving(&record);
         let obs_dim = if record.observation_space == "paper" {
             task.obs_dim_paper
         } else {
@@ -158,7 +167,11 @@ impl DatasetService for DatasetGrpc {
                 .map_err(|e| ApiError::internal(e).into());
             Some((item, (batches, Some(writer))))
         });
-        let stream = futures::stream::once(async move { Ok(pb::ArrowIpcChunk { arrow_ipc: header }) }).chain(tail);
+        let stream = futures::stream::once(async move { Ok(pb::ArrowIpcChunk { arrow_ipc: header }) })
+            .chain(tail)
+            .inspect(move |_| {
+                let _ = &serving;
+            });
         Ok(Response::new(stream.boxed()))
     }
 }

@@ -71,6 +71,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         default_license: config.datasets.default_license.clone(),
         converter,
         metrics: metrics.clone(),
+        limits: derived_limits(config),
     })?;
     let auth = AdminAuth::load_or_create(config.auth.admin_token.as_deref(), &data_dir.join("admin-token"))?;
     if let Some(dir) = &config.datasets.starter_dir
@@ -94,15 +95,70 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     let leaderboard = Arc::new(leaderboard);
     leaderboard.import_reference_results().await?;
     leaderboard::runner::spawn(leaderboard.clone());
+    let datasets = Arc::new(datasets);
+    spawn_derived_gc(datasets.clone(), config.gc.interval_seconds, metrics.clone());
     Ok(AppState {
         leaderboard,
         simulators,
-        datasets: Arc::new(datasets),
+        datasets,
         auth: Arc::new(auth),
         metrics,
         max_upload_bytes: config.datasets.max_upload_bytes,
         dsrl_download_metadrive: config.datasets.dsrl_download_metadrive,
     })
+}
+
+/// Applies the derived-data policy every `interval_seconds` while the server runs (idle filtered versions, the size
+/// budget), each run in a task of its own: a run that fails or panics is logged and counted
+/// (`dsrl_gc_runs_total{outcome="failed"}`), and the next runs on time.
+fn spawn_derived_gc(datasets: Arc<Datasets>, interval_seconds: u64, metrics: Arc<Metrics>) {
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(std::time::Duration::from_secs(interval_seconds.max(1)));
+        tick.tick().await;
+        loop {
+            tick.tick().await;
+            let this = datasets.clone();
+            let run = tokio::spawn(async move {
+                let policy = this.limits().gc.clone();
+                this.collect_garbage(&policy, false).await
+            });
+            let outcome = match run.await {
+                Ok(Ok(report)) => {
+                    if !report.removed.is_empty() {
+                        tracing::info!(
+                            removed = report.removed.len(),
+                            bytes = report.derived_bytes_after,
+                            "derived data collected"
+                        );
+                    }
+                    "ok"
+                }
+                Ok(Err(e)) => {
+                    tracing::error!(error = %e, "collecting derived data");
+                    "failed"
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "collecting derived data panicked");
+                    "failed"
+                }
+            };
+            metrics.gc_runs.get_or_create(&metrics::OutcomeLabels { outcome }).inc();
+        }
+    });
+}
+
+/// The limits on derived work and data from the configuration (`datasets.*_derivations`, the anonymous budget, and
+/// `gc`'s policy, which the server also applies while it runs).
+fn derived_limits(config: &Config) -> storage::datasets::DerivedLimits {
+    storage::datasets::DerivedLimits {
+        max_concurrent: config.datasets.max_concurrent_derivations,
+        max_waiting: config.datasets.max_waiting_derivations,
+        anonymous_bytes_per_hour: config.datasets.anonymous_derived_bytes_per_hour,
+        gc: storage::datasets::GcPolicy {
+            max_idle: std::time::Duration::from_secs(config.gc.derived_max_idle_hours.saturating_mul(3600)),
+            max_bytes: config.gc.derived_max_bytes,
+        },
+    }
 }
 
 /// Applies the garbage-collection policy (`gc` in the configuration) to filtered versions: `dsrl-server gc`. Safe
@@ -121,6 +177,7 @@ pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::d
         default_license: config.datasets.default_license.clone(),
         converter: Converter::InProcess,
         metrics: Arc::new(Metrics::new()),
+        limits: derived_limits(config),
     })?;
     let policy = storage::datasets::GcPolicy {
         max_idle: std::time::Duration::from_secs(config.gc.derived_max_idle_hours.saturating_mul(3600)),

@@ -42,6 +42,12 @@ pub struct Metrics {
     pub panics: Family<RouteLabels, Counter>,
     /// Evaluators of this process started again after a panic (the leaderboard's supervisor counts into it).
     pub evaluator_restarts: Counter,
+    /// HDF5 export requests: `computed` (converted now) or `cached`.
+    pub hdf5_exports: Family<OutcomeLabels, Counter>,
+    /// Bytes of all filtered versions stored, read at scrape time.
+    pub derived_bytes: Gauge,
+    /// Runs of the derived-data policy while the server runs, by outcome (ok, failed).
+    pub gc_runs: Family<OutcomeLabels, Counter>,
 }
 
 impl Metrics {
@@ -100,7 +106,28 @@ impl Metrics {
             "Evaluator tasks of this process started again after a panic",
             evaluator_restarts.clone(),
         );
+        let hdf5_exports = Family::<OutcomeLabels, Counter>::default();
+        registry.register(
+            "hdf5_exports",
+            "HDF5 export requests by outcome (computed, cached)",
+            hdf5_exports.clone(),
+        );
+        let derived_bytes = Gauge::default();
+        registry.register(
+            "derived_bytes",
+            "Bytes of the filtered versions stored (the run-time budget is gc.derived_max_bytes)",
+            derived_bytes.clone(),
+        );
+        let gc_runs = Family::<OutcomeLabels, Counter>::default();
+        registry.register(
+            "gc_runs",
+            "Runs of the derived-data policy while the server runs, by outcome",
+            gc_runs.clone(),
+        );
         Metrics {
+            gc_runs,
+            hdf5_exports,
+            derived_bytes,
             evaluator_restarts,
             panics,
             registry,

@@ -126,8 +126,11 @@ impl Default for DatabaseConfig {
 pub struct GcConfig {
     /// A filtered version nobody asked for in this many hours is removed.
     pub derived_max_idle_hours: u64,
-    /// All filtered versions together may take this many bytes; past it the least recently used are removed.
+    /// All filtered versions together may take this many bytes; past it the least recently used are removed. The
+    /// server enforces it while it runs (after every new filtered version, and every `interval_seconds` for idle
+    /// ones), never removing a version being downloaded; `dsrl-server gc` applies it from outside.
     pub derived_max_bytes: u64,
+    pub interval_seconds: u64,
 }
 
 impl Default for GcConfig {
@@ -135,6 +138,7 @@ impl Default for GcConfig {
         GcConfig {
             derived_max_idle_hours: 30 * 24,
             derived_max_bytes: 100 << 30,
+            interval_seconds: 600,
         }
     }
 }
@@ -176,6 +180,14 @@ pub struct DatasetsConfig {
     /// names answer 404 with the reason.
     #[serde(default)]
     pub dsrl_download_metadrive: bool,
+    /// Derived work (filtered versions, HDF5 exports) computed at once; more wait for a turn.
+    pub max_concurrent_derivations: u32,
+    /// Derived work waiting for a turn, past which a request that would start more is answered 503 with
+    /// `Retry-After`.
+    pub max_waiting_derivations: u32,
+    /// Derived bytes that requests without a token may create per hour (a filter's cost is counted as its parent's
+    /// size when it starts); past it they are answered 429 with `Retry-After`. Admin and user tokens are not limited.
+    pub anonymous_derived_bytes_per_hour: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -228,6 +240,9 @@ impl Default for Config {
                 default_license: "CC-BY-4.0".to_owned(),
                 converter_memory_limit_bytes: 8 << 30,
                 dsrl_download_metadrive: false,
+                max_concurrent_derivations: 2,
+                max_waiting_derivations: 16,
+                anonymous_derived_bytes_per_hour: 20 << 30,
             },
             auth: AuthConfig::default(),
             storage: StorageConfig {

@@ -125,6 +125,12 @@ pub enum ApiError {
     QuotaExceeded(String),
     #[error("service unavailable: {0}")]
     Unavailable(String),
+    /// Too much work waiting: try again after the seconds given (answered with `Retry-After`).
+    #[error("busy: {message}; retry after {retry_after} s")]
+    Busy { message: String, retry_after: u64 },
+    /// A rate limit: try again after the seconds given (answered with `Retry-After`).
+    #[error("rate limited: {message}; retry after {retry_after} s")]
+    RateLimited { message: String, retry_after: u64 },
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -140,7 +146,8 @@ impl ApiError {
                 ErrorCode::Unauthenticated
             }
             ApiError::AlreadyExists(_) => ErrorCode::AlreadyExists,
-            ApiError::QuotaExceeded(_) => ErrorCode::ResourceExhausted,
+            ApiError::QuotaExceeded(_) | ApiError::RateLimited { .. } => ErrorCode::ResourceExhausted,
+            ApiError::Busy { .. } => ErrorCode::Unavailable,
             ApiError::PermissionDenied | ApiError::Forbidden(_) => ErrorCode::PermissionDenied,
             ApiError::Unavailable(_) => ErrorCode::Unavailable,
             ApiError::Internal(_) => ErrorCode::Internal,
@@ -222,6 +229,11 @@ impl IntoResponse for ApiError {
             response
                 .headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        if let ApiError::Busy { retry_after, .. } | ApiError::RateLimited { retry_after, .. } = self {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(retry_after));
         }
         response
     }

@@ -44,10 +44,23 @@ async fn applies(http: &reqwest::Client, url: &str, task: &str, filter: &str) ->
     response.status() == 200
 }
 
+/// The default server as a newcomer meets it (`scripts/serve.sh`: every committed starter, the reference results
+/// imported), checked once for everything it serves that only needs reading: the starters and their provenance,
+/// every task against the data bar, and the leaderboard of record.
 #[test]
-fn every_task_is_hosted_to_the_bar_or_its_gap_is_recorded() {
+fn the_default_server_hosts_every_starter_to_the_bar_and_shows_the_leaderboard_of_record() {
     let starter = dsrl_e2e::repo_root().join("data/starter");
-    let env = Env::with(&["--starter-datasets", s(&starter)], &[]);
+    let mut env = Env::with(
+        &["--starter-datasets", s(&starter)],
+        &[("DSRL__LEADERBOARD__IMPORT_REFERENCE_RESULTS", "true")],
+    );
+    crate::starter::every_committed_starter_loads_with_its_recipe_provenance(&env);
+    every_task_is_hosted_to_the_bar_or_its_gap_is_recorded(&env);
+    crate::reference::the_papers_rows_and_the_reference_entries_are_shown_under_their_protocol(&mut env);
+}
+
+fn every_task_is_hosted_to_the_bar_or_its_gap_is_recorded(env: &Env) {
+    let starter = dsrl_e2e::repo_root().join("data/starter");
     let catalog = Catalog::embedded().unwrap();
     let starters = read_starters(&catalog, &starter).unwrap();
     let gaps = recorded_gaps();

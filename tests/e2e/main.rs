@@ -19,6 +19,7 @@ mod http;
 mod ingest;
 mod leaderboard;
 mod operations;
+mod probe;
 mod python_package;
 mod reference;
 mod replicas;

@@ -8,9 +8,12 @@ use dsrl_suite::reference::{agreement, read_results, scored_entries, summarize};
 
 use crate::{Env, get_json};
 
-#[test]
-fn a_fresh_server_shows_the_papers_rows_and_the_reference_entries_under_their_protocol() {
-    let mut env = Env::with(&[], &[("DSRL__LEADERBOARD__IMPORT_REFERENCE_RESULTS", "true")]);
+// Run by `hosted::the_default_server_hosts_every_starter_to_the_bar_and_shows_the_leaderboard_of_record`, on the
+// one default server the read-only checks share.
+
+/// On `env`'s server (reference import on): the paper's rows, the reference entries, the agreement, the pages; then
+/// a restart imports nothing twice.
+pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_protocol(env: &mut Env) {
     let catalog = Catalog::embedded().unwrap();
     let paper = PaperResults::embedded(&catalog).unwrap();
     let file = dsrl_e2e::repo_root().join("data/reference/results.jsonl");

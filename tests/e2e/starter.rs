@@ -88,9 +88,9 @@ fn a_starter_committed_in_parts_loads_as_the_one_version_of_the_whole() {
     assert_eq!(manifest["provenance"]["seeds"], serde_json::json!([52]));
 }
 
-#[test]
-fn every_committed_starter_dataset_loads_with_its_recipe_provenance() {
-    // What the README's first command serves: every file under data/starter, validated and ingested at start-up.
+/// What the README's first command serves: every file under data/starter (within the size budgets, one per task
+/// or a recorded gap), validated and ingested at start-up by `env`'s server, with its recipe provenance.
+pub(crate) fn every_committed_starter_loads_with_its_recipe_provenance(env: &Env) {
     let starter = dsrl_e2e::repo_root().join("data/starter");
     let mut expected: Vec<(String, u64)> = Vec::new();
     for task in std::fs::read_dir(&starter).unwrap() {
@@ -136,7 +136,6 @@ fn every_committed_starter_dataset_loads_with_its_recipe_provenance() {
         "starter data is {total} bytes, over the 250 MB budget"
     );
 
-    let env = Env::with(&["--starter-datasets", s(&starter)], &[]);
     for (task, episodes) in &expected {
         let manifest = env.cli.run(&["--json", "show", task]).ok().json();
         assert_eq!(manifest["episodes"], *episodes, "{task}");

@@ -170,11 +170,13 @@ pub async fn get_manifest(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
     query: Result<Query<VersionQuery>, QueryRejection>,
+    headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let query = VersionQuery::from(query)?;
+    let requester = super::auth::requester(&state, &headers).await;
     let (_, record) = state
         .datasets
-        .resolve_filtered(&task, &reference, query.filter.as_deref())
+        .resolve_filtered(&task, &reference, query.filter.as_deref(), requester)
         .await?;
     let json = state.datasets.manifest_json(&record).await?;
     let etag = HeaderValue::from_str(&format!("\"{}\"", record.version)).map_err(ApiError::internal)?;

@@ -117,9 +117,10 @@ pub async fn download(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let query = VersionQuery::from(query)?;
+    let requester = super::auth::requester(&state, &headers).await;
     let (task, record) = state
         .datasets
-        .resolve_filtered(&task, &reference, query.filter.as_deref())
+        .resolve_filtered(&task, &reference, query.filter.as_deref(), requester)
         .await?;
     let etag = format!("\"{}\"", record.version);
     let size = record.byte_size;
@@ -150,7 +151,10 @@ pub async fn download(
         response_headers.insert(header::CONTENT_DISPOSITION, v);
     }
     let metrics = state.metrics.clone();
+    // Counted as being served until the stream ends (or the client goes): the derived-data budget leaves it alone.
+    let serving = state.datasets.serving(&record);
     let stream = state.datasets.read(&record, byte_range).await?.inspect(move |chunk| {
+        let _ = &serving;
         if let Ok(bytes) = chunk {
             metrics.download_bytes.inc_by(bytes.len() as u64);
         }

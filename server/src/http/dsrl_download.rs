@@ -66,7 +66,8 @@ pub async fn dsrl_download(
         )));
     }
     let (_, record) = state.datasets.resolve(task.id.as_str(), "latest").await?;
-    let (digest, size) = state.datasets.hdf5_export(&record).await?;
+    let requester = super::auth::requester(&state, &headers).await;
+    let (digest, size) = state.datasets.hdf5_export(&record, requester).await?;
     let etag = format!("\"{digest}\"");
     let mut response_headers = HeaderMap::new();
     let value = |v: &str| HeaderValue::from_str(v).map_err(ApiError::internal);

@@ -63,6 +63,12 @@ pub(crate) fn is_grpc(request: &Request) -> bool {
         description = "Prometheus metrics: requests by route and status, latency, panics, downloads, ingests, filters")))]
 pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     dsrl_leaderboard::queue::refresh_depth_gauge(&state.metrics.queue_depth, &state.leaderboard.db).await;
+    match state.datasets.db().derived_bytes().await {
+        Ok(bytes) => {
+            state.metrics.derived_bytes.set(bytes as i64);
+        }
+        Err(e) => tracing::warn!(error = %e, "reading the derived bytes"),
+    }
     (
         [(header::CONTENT_TYPE, dsrl_service::OPENMETRICS_CONTENT_TYPE)],
         state.metrics.render(),

@@ -90,6 +90,64 @@ pub struct Datasets {
     local_objects: Option<PathBuf>,
     /// One gate per filtered version being computed, so concurrent identical requests compute it once.
     in_flight: std::sync::Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
+    /// Turns for derived work (filters, HDF5 exports): a bounded number compute at once.
+    derivation_turns: Arc<tokio::sync::Semaphore>,
+    /// Derived work started and not finished (computing or waiting for a turn).
+    derivations_pending: AtomicU64,
+    limits: DerivedLimits,
+    /// Versions being streamed to a client now (task, version) → streams: the run-time budget never removes them.
+    serving: std::sync::Mutex<HashMap<(String, String), usize>>,
+    /// Derived bytes started by requests without a token, with when: the anonymous budget's window.
+    anonymous_derived: std::sync::Mutex<std::collections::VecDeque<(std::time::Instant, u64)>>,
+}
+
+/// The limits on derived work and data while the server runs.
+#[derive(Debug, Clone)]
+pub struct DerivedLimits {
+    pub max_concurrent: u32,
+    pub max_waiting: u32,
+    pub anonymous_bytes_per_hour: u64,
+    /// Applied after every new filtered version (and periodically by the server).
+    pub gc: GcPolicy,
+}
+
+impl Default for DerivedLimits {
+    fn default() -> Self {
+        DerivedLimits {
+            max_concurrent: 2,
+            max_waiting: 16,
+            anonymous_bytes_per_hour: u64::MAX,
+            gc: GcPolicy {
+                max_idle: std::time::Duration::from_secs(u64::MAX / 4),
+                max_bytes: u64::MAX,
+            },
+        }
+    }
+}
+
+/// Who asks for derived work: requests without a token are held to the anonymous budget.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Requester {
+    Anonymous,
+    Authenticated,
+}
+
+/// Counts a version as being streamed until dropped.
+pub struct Serving {
+    datasets: Arc<Datasets>,
+    key: (String, String),
+}
+
+impl Drop for Serving {
+    fn drop(&mut self) {
+        let mut serving = self.datasets.serving.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(n) = serving.get_mut(&self.key) {
+            *n -= 1;
+            if *n == 0 {
+                serving.remove(&self.key);
+            }
+        }
+    }
 }
 
 /// What the dataset service is made of.
@@ -104,6 +162,7 @@ pub struct DatasetsSetup {
     pub default_license: String,
     pub converter: Converter,
     pub metrics: Arc<Metrics>,
+    pub limits: DerivedLimits,
 }
 
 impl Datasets {
@@ -117,6 +176,7 @@ impl Datasets {
             default_license,
             converter,
             metrics,
+            limits,
         } = setup;
         if tmp_dir.exists() {
             std::fs::remove_dir_all(&tmp_dir)?;
@@ -133,7 +193,98 @@ impl Datasets {
             metrics,
             local_objects,
             in_flight: Default::default(),
+            derivation_turns: Arc::new(tokio::sync::Semaphore::new(limits.max_concurrent.max(1) as usize)),
+            derivations_pending: AtomicU64::new(0),
+            limits,
+            serving: Default::default(),
+            anonymous_derived: Default::default(),
         })
+    }
+
+    pub fn limits(&self) -> &DerivedLimits {
+        &self.limits
+    }
+
+    /// Marks `record` as being streamed until the returned guard is dropped.
+    pub fn serving(self: &Arc<Self>, record: &VersionRecord) -> Serving {
+        let key = (record.task.to_string(), record.version.to_string());
+        *self
+            .serving
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(key.clone())
+            .or_default() += 1;
+        Serving {
+            datasets: self.clone(),
+            key,
+        }
+    }
+
+    fn is_serving(&self, task: &str, version: &str) -> bool {
+        self.serving
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains_key(&(task.to_owned(), version.to_owned()))
+    }
+
+    /// Refuses new derived work past the waiting room (503, `Retry-After`) and, for a request without a token, past
+    /// the anonymous budget of the last hour (429, `Retry-After`); records an anonymous request's `bytes`.
+    fn admit(&self, requester: Requester, bytes: u64) -> Result<(), ApiError> {
+        let pending = self.derivations_pending.load(Ordering::SeqCst);
+        let room = u64::from(self.limits.max_concurrent.max(1)) + u64::from(self.limits.max_waiting);
+        if pending >= room {
+            return Err(ApiError::Busy {
+                message: format!(
+                    "{pending} derived datasets are being computed or waiting (datasets.max_concurrent_derivations \
+                     + datasets.max_waiting_derivations = {room})"
+                ),
+                retry_after: 30,
+            });
+        }
+        if requester == Requester::Anonymous {
+            let hour = std::time::Duration::from_secs(3600);
+            let mut window = self.anonymous_derived.lock().unwrap_or_else(|e| e.into_inner());
+            while window.front().is_some_and(|(at, _)| at.elapsed() >= hour) {
+                window.pop_front();
+            }
+            let used: u64 = window.iter().map(|(_, b)| b).sum();
+            if used.saturating_add(bytes) > self.limits.anonymous_bytes_per_hour {
+                let retry_after = window
+                    .front()
+                    .map_or(3600, |(at, _)| hour.saturating_sub(at.elapsed()).as_secs().max(1));
+                return Err(ApiError::RateLimited {
+                    message: format!(
+                        "requests without a token have started {used} bytes of derived data in the last hour; the \
+                         limit is {} (datasets.anonymous_derived_bytes_per_hour): send an admin or user token",
+                        self.limits.anonymous_bytes_per_hour
+                    ),
+                    retry_after,
+                });
+            }
+            window.push_back((std::time::Instant::now(), bytes));
+        }
+        Ok(())
+    }
+
+    /// Runs derived work in a task of its own: it completes and is recorded even when the request that started it
+    /// is gone (a client's timeout, a proxy's), and later requests find it. It waits for a turn among
+    /// `max_concurrent_derivations`.
+    async fn detached<T: Send + 'static>(
+        self: &Arc<Self>,
+        work: impl std::future::Future<Output = Result<T, ApiError>> + Send + 'static,
+    ) -> Result<T, ApiError> {
+        let turns = self.derivation_turns.clone();
+        let this = self.clone();
+        this.derivations_pending.fetch_add(1, Ordering::SeqCst);
+        let handle = tokio::spawn(async move {
+            let result = match turns.acquire_owned().await {
+                Ok(_turn) => work.await,
+                Err(e) => Err(ApiError::internal(e)),
+            };
+            this.derivations_pending.fetch_sub(1, Ordering::SeqCst);
+            result
+        });
+        handle.await.map_err(ApiError::internal)?
     }
 
     pub fn db(&self) -> &Db {
@@ -221,16 +372,19 @@ impl Datasets {
     /// The version a request names: `reference` itself, or, with a filter, the version the filter makes from it
     /// (computed once, then looked up).
     pub async fn resolve_filtered(
-        &self,
+        self: &Arc<Self>,
         task: &str,
         reference: &str,
         filter: Option<&str>,
+        requester: Requester,
     ) -> Result<(&Task, VersionRecord), ApiError> {
         let (task, parent) = self.resolve(task, reference).await?;
         let Some(spec) = self.parse_filter(task, filter)? else {
             return Ok((task, parent));
         };
-        let record = self.derive(task, &parent, &spec, filter.unwrap_or_default()).await?;
+        let record = self
+            .derive(task, &parent, &spec, filter.unwrap_or_default(), requester)
+            .await?;
         Ok((task, record))
     }
 
@@ -248,11 +402,12 @@ impl Datasets {
     }
 
     async fn derive(
-        &self,
+        self: &Arc<Self>,
         task: &Task,
         parent: &VersionRecord,
         spec: &FilterSpec,
         request: &str,
+        requester: Requester,
     ) -> Result<VersionRecord, ApiError> {
         let canonical = spec.canonical();
         if let Some((found, last_used_ms)) = self.derivation(task, parent, &canonical).await? {
@@ -263,19 +418,40 @@ impl Datasets {
             }
             return Ok(found);
         }
-        self.one_at_a_time(derivation_gate(task.id.as_str(), &parent.version, &canonical), async {
-            // Whoever held the gate before us has committed its result.
-            if let Some((found, _)) = self.derivation(task, parent, &canonical).await? {
-                self.count_filter("cached");
-                return Ok(found);
-            }
-            let started = std::time::Instant::now();
-            let record = self.compute_derivation(task, parent, spec, &canonical, request).await?;
-            self.count_filter("computed");
-            self.metrics.filter_seconds.observe(started.elapsed().as_secs_f64());
-            Ok(record)
-        })
-        .await
+        self.admit(requester, parent.byte_size)?;
+        let this = self.clone();
+        let (task, parent, spec, request) = (task.clone(), parent.clone(), spec.clone(), request.to_owned());
+        let record = self
+            .detached(async move {
+                let gate = derivation_gate(task.id.as_str(), &parent.version, &canonical);
+                this.one_at_a_time(gate, async {
+                    // Whoever held the gate before us has committed its result.
+                    if let Some((found, _)) = this.derivation(&task, &parent, &canonical).await? {
+                        this.count_filter("cached");
+                        return Ok(found);
+                    }
+                    let started = std::time::Instant::now();
+                    let record = this
+                        .compute_derivation(&task, &parent, &spec, &canonical, &request)
+                        .await?;
+                    this.count_filter("computed");
+                    this.metrics.filter_seconds.observe(started.elapsed().as_secs_f64());
+                    Ok(record)
+                })
+                .await
+            })
+            .await?;
+        // Past the run-time budget, the least recently used filtered versions go (never one being streamed).
+        let policy = self.limits.gc.clone();
+        if self.db.derived_bytes().await? > policy.max_bytes {
+            let report = self.collect_garbage(&policy, false).await?;
+            tracing::info!(
+                removed = report.removed.len(),
+                bytes = report.derived_bytes_after,
+                "derived data over budget"
+            );
+        }
+        Ok(record)
     }
 
     /// Runs `work` while holding the gate named `key`, so that concurrent requests for the same derived object
@@ -316,7 +492,7 @@ impl Datasets {
         };
         for candidate in candidates {
             let idle = candidate.last_used_ms < cutoff;
-            if !idle && total <= policy.max_bytes {
+            if (!idle && total <= policy.max_bytes) || self.is_serving(&candidate.task, &candidate.version) {
                 report.kept += 1;
                 continue;
             }
@@ -452,13 +628,34 @@ impl Datasets {
     /// The DSRL-layout HDF5 export of a version: (sha256 of its bytes, size). Converted from the Parquet once, on
     /// the first request (concurrent first requests convert once), stored content-addressed under
     /// `hdf5/<sha256>.hdf5` and recorded; later requests are a lookup.
-    pub async fn hdf5_export(&self, record: &VersionRecord) -> Result<(String, u64), ApiError> {
+    pub async fn hdf5_export(
+        self: &Arc<Self>,
+        record: &VersionRecord,
+        requester: Requester,
+    ) -> Result<(String, u64), ApiError> {
         if let Some(found) = self.db.hdf5_export(&record.task, &record.version).await? {
+            self.count_export("cached");
             return Ok(found);
         }
+        self.admit(requester, record.byte_size)?;
+        let this = self.clone();
+        let record = record.clone();
+        self.detached(async move { this.compute_hdf5_export(&record).await })
+            .await
+    }
+
+    fn count_export(&self, outcome: &'static str) {
+        self.metrics
+            .hdf5_exports
+            .get_or_create(&OutcomeLabels { outcome })
+            .inc();
+    }
+
+    async fn compute_hdf5_export(&self, record: &VersionRecord) -> Result<(String, u64), ApiError> {
         let key = format!("hdf5/{}/{}", record.task, record.version);
         self.one_at_a_time(key, async {
             if let Some(found) = self.db.hdf5_export(&record.task, &record.version).await? {
+                self.count_export("cached");
                 return Ok(found);
             }
             let started = std::time::Instant::now();
@@ -488,6 +685,7 @@ impl Datasets {
             self.db
                 .insert_hdf5_export(&record.task, &record.version, &digest, size, &now_rfc3339())
                 .await?;
+            self.count_export("computed");
             tracing::info!(task = %record.task, version = %record.version, digest, bytes = size,
                 seconds = started.elapsed().as_secs_f64(), "exported a version as DSRL HDF5");
             Ok((digest, size))
