@@ -123,22 +123,10 @@ if [ -z "${DSRL_SERVER:-}" ]; then
 fi
 : "${DSRL_TOKEN:?set DSRL_TOKEN to a user token of $DSRL_SERVER}"
 
-# Every training job, one line each: task seed method threshold (- where the method is trained once) steps.
-units=()
-for task in "${tasks[@]}"; do
-  kappas=$(thresholds "$task")
-  for seed in $seeds; do
-    for method in $methods; do
-      n=$(method_steps "$method")
-      case $method in
-        bc-all | cdt | caps) units+=("$task $seed $method - $n") ;;
-        *) for kappa in $kappas; do units+=("$task $seed $method $kappa $n"); done ;;
-      esac
-    done
-  done
-done
-
-# A finished model leaves a marker naming its budget; a model trained to another budget is trained again.
+# Task by task: train its models (--jobs at a time), submit its entries (the server scores them while the next
+# task trains), and record every entry whose scoring has finished, so the results file grows as tasks are scored.
+# A model whose training finished leaves a marker naming its budget; a model trained to another budget is trained
+# again.
 train_unit() {
   local task=$1 seed=$2 method=$3 kappa=$4 n=$5 args marker
   marker=$out/$task/seed-$seed/.trained-$method-$kappa-steps-$n-batch-${batch_size:-osrl}
@@ -154,62 +142,93 @@ train_unit() {
   rm -f "$out/$task/seed-$seed/.trained-$method-$kappa-"*
   touch "$marker"
 }
-
-# Each task's dataset is fetched once before the jobs start, so parallel jobs read one verified cached file.
-for task in "${tasks[@]}"; do "$client" fetch "$task" >&2; done
-echo "$(date -u +%FT%TZ) training ${#units[@]} models ($jobs at a time) into $out" >&2
-# A failed job stops new ones from starting (exit 255), and the script stops before submitting anything.
 export -f train_unit
 export batch_size train out DSRL_SERVER
-printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit
-echo "$(date -u +%FT%TZ) training done" >&2
-[ "$train_only" = no ] || exit 0
 
-# Submit every entry not yet submitted (the server queues them), then wait for each in turn and record it. A server's
-# quota of submissions in flight (leaderboard.concurrent_submissions) is met by waiting for the oldest one first.
-entries=()
-for task in "${tasks[@]}"; do
-  for seed in $seeds; do
-    for method in $methods; do entries+=("$task $seed $method"); done
-  done
-done
 sub_of() { echo "$state/submissions/$1/seed-$2/$3"; }
-# Waits for the submission whose state files start with $1 and keeps its final JSON.
+# Keeps the final JSON of the submission whose state files start with $1: waiting for it (wait), or only when it
+# has already ended (poll; returns 1 while it is queued or running).
 finish() {
   [ -s "$1.json" ] && return 0
-  "$client" --json status "$(cat "$1.id")" --wait > "$1.json.tmp"
+  if [ "${2:-wait}" = wait ]; then
+    "$client" --json status "$(cat "$1.id")" --wait > "$1.json.tmp"
+  else
+    "$client" --json status "$(cat "$1.id")" > "$1.json.tmp"
+    if python3 -c 'import json, sys; sys.exit(json.load(sys.stdin)["state"] in ("queued", "running"))' \
+        < "$1.json.tmp"; then :; else rm -f "$1.json.tmp"; return 1; fi
+  fi
   mv "$1.json.tmp" "$1.json"
 }
-in_flight=()
-for e in "${entries[@]}"; do
-  read -r task seed method <<< "$e"
+# Writes a scored entry into the results file (once per scoring; dsrl-train replaces the same task, method, seed).
+record() {
+  local task=$1 seed=$2 method=$3 sub
+  sub=$(sub_of "$task" "$seed" "$method")
+  [ "$sub.recorded" -nt "$sub.json" ] && return 0
+  "$train" reference-entry --model "$out/$task/seed-$seed/$method" --submission "$sub.json" \
+    --method "$(method_name "$method")" --results "$results"
+  touch "$sub.recorded"
+}
+in_flight=()   # "task seed method" of submissions not yet recorded, oldest first
+record_finished() {
+  local mode=$1 e task seed method left=()
+  for e in "${in_flight[@]+"${in_flight[@]}"}"; do
+    read -r task seed method <<< "$e"
+    if finish "$(sub_of "$task" "$seed" "$method")" "$mode"; then
+      record "$task" "$seed" "$method"
+    else
+      left+=("$e")
+    fi
+  done
+  in_flight=("${left[@]+"${left[@]}"}")
+}
+submit() {
+  local task=$1 seed=$2 method=$3 name model sub answer id
   name=$(method_name "$method") model=$out/$task/seed-$seed/$method
   sub=$(sub_of "$task" "$seed" "$method")
   mkdir -p "$(dirname "$sub")"
   # A submission made for another training of this model is stale.
-  if [ -e "$sub.id" ] && [ "$sub.id" -ot "$model" ]; then rm -f "$sub.id" "$sub.json"; fi
-  [ -e "$sub.id" ] && continue
-  while true; do
-    if answer=$("$client" --json submit "$model" --task "$task" --name "$name-seed$seed" 2> "$sub.err"); then
-      python3 -c 'import json, sys; print(json.load(sys.stdin)["id"])' <<< "$answer" > "$sub.id"
-      break
-    elif id=$(grep -o 'as submission [0-9]*' "$sub.err" | grep -o '[0-9]*$'); then
-      echo "$id" > "$sub.id"  # submitted before the script was stopped
-      break
-    elif grep -q 'queued or running' "$sub.err" && [ ${#in_flight[@]} -gt 0 ]; then
-      finish "${in_flight[0]}"  # the in-flight quota: wait for the oldest
-      in_flight=("${in_flight[@]:1}")
-    else
-      cat "$sub.err" >&2; exit 1
-    fi
+  if [ -e "$sub.id" ] && [ "$sub.id" -ot "$model" ]; then rm -f "$sub.id" "$sub.json" "$sub.recorded"; fi
+  if [ ! -e "$sub.id" ]; then
+    while true; do
+      if answer=$("$client" --json submit "$model" --task "$task" --name "$name-seed$seed" 2> "$sub.err"); then
+        python3 -c 'import json, sys; print(json.load(sys.stdin)["id"])' <<< "$answer" > "$sub.id"
+        break
+      elif id=$(grep -o 'as submission [0-9]*' "$sub.err" | grep -o '[0-9]*$'); then
+        echo "$id" > "$sub.id"  # submitted before the script was stopped
+        break
+      elif grep -q 'queued or running' "$sub.err" && [ ${#in_flight[@]} -gt 0 ]; then
+        record_finished wait  # the server's quota of submissions in flight: wait for those made
+      else
+        cat "$sub.err" >&2; exit 1
+      fi
+    done
+    echo "$task seed $seed: $name submitted as $(cat "$sub.id")" >&2
+  fi
+  in_flight+=("$task $seed $method")
+}
+
+for task in "${tasks[@]}"; do
+  "$client" fetch "$task" >&2  # fetched once, so parallel jobs read one verified cached file
+  units=()
+  kappas=$(thresholds "$task")
+  for seed in $seeds; do
+    for method in $methods; do
+      n=$(method_steps "$method")
+      case $method in
+        bc-all | cdt | caps) units+=("$task $seed $method - $n") ;;
+        *) for kappa in $kappas; do units+=("$task $seed $method $kappa $n"); done ;;
+      esac
+    done
   done
-  in_flight+=("$sub")
-  echo "$task seed $seed: $name submitted as $(cat "$sub.id")" >&2
+  echo "$(date -u +%FT%TZ) $task: training ${#units[@]} models ($jobs at a time) into $out" >&2
+  # A failed job stops new ones from starting (exit 255), and the script stops before submitting them.
+  printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit
+  [ "$train_only" = no ] || continue
+  for seed in $seeds; do
+    for method in $methods; do submit "$task" "$seed" "$method"; done
+  done
+  record_finished poll
 done
-for e in "${entries[@]}"; do
-  read -r task seed method <<< "$e"
-  name=$(method_name "$method") model=$out/$task/seed-$seed/$method
-  sub=$(sub_of "$task" "$seed" "$method")
-  finish "$sub"
-  "$train" reference-entry --model "$model" --submission "$sub.json" --method "$name" --results "$results"
-done
+[ "$train_only" = no ] || exit 0
+record_finished wait
+echo "$(date -u +%FT%TZ) every entry scored and recorded in $results" >&2

@@ -20,7 +20,7 @@ while [ $# -gt 0 ]; do
     *) echo "unknown argument $1" >&2; exit 2 ;;
   esac
 done
-run() { data/reference_entries.sh --jobs "$jobs" "$@"; }
+run() { data/reference_entries.sh --jobs "$jobs" --evaluators 2 "$@"; }
 metadrive=()
 others=()
 for task in $(awk -F, 'NR > 1 { print $1 }' data/tasks.csv); do

@@ -65,6 +65,8 @@ pub struct IngestOptions {
     pub license: Option<String>,
     /// Recipe provenance as JSON (`{"kind": "recipe", ...}`), for data the pipeline built.
     pub provenance_json: Option<String>,
+    /// Leave `latest` where it is (a release imported beside the hosted data).
+    pub keep_latest: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -209,6 +211,14 @@ impl Client {
         self.send(request).await
     }
 
+    /// Starts downloading `version`'s HDF5 export (DSRL's layout, made once on the server and stored); its ETag is the
+    /// export's sha256.
+    pub async fn download_hdf5(&self, task: &str, version: &str) -> Result<Response, ClientError> {
+        let path = format!("/v1/datasets/{}/versions/{}/download", seg(task), seg(version));
+        self.send(self.http.get(self.url(&path)).query(&[("format", "hdf5")]))
+            .await
+    }
+
     /// Uploads a Parquet or DSRL HDF5 file; `progress` is told how many bytes went out. Token, task and size
     /// are checked first with cheap requests, so a doomed upload is refused before a byte of it is sent.
     pub async fn ingest(
@@ -247,6 +257,9 @@ impl Client {
         }
         if let Some(license) = &options.license {
             query.push(("license", license.clone()));
+        }
+        if options.keep_latest {
+            query.push(("latest", "false".to_owned()));
         }
         let body = futures::stream::unfold((handle, 0u64), move |(mut handle, sent)| async move {
             let mut buf = vec![0u8; 1 << 20];

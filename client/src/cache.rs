@@ -204,11 +204,22 @@ impl Cache {
             let known = checksums.files.get(&name).cloned();
             let hit = known.as_ref().is_some_and(|k| file_size(&h5) == Some(k.size));
             if !hit {
-                let sum = export_hdf5(&parquet, &h5).await?;
+                // The server's stored export (made once per version for everyone); a server without one (older
+                // than the format option) leaves the conversion to this machine.
+                let sum = match download_hdf5(client, &manifest, &h5, options).await {
+                    Ok(sum) => {
+                        outcome.downloaded_bytes += sum.size;
+                        sum
+                    }
+                    Err(ClientError::Server { status: 400, .. }) => {
+                        outcome.converted = true;
+                        export_hdf5(&parquet, &h5).await?
+                    }
+                    Err(e) => return Err(e),
+                };
                 checksums.files.insert(name, sum);
                 write_checksums(&dir, &checksums)?;
                 outcome.cache_hit = false;
-                outcome.converted = true;
             }
             outcome.path = h5;
         }
@@ -601,6 +612,69 @@ fn start_writeback(file: &File, offset: u64, len: u64) {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = (file, offset, len);
+}
+
+/// Downloads the server's HDF5 export of the manifest's version to `h5` (via `.part` + rename), checking its sha256
+/// against the ETag the server gave; returns its checksum.
+async fn download_hdf5(
+    client: &Client,
+    manifest: &Manifest,
+    h5: &Path,
+    options: &FetchOptions,
+) -> Result<FileSum, ClientError> {
+    let mut response = client
+        .download_hdf5(manifest.task.as_str(), manifest.version.as_str())
+        .await?;
+    let etag = response
+        .headers()
+        .get("etag")
+        .and_then(|v| v.to_str().ok())
+        .map(|v| v.trim_matches('"').to_owned())
+        .ok_or_else(|| ClientError::Protocol("the HDF5 export came without an ETag".into()))?;
+    let size = response.content_length().unwrap_or(0);
+    let bar = progress_bar(options.progress, size, "downloading HDF5");
+    let part = PathBuf::from(format!("{}.part", h5.display()));
+    let (tx, rx) = std::sync::mpsc::sync_channel::<bytes::Bytes>(16);
+    let writer_part = part.clone();
+    let writer = std::thread::spawn(move || write_and_hash(&writer_part, false, 0, rx));
+    let mut failed = None;
+    loop {
+        match response.chunk().await {
+            Ok(Some(chunk)) => {
+                bar.inc(chunk.len() as u64);
+                if tx.send(chunk).is_err() {
+                    break;
+                }
+            }
+            Ok(None) => break,
+            Err(e) => {
+                failed = Some(ClientError::Protocol(format!("downloading the HDF5 export: {e}")));
+                break;
+            }
+        }
+    }
+    drop(tx);
+    bar.finish_and_clear();
+    let (digest, size) = writer
+        .join()
+        .map_err(|_| ClientError::Protocol("the HDF5 writer thread panicked".into()))?
+        .map_err(ClientError::io(format!("writing {}", part.display())))?;
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    let written = FileSum {
+        sha256: hex::encode(digest),
+        size,
+    };
+    if written.sha256 != etag {
+        let _ = std::fs::remove_file(&part);
+        return Err(ClientError::Integrity(format!(
+            "the HDF5 export of {} hashed to {} but the server named {etag}",
+            manifest.version, written.sha256
+        )));
+    }
+    std::fs::rename(&part, h5).map_err(ClientError::io(format!("renaming to {}", h5.display())))?;
+    Ok(written)
 }
 
 /// Writes DSRL's HDF5 layout next to the Parquet file (via `.part` + rename); returns its checksum.

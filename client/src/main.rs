@@ -177,6 +177,9 @@ enum AdminCommand {
         /// Recipe provenance JSON file (`{"kind": "recipe", ...}`) for data built by a recipe.
         #[arg(long)]
         provenance: Option<PathBuf>,
+        /// Leave `latest` where it is (the new version gets only the tags named).
+        #[arg(long)]
+        keep_latest: bool,
     },
     /// Point TAG of TASK at VERSION.
     Tag {
@@ -473,6 +476,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                     observation_space,
                     license,
                     provenance,
+                    keep_latest,
                 } => {
                     let provenance_json = match provenance {
                         Some(p) => Some(
@@ -499,6 +503,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                         observation_space,
                         license,
                         provenance_json: provenance_json.map(|p| p.trim().replace('\n', " ")),
+                        keep_latest,
                     };
                     let result = client.ingest(&task, &file, &options, move |n| b.set_position(n)).await;
                     bar.finish_and_clear();

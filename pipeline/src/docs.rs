@@ -115,19 +115,29 @@ pub fn reference_sections(
 
     let mut s = String::new();
     let others = entries.len() - current.len();
+    let covered: std::collections::BTreeSet<&str> = current.iter().map(|e| e.task.as_str()).collect();
+    let missing: Vec<String> = catalog
+        .tasks()
+        .iter()
+        .map(|t| t.id.as_str())
+        .filter(|id| !covered.contains(id))
+        .map(short)
+        .collect();
     let _ = writeln!(
         s,
-        "{} entries of protocol `{protocol_version}` on {} tasks{}.\n",
+        "{} entries of protocol `{protocol_version}` on {} of {} tasks{}.{}\n",
         current.len(),
-        current
-            .iter()
-            .map(|e| e.task.as_str())
-            .collect::<std::collections::BTreeSet<_>>()
-            .len(),
+        covered.len(),
+        catalog.tasks().len(),
         if others > 0 {
             format!(" ({others} more under other protocols, left out)")
         } else {
             String::new()
+        },
+        if missing.is_empty() {
+            String::new()
+        } else {
+            format!(" Not yet trained and scored: {}.", missing.join(", "))
         }
     );
     s.push_str(

@@ -12,6 +12,7 @@ pub mod compact;
 pub mod docs;
 pub mod expert;
 pub mod hosted;
+pub mod import_dsrl;
 pub mod recipe;
 
 use std::path::Path;

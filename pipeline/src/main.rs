@@ -51,6 +51,28 @@ enum Command {
         #[arg(long)]
         check: bool,
     },
+    /// Host DSRL's original files in one step: every file in DIR named as one of DSRL 0.1.0's datasets
+    /// (<prefix>-<cost cap>-<count>.hdf5) is checked against the catalog (task, dimensions, the cap and the trajectory
+    /// count its name gives) before it is uploaded, ingested through the server's validation, and tagged (default
+    /// dsrl-0.1.0) without moving latest unless --latest. MetaDrive files with the paper's 261 observation features
+    /// are labelled as the paper's observation space. Files done by an earlier run (DIR/.dsrl-import.json) are
+    /// skipped, so a stopped import resumes. Exits 1 when any file was refused, after trying every one.
+    ImportDsrl {
+        dir: PathBuf,
+        /// The dsrl-server to import into (admin token from --token or DSRL_ADMIN_TOKEN).
+        #[arg(long, env = "DSRL_SERVER")]
+        server: String,
+        #[arg(long, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+        #[arg(long, default_value = "dsrl-0.1.0")]
+        tag: String,
+        /// Also move each task's latest to the imported version (simulator observation space only).
+        #[arg(long)]
+        latest: bool,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 #[derive(clap::Args, Debug)]
@@ -367,6 +389,35 @@ async fn run() -> anyhow::Result<()> {
     } = match Args::parse().command {
         Command::Evaluate(args) => return evaluate(args).await,
         Command::Compact(args) => return compact(args),
+        Command::ImportDsrl {
+            dir,
+            server,
+            token,
+            tag,
+            latest,
+            json,
+        } => {
+            let client = dsrl_client::api::Client::new(&server)?.with_token(token);
+            let options = dsrl_pipeline::import_dsrl::ImportOptions { tag, latest };
+            let report = dsrl_pipeline::import_dsrl::import(&client, &dir, &options).await?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                for r in &report {
+                    println!(
+                        "{}: {} {}{}",
+                        r.file,
+                        r.outcome,
+                        r.version.as_deref().map(|v| &v[..12.min(v.len())]).unwrap_or(""),
+                        r.reason.as_deref().map(|w| format!(" ({w})")).unwrap_or_default()
+                    );
+                }
+            }
+            if report.iter().any(|r| r.outcome == "refused") {
+                anyhow::bail!("some files were refused (see above)");
+            }
+            return Ok(());
+        }
         Command::Docs { check } => {
             let report = dsrl_pipeline::docs::run(std::path::Path::new("."), check)?;
             for (path, sections) in &report.stale {

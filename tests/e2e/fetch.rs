@@ -63,7 +63,29 @@ fn hdf5_export_loads_like_dsrl_and_equals_the_parquet() {
     let version = env.ingest_synthetic(task, 7, 21);
     let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
     assert_eq!(out["format"], "hdf5");
-    assert_eq!(out["converted"], true);
+    // The server's export, made once on the server and downloaded (verified against its sha256), not converted here.
+    assert_eq!(out["converted"], false, "{out}");
+    let exports = |outcome: &str| {
+        let text = crate::leaderboard::reqwest_text(&format!("{}/metrics", env.server.url));
+        let key = format!("dsrl_hdf5_exports_total{{outcome=\"{outcome}\"}} ");
+        text.lines()
+            .find_map(|l| l.strip_prefix(key.as_str()).map(|v| v.trim().parse::<f64>().unwrap()))
+            .unwrap_or(0.0)
+    };
+    assert_eq!(exports("computed"), 1.0);
+    let other_cache = env.dir.path().join("other-cache");
+    let other = env
+        .cli
+        .command(&["--json", "fetch", task, "--format", "hdf5"])
+        .env("DSRL_DATASET_DIR", &other_cache)
+        .output()
+        .unwrap();
+    assert!(other.status.success());
+    assert_eq!(
+        (exports("computed"), exports("cached")),
+        (1.0, 1.0),
+        "a second client gets the stored export"
+    );
     let h5 = out["path"].as_str().unwrap().to_owned();
     assert!(h5.ends_with(&format!("{version}/SafetyDroneRun-v0-140-7.hdf5")), "{h5}");
     let parquet = out["parquet_path"].as_str().unwrap().to_owned();

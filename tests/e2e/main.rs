@@ -16,6 +16,7 @@ mod fuzz;
 mod hardening;
 mod hosted;
 mod http;
+mod import_dsrl;
 mod ingest;
 mod leaderboard;
 mod operations;

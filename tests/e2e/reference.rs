@@ -23,6 +23,11 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         .iter()
         .filter(|e| e.protocol_version == protocol.version)
         .collect();
+    assert!(
+        !current.is_empty(),
+        "a fresh server shows reference entries of protocol {}",
+        protocol.version
+    );
 
     let board = get_json(&format!("{}/v1/leaderboard", env.server.url));
     assert_eq!(board["protocol"]["version"], protocol.version.as_str());
@@ -49,12 +54,8 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             .iter()
             .filter(|e| !e["reference"].is_null())
             .collect();
+        // Tasks the reference sweep has not reached yet have none (data/reference/README.md counts them).
         let expected: Vec<_> = current.iter().filter(|e| e.task == id).collect();
-        assert!(
-            !expected.is_empty(),
-            "{id} has no reference entry of protocol {}",
-            protocol.version
-        );
         assert_eq!(listed.len(), expected.len(), "{id}");
         for e in expected {
             let name = dsrl_leaderboard::reference::entry_name(&e.method, e.seed);

@@ -42,6 +42,24 @@ impl AdminAuth {
     }
 }
 
+/// Whether a request comes with a token this server knows (the admin's, or a leaderboard user's): only requests
+/// without one are held to the anonymous budget of derived data.
+pub async fn requester(state: &crate::AppState, headers: &HeaderMap) -> crate::storage::datasets::Requester {
+    use crate::storage::datasets::Requester;
+    if dsrl_service::secrets::bearer(headers).is_none() {
+        return Requester::Anonymous;
+    }
+    if state.auth.check(headers).is_ok()
+        || dsrl_leaderboard::users::authenticate(&state.leaderboard.db, headers)
+            .await
+            .is_ok()
+    {
+        Requester::Authenticated
+    } else {
+        Requester::Anonymous
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -81,23 +99,5 @@ mod tests {
             assert_eq!(std::fs::metadata(&path).unwrap().permissions().mode() & 0o777, 0o600);
         }
         assert!(AdminAuth::load_or_create(Some("short"), &path).is_err());
-    }
-}
-
-/// Whether a request comes with a token this server knows (the admin's, or a leaderboard user's): only requests
-/// without one are held to the anonymous budget of derived data.
-pub async fn requester(state: &crate::AppState, headers: &HeaderMap) -> crate::storage::datasets::Requester {
-    use crate::storage::datasets::Requester;
-    if dsrl_service::secrets::bearer(headers).is_none() {
-        return Requester::Anonymous;
-    }
-    if state.auth.check(headers).is_ok()
-        || dsrl_leaderboard::users::authenticate(&state.leaderboard.db, headers)
-            .await
-            .is_ok()
-    {
-        Requester::Authenticated
-    } else {
-        Requester::Anonymous
     }
 }

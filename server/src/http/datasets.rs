@@ -64,6 +64,8 @@ pub struct IngestParams {
     pub observation_space: Option<String>,
     /// License to record; the server's default otherwise.
     pub license: Option<String>,
+    /// `false`: leave `latest` where it is (default `true`: a new version becomes `latest`).
+    pub latest: Option<bool>,
 }
 
 /// What a client needs to know before uploading.
@@ -366,7 +368,11 @@ async fn ingest_checked(
             tags,
             license: params.license,
             recipe,
-            latest: LatestPolicy::Move,
+            latest: if params.latest == Some(false) {
+                LatestPolicy::Keep
+            } else {
+                LatestPolicy::Move
+            },
         })
         .await?;
     let version = outcome.version.version.clone();

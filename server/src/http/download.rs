@@ -12,7 +12,15 @@ use futures::StreamExt;
 
 use crate::AppState;
 use crate::error::ApiError;
-use crate::http::datasets::VersionQuery;
+
+/// The download's query: a filter, and the format (`parquet`, the default, or `hdf5`: DSRL's layout, converted once
+/// per version on the server and stored).
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DownloadQuery {
+    pub filter: Option<String>,
+    pub format: Option<String>,
+}
 
 /// What a `Range` header asks of a file of `size` bytes.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -113,15 +121,29 @@ pub(crate) fn conditional_range(
 pub async fn download(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
-    query: Result<Query<VersionQuery>, QueryRejection>,
+    query: Result<Query<DownloadQuery>, QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let query = VersionQuery::from(query)?;
+    let query = query
+        .map(|Query(q)| q)
+        .map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    let hdf5 = match query.format.as_deref() {
+        None | Some("parquet") => false,
+        Some("hdf5") => true,
+        Some(other) => {
+            return Err(ApiError::InvalidArgument(format!(
+                "format {other:?}: the formats are parquet (default) and hdf5"
+            )));
+        }
+    };
     let requester = super::auth::requester(&state, &headers).await;
     let (task, record) = state
         .datasets
         .resolve_filtered(&task, &reference, query.filter.as_deref(), requester)
         .await?;
+    if hdf5 {
+        return download_hdf5(&state, task, &record, &headers, requester).await;
+    }
     let etag = format!("\"{}\"", record.version);
     let size = record.byte_size;
     // A version id (with or without a filter) names immutable bytes; a tag can move.
@@ -159,6 +181,45 @@ pub async fn download(
             metrics.download_bytes.inc_by(bytes.len() as u64);
         }
     });
+    Ok((status, response_headers, Body::from_stream(stream)).into_response())
+}
+
+/// A version's HDF5 export (made once and stored): its sha256 is the ETag; ranges and conditional requests as for
+/// the Parquet file.
+async fn download_hdf5(
+    state: &AppState,
+    task: &dsrl_suite::Task,
+    record: &dsrl_service::db::VersionRecord,
+    headers: &HeaderMap,
+    requester: crate::storage::datasets::Requester,
+) -> Result<Response, ApiError> {
+    let (digest, size) = state.datasets.hdf5_export(record, requester).await?;
+    let etag = format!("\"{digest}\"");
+    let mut response_headers = HeaderMap::new();
+    response_headers.insert(header::ETAG, HeaderValue::from_str(&etag).map_err(ApiError::internal)?);
+    response_headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
+    response_headers.insert(
+        "x-dsrl-version",
+        HeaderValue::from_str(&record.version).map_err(ApiError::internal)?,
+    );
+    let Some((status, byte_range)) = conditional_range(headers, &etag, size, &mut response_headers)? else {
+        return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
+    };
+    response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/x-hdf5"));
+    let file_name = format!("{}.hdf5", task.dataset_file_stem(record.episodes));
+    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{file_name}\"")) {
+        response_headers.insert(header::CONTENT_DISPOSITION, v);
+    }
+    let metrics = state.metrics.clone();
+    let stream = state
+        .datasets
+        .read_hdf5(&digest, byte_range)
+        .await?
+        .inspect(move |chunk| {
+            if let Ok(bytes) = chunk {
+                metrics.download_bytes.inc_by(bytes.len() as u64);
+            }
+        });
     Ok((status, response_headers, Body::from_stream(stream)).into_response())
 }
 

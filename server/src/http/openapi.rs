@@ -149,6 +149,7 @@ impl Modify for Conventions {
         ("If-Range" = Option<String>, Header, description = "The ETag the client has part of"),
         ("If-None-Match" = Option<String>, Header),
         ("filter" = Option<String>, Query, description = "A DSRL post-process filter: the download is the filtered version"),
+        ("format" = Option<String>, Query, description = "parquet (default) or hdf5: DSRL's HDF5 layout, converted once per version on the server and stored; its ETag is its sha256"),
     ),
     responses(
         (status = 200, description = "The Parquet file; ETag is its sha256", content_type = "application/vnd.apache.parquet"),

@@ -9,7 +9,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use bytes::Bytes;
 use dsrl_suite::filters;
-use dsrl_suite::filters::apply::gather;
 use dsrl_suite::filters::plan::{Fate, plan};
 use dsrl_suite::filters::spec::{FilterError, FilterSpec};
 use dsrl_suite::manifest::ManifestFacts;
@@ -50,6 +49,8 @@ pub enum LatestPolicy {
     Move,
     /// Set `latest` only if the task has none yet (starter datasets at start-up).
     IfAbsent,
+    /// Leave `latest` where it is (a release imported beside the hosted data, `latest=false`).
+    Keep,
 }
 
 pub struct IngestRequest {
@@ -581,10 +582,22 @@ impl Datasets {
         let space = parent_manifest.observation_space.kind;
         let (obs_dim, act_dim) = (parent_manifest.observation_space.dim as usize, task.act_dim as usize);
         let (task_owned, out_path) = (task.clone(), out.path().to_owned());
+        let scratch = self.temp_file("spill");
+        let scratch_path = scratch.path().to_owned();
         let episodes = parent_manifest.episode_index;
+        // Streamed in bounded memory (the kept episodes spill to a scratch file and are read back in output order).
         let converted = tokio::task::spawn_blocking(move || {
-            let data = gather(&source, &episodes, &planned, obs_dim, act_dim)?;
-            filters::apply::write(&task_owned, space, &data, &out_path)
+            filters::apply::filter_to(
+                &source,
+                &episodes,
+                &planned,
+                &task_owned,
+                space,
+                obs_dim,
+                act_dim,
+                &out_path,
+                &scratch_path,
+            )
         })
         .await
         .map_err(ApiError::internal)?
@@ -832,7 +845,7 @@ impl Datasets {
                 let mut tx = self.db.begin().await?;
                 let created = db::insert_version(&mut tx, &manifest, &json).await?;
                 let mut moved = Vec::new();
-                if space == ObservationSpace::Simulator {
+                if space == ObservationSpace::Simulator && req.latest != LatestPolicy::Keep {
                     let only_if_absent = req.latest == LatestPolicy::IfAbsent;
                     if db::set_tag(&mut tx, &task.id, &TagName::latest(), &version, &now, only_if_absent).await? {
                         moved.push(TagName::LATEST.to_owned());

@@ -120,3 +120,266 @@ pub fn write(
         .map(|start| Ok(data.rows(start, CHUNK_ROWS.min(data.len() - start))));
     write_canonical(task, space, chunks, vec![], out)
 }
+
+/// Row bytes of the spill file: observation, next observation, action, reward, cost, terminal, timeout.
+fn spill_row_bytes(obs_dim: usize, act_dim: usize) -> usize {
+    4 * (2 * obs_dim + act_dim + 2) + 2
+}
+
+/// `np.sum` over a float32 array with more than one dimension, fed in C order piece by piece: 8192-element blocks
+/// summed pairwise, accumulated in order (`numpy_math::numpy_sum_f32_nd` without holding the array).
+struct StreamingSum {
+    block: Vec<f32>,
+    total: f32,
+    count: usize,
+}
+
+impl StreamingSum {
+    fn new() -> Self {
+        StreamingSum {
+            block: Vec::with_capacity(8192),
+            total: 0.0,
+            count: 0,
+        }
+    }
+
+    fn push(&mut self, values: impl Iterator<Item = f32>) {
+        for v in values {
+            self.block.push(v);
+            if self.block.len() == 8192 {
+                self.total += crate::episode::numpy_sum_f32(&self.block);
+                self.block.clear();
+            }
+            self.count += 1;
+        }
+    }
+
+    fn finish(mut self) -> (f32, usize) {
+        if !self.block.is_empty() {
+            self.total += crate::episode::numpy_sum_f32(&self.block);
+            self.block.clear();
+        }
+        (self.total, self.count)
+    }
+}
+
+/// The kept episodes of the parent, relabelled, written once in input order to an unindexed scratch file of fixed-size
+/// rows, then read back in output order by offset: the filter's whole output is never in memory.
+struct Spill {
+    file: std::fs::File,
+    obs_dim: usize,
+    act_dim: usize,
+    /// Per input episode kept: its first row in the spill file.
+    rows: Vec<u64>,
+}
+
+impl Spill {
+    fn write(
+        parent: &Path,
+        episodes: &[EpisodeSummary],
+        plan: &Plan,
+        obs_dim: usize,
+        act_dim: usize,
+        scratch: &Path,
+    ) -> Result<Spill, ImportError> {
+        use std::io::Write;
+        let mut kept = vec![false; episodes.len()];
+        for &e in &plan.order {
+            kept[e] = true;
+        }
+        let malformed = |e: crate::parquet_file::ReadError| ImportError::Malformed {
+            format: "Parquet",
+            message: e.to_string(),
+        };
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(scratch)?;
+        let mut writer = std::io::BufWriter::with_capacity(8 << 20, &file);
+        let mut rows = vec![u64::MAX; episodes.len()];
+        let mut written = 0u64;
+        let reader = ParquetTransitions::open(std::fs::File::open(parent)?).map_err(malformed)?;
+        let (mut row, mut episode) = (0u64, 0usize);
+        let mut buf = Vec::with_capacity(spill_row_bytes(obs_dim, act_dim) * 4096);
+        for chunk in reader {
+            let chunk = chunk.map_err(malformed)?;
+            let end = row + chunk.len() as u64;
+            while episode < episodes.len() && episodes[episode].start < end {
+                let e = &episodes[episode];
+                let (e_start, e_end) = (e.start, e.start + e.length as u64);
+                let (a, b) = (e_start.max(row), e_end.min(end));
+                if kept[episode] && a < b {
+                    if rows[episode] == u64::MAX {
+                        rows[episode] = written;
+                    }
+                    let relabel = plan.relabels.get(&episode);
+                    for r in a..b {
+                        let i = (r - row) as usize;
+                        let step = (r - e_start) as usize;
+                        buf.clear();
+                        for v in &chunk.observations[i * obs_dim..(i + 1) * obs_dim] {
+                            buf.extend_from_slice(&v.to_le_bytes());
+                        }
+                        for v in &chunk.next_observations[i * obs_dim..(i + 1) * obs_dim] {
+                            buf.extend_from_slice(&v.to_le_bytes());
+                        }
+                        for v in &chunk.actions[i * act_dim..(i + 1) * act_dim] {
+                            buf.extend_from_slice(&v.to_le_bytes());
+                        }
+                        // An outlier's costs become 1 at its drawn steps and 0 elsewhere; its rewards ×1.5 in float32.
+                        let (reward, cost) = match relabel {
+                            Some(steps) => (chunk.rewards[i] * 1.5, if steps.contains(&step) { 1.0 } else { 0.0 }),
+                            None => (chunk.rewards[i], chunk.costs[i]),
+                        };
+                        buf.extend_from_slice(&reward.to_le_bytes());
+                        buf.extend_from_slice(&cost.to_le_bytes());
+                        buf.push(u8::from(chunk.terminals[i]));
+                        buf.push(u8::from(chunk.timeouts[i]));
+                        writer.write_all(&buf)?;
+                        written += 1;
+                    }
+                }
+                if e_end <= end {
+                    episode += 1;
+                } else {
+                    break;
+                }
+            }
+            row = end;
+        }
+        writer.flush()?;
+        drop(writer);
+        Ok(Spill {
+            file,
+            obs_dim,
+            act_dim,
+            rows,
+        })
+    }
+
+    /// Input episode `e`'s `len` rows, appended to `out`.
+    fn read_episode(&self, e: usize, len: usize, out: &mut TransitionChunk) -> std::io::Result<()> {
+        use std::os::unix::fs::FileExt;
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let row_bytes = spill_row_bytes(o, a);
+        let mut bytes = vec![0u8; row_bytes * len];
+        self.file.read_exact_at(&mut bytes, self.rows[e] * row_bytes as u64)?;
+        let f32_at = |b: &[u8], k: usize| f32::from_le_bytes(b[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+        for row in bytes.chunks_exact(row_bytes) {
+            out.observations.extend((0..o).map(|k| f32_at(row, k)));
+            out.next_observations.extend((o..2 * o).map(|k| f32_at(row, k)));
+            out.actions.extend((2 * o..2 * o + a).map(|k| f32_at(row, k)));
+            out.rewards.push(f32_at(row, 2 * o + a));
+            out.costs.push(f32_at(row, 2 * o + a + 1));
+            out.terminals.push(row[row_bytes - 2] != 0);
+            out.timeouts.push(row[row_bytes - 1] != 0);
+        }
+        Ok(())
+    }
+
+    /// The output rows in `ROWS`-row chunks, in output order (the chunking `write` hands the writer).
+    fn chunks<'a>(
+        &'a self,
+        episodes: &'a [EpisodeSummary],
+        plan: &'a Plan,
+    ) -> impl Iterator<Item = Result<TransitionChunk, ImportError>> + 'a {
+        const ROWS: usize = 65_536;
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let mut pending = TransitionChunk::empty(o, a);
+        let mut next = 0usize; // position in plan.order
+        let mut offset = 0usize; // rows of plan.order[next] already taken
+        std::iter::from_fn(move || {
+            while pending.len() < ROWS && next < plan.order.len() {
+                let e = plan.order[next];
+                let len = episodes[e].length as usize;
+                let mut piece = TransitionChunk::empty(o, a);
+                if let Err(err) = self.read_episode(e, len, &mut piece) {
+                    return Some(Err(err.into()));
+                }
+                let take = (ROWS - pending.len()).min(len - offset);
+                pending.append(&piece.rows(offset, take));
+                offset += take;
+                if offset == len {
+                    next += 1;
+                    offset = 0;
+                }
+            }
+            if pending.is_empty() {
+                return None;
+            }
+            Some(Ok(std::mem::replace(&mut pending, TransitionChunk::empty(o, a))))
+        })
+    }
+}
+
+/// `gather` then `write`, in bounded memory: the kept episodes spill to `scratch` (an unindexed file of the filter's
+/// output size, removed before returning), the observation-noise statistics are taken in two passes over it in
+/// output order (NumPy's summation order: `np.std` of the whole array), and the noise is drawn by two generators,
+/// the second advanced past the observations' draws, so the rows stream to the writer one chunk at a time. The
+/// output is the same file, byte for byte (a test holds it to `gather` + `write`).
+#[allow(clippy::too_many_arguments)]
+pub fn filter_to(
+    parent: &Path,
+    episodes: &[EpisodeSummary],
+    plan: &Plan,
+    task: &Task,
+    space: ObservationSpace,
+    obs_dim: usize,
+    act_dim: usize,
+    out: &Path,
+    scratch: &Path,
+) -> Result<Converted, ImportError> {
+    struct Remove<'a>(&'a Path);
+    impl Drop for Remove<'_> {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_file(self.0);
+        }
+    }
+    let _remove = Remove(scratch);
+    let spill = Spill::write(parent, episodes, plan, obs_dim, act_dim, scratch)?;
+    let Some(scale) = plan.noise_scale else {
+        return write_canonical(task, space, spill.chunks(episodes, plan), vec![], out);
+    };
+    // np.std of observations and of next observations, each over the whole output array.
+    let (mut obs_sum, mut next_sum) = (StreamingSum::new(), StreamingSum::new());
+    for chunk in spill.chunks(episodes, plan) {
+        let chunk = chunk?;
+        obs_sum.push(chunk.observations.iter().copied());
+        next_sum.push(chunk.next_observations.iter().copied());
+    }
+    let ((obs_total, n), (next_total, _)) = (obs_sum.finish(), next_sum.finish());
+    let (obs_mean, next_mean) = (obs_total / n as f32, next_total / n as f32);
+    let (mut obs_squares, mut next_squares) = (StreamingSum::new(), StreamingSum::new());
+    for chunk in spill.chunks(episodes, plan) {
+        let chunk = chunk?;
+        obs_squares.push(chunk.observations.iter().map(|&v| (v - obs_mean) * (v - obs_mean)));
+        next_squares.push(
+            chunk
+                .next_observations
+                .iter()
+                .map(|&v| (v - next_mean) * (v - next_mean)),
+        );
+    }
+    let std = |(sum, count): (f32, usize)| ((sum as f64 / count as f64) as f32).sqrt() as f64;
+    let (obs_std, next_std) = (std(obs_squares.finish()), std(next_squares.finish()));
+    // DSRL draws every observation's noise, then every next observation's: the second generator starts where the
+    // first ends.
+    let mut first = plan.generator.clone();
+    let mut second = plan.generator.clone();
+    for _ in 0..n {
+        second.normal(0.0, obs_std);
+    }
+    let noisy = spill.chunks(episodes, plan).map(move |chunk| {
+        let mut chunk = chunk?;
+        for v in chunk.observations.iter_mut() {
+            *v = (*v as f64 + scale * first.normal(0.0, obs_std)) as f32;
+        }
+        for v in chunk.next_observations.iter_mut() {
+            *v = (*v as f64 + scale * second.normal(0.0, next_std)) as f32;
+        }
+        Ok(chunk)
+    });
+    write_canonical(task, space, noisy, vec![], out)
+}

@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# How long CI takes, measured as CI runs it: `.ci/run` on a fresh clone of HEAD with a cold target folder, every
+# line of its output stamped with the seconds since start. Writes tests/CI_TIME.md: the total, the phases (system
+# packages and Python environments, clippy, the test build, the tests outside the end-to-end binary, the end-to-end
+# binary) and the end-to-end tests that finished latest after the one before (with two test threads, an
+# approximation of each test's time), with the commit, machine and date. Crates and pip packages already downloaded
+# on this machine are not downloaded again, so a new machine takes a few minutes more.
+# Usage: scripts/ci-time.sh   (40-50 minutes; run it on a quiet machine)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-ci-time.XXXXXX")
+trap 'rm -rf "$work"' EXIT
+git clone -q . "$work/clone"
+commit=$(git rev-parse --short=12 HEAD)
+log="$work/ci.log"
+start=$(date +%s)
+status=0
+(cd "$work/clone" && CARGO_TARGET_DIR="$work/target" .ci/run) 2>&1 \
+  | while IFS= read -r line; do echo "$(( $(date +%s) - start )) $line"; done > "$log" || status=$?
+total=$(( $(date +%s) - start ))
+python3 - "$log" "$total" "$commit" "$status" > tests/CI_TIME.md <<'PY'
+import re, subprocess, sys
+log, total, commit, status = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]
+lines = [l.rstrip("\n").split(" ", 1) for l in open(log)]
+lines = [(int(t), rest) for t, *r in lines for rest in (r or [""])]
+def first(pattern, after=0):
+    return next((t for t, l in lines if t >= after and re.search(pattern, l)), None)
+finished = [t for t, l in lines if "Finished `dev` profile" in l]
+clippy_start = first(r"Checking|Compiling")
+clippy_end = finished[0] if finished else None
+build_end = finished[1] if len(finished) > 1 else None
+e2e_start = first(r"Running e2e/main\.rs")
+e2e_end = first(r"^test result", e2e_start or 10**9)
+cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
+nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
+date = subprocess.run(["date", "-u", "+%F"], capture_output=True, text=True).stdout.strip()
+def m(s):
+    return "–" if s is None else f"{s / 60:.1f} min"
+print("# CI time\n")
+print("A cold `.ci/run` on a fresh clone, measured by `scripts/ci-time.sh` (a generated file; commit it).\n")
+print(f"Commit {commit}, {date}, {nproc} cores, {cpu}; exit status {status}. **Total: {total / 60:.1f} min.**\n")
+print("| phase | minutes |\n|---|---|")
+print(f"| system packages, fmt, until the first crate compiles | {m(clippy_start)} |")
+print(f"| clippy (the Python environments install beside it) | {m(None if clippy_end is None or clippy_start is None else clippy_end - clippy_start)} |")
+print(f"| the test build | {m(None if build_end is None or clippy_end is None else build_end - clippy_end)} |")
+print(f"| tests outside the end-to-end binary | {m(None if e2e_start is None or build_end is None else e2e_start - build_end)} |")
+print(f"| the end-to-end binary | {m(None if e2e_end is None or e2e_start is None else e2e_end - e2e_start)} |")
+tests = [(t, l) for t, l in lines if e2e_start and t >= e2e_start and re.match(r"test \S+ \.\.\. (ok|FAILED|ignored)", l)]
+gaps, last = [], e2e_start
+for t, l in tests:
+    gaps.append((t - last, l.split()[1], l.split()[-1]))
+    last = t
+print("\nEnd-to-end tests, by the time from the previous test's end to theirs (two run at once), longest first:\n")
+print("| test | outcome | seconds |\n|---|---|---|")
+for gap, name, outcome in sorted(gaps, reverse=True)[:15]:
+    print(f"| {name} | {outcome} | {gap} |")
+PY
+echo "recorded in tests/CI_TIME.md (total $(( total / 60 )) min)" >&2
