@@ -12,7 +12,10 @@ work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-ci-time.XXXXXX")
 trap 'rm -rf "$work"' EXIT
 git clone -q . "$work/clone"
 commit=$(git rev-parse --short=12 HEAD)
-log="$work/ci.log"
+# The whole stamped log is kept outside the clone (a failing run is read there).
+mkdir -p "$HOME/.dsrl/logs"
+log="$HOME/.dsrl/logs/ci-time-$commit.log"
+echo "running .ci/run on a fresh clone of $commit (log: $log)" >&2
 start=$(date +%s)
 status=0
 (cd "$work/clone" && CARGO_TARGET_DIR="$work/target" .ci/run) 2>&1 \
@@ -25,7 +28,7 @@ lines = [l.rstrip("\n").split(" ", 1) for l in open(log)]
 lines = [(int(t), rest) for t, *r in lines for rest in (r or [""])]
 def first(pattern, after=0):
     return next((t for t, l in lines if t >= after and re.search(pattern, l)), None)
-finished = [t for t, l in lines if "Finished `dev` profile" in l]
+finished = [t for t, l in lines if re.search(r"Finished `\w+` profile", l)]
 clippy_start = first(r"Checking|Compiling")
 clippy_end = finished[0] if finished else None
 build_end = finished[1] if len(finished) > 1 else None
@@ -38,12 +41,19 @@ def m(s):
     return "–" if s is None else f"{s / 60:.1f} min"
 print("# CI time\n")
 print("A cold `.ci/run` on a fresh clone, measured by `scripts/ci-time.sh` (a generated file; commit it).\n")
+failed = sorted({l.split()[1] for t, l in lines if re.match(r"test \S+ \.\.\. FAILED", l)})
 print(f"Commit {commit}, {date}, {nproc} cores, {cpu}; exit status {status}. **Total: {total / 60:.1f} min.**\n")
+if failed:
+    print("Failed: " + ", ".join(failed) + " (cargo stops after the first failing test binary).\n")
 print("| phase | minutes |\n|---|---|")
 print(f"| system packages, fmt, until the first crate compiles | {m(clippy_start)} |")
 print(f"| clippy (the Python environments install beside it) | {m(None if clippy_end is None or clippy_start is None else clippy_end - clippy_start)} |")
 print(f"| the test build | {m(None if build_end is None or clippy_end is None else build_end - clippy_end)} |")
-print(f"| tests outside the end-to-end binary | {m(None if e2e_start is None or build_end is None else e2e_start - build_end)} |")
+last_result = max((t for t, l in lines if l.startswith("test result")), default=None)
+outside = None
+if None not in (last_result, build_end, e2e_start, e2e_end):
+    outside = last_result - build_end - (e2e_end - e2e_start)
+print(f"| tests outside the end-to-end binary | {m(outside)} |")
 print(f"| the end-to-end binary | {m(None if e2e_end is None or e2e_start is None else e2e_end - e2e_start)} |")
 tests = [(t, l) for t, l in lines if e2e_start and t >= e2e_start and re.match(r"test \S+ \.\.\. (ok|FAILED|ignored)", l)]
 gaps, last = [], e2e_start

@@ -93,8 +93,9 @@ pub struct Datasets {
     in_flight: std::sync::Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
     /// Turns for derived work (filters, HDF5 exports): a bounded number compute at once.
     derivation_turns: Arc<tokio::sync::Semaphore>,
-    /// Derived work started and not finished (computing or waiting for a turn).
-    derivations_pending: AtomicU64,
+    /// Derived objects (by gate key) started and not finished on this replica, computing or waiting for a turn,
+    /// with the number of requests waiting on each: a request for one already in progress joins it and adds no work.
+    derivations_pending: std::sync::Mutex<HashMap<String, usize>>,
     limits: DerivedLimits,
     /// Versions being streamed to a client now (task, version) → streams: the run-time budget never removes them.
     serving: std::sync::Mutex<HashMap<(String, String), usize>>,
@@ -195,7 +196,7 @@ impl Datasets {
             local_objects,
             in_flight: Default::default(),
             derivation_turns: Arc::new(tokio::sync::Semaphore::new(limits.max_concurrent.max(1) as usize)),
-            derivations_pending: AtomicU64::new(0),
+            derivations_pending: std::sync::Mutex::new(HashMap::new()),
             limits,
             serving: Default::default(),
             anonymous_derived: Default::default(),
@@ -228,10 +229,16 @@ impl Datasets {
             .contains_key(&(task.to_owned(), version.to_owned()))
     }
 
-    /// Refuses new derived work past the waiting room (503, `Retry-After`) and, for a request without a token, past
-    /// the anonymous budget of the last hour (429, `Retry-After`); records an anonymous request's `bytes`.
-    fn admit(&self, requester: Requester, bytes: u64) -> Result<(), ApiError> {
-        let pending = self.derivations_pending.load(Ordering::SeqCst);
+    /// Admits a request for the derived object `key`: one already in progress is joined (no new work, nothing
+    /// charged); new work is refused past the waiting room (503, `Retry-After`) and, for a request without a
+    /// token, past the anonymous budget of the last hour (429, `Retry-After`), which records its `bytes`.
+    fn admit(&self, key: &str, requester: Requester, bytes: u64) -> Result<(), ApiError> {
+        let mut pending_work = self.derivations_pending.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(waiting) = pending_work.get_mut(key) {
+            *waiting += 1;
+            return Ok(());
+        }
+        let pending = pending_work.len() as u64;
         let room = u64::from(self.limits.max_concurrent.max(1)) + u64::from(self.limits.max_waiting);
         if pending >= room {
             return Err(ApiError::Busy {
@@ -264,25 +271,38 @@ impl Datasets {
             }
             window.push_back((std::time::Instant::now(), bytes));
         }
+        pending_work.insert(key.to_owned(), 1);
         Ok(())
     }
 
-    /// Runs derived work in a task of its own: it completes and is recorded even when the request that started it
-    /// is gone (a client's timeout, a proxy's), and later requests find it. It waits for a turn among
-    /// `max_concurrent_derivations`.
+    /// A turn among `max_concurrent_derivations`: taken by whoever computes a derived object, once it has found
+    /// that nobody did before it (requests waiting for the same object hold none).
+    async fn derivation_turn(&self) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
+        self.derivation_turns
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(ApiError::internal)
+    }
+
+    /// Runs derived work for the object `key` (admitted by `admit`) in a task of its own: it completes and is
+    /// recorded even when the request that started it is gone (a client's timeout, a proxy's), and later requests
+    /// find it.
     async fn detached<T: Send + 'static>(
         self: &Arc<Self>,
+        key: String,
         work: impl std::future::Future<Output = Result<T, ApiError>> + Send + 'static,
     ) -> Result<T, ApiError> {
-        let turns = self.derivation_turns.clone();
         let this = self.clone();
-        this.derivations_pending.fetch_add(1, Ordering::SeqCst);
         let handle = tokio::spawn(async move {
-            let result = match turns.acquire_owned().await {
-                Ok(_turn) => work.await,
-                Err(e) => Err(ApiError::internal(e)),
-            };
-            this.derivations_pending.fetch_sub(1, Ordering::SeqCst);
+            let result = work.await;
+            let mut pending = this.derivations_pending.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(waiting) = pending.get_mut(&key) {
+                *waiting -= 1;
+                if *waiting == 0 {
+                    pending.remove(&key);
+                }
+            }
             result
         });
         handle.await.map_err(ApiError::internal)?
@@ -419,18 +439,19 @@ impl Datasets {
             }
             return Ok(found);
         }
-        self.admit(requester, parent.byte_size)?;
+        let gate = derivation_gate(task.id.as_str(), &parent.version, &canonical);
+        self.admit(&gate, requester, parent.byte_size)?;
         let this = self.clone();
         let (task, parent, spec, request) = (task.clone(), parent.clone(), spec.clone(), request.to_owned());
         let record = self
-            .detached(async move {
-                let gate = derivation_gate(task.id.as_str(), &parent.version, &canonical);
+            .detached(gate.clone(), async move {
                 this.one_at_a_time(gate, async {
                     // Whoever held the gate before us has committed its result.
                     if let Some((found, _)) = this.derivation(&task, &parent, &canonical).await? {
                         this.count_filter("cached");
                         return Ok(found);
                     }
+                    let _turn = this.derivation_turn().await?;
                     let started = std::time::Instant::now();
                     let record = this
                         .compute_derivation(&task, &parent, &spec, &canonical, &request)
@@ -650,10 +671,11 @@ impl Datasets {
             self.count_export("cached");
             return Ok(found);
         }
-        self.admit(requester, record.byte_size)?;
+        let key = format!("hdf5/{}/{}", record.task, record.version);
+        self.admit(&key, requester, record.byte_size)?;
         let this = self.clone();
         let record = record.clone();
-        self.detached(async move { this.compute_hdf5_export(&record).await })
+        self.detached(key, async move { this.compute_hdf5_export(&record).await })
             .await
     }
 
@@ -671,6 +693,7 @@ impl Datasets {
                 self.count_export("cached");
                 return Ok(found);
             }
+            let _turn = self.derivation_turn().await?;
             let started = std::time::Instant::now();
             let (source, _download) = self.readable_copy(record).await?;
             let out = self.temp_file("hdf5");
