@@ -188,6 +188,12 @@ submit() {
   mkdir -p "$(dirname "$sub")"
   # A submission made for another training of this model is stale.
   if [ -e "$sub.id" ] && [ "$sub.id" -ot "$model" ]; then rm -f "$sub.id" "$sub.json" "$sub.recorded"; fi
+  # So is an id kept from a scoring server whose state was reset since: it names someone else's submission.
+  if [ -e "$sub.id" ] && ! "$client" --json status "$(cat "$sub.id")" 2> /dev/null | python3 -c \
+      'import json, sys; d = json.load(sys.stdin); sys.exit(d["task"] != sys.argv[1] or d["name"] != sys.argv[2])' \
+      "$task" "$name-seed$seed"; then
+    rm -f "$sub.id" "$sub.json" "$sub.recorded"
+  fi
   if [ ! -e "$sub.id" ]; then
     while true; do
       if answer=$("$client" --json submit "$model" --task "$task" --name "$name-seed$seed" 2> "$sub.err"); then

@@ -32,8 +32,11 @@ finished = [t for t, l in lines if re.search(r"Finished `\w+` profile", l)]
 clippy_start = first(r"Checking|Compiling")
 clippy_end = finished[0] if finished else None
 build_end = finished[1] if len(finished) > 1 else None
-e2e_start = first(r"Running e2e/main\.rs")
-e2e_end = first(r"^test result", e2e_start or 10**9)
+# By line, not by second: the binaries before the end-to-end one report in the same second it starts.
+e2e_line = next((i for i, (t, l) in enumerate(lines) if re.search(r"Running e2e/main\.rs", l)), None)
+e2e_start = None if e2e_line is None else lines[e2e_line][0]
+e2e_end = None if e2e_line is None else next(
+    (t for t, l in lines[e2e_line:] if l.startswith("test result")), None)
 cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
 nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
 date = subprocess.run(["date", "-u", "+%F"], capture_output=True, text=True).stdout.strip()

@@ -178,11 +178,11 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
              started_at = COALESCE(started_at, $3), claimed_ms = $4, heartbeat_ms = $4, episodes_done = 0
          WHERE id = (SELECT s.id FROM submissions s
                      WHERE {}
-                     ORDER BY (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = s.user_id),
-                              s.id
+                     ORDER BY {}
                      LIMIT 1{})
          RETURNING id, task, checkpoints, episodes_per_threshold, attempts",
         waiting("$4"),
+        fair_order("$4"),
         db.backend().skip_locked()
     )))
     .bind(owner)
@@ -206,6 +206,17 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
 /// (milliseconds) in the parameter `now`. One definition for the claim and the queue depth.
 fn waiting(now: &str) -> String {
     format!("(state = 'queued' OR (state = 'running' AND lease_expires_ms < {now}))")
+}
+
+/// The fair order of waiting jobs (`s`), round-robin across users: a user's k-th waiting job is in round k; within
+/// a round, the user whose last claim is oldest goes first; then submission order. One user's many submissions
+/// cannot hold back another's first, whether or not an evaluator has claimed anything yet.
+fn fair_order(now: &str) -> String {
+    format!(
+        "(SELECT COUNT(*) FROM submissions w WHERE w.user_id = s.user_id AND w.id < s.id AND {}),
+         (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = s.user_id), s.id",
+        waiting(now)
+    )
 }
 
 /// Jobs waiting for an evaluator: queued, or running under a lease that ran out.
@@ -607,9 +618,9 @@ pub async fn episodes(db: &Db, id: i64) -> Result<Vec<EpisodeRow>, ApiError> {
 /// tasks.
 pub async fn waiting_in_order(db: &Db) -> Result<Vec<(i64, String)>, ApiError> {
     let rows = sqlx::query(AssertSqlSafe(format!(
-        "SELECT s.id, s.task FROM submissions s WHERE {}
-         ORDER BY (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = s.user_id), s.id",
-        waiting("$1")
+        "SELECT s.id, s.task FROM submissions s WHERE {} ORDER BY {}",
+        waiting("$1"),
+        fair_order("$1")
     )))
     .bind(now_ms())
     .fetch_all(db.pool())

@@ -199,17 +199,25 @@ fn the_queue_is_fair_shows_positions_and_counts_and_the_board_downloads_as_data(
     let dir = tempfile::tempdir().unwrap();
     let env = ops_env("1", &[("DSRL__LEADERBOARD__CONCURRENT_SUBMISSIONS", "5")]);
     let (alice, bob) = (create_user(&env, "alice"), create_user(&env, "bob"));
-    let policy = |seed: u64| make_policy(&dir.path().join(format!("p{seed}")), TASK, "target-cost-mlp", seed);
+    // Every policy is made first, so the four submissions follow each other closely.
+    let policies: Vec<_> = [1, 2, 3, 9]
+        .iter()
+        .map(|&seed| make_policy(&dir.path().join(format!("p{seed}")), TASK, "target-cost-mlp", seed))
+        .collect();
     // Alice queues three, then Bob one: Bob's waits behind at most the job being scored.
-    let a: Vec<serde_json::Value> = (1..=3)
-        .map(|seed| {
-            submit(&env, &alice, &policy(seed), &format!("alice-{seed}"))
+    let a: Vec<serde_json::Value> = (0..3)
+        .map(|i| {
+            submit(&env, &alice, &policies[i], &format!("alice-{}", i + 1))
                 .ok()
                 .json()
         })
         .collect();
-    let b = submit(&env, &bob, &policy(9), "bob").ok().json();
+    let b = submit(&env, &bob, &policies[3], "bob").ok().json();
+    // States only move forward, so what is still queued after alice's third job was asked about was queued then.
+    let last = &a[2]["id"];
+    let first_position = status(&env, last)["queue"]["position"].as_u64();
     let queued = status(&env, &b["id"]);
+    let bob_and_alice_2_queued = queued["state"] == "queued" && status(&env, &a[1]["id"])["state"] == "queued";
     if queued["state"] == "queued" {
         let place = &queued["queue"];
         assert!(place["position"].as_u64().unwrap() <= 2, "{queued}");
@@ -218,25 +226,28 @@ fn the_queue_is_fair_shows_positions_and_counts_and_the_board_downloads_as_data(
         let out = client(&env, &bob, &["status", &b["id"].to_string()]).ok();
         assert!(out.stdout.contains("queue position"), "{}", out.stdout);
     }
-    // A later job's position falls as jobs finish.
-    let last = &a[2]["id"];
-    let first_position = status(&env, last)["queue"]["position"].as_u64();
     let done: Vec<serde_json::Value> = a
         .iter()
         .chain([&b])
         .map(|s| wait_for_state(&env, &s["id"], &["finished"], Duration::from_secs(300)))
         .collect();
-    if let Some(p) = first_position {
-        assert!(p >= 2, "alice's third job was behind at least one other: {p}");
-    }
-    // Fairness: Bob's job started before Alice's second and third.
+    // Fairness: with Bob's job and Alice's second both waiting, Bob's starts first, and Alice's third waited
+    // behind both. (On a machine fast enough to score Alice's first before Bob submits, there is nothing to see.)
     let started = |v: &serde_json::Value| v["started_at"].as_str().unwrap().to_owned();
-    assert!(
-        started(&done[3]) <= started(&done[1]),
-        "bob {} alice-2 {}",
-        started(&done[3]),
-        started(&done[1])
-    );
+    if bob_and_alice_2_queued {
+        assert!(
+            first_position.unwrap() >= 2,
+            "alice's third job was behind bob's and her second"
+        );
+        assert!(
+            started(&done[3]) <= started(&done[1]),
+            "bob {} alice-2 {}",
+            started(&done[3]),
+            started(&done[1])
+        );
+    } else {
+        eprintln!("alice's second or bob's job started before both were queued: fairness not observable this run");
+    }
     assert!(done.iter().all(|d| d["author_submissions_to_task"].as_u64().is_some()));
 
     // Counts beside scores, on the table and on the user's page.

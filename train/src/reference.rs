@@ -28,6 +28,7 @@ struct Training {
 
 #[derive(Deserialize)]
 struct TrainingOnly {
+    task: String,
     training: Option<Training>,
 }
 
@@ -98,6 +99,15 @@ pub fn record(model: &Path, submission: &Path, method: &str, results: &Path) -> 
     for path in model_configs(model)? {
         let parsed: TrainingOnly = serde_json::from_slice(&std::fs::read(&path)?)
             .with_context(|| format!("{}: no readable training record", path.display()))?;
+        // A submission id kept from another scoring server's database names someone else's submission.
+        ensure!(
+            parsed.task == view.task,
+            "{} is a model of {}, but submission {} scored {}: the submission is not this model's",
+            path.display(),
+            parsed.task,
+            view.id,
+            view.task
+        );
         models.push(
             parsed
                 .training
