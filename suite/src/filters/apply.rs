@@ -40,33 +40,18 @@ pub fn gather(
         episode: None,
         step: None,
     };
-    let malformed = |e: crate::parquet_file::ReadError| ImportError::Malformed {
-        format: "Parquet",
-        message: e.to_string(),
-    };
-    let reader = ParquetTransitions::open(std::fs::File::open(parent)?).map_err(malformed)?;
-    let mut row = 0u64; // first row of the current chunk
-    let mut episode = 0usize; // episode containing `row`
-    for chunk in reader {
-        let chunk = chunk.map_err(malformed)?;
-        let end = row + chunk.len() as u64;
-        while episode < episodes.len() && episodes[episode].start < end {
-            let e = &episodes[episode];
-            let (e_start, e_end) = (e.start, e.start + e.length as u64);
-            let (a, b) = (e_start.max(row), e_end.min(end));
-            if out_start[episode] != usize::MAX && a < b {
-                let dst = out_start[episode] + (a - e_start) as usize;
-                let (src, n) = ((a - row) as usize, (b - a) as usize);
-                copy_rows(&chunk, src, &mut out, dst, n);
-            }
-            if e_end <= end {
-                episode += 1;
-            } else {
-                break;
-            }
+    for_each_episode_piece(parent, episodes, |chunk, episode, steps, rows| {
+        if out_start[episode] != usize::MAX {
+            copy_rows(
+                chunk,
+                rows.start,
+                &mut out,
+                out_start[episode] + steps.start,
+                rows.len(),
+            );
         }
-        row = end;
-    }
+        Ok(())
+    })?;
     for (&e, steps) in &plan.relabels {
         let start = out_start[e];
         if start == usize::MAX {
@@ -93,6 +78,47 @@ pub fn gather(
         }
     }
     Ok(out)
+}
+
+/// Reads the parent once, in order, and calls `visit(chunk, episode, steps, rows)` for each non-empty piece of an
+/// episode that a chunk holds: `steps` are the piece's steps within its episode, `rows` the same rows within the chunk.
+fn for_each_episode_piece(
+    parent: &Path,
+    episodes: &[EpisodeSummary],
+    mut visit: impl FnMut(
+        &TransitionChunk,
+        usize,
+        std::ops::Range<usize>,
+        std::ops::Range<usize>,
+    ) -> Result<(), ImportError>,
+) -> Result<(), ImportError> {
+    let malformed = |e: crate::parquet_file::ReadError| ImportError::Malformed {
+        format: "Parquet",
+        message: e.to_string(),
+    };
+    let reader = ParquetTransitions::open(std::fs::File::open(parent)?).map_err(malformed)?;
+    let mut row = 0u64; // first row of the current chunk
+    let mut episode = 0usize; // episode containing `row`
+    for chunk in reader {
+        let chunk = chunk.map_err(malformed)?;
+        let end = row + chunk.len() as u64;
+        while episode < episodes.len() && episodes[episode].start < end {
+            let e = &episodes[episode];
+            let (e_start, e_end) = (e.start, e.start + e.length as u64);
+            let (a, b) = (e_start.max(row), e_end.min(end));
+            if a < b {
+                let steps = (a - e_start) as usize..(b - e_start) as usize;
+                visit(&chunk, episode, steps, (a - row) as usize..(b - row) as usize)?;
+            }
+            if e_end <= end {
+                episode += 1;
+            } else {
+                break;
+            }
+        }
+        row = end;
+    }
+    Ok(())
 }
 
 fn copy_rows(src: &TransitionChunk, from: usize, dst: &mut TransitionChunk, to: usize, n: usize) {
@@ -187,10 +213,6 @@ impl Spill {
         for &e in &plan.order {
             kept[e] = true;
         }
-        let malformed = |e: crate::parquet_file::ReadError| ImportError::Malformed {
-            format: "Parquet",
-            message: e.to_string(),
-        };
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
@@ -200,55 +222,40 @@ impl Spill {
         let mut writer = std::io::BufWriter::with_capacity(8 << 20, &file);
         let mut rows = vec![u64::MAX; episodes.len()];
         let mut written = 0u64;
-        let reader = ParquetTransitions::open(std::fs::File::open(parent)?).map_err(malformed)?;
-        let (mut row, mut episode) = (0u64, 0usize);
         let mut buf = Vec::with_capacity(spill_row_bytes(obs_dim, act_dim) * 4096);
-        for chunk in reader {
-            let chunk = chunk.map_err(malformed)?;
-            let end = row + chunk.len() as u64;
-            while episode < episodes.len() && episodes[episode].start < end {
-                let e = &episodes[episode];
-                let (e_start, e_end) = (e.start, e.start + e.length as u64);
-                let (a, b) = (e_start.max(row), e_end.min(end));
-                if kept[episode] && a < b {
-                    if rows[episode] == u64::MAX {
-                        rows[episode] = written;
-                    }
-                    let relabel = plan.relabels.get(&episode);
-                    for r in a..b {
-                        let i = (r - row) as usize;
-                        let step = (r - e_start) as usize;
-                        buf.clear();
-                        for v in &chunk.observations[i * obs_dim..(i + 1) * obs_dim] {
-                            buf.extend_from_slice(&v.to_le_bytes());
-                        }
-                        for v in &chunk.next_observations[i * obs_dim..(i + 1) * obs_dim] {
-                            buf.extend_from_slice(&v.to_le_bytes());
-                        }
-                        for v in &chunk.actions[i * act_dim..(i + 1) * act_dim] {
-                            buf.extend_from_slice(&v.to_le_bytes());
-                        }
-                        // An outlier's costs become 1 at its drawn steps and 0 elsewhere; its rewards ×1.5 in float32.
-                        let (reward, cost) = match relabel {
-                            Some(steps) => (chunk.rewards[i] * 1.5, if steps.contains(&step) { 1.0 } else { 0.0 }),
-                            None => (chunk.rewards[i], chunk.costs[i]),
-                        };
-                        buf.extend_from_slice(&reward.to_le_bytes());
-                        buf.extend_from_slice(&cost.to_le_bytes());
-                        buf.push(u8::from(chunk.terminals[i]));
-                        buf.push(u8::from(chunk.timeouts[i]));
-                        writer.write_all(&buf)?;
-                        written += 1;
-                    }
-                }
-                if e_end <= end {
-                    episode += 1;
-                } else {
-                    break;
-                }
+        for_each_episode_piece(parent, episodes, |chunk, episode, steps, chunk_rows| {
+            if !kept[episode] {
+                return Ok(());
             }
-            row = end;
-        }
+            if rows[episode] == u64::MAX {
+                rows[episode] = written;
+            }
+            let relabel = plan.relabels.get(&episode);
+            for (i, step) in chunk_rows.zip(steps) {
+                buf.clear();
+                for v in &chunk.observations[i * obs_dim..(i + 1) * obs_dim] {
+                    buf.extend_from_slice(&v.to_le_bytes());
+                }
+                for v in &chunk.next_observations[i * obs_dim..(i + 1) * obs_dim] {
+                    buf.extend_from_slice(&v.to_le_bytes());
+                }
+                for v in &chunk.actions[i * act_dim..(i + 1) * act_dim] {
+                    buf.extend_from_slice(&v.to_le_bytes());
+                }
+                // An outlier's costs become 1 at its drawn steps and 0 elsewhere; its rewards ×1.5 in float32.
+                let (reward, cost) = match relabel {
+                    Some(steps) => (chunk.rewards[i] * 1.5, if steps.contains(&step) { 1.0 } else { 0.0 }),
+                    None => (chunk.rewards[i], chunk.costs[i]),
+                };
+                buf.extend_from_slice(&reward.to_le_bytes());
+                buf.extend_from_slice(&cost.to_le_bytes());
+                buf.push(u8::from(chunk.terminals[i]));
+                buf.push(u8::from(chunk.timeouts[i]));
+                writer.write_all(&buf)?;
+                written += 1;
+            }
+            Ok(())
+        })?;
         writer.flush()?;
         drop(writer);
         Ok(Spill {
