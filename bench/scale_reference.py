@@ -13,6 +13,9 @@ import sys
 import time
 import types
 
+import gymnasium
+import numpy as np
+
 # pre_process_data draws a matplotlib figure; its time is not what is compared here.
 stub = types.ModuleType("matplotlib.pyplot")
 stub.__getattr__ = lambda name: (lambda *a, **k: None)
@@ -32,6 +35,10 @@ FILTERS = {
 def main():
     path, name = sys.argv[1], sys.argv[2]
     env = reference.OfflineEnv(**CONSTANTS)
+    # DSRL wraps the task's own environment, whose spaces get_dataset checks the file against; CarPush2's, without
+    # building the simulator (its shapes, not its bounds, are what is checked).
+    env.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (88,), np.float32)
+    env.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
     env.set_target_cost(20)
     random.seed(0)
     start = time.perf_counter()

@@ -168,13 +168,31 @@ record() {
     --method "$(method_name "$method")" --results "$results"
   touch "$sub.recorded"
 }
+# A scoring that failed for the service's sake (a simulator worker that stopped answering on an overloaded machine
+# fails a job after its attempts) is submitted again, twice at most; a third failure stops the script with its reason.
+failed_scoring() {
+  local sub tries
+  sub=$(sub_of "$1" "$2" "$3")
+  python3 -c 'import json, sys; sys.exit(json.load(sys.stdin)["state"] != "failed")' < "$sub.json" || return 1
+  tries=$(( $(cat "$sub.retries" 2> /dev/null || echo 0) + 1 ))
+  echo "$1 seed $2: $(method_name "$3") submission $(cat "$sub.id") failed: $(python3 -c \
+    'import json, sys; print(json.load(sys.stdin).get("reason") or "no reason given")' < "$sub.json")" >&2
+  if [ "$tries" -gt 2 ]; then echo "giving up after $tries failed scorings" >&2; exit 1; fi
+  echo "$tries" > "$sub.retries"
+  rm -f "$sub.id" "$sub.json" "$sub.recorded"
+}
 in_flight=()   # "task seed method" of submissions not yet recorded, oldest first
 record_finished() {
   local mode=$1 e task seed method left=()
   for e in "${in_flight[@]+"${in_flight[@]}"}"; do
     read -r task seed method <<< "$e"
     if finish "$(sub_of "$task" "$seed" "$method")" "$mode"; then
-      record "$task" "$seed" "$method"
+      if failed_scoring "$task" "$seed" "$method"; then
+        submit "$task" "$seed" "$method"  # appends to in_flight, which this loop has already copied
+        left+=("$e")
+      else
+        record "$task" "$seed" "$method"
+      fi
     else
       left+=("$e")
     fi

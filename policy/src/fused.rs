@@ -12,7 +12,10 @@
 //! error function is a polynomial within 1.5e-7 of candle's `gelu_erf`), and the tests hold each fused gradient to
 //! autograd's through the primitive form.
 //!
-//! Every operation runs on the CPU in float32 on contiguous tensors (the wrappers make them so).
+//! The fused kernels run on the CPU in float32 on contiguous tensors (the wrappers make them so). On any other
+//! device (CUDA, with the `cuda` feature) each wrapper runs its [`composed`] form instead: the same arithmetic
+//! built from candle's primitive operations, which candle's CUDA backend runs and differentiates. The tests hold
+//! each fused operation to its composed form, forward and backward, so the two paths agree to float tolerance.
 
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Storage, Tensor};
 
@@ -66,6 +69,9 @@ fn column_sums(values: &[f32], n: usize) -> Vec<f32> {
 
 /// `y + b` with `b` added to every row over the last axis.
 pub fn bias_add(y: &Tensor, bias: &Tensor) -> CResult<Tensor> {
+    if !y.device().is_cpu() {
+        return composed::bias_add(y, bias);
+    }
     y.contiguous()?.apply_op2(&bias.contiguous()?, BiasAdd)
 }
 
@@ -104,6 +110,9 @@ impl CustomOp2 for BiasAdd {
 /// GELU with the error function, `x · Φ(x)` (PyTorch's default GELU and candle's `gelu_erf`); its slope is
 /// `Φ(x) + x·φ(x)`.
 pub fn gelu_erf(x: &Tensor) -> CResult<Tensor> {
+    if !x.device().is_cpu() {
+        return composed::gelu_erf(x);
+    }
     x.contiguous()?.apply_op1(Elementwise {
         name: "gelu-erf",
         value: |x| x * normal_cdf_pdf(x).0,
@@ -133,6 +142,9 @@ fn normal_cdf_pdf(x: f32) -> (f32, f32) {
 /// candle's own backward builds a comparison tensor, a type conversion and a product, each a pass over the batch.
 /// NaN stays NaN, as in PyTorch (`f32::max` would turn it into 0 and hide a broken network behind finite actions).
 pub fn relu(x: &Tensor) -> CResult<Tensor> {
+    if !x.device().is_cpu() {
+        return composed::relu(x);
+    }
     x.contiguous()?.apply_op1(Elementwise {
         name: "relu",
         value: |x| if x.is_nan() { x } else { x.max(0.) },
@@ -183,6 +195,9 @@ pub fn dropout(x: &Tensor, keep: Vec<bool>, p: f64) -> CResult<Tensor> {
             x.elem_count()
         )));
     }
+    if !x.device().is_cpu() {
+        return composed::dropout(x, &keep, p);
+    }
     x.contiguous()?.apply_op1(Dropout {
         keep,
         scale: (1.0 / (1.0 - p)) as f32,
@@ -221,6 +236,9 @@ impl CustomOp1 for Dropout {
 
 /// `nn.LayerNorm` over the last axis (biased variance, `eps` inside the square root), then `· weight + bias`.
 pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> CResult<Tensor> {
+    if !x.device().is_cpu() {
+        return composed::layer_norm(x, weight, bias, eps);
+    }
     x.contiguous()?.apply_op3(
         &weight.contiguous()?,
         &bias.contiguous()?,
@@ -324,6 +342,9 @@ pub fn causal_softmax(scores: &Tensor) -> CResult<Tensor> {
     if dims.len() < 2 || dims[dims.len() - 1] != dims[dims.len() - 2] {
         return Err(msg(format!("causal-softmax: needs [..., L, L] scores, got {dims:?}")));
     }
+    if !scores.device().is_cpu() {
+        return composed::causal_softmax(scores);
+    }
     scores.contiguous()?.apply_op1(CausalSoftmax)
 }
 
@@ -375,6 +396,66 @@ impl CustomOp1 for CausalSoftmax {
             })
         })?;
         Ok(Some(tensor(values, x.shape())?))
+    }
+}
+
+/// The operations above as compositions of candle's primitive operations, for devices without the fused kernels:
+/// candle's CUDA backend runs each primitive and its autograd differentiates them. Per operation:
+/// - bias add: `broadcast_add`;
+/// - GELU: candle's `gelu_erf` (its backward is candle's);
+/// - ReLU: candle's `relu` (on CUDA, `max(NaN, 0)` is 0, so a NaN hidden unit is not kept there as on the CPU; the
+///   evaluator, which acts on the CPU, still refuses non-finite actions);
+/// - dropout: a product with the mask, scaled, uploaded as a tensor;
+/// - layer norm: mean, centred variance, `sqrt(var + eps)`, then weight and bias;
+/// - causal softmax: a `−∞` mask above the diagonal added, then [`crate::layers::softmax`].
+pub mod composed {
+    use candle_core::Tensor;
+
+    use super::{CResult, msg};
+
+    pub fn bias_add(y: &Tensor, bias: &Tensor) -> CResult<Tensor> {
+        super::columns(y.shape(), "bias-add", bias.elem_count())?;
+        y.broadcast_add(bias)
+    }
+
+    pub fn gelu_erf(x: &Tensor) -> CResult<Tensor> {
+        x.gelu_erf()
+    }
+
+    pub fn relu(x: &Tensor) -> CResult<Tensor> {
+        x.relu()
+    }
+
+    pub fn dropout(x: &Tensor, keep: &[bool], p: f64) -> CResult<Tensor> {
+        let scale = (1.0 / (1.0 - p)) as f32;
+        let mask: Vec<f32> = keep.iter().map(|&k| if k { scale } else { 0. }).collect();
+        x.mul(&Tensor::from_vec(mask, x.shape(), x.device())?)
+    }
+
+    pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> CResult<Tensor> {
+        let last = x
+            .rank()
+            .checked_sub(1)
+            .ok_or_else(|| msg("layer-norm: needs an axis".into()))?;
+        let mean = x.mean_keepdim(last)?;
+        let centred = x.broadcast_sub(&mean)?;
+        let variance = centred.sqr()?.mean_keepdim(last)?;
+        let normed = centred.broadcast_div(&variance.affine(1.0, eps)?.sqrt()?)?;
+        normed.broadcast_mul(weight)?.broadcast_add(bias)
+    }
+
+    pub fn causal_softmax(scores: &Tensor) -> CResult<Tensor> {
+        let dims = scores.dims();
+        if dims.len() < 2 || dims[dims.len() - 1] != dims[dims.len() - 2] {
+            return Err(msg(format!("causal-softmax: needs [..., L, L] scores, got {dims:?}")));
+        }
+        let l = dims[dims.len() - 1];
+        let mask: Vec<f32> = (0..l)
+            .flat_map(|i| (0..l).map(move |j| if j <= i { 0.0 } else { f32::NEG_INFINITY }))
+            .collect();
+        let mask = Tensor::from_vec(mask, (l, l), scores.device())?;
+        crate::layers::softmax(&scores.broadcast_add(&mask)?, dims.len() - 1)
+            .map_err(|e| msg(format!("causal-softmax: {e}")))
     }
 }
 
@@ -439,7 +520,7 @@ mod tests {
         same_as_primitive(
             &[y, b],
             |t| bias_add(&t[0], &t[1]).unwrap(),
-            |t| t[0].broadcast_add(&t[1]).unwrap(),
+            |t| composed::bias_add(&t[0], &t[1]).unwrap(),
             "bias-add",
         );
         let err = bias_add(&random(&[2, 4], 3), &random(&[3], 4)).unwrap_err().to_string();
@@ -455,7 +536,12 @@ mod tests {
             &Device::Cpu,
         )
         .unwrap();
-        same_as_primitive(&[x], |t| gelu_erf(&t[0]).unwrap(), |t| t[0].gelu_erf().unwrap(), "gelu");
+        same_as_primitive(
+            &[x],
+            |t| gelu_erf(&t[0]).unwrap(),
+            |t| composed::gelu_erf(&t[0]).unwrap(),
+            "gelu",
+        );
     }
 
     #[test]
@@ -468,7 +554,12 @@ mod tests {
             .unwrap();
         x[3] = 0.0;
         let x = Var::from_vec(x, (4, 5), &Device::Cpu).unwrap();
-        same_as_primitive(&[x], |t| relu(&t[0]).unwrap(), |t| t[0].relu().unwrap(), "relu");
+        same_as_primitive(
+            &[x],
+            |t| relu(&t[0]).unwrap(),
+            |t| composed::relu(&t[0]).unwrap(),
+            "relu",
+        );
     }
 
     #[test]
@@ -483,18 +574,19 @@ mod tests {
     fn dropout_scales_what_it_keeps_and_masks_its_gradient_alike() {
         let x = random(&[2, 3], 14);
         let keep = vec![true, false, true, true, false, true];
-        let mask = Tensor::from_vec(
-            keep.iter().map(|&k| if k { 1.25f32 } else { 0. }).collect::<Vec<f32>>(),
-            (2, 3),
-            &Device::Cpu,
-        )
-        .unwrap();
         same_as_primitive(
             &[x],
             |t| dropout(&t[0], keep.clone(), 0.2).unwrap(),
-            |t| t[0].mul(&mask).unwrap(),
+            |t| composed::dropout(&t[0], &keep, 0.2).unwrap(),
             "dropout",
         );
+        let kept = composed::dropout(
+            &Tensor::ones((2, 3), candle_core::DType::F32, &Device::Cpu).unwrap(),
+            &keep,
+            0.2,
+        )
+        .unwrap();
+        assert_eq!(values(&kept), [1.25, 0., 1.25, 1.25, 0., 1.25]);
         let err = dropout(&random(&[2, 3], 15), vec![true; 5], 0.2)
             .unwrap_err()
             .to_string();
@@ -507,30 +599,25 @@ mod tests {
         same_as_primitive(
             &[x, w, b],
             |t| layer_norm(&t[0], &t[1], &t[2], 1e-5).unwrap(),
-            |t| {
-                let mean = t[0].mean_keepdim(2).unwrap();
-                let centred = t[0].broadcast_sub(&mean).unwrap();
-                let variance = centred.sqr().unwrap().mean_keepdim(2).unwrap();
-                let normed = centred
-                    .broadcast_div(&variance.affine(1.0, 1e-5).unwrap().sqrt().unwrap())
-                    .unwrap();
-                normed.broadcast_mul(&t[1]).unwrap().broadcast_add(&t[2]).unwrap()
-            },
+            |t| composed::layer_norm(&t[0], &t[1], &t[2], 1e-5).unwrap(),
             "layer-norm",
         );
     }
 
     #[test]
     fn causal_softmax_matches_a_masked_softmax_and_its_gradient() {
+        // The composed form is the masked softmax: weights above the diagonal are exactly zero.
         let l = 5;
-        let mask: Vec<f32> = (0..l)
-            .flat_map(|i| (0..l).map(move |j| if j <= i { 0.0 } else { f32::NEG_INFINITY }))
-            .collect();
-        let mask = Tensor::from_vec(mask, (l, l), &Device::Cpu).unwrap();
+        let composed = composed::causal_softmax(random(&[1, l, l], 17).as_tensor()).unwrap();
+        let rows = composed.squeeze(0).unwrap().to_vec2::<f32>().unwrap();
+        for (i, row) in rows.iter().enumerate() {
+            assert!(row[i + 1..].iter().all(|&w| w == 0.), "row {i}: {row:?}");
+            assert!((row.iter().sum::<f32>() - 1.).abs() < 1e-6, "row {i}: {row:?}");
+        }
         same_as_primitive(
             &[random(&[2, 3, l, l], 8)],
             |t| causal_softmax(&t[0]).unwrap(),
-            |t| crate::layers::softmax(&t[0].broadcast_add(&mask).unwrap(), 3).unwrap(),
+            |t| composed::causal_softmax(&t[0]).unwrap(),
             "causal-softmax",
         );
         let err = causal_softmax(&random(&[2, 3, 4], 9)).unwrap_err().to_string();

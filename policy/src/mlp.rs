@@ -97,6 +97,25 @@ impl Mlp {
         })
     }
 
+    /// The same network with its variables on `device` (initialised on the CPU from the seed, so the first weights
+    /// are the same whichever device trains them); on the device it is already on, itself.
+    pub fn to_device(self, device: &Device) -> Result<Mlp> {
+        if self.layers[0].0.device().same_device(device) {
+            return Ok(self);
+        }
+        let layers = self
+            .layers
+            .iter()
+            .map(|(w, b)| {
+                Ok((
+                    Var::from_tensor(&w.as_tensor().to_device(device)?)?,
+                    Var::from_tensor(&b.as_tensor().to_device(device)?)?,
+                ))
+            })
+            .collect::<Result<_>>()?;
+        Ok(Mlp { layers, ..self })
+    }
+
     /// A copy whose variables are its own (a target network starts as one).
     pub fn copy(&self) -> Result<Mlp> {
         Ok(Mlp {

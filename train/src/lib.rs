@@ -30,6 +30,35 @@ use dsrl_policy::noise::Noise;
 use dsrl_policy::{Device, Tensor};
 use dsrl_suite::parquet_file::ParquetTransitions;
 
+/// The device `--device` names: `cpu`, `cuda` (the first GPU) or `cuda:N`. CUDA needs a binary built with the
+/// `cuda` feature (scripts/build-cuda.sh); without it, or without a GPU, the error says so.
+pub fn training_device(name: &str) -> anyhow::Result<Device> {
+    let ordinal = match name {
+        "cpu" => return Ok(Device::Cpu),
+        "cuda" => 0,
+        other => match other.strip_prefix("cuda:").map(str::parse::<usize>) {
+            Some(Ok(n)) => n,
+            _ => anyhow::bail!("--device {other:?}: the devices are cpu, cuda and cuda:N (N = 0, 1, ...)"),
+        },
+    };
+    if !cfg!(feature = "cuda") {
+        anyhow::bail!(
+            "--device {name}: this dsrl-train was built without the `cuda` feature; scripts/build-cuda.sh builds \
+             one (CUDA from PyPI, no system CUDA needed)"
+        );
+    }
+    Device::new_cuda(ordinal).with_context(|| format!("--device {name}: opening GPU {ordinal}"))
+}
+
+/// How a training record names a device: `cpu` or `cuda:N`.
+pub fn device_name(device: &Device) -> String {
+    match device.location() {
+        candle_core::DeviceLocation::Cpu => "cpu".to_owned(),
+        candle_core::DeviceLocation::Cuda { gpu_id } => format!("cuda:{gpu_id}"),
+        candle_core::DeviceLocation::Metal { gpu_id } => format!("metal:{gpu_id}"),
+    }
+}
+
 /// Every action of the 38 tasks lies in [-1, 1].
 pub const MAX_ACTION: f64 = 1.0;
 
@@ -145,15 +174,31 @@ pub struct BcLearner {
     actions: Tensor,
     rows: usize,
     batch_size: usize,
+    device: Device,
 }
 
 impl BcLearner {
+    /// A learner on the CPU.
     pub fn new(
         settings: &BcSettings,
         observations: &[f32],
         actions: &[f32],
         obs_dim: usize,
         act_dim: usize,
+    ) -> anyhow::Result<Self> {
+        Self::on_device(settings, observations, actions, obs_dim, act_dim, &Device::Cpu)
+    }
+
+    /// A learner whose network, data and batches live on `device` (the dataset is uploaded once; each step draws
+    /// its batch indices from the seed on the CPU and gathers the rows on the device). The first weights are the
+    /// CPU's, so a run differs between devices only by float rounding.
+    pub fn on_device(
+        settings: &BcSettings,
+        observations: &[f32],
+        actions: &[f32],
+        obs_dim: usize,
+        act_dim: usize,
+        device: &Device,
     ) -> anyhow::Result<Self> {
         let rows = observations.len() / obs_dim;
         anyhow::ensure!(rows > 0, "no transitions to learn from");
@@ -163,16 +208,18 @@ impl BcLearner {
         );
         let mut noise = Noise::seeded(settings.seed);
         let sizes = dsrl_policy::mlp::layer_sizes(obs_dim, &settings.hidden_sizes, act_dim);
-        let net = Mlp::orthogonal("actor.net", &sizes, Activation::Relu, 2f64.sqrt(), 1.0, &mut noise)?;
+        let net =
+            Mlp::orthogonal("actor.net", &sizes, Activation::Relu, 2f64.sqrt(), 1.0, &mut noise)?.to_device(device)?;
         let optimizer = Adam::new(net.named_vars(), settings.lr, None)?;
         Ok(BcLearner {
             net,
             optimizer,
             noise,
-            observations: matrix(observations, rows, obs_dim)?,
-            actions: matrix(actions, rows, act_dim)?,
+            observations: matrix(observations, rows, obs_dim)?.to_device(device)?,
+            actions: matrix(actions, rows, act_dim)?.to_device(device)?,
             rows,
             batch_size: settings.batch_size,
+            device: device.clone(),
         })
     }
 
@@ -186,7 +233,7 @@ impl BcLearner {
         let idx: Vec<u32> = (0..self.batch_size)
             .map(|_| (self.noise.next_u64() % self.rows as u64) as u32)
             .collect();
-        let idx = Tensor::from_slice(&idx, idx.len(), &Device::Cpu)?;
+        let idx = Tensor::from_slice(&idx, idx.len(), &self.device)?;
         let (loss, grads) = self.net.tanh_mse_gradients(
             &self.observations.index_select(&idx, 0)?,
             &self.actions.index_select(&idx, 0)?,
@@ -219,7 +266,12 @@ impl BcLearner {
             conditioning,
             training: Some(training),
         };
-        checkpoint::write(dir, &config, &dsrl_policy::tensors_of(self.net.named_vars()))?;
+        // Written as float32 on the CPU whichever device trained it: the checkpoint format has no device.
+        let tensors = dsrl_policy::tensors_of(self.net.named_vars())
+            .into_iter()
+            .map(|(name, t)| Ok((name, t.to_device(&Device::Cpu)?)))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        checkpoint::write(dir, &config, &tensors)?;
         Ok(())
     }
 }
@@ -227,6 +279,23 @@ impl BcLearner {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn devices_are_named_and_cuda_without_the_feature_says_how_to_get_it() {
+        assert!(training_device("cpu").unwrap().is_cpu());
+        assert_eq!(device_name(&Device::Cpu), "cpu");
+        for bad in ["gpu", "cuda:x", "cuda:-1", ""] {
+            let err = training_device(bad).unwrap_err().to_string();
+            assert!(err.contains("the devices are cpu, cuda and cuda:N"), "{bad}: {err}");
+        }
+        if !cfg!(feature = "cuda") {
+            let err = training_device("cuda:1").unwrap_err().to_string();
+            assert!(
+                err.contains("built without the `cuda` feature") && err.contains("build-cuda.sh"),
+                "{err}"
+            );
+        }
+    }
 
     #[test]
     fn bc_learns_a_linear_expert_and_bc_safe_keeps_only_safe_episodes() {

@@ -74,6 +74,11 @@ struct DataArgs {
     /// Seed of initialization and batch sampling; recorded in policy.json.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Where to train: cpu, or cuda / cuda:N (the N-th GPU) in a binary built with the `cuda` feature
+    /// (scripts/build-cuda.sh). So far BC-All and BC-Safe train on a GPU; the other methods on the CPU only.
+    /// Checkpoints are float32 on the CPU either way; the device is recorded in policy.json.
+    #[arg(long, default_value = "cpu")]
+    device: String,
     /// Output folder (default: ./policies/<task>).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -243,6 +248,11 @@ struct Source {
 }
 
 fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
+    anyhow::ensure!(
+        data.device == "cpu",
+        "--device {}: only bc trains on a GPU so far; this method trains on the CPU (leave out --device)",
+        data.device
+    );
     let catalog = Catalog::embedded()?;
     let task = catalog.get(&data.task)?.clone();
     let (path, dataset_version, demonstrations) = load_data(data, &task)?;
@@ -606,6 +616,7 @@ fn main() -> anyhow::Result<()> {
         ..
     } = &data;
     let (cost_thresholds, steps, seed, batch_size) = (cost_thresholds.clone(), *steps, *seed, *batch_size);
+    let device = dsrl_train::training_device(&data.device)?;
     let catalog = Catalog::embedded()?;
     let task = catalog.get(task)?.clone();
     let (path, dataset_version, data_read) = load_data(&data, &task)?;
@@ -637,7 +648,7 @@ fn main() -> anyhow::Result<()> {
             "{name}: no episode of the dataset has a cost return of at most {}",
             threshold.unwrap_or_default()
         );
-        let mut learner = BcLearner::new(&settings, &obs, &act, data.obs_dim, data.act_dim)?;
+        let mut learner = BcLearner::on_device(&settings, &obs, &act, data.obs_dim, data.act_dim, &device)?;
         let trained = train_loop(steps, &name, 500, 1, || Ok(vec![("mse", learner.step()?)]))?;
         let (loss, seconds) = (trained.figures.first().map_or(f64::NAN, |f| f.1), trained.seconds);
         let dir = out.join(&name);
@@ -656,6 +667,7 @@ fn main() -> anyhow::Result<()> {
             "lr": settings.lr,
             "seed": seed,
             "code_commit": CODE_COMMIT,
+            "device": dsrl_train::device_name(&device),
             "final_mse": loss,
             "seconds": seconds,
             "cpu_seconds": trained.cpu_seconds,

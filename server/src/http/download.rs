@@ -141,17 +141,9 @@ pub async fn download(
         .datasets
         .resolve_filtered(&task, &reference, query.filter.as_deref(), requester)
         .await?;
-    if hdf5 {
-        return download_hdf5(&state, task, &record, &headers, requester).await;
-    }
-    let etag = format!("\"{}\"", record.version);
-    let size = record.byte_size;
-    // A version id (with or without a filter) names immutable bytes; a tag can move.
+    // A version id (with or without a filter) names immutable bytes; a tag can move, so caches must revalidate.
     let named_by_id = reference.parse::<dsrl_suite::VersionId>().is_ok();
     let mut response_headers = HeaderMap::new();
-    response_headers.insert(header::ETAG, HeaderValue::from_str(&etag).map_err(ApiError::internal)?);
-    response_headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
-    // A version id names immutable bytes; a tag can move, so caches must revalidate.
     response_headers.insert(
         header::CACHE_CONTROL,
         HeaderValue::from_static(if named_by_id {
@@ -160,6 +152,14 @@ pub async fn download(
             "no-cache"
         }),
     );
+    if hdf5 {
+        let file_name = format!("{}.hdf5", task.dataset_file_stem(record.episodes));
+        return serve_hdf5_export(&state, &record, &headers, requester, &file_name, response_headers).await;
+    }
+    let etag = format!("\"{}\"", record.version);
+    let size = record.byte_size;
+    response_headers.insert(header::ETAG, HeaderValue::from_str(&etag).map_err(ApiError::internal)?);
+    response_headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
     let Some((status, byte_range)) = conditional_range(&headers, &etag, size, &mut response_headers)? else {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     };
@@ -184,32 +184,31 @@ pub async fn download(
     Ok((status, response_headers, Body::from_stream(stream)).into_response())
 }
 
-/// A version's HDF5 export (made once and stored): its sha256 is the ETag; ranges and conditional requests as for
-/// the Parquet file.
-async fn download_hdf5(
+/// Serves a version's HDF5 export (DSRL's layout, converted once per version and stored content-addressed) under
+/// `file_name`: its sha256 is the ETag; ranges and conditional requests as for the Parquet file. Shared by
+/// `?format=hdf5` and DSRL's own download URLs, which add their headers in `response_headers`.
+pub(crate) async fn serve_hdf5_export(
     state: &AppState,
-    task: &dsrl_suite::Task,
     record: &dsrl_service::db::VersionRecord,
     headers: &HeaderMap,
     requester: crate::storage::datasets::Requester,
+    file_name: &str,
+    mut response_headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let (digest, size) = state.datasets.hdf5_export(record, requester).await?;
     let etag = format!("\"{digest}\"");
-    let mut response_headers = HeaderMap::new();
-    response_headers.insert(header::ETAG, HeaderValue::from_str(&etag).map_err(ApiError::internal)?);
+    let value = |v: &str| HeaderValue::from_str(v).map_err(ApiError::internal);
+    response_headers.insert(header::ETAG, value(&etag)?);
     response_headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
-    response_headers.insert(
-        "x-dsrl-version",
-        HeaderValue::from_str(&record.version).map_err(ApiError::internal)?,
-    );
+    response_headers.insert("x-dsrl-version", value(&record.version)?);
     let Some((status, byte_range)) = conditional_range(headers, &etag, size, &mut response_headers)? else {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     };
     response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/x-hdf5"));
-    let file_name = format!("{}.hdf5", task.dataset_file_stem(record.episodes));
-    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{file_name}\"")) {
-        response_headers.insert(header::CONTENT_DISPOSITION, v);
-    }
+    response_headers.insert(
+        header::CONTENT_DISPOSITION,
+        value(&format!("attachment; filename=\"{file_name}\""))?,
+    );
     let metrics = state.metrics.clone();
     let stream = state
         .datasets

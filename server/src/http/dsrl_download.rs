@@ -10,17 +10,15 @@
 //! DSRL's MetaDrive environments expect the paper's 261 features; ours have the pinned simulator's 259, so the
 //! MetaDrive names answer 404 with that reason unless the operator opts in (`datasets.dsrl_download_metadrive`).
 
-use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
-use axum::response::{IntoResponse, Response};
+use axum::http::{HeaderMap, HeaderValue, header};
+use axum::response::Response;
 use dsrl_suite::Task;
 use dsrl_suite::catalog::Family;
-use futures::StreamExt;
 
 use crate::AppState;
 use crate::error::ApiError;
-use crate::http::download::conditional_range;
+use crate::http::download::serve_hdf5_export;
 
 /// DSRL's file name for a task: `{prefix}-{cap}-{n}.hdf5` with the paper's cap and trajectory count.
 pub fn dsrl_file_name(task: &Task) -> String {
@@ -67,34 +65,11 @@ pub async fn dsrl_download(
     }
     let (_, record) = state.datasets.resolve(task.id.as_str(), "latest").await?;
     let requester = super::auth::requester(&state, &headers).await;
-    let (digest, size) = state.datasets.hdf5_export(&record, requester).await?;
-    let etag = format!("\"{digest}\"");
     let mut response_headers = HeaderMap::new();
     let value = |v: &str| HeaderValue::from_str(v).map_err(ApiError::internal);
-    response_headers.insert(header::ETAG, value(&etag)?);
-    response_headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
     // `latest` can move to a new version.
     response_headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
-    response_headers.insert("x-dsrl-version", value(&record.version)?);
     response_headers.insert("x-dsrl-task", value(task.id.as_str())?);
     response_headers.insert("x-dsrl-episodes", HeaderValue::from(record.episodes));
-    let Some((status, byte_range)) = conditional_range(&headers, &etag, size, &mut response_headers)? else {
-        return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
-    };
-    response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/x-hdf5"));
-    response_headers.insert(
-        header::CONTENT_DISPOSITION,
-        value(&format!("attachment; filename=\"{file}\""))?,
-    );
-    let metrics = state.metrics.clone();
-    let stream = state
-        .datasets
-        .read_hdf5(&digest, byte_range)
-        .await?
-        .inspect(move |chunk| {
-            if let Ok(bytes) = chunk {
-                metrics.download_bytes.inc_by(bytes.len() as u64);
-            }
-        });
-    Ok((status, response_headers, Body::from_stream(stream)).into_response())
+    serve_hdf5_export(&state, &record, &headers, requester, &file, response_headers).await
 }
