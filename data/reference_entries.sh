@@ -21,7 +21,7 @@
 #
 # Usage: data/reference_entries.sh [--steps N] [--cdt-steps N] [--caps-steps N] [--bearl-steps N] [--steps-for M=N]...
 #                                  [--batch-size B] [--seeds "0 1 2"] [--jobs J] [--evaluators E] [--methods "..."]
-#                                  [--state DIR] [--results FILE] [--train-only] TASK...
+#                                  [--state DIR] [--results FILE] [--train-only] [--gpus G] TASK...
 #   --steps N        gradient steps per model (default 100000, OSRL's); BEAR-Lag trains 3 N (OSRL's 300000)
 #   --cdt-steps N    CDT's steps (default: --steps); --caps-steps N likewise; --bearl-steps N instead of 3 N
 #   --steps-for M=N  steps of method M (e.g. cpq=5000), over the options above
@@ -30,12 +30,14 @@
 #   --jobs J         models trained at once (default 1); one core each
 #   --methods "..."  of bc-all bc-safe cdt bcql bearl cpq coptidice caps (default: the first seven)
 #   --train-only     train, submit nothing
+#   --gpus G         train on G GPUs (cuda:0 .. cuda:G-1, models dealt in turn; --jobs at a time in all) with a
+#                    dsrl-train built by scripts/build-cuda.sh; so far for bc-all and bc-safe only
 #   e.g. data/reference_entries.sh --steps 10000 --methods "bc-all bc-safe" OfflineBallRun-v0 OfflineCarRun-v0
 # Binaries: dsrl-train, dsrl-client, dsrl-server from PATH (scripts/serve.sh links them), or $DSRL_TRAIN,
 # $DSRL_CLIENT, $DSRL_SERVER_BIN.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
-steps=100000 cdt_steps= caps_steps= bearl_steps= batch_size= seeds="0" jobs=1 evaluators=1 train_only=no
+steps=100000 cdt_steps= caps_steps= bearl_steps= batch_size= seeds="0" jobs=1 evaluators=1 train_only=no gpus=0
 methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=() overrides=()
 state=${DSRL_REFERENCE_STATE:-$HOME/.dsrl/reference}
 results=$repo/data/reference/results.jsonl
@@ -54,12 +56,14 @@ while [ $# -gt 0 ]; do
     --state) state=$2; shift 2 ;;
     --results) results=$2; shift 2 ;;
     --train-only) train_only=yes; shift ;;
-    -h|--help) sed -n '2,38p' "$0"; exit 0 ;;
+    --gpus) gpus=$2; shift 2 ;;
+    -h|--help) sed -n '2,37p' "$0"; exit 0 ;;
     *) tasks+=("$1"); shift ;;
   esac
 done
 [ ${#tasks[@]} -gt 0 ] || { echo "name at least one task" >&2; exit 2; }
 [[ $jobs =~ ^[1-9][0-9]*$ ]] || { echo "--jobs takes a positive count, not '$jobs'" >&2; exit 2; }
+[[ $gpus =~ ^[0-9]+$ ]] || { echo "--gpus takes a count, not '$gpus'" >&2; exit 2; }
 train=${DSRL_TRAIN:-dsrl-train}
 client=${DSRL_CLIENT:-dsrl-client}
 server_bin=${DSRL_SERVER_BIN:-dsrl-server}
@@ -75,7 +79,12 @@ method_name() {
     *) echo "unknown method $1" >&2; exit 2 ;;
   esac
 }
-for method in $methods; do method_name "$method" >/dev/null; done
+for method in $methods; do
+  method_name "$method" >/dev/null
+  if [ "$gpus" -gt 0 ] && [ "$method" != bc-all ] && [ "$method" != bc-safe ]; then
+    echo "--gpus: only bc-all and bc-safe train on a GPU so far, not $method" >&2; exit 2
+  fi
+done
 method_steps() {
   local o
   for o in "${overrides[@]+"${overrides[@]}"}"; do
@@ -128,12 +137,13 @@ fi
 # A model whose training finished leaves a marker naming its budget; a model trained to another budget is trained
 # again.
 train_unit() {
-  local task=$1 seed=$2 method=$3 kappa=$4 n=$5 args marker
+  local task=$1 seed=$2 method=$3 kappa=$4 n=$5 device=$6 args marker
   marker=$out/$task/seed-$seed/.trained-$method-$kappa-steps-$n-batch-${batch_size:-osrl}
   [ -e "$marker" ] && return 0
   args=(--task "$task" --server "$DSRL_SERVER" --seed "$seed" --out "$out/$task/seed-$seed" --steps "$n")
   [ -z "$batch_size" ] || args+=(--batch-size "$batch_size")
   [ "$kappa" = - ] || args+=(--cost-threshold "$kappa")
+  [ "$device" = cpu ] || args+=(--device "$device")
   case $method in
     bc-all) "$train" bc --mode all "${args[@]}" ;;
     bc-safe) "$train" bc --mode safe "${args[@]}" ;;
@@ -231,6 +241,11 @@ submit() {
   in_flight+=("$task $seed $method")
 }
 
+# The device of the next model (in $device): the CPU, or the GPUs in turn.
+dealt=0 device=cpu
+next_device() {
+  if [ "$gpus" -gt 0 ]; then device=cuda:$((dealt % gpus)) dealt=$((dealt + 1)); fi
+}
 for task in "${tasks[@]}"; do
   "$client" fetch "$task" >&2  # fetched once, so parallel jobs read one verified cached file
   units=()
@@ -239,8 +254,8 @@ for task in "${tasks[@]}"; do
     for method in $methods; do
       n=$(method_steps "$method")
       case $method in
-        bc-all | cdt | caps) units+=("$task $seed $method - $n") ;;
-        *) for kappa in $kappas; do units+=("$task $seed $method $kappa $n"); done ;;
+        bc-all | cdt | caps) next_device; units+=("$task $seed $method - $n $device") ;;
+        *) for kappa in $kappas; do next_device; units+=("$task $seed $method $kappa $n $device"); done ;;
       esac
     done
   done
