@@ -345,9 +345,20 @@ pub fn filter_to(
         }
     }
     let _remove = Remove(scratch);
+    if plan.noise_scale.is_none() && plan.order.windows(2).all(|w| w[0] < w[1]) {
+        // Nothing to reorder and no statistics to take first: the kept rows stream from the parent to the writer.
+        return write_pipelined(task, space, out, |send| {
+            stream_kept(parent, episodes, plan, obs_dim, act_dim, send)
+        });
+    }
     let spill = Spill::write(parent, episodes, plan, obs_dim, act_dim, scratch)?;
     let Some(scale) = plan.noise_scale else {
-        return write_canonical(task, space, spill.chunks(episodes, plan), vec![], out);
+        return write_pipelined(task, space, out, |send| {
+            for chunk in spill.chunks(episodes, plan) {
+                send(chunk)?;
+            }
+            Ok(())
+        });
     };
     // np.std of observations and of next observations, each over the whole output array.
     let (mut obs_sum, mut next_sum) = (StreamingSum::new(), StreamingSum::new());
@@ -378,15 +389,103 @@ pub fn filter_to(
     for _ in 0..n {
         second.normal(0.0, obs_std);
     }
-    let noisy = spill.chunks(episodes, plan).map(move |chunk| {
-        let mut chunk = chunk?;
-        for v in chunk.observations.iter_mut() {
-            *v = (*v as f64 + scale * first.normal(0.0, obs_std)) as f32;
+    write_pipelined(task, space, out, |send| {
+        for chunk in spill.chunks(episodes, plan) {
+            let mut chunk = match chunk {
+                Ok(chunk) => chunk,
+                Err(e) => return send(Err(e)),
+            };
+            for v in chunk.observations.iter_mut() {
+                *v = (*v as f64 + scale * first.normal(0.0, obs_std)) as f32;
+            }
+            for v in chunk.next_observations.iter_mut() {
+                *v = (*v as f64 + scale * second.normal(0.0, next_std)) as f32;
+            }
+            send(Ok(chunk))?;
         }
-        for v in chunk.next_observations.iter_mut() {
-            *v = (*v as f64 + scale * second.normal(0.0, next_std)) as f32;
+        Ok(())
+    })
+}
+
+/// Rows handed from the reading thread to the writing one, and how many may wait between them.
+const PIPELINE_ROWS: usize = 65_536;
+const PIPELINE_DEPTH: usize = 2;
+
+/// The writer stopped (it failed, and says why); the reading side only has to stop too.
+struct WriterGone;
+
+/// Writes the canonical file from chunks that `produce` makes on a second thread: reading the parent (and the
+/// spill) on one core, validating, encoding and hashing on the other, with at most [`PIPELINE_DEPTH`] chunks
+/// between them, so memory stays bounded. The bytes are those of a single-threaded write of the same rows: the
+/// writer cuts its row groups from the rows, whatever the chunks.
+fn write_pipelined<F>(task: &Task, space: ObservationSpace, out: &Path, produce: F) -> Result<Converted, ImportError>
+where
+    F: FnOnce(&mut dyn FnMut(Result<TransitionChunk, ImportError>) -> Result<(), WriterGone>) -> Result<(), WriterGone>
+        + Send,
+{
+    std::thread::scope(|scope| {
+        let (tx, rx) = std::sync::mpsc::sync_channel(PIPELINE_DEPTH);
+        let producer = scope.spawn(move || {
+            let mut send = |chunk: Result<TransitionChunk, ImportError>| {
+                let failed = chunk.is_err();
+                tx.send(chunk).map_err(|_| WriterGone)?;
+                if failed { Err(WriterGone) } else { Ok(()) }
+            };
+            let _ = produce(&mut send);
+        });
+        // The receiver is dropped with the iterator when the writer returns, which stops a producer still sending.
+        let written = write_canonical(task, space, rx.into_iter(), vec![], out);
+        producer
+            .join()
+            .map_err(|_| ImportError::Io(std::io::Error::other("the filter's reading thread panicked")))?;
+        written
+    })
+}
+
+/// The kept episodes of the parent in input order (the plan's order when it keeps that order), relabelled, in
+/// chunks of about [`PIPELINE_ROWS`] rows: no spill.
+fn stream_kept(
+    parent: &Path,
+    episodes: &[EpisodeSummary],
+    plan: &Plan,
+    obs_dim: usize,
+    act_dim: usize,
+    send: &mut dyn FnMut(Result<TransitionChunk, ImportError>) -> Result<(), WriterGone>,
+) -> Result<(), WriterGone> {
+    let mut kept = vec![false; episodes.len()];
+    for &e in &plan.order {
+        kept[e] = true;
+    }
+    let mut pending = TransitionChunk::empty(obs_dim, act_dim);
+    let mut gone = false;
+    let read = for_each_episode_piece(parent, episodes, |chunk, episode, steps, rows| {
+        if !kept[episode] {
+            return Ok(());
         }
-        Ok(chunk)
+        let first = pending.len();
+        pending.append(&chunk.rows(rows.start, rows.len()));
+        // An outlier's costs become 1 at its drawn steps and 0 elsewhere; its rewards ×1.5 in float32.
+        if let Some(drawn) = plan.relabels.get(&episode) {
+            for (i, step) in (first..pending.len()).zip(steps) {
+                pending.rewards[i] *= 1.5;
+                pending.costs[i] = if drawn.contains(&step) { 1.0 } else { 0.0 };
+            }
+        }
+        if pending.len() >= PIPELINE_ROWS {
+            let full = std::mem::replace(&mut pending, TransitionChunk::empty(obs_dim, act_dim));
+            if send(Ok(full)).is_err() {
+                gone = true;
+                return Err(ImportError::Io(std::io::Error::other("the writer stopped")));
+            }
+        }
+        Ok(())
     });
-    write_canonical(task, space, noisy, vec![], out)
+    if gone {
+        return Err(WriterGone);
+    }
+    match read {
+        Err(e) => send(Err(e)),
+        Ok(()) if pending.is_empty() => Ok(()),
+        Ok(()) => send(Ok(pending)),
+    }
 }
