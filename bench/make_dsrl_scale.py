@@ -1,7 +1,8 @@
 """Writes a DSRL-layout HDF5 file of CarPush2's shape at the paper's count: 4,407 trajectories of 1,000 steps, 88
 observation and 2 action features, random float32 values (the data's content does not matter to loading and
-filtering), rewards and costs shaped so DSRL's noise and density filters apply. Written in slices, as h5py writes
-DSRL's files (gzip level 4 chunks would not shrink random floats; DSRL's released files were written uncompressed).
+filtering), rewards and costs shaped so DSRL's noise and density filters apply. Written in slices with h5py's gzip
+(level 4, auto-chunked), as DSRL's process_dataset.py wrote its files (`compression='gzip'`, spec §1.3), so that
+reading it costs what reading DSRL's own files costs.
 
 usage: make_dsrl_scale.py OUT.hdf5 [EPISODES=4407]
 """
@@ -26,11 +27,11 @@ with h5py.File(out, "w") as f:
         "next_observations": (obs_dim, np.float32),
         "actions": (act_dim, np.float32),
     }
-    data = {k: f.create_dataset(k, (rows, d), dtype=t) for k, (d, t) in keys.items()}
-    rewards = f.create_dataset("rewards", (rows,), dtype=np.float32)
-    costs = f.create_dataset("costs", (rows,), dtype=np.float32)
-    terminals = f.create_dataset("terminals", (rows,), dtype=bool)
-    timeouts = f.create_dataset("timeouts", (rows,), dtype=bool)
+    data = {k: f.create_dataset(k, (rows, d), dtype=t, compression="gzip") for k, (d, t) in keys.items()}
+    rewards = f.create_dataset("rewards", (rows,), dtype=np.float32, compression="gzip")
+    costs = f.create_dataset("costs", (rows,), dtype=np.float32, compression="gzip")
+    terminals = f.create_dataset("terminals", (rows,), dtype=bool, compression="gzip")
+    timeouts = f.create_dataset("timeouts", (rows,), dtype=bool, compression="gzip")
     block = 100
     for e0 in range(0, episodes, block):
         e1 = min(episodes, e0 + block)

@@ -4,7 +4,7 @@
 # dsrl-server with no simulator workers, beside DSRL 0.1.0's own get_dataset(h5path) + pre_process_data on the same
 # file. For each step: wall seconds and the server's peak resident memory during it (sampled every 0.1 s from
 # /proc; the reference: its own peak). Prints a Markdown table for BENCHMARKS.md with the command, machine and date.
-# Usage: bench/scale.sh [EPISODES=4407]   (needs ~15 GB of free disk in $TMPDIR; PyPI once for .venv-golden)
+# Usage: bench/scale.sh [EPISODES=4407]   (needs ~25 GB of free disk in $TMPDIR; PyPI once for .venv-golden)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 episodes=${1:-4407}
@@ -49,12 +49,14 @@ row() { rows+=("| $1 | $(printf '%.1f' "$2") | $(( $3 / 1048576 )) MiB | $4 |");
 read -r s p < <(measure "$bin/dsrl-client" admin ingest --task "$task" "$file"); row "ingest (HDF5 upload)" "$s" "$p" "–"
 version=$(curl -sf "$url/v1/datasets/$task/versions/latest" | python3 -c 'import json,sys; print(json.load(sys.stdin)["version"])')
 read -r s p < <(measure "$bin/dsrl-client" fetch "$task"); row "fetch, plain" "$s" "$p" "–"
+rm -rf "$work/cache"  # each fetched copy is removed once timed: the run needs its disk for the server's objects
 for f in noise=0.1 density=0.5; do
   ref=$(.venv-golden/bin/python bench/scale_reference.py "$file" "$f")
   ref_s=$(echo "$ref" | python3 -c 'import json,sys; d=json.load(sys.stdin); print("%.1f s (load %.1f + filter %.1f), %d MiB" % (d["seconds"], d["load_seconds"], d["filter_seconds"], d["peak_rss_bytes"] // 1048576))')
   read -r s p < <(measure "$bin/dsrl-client" fetch "$task" --filter "$f"); row "fetch --filter $f, uncached" "$s" "$p" "$ref_s"
   rm -rf "$work/cache"
   read -r s p < <(measure "$bin/dsrl-client" fetch "$task" --filter "$f"); row "fetch --filter $f, cached on the server" "$s" "$p" "–"
+  rm -rf "$work/cache"
 done
 # Four distinct uncached filters asked for at once (two compute at a time, datasets.max_concurrent_derivations).
 concurrent() {
@@ -69,6 +71,7 @@ read -r s p < <(measure concurrent); row "4 distinct uncached filters at once (m
 rm -rf "$work/cache"
 read -r s p < <(measure curl -sf -o "$work/export.hdf5" "$url/v1/datasets/$task/versions/$version/download?format=hdf5")
 export_bytes=$(stat -c %s "$work/export.hdf5")
+rm -f "$work/export.hdf5"
 row "HDF5 export, first request ($(( export_bytes / 1048576 )) MiB: $(echo "$export_bytes / $s / 1048576" | bc) MiB/s)" "$s" "$p" "–"
 read -r s p < <(measure "$bin/dsrl-client" fetch "$task" --format hdf5); row "fetch --format hdf5 (the stored export)" "$s" "$p" "–"
 

@@ -34,6 +34,8 @@ fn kubernetes_manifests_are_valid() {
         "horizontalpodautoscaler/dsrl-sim-worker",
         "service/dsrl-postgres",
         "cronjob/dsrl-gc",
+        "job/dsrl-reference-sweep",
+        "persistentvolumeclaim/dsrl-reference-results",
     ] {
         assert!(
             report.contains(&format!("passed for resource {resource}")),
