@@ -2,7 +2,7 @@
 # The long checks kept out of CI (`#[ignore = "long check: ..."]` tests): each repeats at full size or over every
 # case what a faster CI test proves on a representative one. Runs them all and records the outcome, with the commit,
 # machine and date, in tests/LONG_CHECKS.md (a generated file; commit it).
-# Usage: scripts/long-checks.sh   (after scripts/test.sh has set up the environments; ~1 h on 2 cores)
+# Usage: scripts/long-checks.sh   (after scripts/test.sh has set up the environments; ~5 minutes of tests on 2 cores after the workspace's test build)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
