@@ -292,7 +292,7 @@ impl Spill {
         episodes: &'a [EpisodeSummary],
         plan: &'a Plan,
     ) -> impl Iterator<Item = Result<TransitionChunk, ImportError>> + 'a {
-        const ROWS: usize = 65_536;
+        const ROWS: usize = PIPELINE_ROWS;
         let (o, a) = (self.obs_dim, self.act_dim);
         let mut pending = TransitionChunk::empty(o, a);
         let mut next = 0usize; // position in plan.order
@@ -407,9 +407,11 @@ pub fn filter_to(
     })
 }
 
-/// Rows handed from the reading thread to the writing one, and how many may wait between them.
-const PIPELINE_ROWS: usize = 65_536;
-const PIPELINE_DEPTH: usize = 2;
+/// Rows handed from the reading thread to the writing one (~12 MB of CarPush2's rows), and how many chunks may wait
+/// between them: small, because every derivation running at once holds its own (four concurrent uncached filters
+/// on the paper-size file reached 1.3 GB with 64k-row chunks, two waiting).
+const PIPELINE_ROWS: usize = 16_384;
+const PIPELINE_DEPTH: usize = 1;
 
 /// The writer stopped (it failed, and says why); the reading side only has to stop too.
 struct WriterGone;
