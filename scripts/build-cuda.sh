@@ -29,11 +29,14 @@ for lib in "$CUDA_ROOT"/lib/lib*.so.*; do
   base=$(basename "$lib")
   ln -sf "$lib" "$links/${base%%.so.*}.so"
 done
-if [ ! -e "$links/libcuda.so" ]; then
-  echo "making a link-time stub libcuda.so (soname libcuda.so.1)" >&2
-  echo 'void dsrl_cuda_link_stub(void) {}' > "$links/stub.c"
-  cc -shared -fPIC -Wl,-soname,libcuda.so.1 -o "$links/libcuda.so" "$links/stub.c"
-fi
+# The stub defines every driver function of cudarc's bindings (cudarc links them; the driver's library answers them at
+# run time, so the stub is never loaded).
+cargo fetch --locked >&2
+cudarc=$(ls -d "${CARGO_HOME:-$HOME/.cargo}"/registry/src/*/cudarc-0.19.* | tail -1)
+echo "making a link-time stub libcuda.so (soname libcuda.so.1) from $cudarc's driver functions" >&2
+grep -ohE "pub unsafe fn cu[A-Za-z0-9_]+" "$cudarc/src/driver/sys/mod.rs" | sort -u \
+  | sed -E 's/pub unsafe fn (.*)/void \1(void) {}/' > "$links/stub.c"
+cc -shared -fPIC -Wl,-soname,libcuda.so.1 -o "$links/libcuda.so" "$links/stub.c"
 export PATH=$CUDA_ROOT/bin:$PATH CUDA_COMPUTE_CAP=$cap
 export LIBRARY_PATH=$links:$CUDA_ROOT/lib${LIBRARY_PATH:+:$LIBRARY_PATH}
 export RUSTFLAGS="${RUSTFLAGS:-} -L native=$links"
