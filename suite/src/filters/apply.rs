@@ -121,6 +121,24 @@ fn for_each_episode_piece(
     Ok(())
 }
 
+/// Whether each input episode is in the plan's output.
+fn kept_episodes(plan: &Plan, episodes: usize) -> Vec<bool> {
+    let mut kept = vec![false; episodes];
+    for &e in &plan.order {
+        kept[e] = true;
+    }
+    kept
+}
+
+/// A step's reward and cost after the plan: an outlier's (`drawn`: its relabelled steps) costs become 1 at its drawn
+/// steps and 0 elsewhere, its rewards ×1.5 in float32; other episodes' stay.
+fn relabelled(reward: f32, cost: f32, drawn: Option<&Vec<usize>>, step: usize) -> (f32, f32) {
+    match drawn {
+        Some(steps) => (reward * 1.5, if steps.contains(&step) { 1.0 } else { 0.0 }),
+        None => (reward, cost),
+    }
+}
+
 fn copy_rows(src: &TransitionChunk, from: usize, dst: &mut TransitionChunk, to: usize, n: usize) {
     let (o, a) = (src.obs_dim, src.act_dim);
     dst.observations[to * o..(to + n) * o].copy_from_slice(&src.observations[from * o..(from + n) * o]);
@@ -209,10 +227,7 @@ impl Spill {
         scratch: &Path,
     ) -> Result<Spill, ImportError> {
         use std::io::Write;
-        let mut kept = vec![false; episodes.len()];
-        for &e in &plan.order {
-            kept[e] = true;
-        }
+        let kept = kept_episodes(plan, episodes.len());
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
@@ -242,11 +257,7 @@ impl Spill {
                 for v in &chunk.actions[i * act_dim..(i + 1) * act_dim] {
                     buf.extend_from_slice(&v.to_le_bytes());
                 }
-                // An outlier's costs become 1 at its drawn steps and 0 elsewhere; its rewards ×1.5 in float32.
-                let (reward, cost) = match relabel {
-                    Some(steps) => (chunk.rewards[i] * 1.5, if steps.contains(&step) { 1.0 } else { 0.0 }),
-                    None => (chunk.rewards[i], chunk.costs[i]),
-                };
+                let (reward, cost) = relabelled(chunk.rewards[i], chunk.costs[i], relabel, step);
                 buf.extend_from_slice(&reward.to_le_bytes());
                 buf.extend_from_slice(&cost.to_le_bytes());
                 buf.push(u8::from(chunk.terminals[i]));
@@ -454,10 +465,7 @@ fn stream_kept(
     act_dim: usize,
     send: &mut dyn FnMut(Result<TransitionChunk, ImportError>) -> Result<(), WriterGone>,
 ) -> Result<(), WriterGone> {
-    let mut kept = vec![false; episodes.len()];
-    for &e in &plan.order {
-        kept[e] = true;
-    }
+    let kept = kept_episodes(plan, episodes.len());
     let mut pending = TransitionChunk::empty(obs_dim, act_dim);
     let mut gone = false;
     let read = for_each_episode_piece(parent, episodes, |chunk, episode, steps, rows| {
@@ -466,11 +474,10 @@ fn stream_kept(
         }
         let first = pending.len();
         pending.append(&chunk.rows(rows.start, rows.len()));
-        // An outlier's costs become 1 at its drawn steps and 0 elsewhere; its rewards ×1.5 in float32.
         if let Some(drawn) = plan.relabels.get(&episode) {
             for (i, step) in (first..pending.len()).zip(steps) {
-                pending.rewards[i] *= 1.5;
-                pending.costs[i] = if drawn.contains(&step) { 1.0 } else { 0.0 };
+                (pending.rewards[i], pending.costs[i]) =
+                    relabelled(pending.rewards[i], pending.costs[i], Some(drawn), step);
             }
         }
         if pending.len() >= PIPELINE_ROWS {
