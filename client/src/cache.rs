@@ -60,8 +60,9 @@ pub struct FetchOutcome {
     pub format: OutputFormat,
     /// The file to load: Parquet, or DSRL HDF5 with `--format hdf5`.
     pub path: PathBuf,
-    /// The Parquet file (always present after a fetch).
-    pub parquet_path: PathBuf,
+    /// The Parquet file, when it is complete in the cache (a `--format hdf5` fetch downloads only the server's
+    /// HDF5 export, so the Parquet file is there only if an earlier fetch brought it).
+    pub parquet_path: Option<PathBuf>,
     /// Nothing was downloaded or converted.
     pub cache_hit: bool,
     /// The HDF5 file was written from the Parquet file by this fetch.
@@ -175,7 +176,7 @@ impl Cache {
                 OutputFormat::Parquet
             },
             path: parquet.clone(),
-            parquet_path: parquet.clone(),
+            parquet_path: None,
             cache_hit: true,
             converted: false,
             resumed_from: None,
@@ -183,18 +184,6 @@ impl Cache {
             byte_size: manifest.byte_size,
             seconds: 0.0,
         };
-        let expected = FileSum {
-            sha256: version.clone(),
-            size: manifest.byte_size,
-        };
-        if !cheap_check(&parquet, checksums.files.get(&manifest.file_name), &expected) {
-            let (resumed_from, downloaded) = download(client, &manifest, &dir, options).await?;
-            outcome.cache_hit = false;
-            outcome.resumed_from = resumed_from;
-            outcome.downloaded_bytes = downloaded;
-            checksums.files.insert(manifest.file_name.clone(), expected);
-            write_checksums(&dir, &checksums)?;
-        }
         let manifest_json = serde_json::to_vec_pretty(&manifest).expect("manifest serializes");
         write_atomic(&dir.join(MANIFEST), &manifest_json)?;
 
@@ -204,14 +193,17 @@ impl Cache {
             let known = checksums.files.get(&name).cloned();
             let hit = known.as_ref().is_some_and(|k| file_size(&h5) == Some(k.size));
             if !hit {
-                // The server's stored export (made once per version for everyone); a server without one (older
-                // than the format option) leaves the conversion to this machine.
+                // The server's stored export (made once per version for everyone), downloaded alone: the Parquet
+                // file is not needed for it. A server without one (older than the format option) leaves the
+                // conversion to this machine, which then needs the Parquet file.
                 let sum = match download_hdf5(client, &manifest, &h5, options).await {
                     Ok(sum) => {
                         outcome.downloaded_bytes += sum.size;
                         sum
                     }
                     Err(ClientError::Server { status: 400, .. }) => {
+                        self.ensure_parquet(client, &manifest, &dir, &mut checksums, &mut outcome, options)
+                            .await?;
                         outcome.converted = true;
                         export_hdf5(&parquet, &h5).await?
                     }
@@ -222,9 +214,41 @@ impl Cache {
                 outcome.cache_hit = false;
             }
             outcome.path = h5;
+        } else {
+            self.ensure_parquet(client, &manifest, &dir, &mut checksums, &mut outcome, options)
+                .await?;
         }
+        outcome.parquet_path = self.complete_parquet(&dir, &manifest, &checksums);
         outcome.seconds = started.elapsed().as_secs_f64();
         Ok(outcome)
+    }
+
+    /// Downloads (or resumes) the version's Parquet file unless it is already complete in the cache.
+    async fn ensure_parquet(
+        &self,
+        client: &Client,
+        manifest: &Manifest,
+        dir: &Path,
+        checksums: &mut Checksums,
+        outcome: &mut FetchOutcome,
+        options: &FetchOptions,
+    ) -> Result<(), ClientError> {
+        let expected = parquet_sum(manifest);
+        if cheap_check(&dir.join(&manifest.file_name), checksums.files.get(&manifest.file_name), &expected) {
+            return Ok(());
+        }
+        let (resumed_from, downloaded) = download(client, manifest, dir, options).await?;
+        outcome.cache_hit = false;
+        outcome.resumed_from = resumed_from;
+        outcome.downloaded_bytes += downloaded;
+        checksums.files.insert(manifest.file_name.clone(), expected);
+        write_checksums(dir, checksums)
+    }
+
+    /// The version's Parquet file if it is complete in the cache (checked cheaply).
+    fn complete_parquet(&self, dir: &Path, manifest: &Manifest, checksums: &Checksums) -> Option<PathBuf> {
+        let path = dir.join(&manifest.file_name);
+        cheap_check(&path, checksums.files.get(&manifest.file_name), &parquet_sum(manifest)).then_some(path)
     }
 
     /// The manifest of a version that is complete in the cache (checked cheaply), if any.
@@ -323,6 +347,14 @@ impl Cache {
 }
 
 /// Size and recorded hash agree with what the manifest promises.
+/// The checksum a version's Parquet file must have: its sha256 is the version id.
+fn parquet_sum(manifest: &Manifest) -> FileSum {
+    FileSum {
+        sha256: manifest.version.to_string(),
+        size: manifest.byte_size,
+    }
+}
+
 fn cheap_check(path: &Path, recorded: Option<&FileSum>, expected: &FileSum) -> bool {
     recorded == Some(expected) && file_size(path) == Some(expected.size)
 }
@@ -585,33 +617,14 @@ fn write_and_hash(
         hasher.update(&chunk);
         file.write_all(&chunk)?;
         written += chunk.len() as u64;
-        if written - flushed >= WRITEBACK_BYTES {
-            start_writeback(&file, flushed, written - flushed);
+        if written - flushed >= dsrl_suite::writeback::WRITEBACK_BYTES {
+            dsrl_suite::writeback::start_writeback(&file, flushed, written - flushed);
             flushed = written;
         }
     }
     // Most pages are already on their way to disk, so this wait is short.
     file.sync_data()?;
     Ok((hasher.finalize().into(), written))
-}
-
-/// Amount of downloaded data after which its write-back to disk is started, so that the final sync does not
-/// have to write the whole file at once.
-const WRITEBACK_BYTES: u64 = 32 << 20;
-
-/// Asks the kernel to start writing a range of the file to disk without waiting for it (Linux); elsewhere the
-/// final sync does all the work.
-fn start_writeback(file: &File, offset: u64, len: u64) {
-    #[cfg(target_os = "linux")]
-    {
-        use std::os::fd::AsRawFd;
-        // SAFETY: plain syscall on an open descriptor; failure only means the final sync does more work.
-        unsafe {
-            libc::sync_file_range(file.as_raw_fd(), offset as i64, len as i64, libc::SYNC_FILE_RANGE_WRITE);
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = (file, offset, len);
 }
 
 /// Downloads the server's HDF5 export of the manifest's version to `h5` (via `.part` + rename), checking its sha256

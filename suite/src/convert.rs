@@ -14,6 +14,7 @@ use crate::ids::VersionId;
 use crate::parquet_file::{DatasetWriter, ParquetTransitions, ReadError};
 use crate::transitions::TransitionChunk;
 use crate::validate::{EpisodeTracker, Expectation, ValidationError};
+use crate::writeback::WritebackFile;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -187,7 +188,7 @@ fn write_form(
         ("dsrl.observation_space".to_owned(), space.as_str().to_owned()),
     ];
     let file = File::create(out)?;
-    let sink = HashingWriter::new(BufWriter::with_capacity(8 << 20, file));
+    let sink = HashingWriter::new(BufWriter::with_capacity(8 << 20, WritebackFile::new(file)));
     let mut writer =
         DatasetWriter::with_form(sink, expect.obs_dim, expect.act_dim, metadata, compact).map_err(parquet_io)?;
     let mut tracker = EpisodeTracker::new(expect);
@@ -202,7 +203,7 @@ fn write_form(
     let episode_index = tracker.finish()?;
     let sink = writer.finish().map_err(parquet_io)?;
     let (buffered, digest, byte_size) = sink.finish();
-    let file = buffered.into_inner().map_err(|e| e.into_error())?;
+    let file = buffered.into_inner().map_err(|e| e.into_error())?.into_inner();
     file.sync_all()?;
     Ok(Converted {
         version: VersionId::from_digest(&digest),

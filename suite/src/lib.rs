@@ -23,6 +23,7 @@ pub mod score;
 pub mod synthetic;
 pub mod transitions;
 pub mod validate;
+pub mod writeback;
 
 pub use catalog::{Catalog, CatalogError, Family, ObservationSpace, Task, UnknownTask};
 pub use episode::EpisodeSummary;

@@ -88,7 +88,12 @@ fn hdf5_export_loads_like_dsrl_and_equals_the_parquet() {
     );
     let h5 = out["path"].as_str().unwrap().to_owned();
     assert!(h5.ends_with(&format!("{version}/SafetyDroneRun-v0-140-7.hdf5")), "{h5}");
-    let parquet = out["parquet_path"].as_str().unwrap().to_owned();
+    // Only the export came down: the Parquet file is not needed for it.
+    assert_eq!(out["parquet_path"], serde_json::Value::Null, "{out}");
+    assert_eq!(out["downloaded_bytes"].as_u64(), std::fs::metadata(&h5).ok().map(|m| m.len()), "{out}");
+    let plain = env.cli.run(&["--json", "fetch", task]).ok().json();
+    let parquet = plain["path"].as_str().unwrap().to_owned();
+    assert_eq!(plain["parquet_path"].as_str(), Some(parquet.as_str()));
     let loaded: serde_json::Value =
         serde_json::from_str(&run_python("dsrl_get_dataset.py", &[&h5, &parquet, "17", "4"])).unwrap();
     let manifest = env.cli.run(&["--json", "show", task]).ok().json();
@@ -199,8 +204,11 @@ fn verify_finds_and_removes_corrupt_files_and_fetch_repairs_them() {
     let env = Env::new();
     let task = "OfflineBallCircle-v0";
     env.ingest_synthetic(task, 6, 23);
+    let plain = env.cli.run(&["--json", "fetch", task]).ok().json();
     let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
-    let parquet = PathBuf::from(out["parquet_path"].as_str().unwrap());
+    let parquet = PathBuf::from(plain["path"].as_str().unwrap());
+    // The Parquet file already in the cache is named beside the export.
+    assert_eq!(out["parquet_path"], plain["path"], "{out}");
     let h5 = PathBuf::from(out["path"].as_str().unwrap());
     let clean = env.cli.run(&["--json", "verify"]).ok().json();
     assert_eq!(clean["files"].as_array().unwrap().len(), 2);
@@ -221,16 +229,18 @@ fn verify_finds_and_removes_corrupt_files_and_fetch_repairs_them() {
     assert!(!parquet.exists() && !h5.exists(), "corrupt files are removed");
     assert_eq!(env.cli.run(&["verify"]).code, 0, "nothing corrupt is left");
 
-    let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
-    assert_eq!(out["cache_hit"], false);
-    assert!(out["downloaded_bytes"].as_u64().unwrap() > 0);
-    assert_eq!(
+    let cached = || {
         env.cli.run(&["--json", "verify"]).ok().json()["files"]
             .as_array()
             .unwrap()
-            .len(),
-        2
-    );
+            .len()
+    };
+    let out = env.cli.run(&["--json", "fetch", task, "--format", "hdf5"]).ok().json();
+    assert_eq!(out["cache_hit"], false);
+    assert!(out["downloaded_bytes"].as_u64().unwrap() > 0);
+    assert_eq!(cached(), 1, "the export alone comes down for --format hdf5");
+    env.cli.run(&["fetch", task]).ok();
+    assert_eq!(cached(), 2);
 }
 
 #[test]

@@ -205,7 +205,7 @@ fn load_data(data: &DataArgs, task: &dsrl_suite::Task) -> anyhow::Result<(PathBu
                     .fetch(&client, task.id.as_str(), &data.version, &options)
                     .await
             })?;
-            (fetched.parquet_path, Some(fetched.version))
+            (fetched.path, Some(fetched.version))
         }
         (None, None) => anyhow::bail!("name a dataset: --dataset FILE or --server URL"),
     };

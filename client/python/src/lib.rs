@@ -147,7 +147,7 @@ fn fetch(
         ..FetchOptions::default()
     };
     let outcome = block_on(py, cache.fetch(&client, task, version, &options))?;
-    let manifest = std::fs::read(outcome.parquet_path.with_file_name("manifest.json"))
+    let manifest = std::fs::read(outcome.path.with_file_name("manifest.json"))
         .ok()
         .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
         .unwrap_or(serde_json::Value::Null);

@@ -67,10 +67,10 @@ def load_dataset(task, version="latest", filter=None, server=None, cache_dir=Non
     filtered version. server: default `$DSRL_SERVER`, else http://127.0.0.1:7070.
     """
     report = fetch(task, version, filter, server, cache_dir, progress)
-    dataset = Dataset(read_parquet(report["parquet_path"]))
+    dataset = Dataset(read_parquet(report["path"]))
     dataset.task = report["task"]
     dataset.version = report["version"]
-    dataset.path = report["parquet_path"]
+    dataset.path = report["path"]
     dataset.manifest = report.get("manifest")
     provenance = (dataset.manifest or {}).get("provenance") or {}
     dataset.filter = provenance.get("filter") if provenance.get("kind") == "filter" else None
