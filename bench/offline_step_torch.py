@@ -18,8 +18,11 @@ CDT (`--algo cdt`, spec 5.4) runs OSRL's CDT model and CDTTrainer with the base 
 weight 0.02, stochastic head, temperature 0.1) on windows of 10 steps drawn as dsrl-train draws them (trajectory
 ∝ max(0, 70 − cost return), uniform start, zero padding at the end); OSRL's augmentation is not part of a step.
 
+`--device cuda` runs the same on a GPU (scripts/device-check.sh): model and batches on the device, the clock read
+after `torch.cuda.synchronize()`.
+
 Usage: .venv-bench/bin/python bench/offline_step_torch.py DATASET.parquet --algo bcql|bearl|cpq|coptidice|cdt
-           [--steps N] [--threads T] [--warmup W] [--seed S]
+           [--steps N] [--threads T] [--warmup W] [--seed S] [--device cpu|cuda]
 """
 import argparse
 import contextlib
@@ -149,6 +152,12 @@ def cdt_batches(d, rng, total, batch=2048, k=10):
     return out
 
 
+def synchronize(device):
+    """Waits for the GPU's queued work, so the clock measures it (a no-op on the CPU)."""
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("dataset")
@@ -157,6 +166,7 @@ def main():
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -180,10 +190,10 @@ def main():
         model_kw = dict(model_kw, init_state_propotion=init_prop, observations_std=obs_std, actions_std=act_std)
     model = getattr(algorithms, model_name)(
         state_dim=state_dim, action_dim=action_dim, max_action=1.0,  # CarRun's action box is [-1, 1]
-        a_hidden_sizes=HIDDEN, c_hidden_sizes=HIDDEN, device="cpu", **COMMON, **model_kw,
-    )
+        a_hidden_sizes=HIDDEN, c_hidden_sizes=HIDDEN, device=args.device, **COMMON, **model_kw,
+    ).to(args.device)
     trainer = getattr(algorithms, model_name + "Trainer")(
-        model, None, logger=DummyLogger(), device="cpu", **SCALES, **trainer_kw
+        model, None, logger=DummyLogger(), device=args.device, **SCALES, **trainer_kw
     )
 
     keys = ["observations", "next_observations", "actions", "rewards", "costs", "done"]
@@ -193,7 +203,8 @@ def main():
     total = args.warmup + args.steps
     indices = rng.integers(0, len(d["observations"]), size=(total, BATCH))
     started = time.perf_counter()
-    batches = [[torch.from_numpy(d[k][idx] * scale.get(k, 1)).float() for k in keys] for idx in indices]
+    batches = [[torch.from_numpy(d[k][idx] * scale.get(k, 1)).float().to(args.device) for k in keys]
+               for idx in indices]
     batch_seconds = time.perf_counter() - started
 
     def step(batch):
@@ -204,14 +215,17 @@ def main():
 
     for batch in batches[:args.warmup]:
         step(batch)
+    synchronize(args.device)
     started = time.perf_counter()
     for batch in batches[args.warmup:]:
         step(batch)
+    synchronize(args.device)
     seconds = time.perf_counter() - started
     print(json.dumps({
         "algo": args.algo, "steps": args.steps, "warmup": args.warmup, "seconds": seconds,
         "ms_per_step": 1000 * seconds / args.steps, "batch_ms_per_step": 1000 * batch_seconds / total,
         "threads": torch.get_num_threads(), "torch": torch.__version__, "osrl": osrl.__version__,
+        "device": args.device,
     }))
 
 
@@ -227,22 +241,26 @@ def time_cdt(args, rng, algorithms, DummyLogger, osrl):
     trainer = algorithms.CDTTrainer(
         model, None, logger=DummyLogger(), learning_rate=1e-4, weight_decay=1e-4, betas=(0.9, 0.999),
         clip_grad=0.25, lr_warmup_steps=500, reward_scale=0.1, cost_scale=1.0, loss_cost_weight=0.02,
-        loss_state_weight=0.0, device="cpu",
+        loss_state_weight=0.0, device=args.device,
     )
+    model.to(args.device)
     total = args.warmup + args.steps
     started = time.perf_counter()
-    batches = cdt_batches(d, rng, total)
+    batches = [[x.to(args.device) for x in b] for b in cdt_batches(d, rng, total)]
     batch_seconds = time.perf_counter() - started
     for batch in batches[:args.warmup]:
         trainer.train_one_step(*batch)
+    synchronize(args.device)
     started = time.perf_counter()
     for batch in batches[args.warmup:]:
         trainer.train_one_step(*batch)
+    synchronize(args.device)
     seconds = time.perf_counter() - started
     print(json.dumps({
         "algo": "cdt", "steps": args.steps, "warmup": args.warmup, "seconds": seconds,
         "ms_per_step": 1000 * seconds / args.steps, "batch_ms_per_step": 1000 * batch_seconds / total,
         "threads": torch.get_num_threads(), "torch": torch.__version__, "osrl": osrl.__version__,
+        "device": args.device,
     }))
 
 

@@ -27,9 +27,34 @@ pub struct Adam {
 struct Param {
     name: String,
     var: Var,
-    /// The moments, flat, in the variable's element order.
-    m: Vec<f32>,
-    v: Vec<f32>,
+    moments: Moments,
+}
+
+/// A parameter's first and second moments: on the host for a variable on the CPU (one pass over plain slices, the
+/// fastest there), on the variable's device otherwise (a GPU keeps the update on the GPU instead of copying every
+/// weight, gradient and moment to the host and back each step). Both do the same float32 operations in the same
+/// order, so on the CPU they give the same bits (a test checks it).
+enum Moments {
+    /// Flat, in the variable's element order.
+    Host { m: Vec<f32>, v: Vec<f32> },
+    Device { m: Tensor, v: Tensor },
+}
+
+impl Moments {
+    fn zeros(var: &Var, on_device: bool) -> Result<Moments> {
+        Ok(if on_device {
+            Moments::Device {
+                m: var.as_tensor().zeros_like()?,
+                v: var.as_tensor().zeros_like()?,
+            }
+        } else {
+            let n = var.elem_count();
+            Moments::Host {
+                m: vec![0.0; n],
+                v: vec![0.0; n],
+            }
+        })
+    }
 }
 
 impl Adam {
@@ -37,15 +62,10 @@ impl Adam {
         let params = named_vars
             .into_iter()
             .map(|(name, var)| {
-                let n = var.elem_count();
-                Param {
-                    name,
-                    var,
-                    m: vec![0.0; n],
-                    v: vec![0.0; n],
-                }
+                let moments = Moments::zeros(&var, !var.device().is_cpu())?;
+                Ok(Param { name, var, moments })
             })
-            .collect();
+            .collect::<Result<_>>()?;
         Ok(Adam {
             lr,
             beta1: 0.9,
@@ -58,6 +78,15 @@ impl Adam {
             steps: 0,
             params,
         })
+    }
+
+    /// Keeps every moment as a tensor beside its variable and updates with tensor operations, as on a GPU, even for
+    /// variables on the CPU (tests hold the two forms to each other there).
+    pub fn with_device_moments(mut self) -> Result<Adam> {
+        for p in &mut self.params {
+            p.moments = Moments::zeros(&p.var, true)?;
+        }
+        Ok(self)
     }
 
     /// AdamW: Adam with decoupled weight decay (see [`Adam::weight_decay`]).
@@ -92,19 +121,22 @@ impl Adam {
                 .collect();
         }
         // ‖g‖ over all tensors. Clipping decides with candle's own float32 sums, as it always has (its vectorized
-        // sum rounds differently from a plain loop); without clipping the norm is only reported.
+        // sum rounds differently from a plain loop), fetched from the device in one copy; without clipping the norm
+        // is only reported, summed on the host where the gradients are copied there anyway.
+        let host = self.params.iter().all(|p| matches!(p.moments, Moments::Host { .. }));
         let mut sq = 0.0f64;
-        if self.max_grad_norm.is_some() {
-            for g in gs.iter().flatten() {
-                sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
-            }
+        if self.max_grad_norm.is_some() || !host {
+            sq = squared_sums(&gs)?.into_iter().map(f64::from).sum();
         }
-        let gs: Vec<Option<Vec<f32>>> = gs
-            .iter()
-            .map(|g| g.as_ref().map(|g| g.flatten_all()?.to_vec1::<f32>()).transpose())
-            .collect::<candle_core::Result<_>>()?;
-        if self.max_grad_norm.is_none() {
-            for g in gs.iter().flatten() {
+        let host_grads: Vec<Option<Vec<f32>>> = if host {
+            gs.iter()
+                .map(|g| g.as_ref().map(|g| g.flatten_all()?.to_vec1::<f32>()).transpose())
+                .collect::<candle_core::Result<_>>()?
+        } else {
+            vec![None; gs.len()]
+        };
+        if self.max_grad_norm.is_none() && host {
+            for g in host_grads.iter().flatten() {
                 sq += g.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>();
             }
         }
@@ -121,22 +153,43 @@ impl Adam {
             (f(self.beta1), f(1.0 - self.beta1), f(self.beta2), f(1.0 - self.beta2));
         let (inv_c1, inv_c2, eps, lr, scale32) = (f(1.0 / c1), f(1.0 / c2), f(self.eps), f(self.lr), f(scale));
         let decay = f(1.0 - self.lr * self.weight_decay);
-        for (p, g) in self.params.iter_mut().zip(gs) {
-            let Some(mut g) = g else { continue };
-            if scale != 1.0 {
-                g.iter_mut().for_each(|x| *x *= scale32);
+        for ((p, g), host_g) in self.params.iter_mut().zip(&gs).zip(host_grads) {
+            match &mut p.moments {
+                Moments::Host { m, v } => {
+                    let Some(mut g) = host_g else { continue };
+                    if scale != 1.0 {
+                        g.iter_mut().for_each(|x| *x *= scale32);
+                    }
+                    let mut values = p.var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+                    if self.weight_decay != 0.0 {
+                        values.iter_mut().for_each(|x| *x *= decay);
+                    }
+                    for (((x, m), v), g) in values.iter_mut().zip(m.iter_mut()).zip(v.iter_mut()).zip(&g) {
+                        *m = *m * b1 + *g * one_minus_b1;
+                        *v = *v * b2 + (*g * *g) * one_minus_b2;
+                        let update = (*m * inv_c1) / ((*v * inv_c2).sqrt() + eps);
+                        *x -= update * lr;
+                    }
+                    p.var.set(&Tensor::from_vec(values, p.var.shape(), p.var.device())?)?;
+                }
+                Moments::Device { m, v } => {
+                    let Some(g) = g else { continue };
+                    // candle's affine is `x·mul + add` in float32: the host loop's operations, one tensor each.
+                    let g = if scale != 1.0 { g.affine(scale, 0.0)? } else { g.clone() };
+                    let mut x = p.var.as_tensor().clone();
+                    if self.weight_decay != 0.0 {
+                        x = x.affine(f64::from(decay), 0.0)?;
+                    }
+                    *m = m.affine(f64::from(b1), 0.0)?.add(&g.affine(f64::from(one_minus_b1), 0.0)?)?;
+                    *v = v.affine(f64::from(b2), 0.0)?.add(&g.sqr()?.affine(f64::from(one_minus_b2), 0.0)?)?;
+                    let update = m.affine(f64::from(inv_c1), 0.0)?.div(
+                        &v.affine(f64::from(inv_c2), 0.0)?
+                            .sqrt()?
+                            .affine(1.0, f64::from(eps))?,
+                    )?;
+                    p.var.set(&x.sub(&update.affine(f64::from(lr), 0.0)?)?)?;
+                }
             }
-            let mut values = p.var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
-            if self.weight_decay != 0.0 {
-                values.iter_mut().for_each(|x| *x *= decay);
-            }
-            for (((x, m), v), g) in values.iter_mut().zip(&mut p.m).zip(&mut p.v).zip(&g) {
-                *m = *m * b1 + *g * one_minus_b1;
-                *v = *v * b2 + (*g * *g) * one_minus_b2;
-                let update = (*m * inv_c1) / ((*v * inv_c2).sqrt() + eps);
-                *x -= update * lr;
-            }
-            p.var.set(&Tensor::from_vec(values, p.var.shape(), p.var.device())?)?;
         }
         Ok(norm)
     }
@@ -156,11 +209,17 @@ impl Adam {
         self.params
             .iter()
             .flat_map(|p| {
-                [("m", &p.m), ("v", &p.v)].map(|(suffix, values)| {
-                    let t = Tensor::from_slice(values, p.var.shape(), p.var.device())
-                        .expect("the moments have the variable's element count");
-                    (format!("{prefix}.{}.{suffix}", p.name), t)
-                })
+                let (m, v) = match &p.moments {
+                    Moments::Host { m, v } => {
+                        let t = |values: &[f32]| {
+                            Tensor::from_slice(values, p.var.shape(), p.var.device())
+                                .expect("the moments have the variable's element count")
+                        };
+                        (t(m), t(v))
+                    }
+                    Moments::Device { m, v } => (m.clone(), v.clone()),
+                };
+                [("m", m), ("v", v)].map(|(suffix, t)| (format!("{prefix}.{}.{suffix}", p.name), t))
             })
             .collect()
     }
@@ -168,7 +227,7 @@ impl Adam {
     /// Restores moments written by [`Adam::state`] and the step count.
     pub fn restore(&mut self, prefix: &str, tensors: &HashMap<String, Tensor>, steps: u64) -> Result<()> {
         for p in &mut self.params {
-            for (suffix, slot) in [("m", &mut p.m), ("v", &mut p.v)] {
+            let read = |suffix: &str| -> Result<Tensor> {
                 let name = format!("{prefix}.{}.{suffix}", p.name);
                 let t = tensors
                     .get(&name)
@@ -178,12 +237,36 @@ impl Adam {
                         "optimizer state {name} has the wrong shape"
                     )));
                 }
-                *slot = t.flatten_all()?.to_vec1::<f32>()?;
-            }
+                Ok(t.clone())
+            };
+            let (m, v) = (read("m")?, read("v")?);
+            p.moments = match p.moments {
+                Moments::Host { .. } => Moments::Host {
+                    m: m.flatten_all()?.to_vec1::<f32>()?,
+                    v: v.flatten_all()?.to_vec1::<f32>()?,
+                },
+                Moments::Device { .. } => Moments::Device {
+                    m: m.to_device(p.var.device())?,
+                    v: v.to_device(p.var.device())?,
+                },
+            };
         }
         self.steps = steps;
         Ok(())
     }
+}
+
+/// Σ g² of each gradient present, as candle's float32 sums, copied to the host in one transfer.
+fn squared_sums(gs: &[Option<Tensor>]) -> Result<Vec<f32>> {
+    let sums = gs
+        .iter()
+        .flatten()
+        .map(|g| g.sqr()?.sum_all()?.reshape(1))
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    if sums.is_empty() {
+        return Ok(Vec::new());
+    }
+    Ok(Tensor::cat(&sums, 0)?.to_vec1::<f32>()?)
 }
 
 #[cfg(test)]
@@ -297,6 +380,48 @@ mod tests {
                 "step {t}"
             );
         }
+    }
+
+    #[test]
+    fn device_moments_give_the_host_loops_bits_and_round_trip() {
+        // The GPU form of the update (moments as tensors, tensor operations), run on the CPU: the same bits as the
+        // host loop, with clipping and weight decay, and its state restores into either form.
+        let init: Vec<f32> = (0..600).map(|i| ((i * 37 % 101) as f32 - 50.0) / 17.0).collect();
+        let fresh = || Var::from_vec(init.clone(), (6, 100), &Device::Cpu).unwrap();
+        let (host_w, device_w) = (fresh(), fresh());
+        let make = |w: &Var| Adam::adamw(vec![("w".into(), w.clone())], 1e-2, 0.1, Some(0.5)).unwrap();
+        let mut host = make(&host_w);
+        let mut device = make(&device_w).with_device_moments().unwrap();
+        let loss = |w: &Var| {
+            w.as_tensor()
+                .powf(3.0)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .affine(1.0 / 3.0, 0.0)
+                .unwrap()
+        };
+        for t in 1..=5 {
+            let a = host.step(&loss(&host_w).backward().unwrap()).unwrap();
+            let b = device.step(&loss(&device_w).backward().unwrap()).unwrap();
+            assert_eq!(a, b, "step {t}: gradient norms");
+            assert_eq!(
+                host_w.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                device_w.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                "step {t}"
+            );
+        }
+        let values = |state: Vec<(String, Tensor)>| -> Vec<Vec<f32>> {
+            state
+                .into_iter()
+                .map(|(_, t)| t.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+                .collect()
+        };
+        assert_eq!(values(host.state("opt")), values(device.state("opt")));
+        let state: HashMap<String, Tensor> = device.state("opt").into_iter().collect();
+        let mut restored = make(&device_w).with_device_moments().unwrap();
+        restored.restore("opt", &state, device.steps()).unwrap();
+        assert_eq!(values(restored.state("opt")), values(device.state("opt")));
     }
 
     #[test]

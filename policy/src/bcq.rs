@@ -102,6 +102,14 @@ impl BcqActor {
             &Device::Cpu,
         )?)
     }
+
+    pub fn to_device(self, device: &Device) -> Result<BcqActor> {
+        Ok(BcqActor {
+            perturbation: self.perturbation.to_device(device)?,
+            decoder: self.decoder.to_device(device)?,
+            ..self
+        })
+    }
 }
 
 #[cfg(test)]

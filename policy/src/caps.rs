@@ -160,6 +160,16 @@ impl CapsNetworks {
         }
         Ok(out)
     }
+
+    pub fn to_device(self, device: &candle_core::Device) -> Result<CapsNetworks> {
+        Ok(CapsNetworks {
+            trunk: self.trunk.to_device(device)?,
+            heads: self.heads.into_iter().map(|h| h.to_device(device)).collect::<Result<_>>()?,
+            reward_q: self.reward_q.to_device(device)?,
+            cost_q: self.cost_q.to_device(device)?,
+            ..self
+        })
+    }
 }
 
 /// CAPS's `select_head_q`: of heads given as `(predicted reward, predicted cost)`, the first with the highest

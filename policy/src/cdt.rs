@@ -297,6 +297,42 @@ impl Cdt {
     pub fn action_log_std(&self, features: &Tensor) -> Result<Tensor> {
         self.action_log_std.forward(features)
     }
+
+    /// The network on `device` (training builds it on the CPU from its seed, then moves it).
+    pub fn to_device(&self, device: &Device) -> Result<Cdt> {
+        let linear = |l: &Linear| l.to_device(device);
+        let optional = |l: &Option<Linear>| l.as_ref().map(linear).transpose();
+        Ok(Cdt {
+            shape: self.shape,
+            cost_transform: self.cost_transform,
+            timestep_emb: crate::var_on(&self.timestep_emb, device)?,
+            state_emb: linear(&self.state_emb)?,
+            action_emb: linear(&self.action_emb)?,
+            return_emb: linear(&self.return_emb)?,
+            cost_emb: linear(&self.cost_emb)?,
+            emb_norm: self.emb_norm.to_device(device)?,
+            blocks: self
+                .blocks
+                .iter()
+                .map(|b| {
+                    Ok(Block {
+                        norm1: b.norm1.to_device(device)?,
+                        norm2: b.norm2.to_device(device)?,
+                        in_proj_weight: crate::var_on(&b.in_proj_weight, device)?,
+                        in_proj_bias: crate::var_on(&b.in_proj_bias, device)?,
+                        out_proj: linear(&b.out_proj)?,
+                        mlp_in: linear(&b.mlp_in)?,
+                        mlp_out: linear(&b.mlp_out)?,
+                    })
+                })
+                .collect::<Result<_>>()?,
+            out_norm: self.out_norm.to_device(device)?,
+            action_mu: linear(&self.action_mu)?,
+            action_log_std: linear(&self.action_log_std)?,
+            cost_pred_head: optional(&self.cost_pred_head)?,
+            state_pred_head: optional(&self.state_pred_head)?,
+        })
+    }
 }
 
 impl Block {

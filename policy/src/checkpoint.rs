@@ -302,7 +302,11 @@ pub fn write(dir: &Path, config: &PolicyConfig, tensors: &[(String, Tensor)]) ->
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let weights = dir.join(WEIGHTS_FILE);
     let part = dir.join(format!("{WEIGHTS_FILE}.part"));
-    let map: HashMap<String, Tensor> = tensors.iter().cloned().collect();
+    // Weights are written from the CPU whatever device trained them, so a checkpoint is the same file either way.
+    let map: HashMap<String, Tensor> = tensors
+        .iter()
+        .map(|(name, t)| Ok((name.clone(), t.to_device(&candle_core::Device::Cpu)?)))
+        .collect::<Result<_>>()?;
     candle_core::safetensors::save(&map, &part)?;
     std::fs::rename(&part, &weights).map_err(io(&weights))?;
     let json = dir.join(CONFIG_FILE);

@@ -89,6 +89,14 @@ impl GaussianActor {
         vars.push(("actor.log_std".into(), self.log_std.clone()));
         vars
     }
+
+    pub fn to_device(self, device: &Device) -> Result<GaussianActor> {
+        Ok(GaussianActor {
+            mean_net: self.mean_net.to_device(device)?,
+            log_std: crate::var_on(&self.log_std, device)?,
+            ..self
+        })
+    }
 }
 
 /// Σ_d log N(x_d; μ_d, σ_d) per row: `x`, `mean` `[batch, dims]`, `log_std` `[dims]`.

@@ -62,6 +62,13 @@ impl Linear {
             (format!("{name}.bias"), self.bias.clone()),
         ]
     }
+
+    pub fn to_device(&self, device: &Device) -> Result<Linear> {
+        Ok(Linear {
+            weight: crate::var_on(&self.weight, device)?,
+            bias: crate::var_on(&self.bias, device)?,
+        })
+    }
 }
 
 /// `nn.LayerNorm` over the last dimension (PyTorch's ε = 1e-5, biased variance).
@@ -96,6 +103,13 @@ impl LayerNorm {
             (format!("{name}.weight"), self.weight.clone()),
             (format!("{name}.bias"), self.bias.clone()),
         ]
+    }
+
+    pub fn to_device(&self, device: &Device) -> Result<LayerNorm> {
+        Ok(LayerNorm {
+            weight: crate::var_on(&self.weight, device)?,
+            bias: crate::var_on(&self.bias, device)?,
+        })
     }
 }
 

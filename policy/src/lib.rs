@@ -44,10 +44,23 @@ pub fn tensors_of(vars: impl IntoIterator<Item = (String, Var)>) -> Vec<(String,
     vars.into_iter().map(|(n, v)| (n, v.as_tensor().clone())).collect()
 }
 
+/// `var` on `device`: the same variable when it is there already, else a new variable holding a copy (training
+/// builds its networks on the CPU, from the seeded initialisation, and then moves them to the device it trains on).
+pub fn var_on(var: &Var, device: &Device) -> Result<Var> {
+    if var.device().same_device(device) {
+        return Ok(var.clone());
+    }
+    Ok(Var::from_tensor(&var.as_tensor().to_device(device)?)?)
+}
+
 /// Writes named tensors as one safetensors file (through a temporary name and a rename).
 pub fn candle_save(tensors: &std::collections::HashMap<String, Tensor>, path: &std::path::Path) -> Result<()> {
     let part = path.with_extension("safetensors.part");
-    candle_core::safetensors::save(tensors, &part)?;
+    let on_cpu = tensors
+        .iter()
+        .map(|(name, t)| Ok((name.clone(), t.to_device(&Device::Cpu)?)))
+        .collect::<Result<std::collections::HashMap<_, _>>>()?;
+    candle_core::safetensors::save(&on_cpu, &part)?;
     std::fs::rename(&part, path).map_err(|source| PolicyError::Io {
         path: path.display().to_string(),
         source,

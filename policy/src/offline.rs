@@ -109,6 +109,12 @@ impl Ensemble {
             nets: self.nets.iter().map(Mlp::copy).collect::<Result<_>>()?,
         })
     }
+
+    pub fn to_device(self, device: &Device) -> Result<Ensemble> {
+        Ok(Ensemble {
+            nets: self.nets.into_iter().map(|n| n.to_device(device)).collect::<Result<_>>()?,
+        })
+    }
 }
 
 /// OSRL's `EnsembleDoubleQCritic` (BCQ-L, BEAR-L): two ensembles `<prefix>.q1`, `<prefix>.q2` of `num` networks
@@ -123,6 +129,13 @@ impl DoubleCritic {
         Ok(DoubleCritic {
             q1: Ensemble::new(&format!("{prefix}.q1"), input_dim, hidden, num, noise)?,
             q2: Ensemble::new(&format!("{prefix}.q2"), input_dim, hidden, num, noise)?,
+        })
+    }
+
+    pub fn to_device(self, device: &Device) -> Result<DoubleCritic> {
+        Ok(DoubleCritic {
+            q1: self.q1.to_device(device)?,
+            q2: self.q2.to_device(device)?,
         })
     }
 

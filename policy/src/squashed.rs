@@ -104,6 +104,15 @@ impl SquashedGaussianActor {
             act_dim: self.act_dim,
         })
     }
+
+    pub fn to_device(self, device: &candle_core::Device) -> Result<SquashedGaussianActor> {
+        Ok(SquashedGaussianActor {
+            trunk: self.trunk.to_device(device)?,
+            mu: self.mu.to_device(device)?,
+            log_std: self.log_std.to_device(device)?,
+            ..self
+        })
+    }
 }
 
 /// The log-density of `tanh(u)` for `u ~ N(μ, σ)` with a per-row log σ (`[batch, act]`, as the actor's heads give

@@ -121,6 +121,16 @@ impl Vae {
             .flat_map(Mlp::named_vars)
             .collect()
     }
+
+    pub fn to_device(self, device: &candle_core::Device) -> Result<Vae> {
+        Ok(Vae {
+            encoder: self.encoder.to_device(device)?,
+            mean: self.mean.to_device(device)?,
+            log_std: self.log_std.to_device(device)?,
+            decoder: self.decoder.to_device(device)?,
+            ..self
+        })
+    }
 }
 
 #[cfg(test)]

@@ -62,6 +62,7 @@ fn each_baseline_records_its_training_and_the_same_seed_trains_the_same_weights(
         assert_eq!(training["algorithm"], algorithm, "{config}");
         assert_eq!(training["steps"], 3);
         assert_eq!(training["seed"], 1);
+        assert_eq!(training["device"], "cpu", "{config}");
         assert!(training["qc_threshold"].as_f64().unwrap() > 0.0);
         assert!(
             training["settings"].as_str().unwrap().contains("batch_size: 512"),
@@ -143,6 +144,27 @@ fn each_baseline_records_its_training_and_the_same_seed_trains_the_same_weights(
     );
     assert_eq!(config["conditioning"]["kind"], "cost_budget", "{config}");
     assert_eq!(config["training"]["algorithm"], "caps", "{config}");
+    assert_eq!(config["training"]["device"], "cpu", "{config}");
+
+    // Every method takes --device; this build (CI's, without the `cuda` feature) says how to get a GPU build
+    // instead of training anywhere else.
+    for algorithm in ["bc", "bcql", "bearl", "cpq", "coptidice", "cdt", "caps"] {
+        let mode: &[&str] = if algorithm == "bc" { &["--mode", "all"] } else { &[] };
+        let output = Command::new(dsrl_e2e::bin("dsrl-train"))
+            .args([algorithm, "--task", TASK, "--steps", "1", "--device", "cuda"])
+            .args(mode)
+            .arg("--dataset")
+            .arg(starter())
+            .arg("--out")
+            .arg(models.path().join("cuda"))
+            .env_remove("DSRL_SERVER")
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{algorithm}: {stderr}");
+        assert!(stderr.contains("without the `cuda` feature"), "{algorithm}: {stderr}");
+    }
+    assert!(!models.path().join("cuda").exists(), "nothing is written for a device that is not there");
 
     // Each of these is scored by the leaderboard in the reference script's test below (every method, trained by
     // the script and scored with the paper's protocol), which makes its own checkpoints the same way.

@@ -86,19 +86,33 @@ pub struct BcqlLearner {
 }
 
 impl BcqlLearner {
-    /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps.
+    /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps, on the CPU.
     pub fn new(settings: BcqlSettings, data: &Demonstrations, kappa: f64, episode_len: usize) -> anyhow::Result<Self> {
+        Self::on_device(settings, data, kappa, episode_len, &Device::Cpu)
+    }
+
+    /// As [`BcqlLearner::new`], training on `device` (networks initialised on the CPU from the seed, then moved).
+    pub fn on_device(
+        settings: BcqlSettings,
+        data: &Demonstrations,
+        kappa: f64,
+        episode_len: usize,
+        device: &Device,
+    ) -> anyhow::Result<Self> {
         let (o, a) = (data.obs_dim, data.act_dim);
         let mut noise = Noise::seeded(settings.seed);
-        let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?;
+        let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?.to_device(device)?;
         let actor = Mlp::pytorch_default(
             "actor.pi",
             &layer_sizes(o + a, &settings.hidden_sizes, a),
             Activation::Tanh,
             &mut noise,
-        )?;
-        let critic = DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
-        let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
+        )?
+        .to_device(device)?;
+        let critic =
+            DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?.to_device(device)?;
+        let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
+            .to_device(device)?;
         let (kp, ki, kd) = settings.pid;
         let threshold = qc_threshold(kappa, settings.gamma, episode_len);
         Ok(BcqlLearner {
@@ -115,7 +129,7 @@ impl BcqlLearner {
             critic,
             cost_critic,
             noise,
-            data: Transitions::new(data)?,
+            data: Transitions::new(data, device)?,
             obs_dim: o,
             act_dim: a,
             settings,
@@ -141,7 +155,7 @@ impl BcqlLearner {
                     .clamp(-dsrl_policy::bcq::LATENT_CLIP, dsrl_policy::bcq::LATENT_CLIP) as f32
             })
             .collect();
-        Ok(Tensor::from_vec(values, (rows, latent), &Device::Cpu)?)
+        Ok(Tensor::from_vec(values, (rows, latent), self.data.device())?)
     }
 }
 
@@ -186,7 +200,7 @@ impl ThresholdLearner for BcqlLearner {
 
         // VAE.
         let eps_values = self.noise.normals_f32(b * self.vae.latent_dim);
-        let eps = Tensor::from_vec(eps_values, (b, self.vae.latent_dim), &Device::Cpu)?;
+        let eps = Tensor::from_vec(eps_values, (b, self.vae.latent_dim), self.data.device())?;
         let out = self.vae.forward(obs, act, &eps)?;
         let (loss, _, _) = Vae::loss(&out, act, self.settings.beta)?;
         stats.push(("vae", f64::from(loss.to_scalar::<f32>()?)));

@@ -119,12 +119,25 @@ pub fn mmd_gaussian(x: &Tensor, y: &Tensor, sigma: f64) -> anyhow::Result<Tensor
 impl BearlLearner {
     /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps.
     pub fn new(settings: BearlSettings, data: &Demonstrations, kappa: f64, episode_len: usize) -> anyhow::Result<Self> {
+        Self::on_device(settings, data, kappa, episode_len, &Device::Cpu)
+    }
+
+    /// As [`BearlLearner::new`], training on `device` (networks initialised on the CPU from the seed, then moved).
+    pub fn on_device(
+        settings: BearlSettings,
+        data: &Demonstrations,
+        kappa: f64,
+        episode_len: usize,
+        device: &Device,
+    ) -> anyhow::Result<Self> {
         let (o, a) = (data.obs_dim, data.act_dim);
         let mut noise = Noise::seeded(settings.seed);
-        let actor = SquashedGaussianActor::new(o, a, &settings.hidden_sizes, &mut noise)?;
-        let critic = DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
-        let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
-        let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?;
+        let actor = SquashedGaussianActor::new(o, a, &settings.hidden_sizes, &mut noise)?.to_device(device)?;
+        let critic =
+            DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?.to_device(device)?;
+        let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
+            .to_device(device)?;
+        let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?.to_device(device)?;
         let (kp, ki, kd) = settings.pid;
         Ok(BearlLearner {
             actor_optim: Adam::new(actor.named_vars(), settings.lr, None)?,
@@ -137,7 +150,7 @@ impl BearlLearner {
             log_alpha: 0.0,
             pid: PidLagrangian::new(kp, ki, kd, qc_threshold(kappa, settings.gamma, episode_len)),
             steps: 0,
-            data: Transitions::new(data)?,
+            data: Transitions::new(data, device)?,
             obs_dim: o,
             actor,
             vae,
@@ -207,7 +220,7 @@ impl ThresholdLearner for BearlLearner {
         let input = concat(&batch.obs, &batch.act)?;
 
         // VAE.
-        let eps = normals(&mut self.noise, b, self.vae.latent_dim)?;
+        let eps = normals(&mut self.noise, b, self.vae.latent_dim, self.data.device())?;
         let out = self.vae.forward(&batch.obs, &batch.act, &eps)?;
         let (vae_loss, _, _) = Vae::loss(&out, &batch.act, s.beta)?;
         self.vae_optim.step(&vae_loss.backward()?)?;
@@ -218,7 +231,7 @@ impl ThresholdLearner for BearlLearner {
         let (values, _, _) = self.critic.predict(&input)?;
         let critic_loss = dsrl_policy::offline::Ensemble::loss(&values, &target)?;
         self.critic_optim.step(&critic_loss.backward()?)?;
-        let discount = Tensor::full(s.gamma as f32, b, &Device::Cpu)?;
+        let discount = Tensor::full(s.gamma as f32, b, self.data.device())?;
         let target = self.backup(&batch.next_obs, &batch.cost, &discount, true)?;
         let (values, _, _) = self.cost_critic.predict(&input)?;
         let cost_critic_loss = dsrl_policy::offline::Ensemble::loss(&values, &target)?;
@@ -228,7 +241,7 @@ impl ThresholdLearner for BearlLearner {
         let n = s.num_samples_mmd_match;
         let (o, a) = (self.obs_dim, self.actor.act_dim);
         let stacked = repeat_rows(&batch.obs, n)?;
-        let z = normals(&mut self.noise, b * n, self.vae.latent_dim)?.clamp(-0.5, 0.5)?;
+        let z = normals(&mut self.noise, b * n, self.vae.latent_dim, self.data.device())?.clamp(-0.5, 0.5)?;
         let vae_raw = self
             .vae
             .decoder
@@ -240,7 +253,7 @@ impl ThresholdLearner for BearlLearner {
         let first: Vec<u32> = (0..b as u32).map(|i| i * n as u32).collect();
         let a0 = draws
             .action
-            .index_select(&Tensor::from_vec(first, b, &Device::Cpu)?, 0)?;
+            .index_select(&Tensor::from_vec(first, b, self.data.device())?, 0)?;
         let policy_input = concat(&batch.obs, &a0)?;
         debug_assert_eq!(policy_input.dims(), &[b, o + a]);
         let (_, q1, q2) = self.critic.predict(&policy_input)?;

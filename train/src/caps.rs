@@ -116,6 +116,16 @@ fn pair_loss(pair: &Ensemble, input: &Tensor, target: &Tensor) -> anyhow::Result
 impl CapsLearner {
     /// A learner for a task whose episodes last `episode_len` steps (what deployment spreads the budget over).
     pub fn new(settings: CapsSettings, data: &Demonstrations, episode_len: usize) -> anyhow::Result<Self> {
+        Self::on_device(settings, data, episode_len, &dsrl_policy::Device::Cpu)
+    }
+
+    /// As [`CapsLearner::new`], training on `device` (networks initialised on the CPU from the seed, then moved).
+    pub fn on_device(
+        settings: CapsSettings,
+        data: &Demonstrations,
+        episode_len: usize,
+        device: &dsrl_policy::Device,
+    ) -> anyhow::Result<Self> {
         let (o, a) = (data.obs_dim, data.act_dim);
         anyhow::ensure!(settings.num_heads >= 1, "caps needs at least one head");
         let mut noise = Noise::seeded(settings.seed);
@@ -125,12 +135,12 @@ impl CapsLearner {
             hidden_sizes: settings.hidden_sizes.clone(),
             num_heads: settings.num_heads,
         };
-        let nets = CapsNetworks::new(shape, &mut noise)?;
+        let nets = CapsNetworks::new(shape, &mut noise)?.to_device(device)?;
         let mut v_sizes = vec![o];
         v_sizes.extend(&settings.hidden_sizes);
         v_sizes.push(1);
-        let reward_v = Mlp::pytorch_default("reward_v", &v_sizes, Activation::Relu, &mut noise)?;
-        let cost_v = Mlp::pytorch_default("cost_v", &v_sizes, Activation::Relu, &mut noise)?;
+        let reward_v = Mlp::pytorch_default("reward_v", &v_sizes, Activation::Relu, &mut noise)?.to_device(device)?;
+        let cost_v = Mlp::pytorch_default("cost_v", &v_sizes, Activation::Relu, &mut noise)?.to_device(device)?;
         Ok(CapsLearner {
             actor_optim: Adam::new(nets.actor_vars(), settings.actor_lr, None)?,
             reward_q_optim: Adam::new(nets.reward_q.named_vars(), settings.q_lr, None)?,
@@ -141,7 +151,7 @@ impl CapsLearner {
             cost_q_target: nets.cost_q.copy()?,
             reward_v,
             cost_v,
-            data: Transitions::new(data)?,
+            data: Transitions::new(data, device)?,
             nets,
             noise,
             episode_len,

@@ -154,6 +154,7 @@ pub struct CdtLearner {
     pub sampling: String,
     steps: u64,
     noise: Noise,
+    device: Device,
 }
 
 impl CdtLearner {
@@ -164,6 +165,18 @@ impl CdtLearner {
         data: Demonstrations,
         episode_len: usize,
         augmentation: Option<&Augmentation>,
+    ) -> anyhow::Result<Self> {
+        Self::on_device(settings, data, episode_len, augmentation, &Device::Cpu)
+    }
+
+    /// As [`CdtLearner::new`], training on `device` (the model initialised on the CPU from the seed, then moved;
+    /// windows are cut on the host and copied over).
+    pub fn on_device(
+        settings: CdtSettings,
+        data: Demonstrations,
+        episode_len: usize,
+        augmentation: Option<&Augmentation>,
+        device: &Device,
     ) -> anyhow::Result<Self> {
         anyhow::ensure!(!data.episodes.is_empty(), "no trajectories to learn from");
         if let Some(&(_, len, _, _)) = data.episodes.iter().find(|e| e.1 > episode_len) {
@@ -179,7 +192,7 @@ impl CdtLearner {
             seq_len: settings.seq_len,
             episode_len,
         };
-        let model = Cdt::new(shape, settings.cost_transform, &mut noise)?;
+        let model = Cdt::new(shape, settings.cost_transform, &mut noise)?.to_device(device)?;
         let (mut returns_to_go, mut costs_to_go) = (vec![0f32; data.rows()], vec![0f32; data.rows()]);
         for &(start, len, _, _) in &data.episodes {
             let (mut r, mut c) = (0f64, 0f64);
@@ -231,7 +244,7 @@ impl CdtLearner {
                 Some(*acc)
             })
             .collect();
-        let log_temperature = Var::from_vec(vec![settings.init_temperature.ln() as f32], 1, &Device::Cpu)?;
+        let log_temperature = Var::from_vec(vec![settings.init_temperature.ln() as f32], 1, device)?;
         Ok(CdtLearner {
             optim: Adam::adamw(
                 model.named_vars(),
@@ -251,6 +264,7 @@ impl CdtLearner {
             sampling,
             steps: 0,
             noise,
+            device: device.clone(),
             settings,
         })
     }
@@ -324,15 +338,15 @@ impl CdtLearner {
                 labels[at] = self.data.costs[row].trunc().clamp(0.0, 1.0);
             }
         }
-        let cpu = &Device::Cpu;
+        let device = &self.device;
         Ok(Windows {
-            states: Tensor::from_vec(states, (b, k, o), cpu)?,
-            actions: Tensor::from_vec(actions, (b, k, a), cpu)?,
-            returns_to_go: Tensor::from_vec(rtg, (b, k), cpu)?,
-            costs_to_go: Tensor::from_vec(ctg, (b, k), cpu)?,
-            timesteps: Tensor::from_vec(timesteps, (b, k), cpu)?,
-            mask: Tensor::from_vec(mask, (b, k), cpu)?,
-            cost_labels: Tensor::from_vec(labels, (b, k), cpu)?,
+            states: Tensor::from_vec(states, (b, k, o), device)?,
+            actions: Tensor::from_vec(actions, (b, k, a), device)?,
+            returns_to_go: Tensor::from_vec(rtg, (b, k), device)?,
+            costs_to_go: Tensor::from_vec(ctg, (b, k), device)?,
+            timesteps: Tensor::from_vec(timesteps, (b, k), device)?,
+            mask: Tensor::from_vec(mask, (b, k), device)?,
+            cost_labels: Tensor::from_vec(labels, (b, k), device)?,
         })
     }
 

@@ -103,21 +103,34 @@ pub struct CoptidiceLearner {
 }
 
 impl CoptidiceLearner {
-    /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps.
+    /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps, on the CPU.
     pub fn new(
         settings: CoptidiceSettings,
         data: &Demonstrations,
         kappa: f64,
         episode_len: usize,
     ) -> anyhow::Result<Self> {
+        Self::on_device(settings, data, kappa, episode_len, &Device::Cpu)
+    }
+
+    /// As [`CoptidiceLearner::new`], training on `device` (networks initialised on the CPU from the seed, then
+    /// moved).
+    pub fn on_device(
+        settings: CoptidiceSettings,
+        data: &Demonstrations,
+        kappa: f64,
+        episode_len: usize,
+        device: &Device,
+    ) -> anyhow::Result<Self> {
         let o = data.obs_dim;
         let mut noise = Noise::seeded(settings.seed);
-        let tau = Var::from_vec(vec![1.0f32], 1, &Device::Cpu)?;
-        let lmbda = Var::from_vec(vec![1.0f32], 1, &Device::Cpu)?;
-        let actor = SquashedGaussianActor::new(o, data.act_dim, &settings.hidden_sizes, &mut noise)?;
-        let nu = Ensemble::new("nu", o, &settings.hidden_sizes, settings.num_nu, &mut noise)?;
-        let chi = Ensemble::new("chi", o, &settings.hidden_sizes, settings.num_chi, &mut noise)?;
-        let transitions = Transitions::new(data)?;
+        let tau = Var::from_vec(vec![1.0f32], 1, device)?;
+        let lmbda = Var::from_vec(vec![1.0f32], 1, device)?;
+        let actor =
+            SquashedGaussianActor::new(o, data.act_dim, &settings.hidden_sizes, &mut noise)?.to_device(device)?;
+        let nu = Ensemble::new("nu", o, &settings.hidden_sizes, settings.num_nu, &mut noise)?.to_device(device)?;
+        let chi = Ensemble::new("chi", o, &settings.hidden_sizes, settings.num_chi, &mut noise)?.to_device(device)?;
+        let transitions = Transitions::new(data, device)?;
         let (obs_std, act_std) = transitions.stds()?;
         Ok(CoptidiceLearner {
             actor_optim: Adam::new(actor.named_vars(), settings.actor_lr, None)?,
@@ -255,10 +268,10 @@ impl ThresholdLearner for CoptidiceLearner {
         self.lmbda_optim.step(&lambda_loss.backward()?)?;
 
         // 2. Policy extraction: weighted behaviour cloning on noised inputs, w from the updated ν.
-        let obs_eps = normals(&mut self.noise, b, self.obs_dim)?
+        let obs_eps = normals(&mut self.noise, b, self.obs_dim, self.data.device())?
             .broadcast_mul(&self.obs_std)?
             .affine(0.1, 0.0)?;
-        let act_eps = normals(&mut self.noise, b, self.actor.act_dim)?
+        let act_eps = normals(&mut self.noise, b, self.actor.act_dim, self.data.device())?
             .broadcast_mul(&self.act_std)?
             .affine(0.1, 0.0)?;
         let (mean, log_std) = self.actor.distribution(&batch.obs.add(&obs_eps)?)?;

@@ -93,12 +93,25 @@ pub struct CpqLearner {
 impl CpqLearner {
     /// A learner for the cost threshold `kappa` of a task whose episodes last `episode_len` steps.
     pub fn new(settings: CpqSettings, data: &Demonstrations, kappa: f64, episode_len: usize) -> anyhow::Result<Self> {
+        Self::on_device(settings, data, kappa, episode_len, &dsrl_policy::Device::Cpu)
+    }
+
+    /// As [`CpqLearner::new`], training on `device` (networks initialised on the CPU from the seed, then moved).
+    pub fn on_device(
+        settings: CpqSettings,
+        data: &Demonstrations,
+        kappa: f64,
+        episode_len: usize,
+        device: &dsrl_policy::Device,
+    ) -> anyhow::Result<Self> {
         let (o, a) = (data.obs_dim, data.act_dim);
         let mut noise = Noise::seeded(settings.seed);
-        let actor = SquashedGaussianActor::new(o, a, &settings.hidden_sizes, &mut noise)?;
-        let critic = Ensemble::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
-        let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?;
-        let cost_critic = Ensemble::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?;
+        let actor = SquashedGaussianActor::new(o, a, &settings.hidden_sizes, &mut noise)?.to_device(device)?;
+        let critic =
+            Ensemble::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?.to_device(device)?;
+        let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?.to_device(device)?;
+        let cost_critic = Ensemble::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
+            .to_device(device)?;
         let q_thres = qc_threshold(kappa, settings.gamma, episode_len);
         Ok(CpqLearner {
             actor_optim: Adam::new(actor.named_vars(), settings.actor_lr, None)?,
@@ -110,7 +123,7 @@ impl CpqLearner {
             log_alpha: 0.0,
             q_thres,
             qc_thres: settings.qc_scalar * q_thres,
-            data: Transitions::new(data)?,
+            data: Transitions::new(data, device)?,
             obs_dim: o,
             actor,
             vae,
@@ -170,7 +183,7 @@ impl ThresholdLearner for CpqLearner {
         let input = concat(&batch.obs, &batch.act)?;
 
         // VAE.
-        let eps = normals(&mut self.noise, b, self.vae.latent_dim)?;
+        let eps = normals(&mut self.noise, b, self.vae.latent_dim, self.data.device())?;
         let out = self.vae.forward(&batch.obs, &batch.act, &eps)?;
         let (vae_loss, _, _) = Vae::loss(&out, &batch.act, s.beta)?;
         self.vae_optim.step(&vae_loss.backward()?)?;
@@ -197,7 +210,7 @@ impl ThresholdLearner for CpqLearner {
         let (mean, log_std) = self.actor.distribution(&batch.obs)?;
         let (mean, std) = (mean.detach(), log_std.exp()?.detach());
         let stacked_obs = Tensor::cat(&vec![&batch.obs; n], 0)?;
-        let eps = normals(&mut self.noise, n * b, self.actor.act_dim)?;
+        let eps = normals(&mut self.noise, n * b, self.actor.act_dim, self.data.device())?;
         let ood_actions = Tensor::cat(&vec![&mean; n], 0)?.add(&Tensor::cat(&vec![&std; n], 0)?.mul(&eps)?)?;
         let qc_sampled = Ensemble::min(&self.cost_critic_target.values(&concat(&stacked_obs, &ood_actions)?)?)?;
         let (z_mean, z_std) = self.vae.encode(&stacked_obs, &ood_actions)?;

@@ -6,6 +6,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use dsrl_client::api::Client;
 use dsrl_client::cache::{Cache, FetchOptions};
+use dsrl_policy::Device;
 use dsrl_policy::checkpoint::Conditioning;
 use dsrl_suite::Catalog;
 use dsrl_train::bcql::{BcqlLearner, BcqlSettings};
@@ -75,8 +76,9 @@ struct DataArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Where to train: cpu, or cuda / cuda:N (the N-th GPU) in a binary built with the `cuda` feature
-    /// (scripts/build-cuda.sh). So far BC-All and BC-Safe train on a GPU; the other methods on the CPU only.
-    /// Checkpoints are float32 on the CPU either way; the device is recorded in policy.json.
+    /// (scripts/build-cuda.sh), for every method. Networks are initialised on the CPU from the seed and moved;
+    /// batches are drawn on the host from the same seeded generator, so a run's random choices do not depend on the
+    /// device. Checkpoints are float32 on the CPU either way; the device is recorded in policy.json.
     #[arg(long, default_value = "cpu")]
     device: String,
     /// Output folder (default: ./policies/<task>).
@@ -238,6 +240,7 @@ struct Prepared {
     source: Source,
     demonstrations: Demonstrations,
     out: PathBuf,
+    device: Device,
 }
 
 /// Which data a model was trained on, as its training record names it.
@@ -245,14 +248,12 @@ struct Source {
     path: PathBuf,
     dataset_version: Option<String>,
     transitions: usize,
+    /// The device trained on (`cpu`, `cuda:0`, ...).
+    device: String,
 }
 
 fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
-    anyhow::ensure!(
-        data.device == "cpu",
-        "--device {}: only bc trains on a GPU so far; this method trains on the CPU (leave out --device)",
-        data.device
-    );
+    let device = dsrl_train::training_device(&data.device)?;
     let catalog = Catalog::embedded()?;
     let task = catalog.get(&data.task)?.clone();
     let (path, dataset_version, demonstrations) = load_data(data, &task)?;
@@ -264,12 +265,14 @@ fn prepare(data: &DataArgs) -> anyhow::Result<Prepared> {
         path,
         dataset_version,
         transitions: demonstrations.rows(),
+        device: dsrl_train::device_name(&device),
     };
     Ok(Prepared {
         task,
         source,
         demonstrations,
         out,
+        device,
     })
 }
 
@@ -331,6 +334,7 @@ impl Source {
             "batch_size": batch_size,
             "seed": data.seed,
             "code_commit": CODE_COMMIT,
+            "device": self.device,
             "final": trained.last(),
             "seconds": trained.seconds,
             "cpu_seconds": trained.cpu_seconds,
@@ -397,8 +401,9 @@ fn submit(server: &str, dir: &std::path::Path, task: &str, name: &str) -> anyhow
 }
 
 /// How to build a per-threshold algorithm's learner for one threshold (`kappa`, the task's episode length, the
-/// seed, a batch size other than OSRL's).
-type MakeLearner = dyn Fn(&Demonstrations, f64, usize, u64, Option<usize>) -> anyhow::Result<Box<dyn ThresholdLearner>>;
+/// seed, a batch size other than OSRL's, the device it trains on).
+type MakeLearner =
+    dyn Fn(&Demonstrations, f64, usize, u64, Option<usize>, &Device) -> anyhow::Result<Box<dyn ThresholdLearner>>;
 
 /// Trains one model per threshold with `make`, writes `<out>/<algorithm>/threshold-<K>` and optionally submits.
 fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> anyhow::Result<()> {
@@ -407,6 +412,7 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
         source,
         demonstrations,
         out,
+        device,
     } = prepare(&data)?;
     let thresholds = if data.cost_thresholds.is_empty() {
         task.cost_thresholds.clone()
@@ -416,7 +422,7 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
     let episode_len = task.max_episode_steps as usize;
     for kappa in thresholds {
         let name = format!("{algorithm}/threshold-{kappa}");
-        let mut learner = make(&demonstrations, kappa, episode_len, data.seed, data.batch_size)?;
+        let mut learner = make(&demonstrations, kappa, episode_len, data.seed, data.batch_size, &device)?;
         let trained = train_loop(data.steps, &name, 100, 4, || learner.step())?;
         let extra = serde_json::json!({ "settings": learner.settings(), "qc_threshold": learner.qc_threshold() });
         let training = source.training_record(algorithm, &data, learner.batch_size(), &trained, extra);
@@ -443,6 +449,7 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         source,
         demonstrations,
         out,
+        device,
     } = prepare(&data)?;
     let default = CapsSettings::default();
     let settings = CapsSettings {
@@ -450,7 +457,8 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         batch_size: data.batch_size.unwrap_or(default.batch_size),
         ..default
     };
-    let mut learner = CapsLearner::new(settings.clone(), &demonstrations, task.max_episode_steps as usize)?;
+    let mut learner =
+        CapsLearner::on_device(settings.clone(), &demonstrations, task.max_episode_steps as usize, &device)?;
     let trained = train_loop(data.steps, "caps", 100, 5, || learner.step())?;
     let extra = serde_json::json!({
         "settings": format!("{settings:?}"),
@@ -479,6 +487,7 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
         source,
         demonstrations,
         out,
+        device,
     } = prepare(&data)?;
     let targets = return_targets(task.id.as_str())?;
     let default = CdtSettings::default();
@@ -489,11 +498,12 @@ fn train_cdt(data: DataArgs) -> anyhow::Result<()> {
     };
     let episodes = demonstrations.episodes.len();
     let augmentation = task_augmentation(task.id.as_str())?;
-    let mut learner = CdtLearner::new(
+    let mut learner = CdtLearner::on_device(
         settings.clone(),
         demonstrations,
         task.max_episode_steps as usize,
         Some(&augmentation),
+        &device,
     )?;
     let trained = train_loop(data.steps, "cdt", 10, 3, || learner.step())?;
     let extra = serde_json::json!({
@@ -539,7 +549,7 @@ fn main() -> anyhow::Result<()> {
         Command::Bc { mode, data } => (mode, data),
         Command::Bcql { data } => {
             let steps = data.steps;
-            return train_per_threshold("bcql", data, &move |d, kappa, len, seed, batch| {
+            return train_per_threshold("bcql", data, &move |d, kappa, len, seed, batch, device| {
                 let default = BcqlSettings::default();
                 let settings = BcqlSettings {
                     steps,
@@ -547,7 +557,7 @@ fn main() -> anyhow::Result<()> {
                     batch_size: batch.unwrap_or(default.batch_size),
                     ..default
                 };
-                Ok(Box::new(BcqlLearner::new(settings, d, kappa, len)?))
+                Ok(Box::new(BcqlLearner::on_device(settings, d, kappa, len, device)?))
             });
         }
         Command::Cdt { data } => return train_cdt(data),
@@ -572,36 +582,36 @@ fn main() -> anyhow::Result<()> {
             return Ok(());
         }
         Command::Bearl { data } => {
-            return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch| {
+            return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch, device| {
                 let default = BearlSettings::default();
                 let settings = BearlSettings {
                     seed,
                     batch_size: batch.unwrap_or(default.batch_size),
                     ..default
                 };
-                Ok(Box::new(BearlLearner::new(settings, d, kappa, len)?))
+                Ok(Box::new(BearlLearner::on_device(settings, d, kappa, len, device)?))
             });
         }
         Command::Cpq { data } => {
-            return train_per_threshold("cpq", data, &|d, kappa, len, seed, batch| {
+            return train_per_threshold("cpq", data, &|d, kappa, len, seed, batch, device| {
                 let default = CpqSettings::default();
                 let settings = CpqSettings {
                     seed,
                     batch_size: batch.unwrap_or(default.batch_size),
                     ..default
                 };
-                Ok(Box::new(CpqLearner::new(settings, d, kappa, len)?))
+                Ok(Box::new(CpqLearner::on_device(settings, d, kappa, len, device)?))
             });
         }
         Command::Coptidice { data } => {
-            return train_per_threshold("coptidice", data, &|d, kappa, len, seed, batch| {
+            return train_per_threshold("coptidice", data, &|d, kappa, len, seed, batch, device| {
                 let default = CoptidiceSettings::default();
                 let settings = CoptidiceSettings {
                     seed,
                     batch_size: batch.unwrap_or(default.batch_size),
                     ..default
                 };
-                Ok(Box::new(CoptidiceLearner::new(settings, d, kappa, len)?))
+                Ok(Box::new(CoptidiceLearner::on_device(settings, d, kappa, len, device)?))
             });
         }
     };

@@ -54,6 +54,7 @@ pub struct Transitions {
     done: Tensor,
     is_init: Tensor,
     rows: usize,
+    device: Device,
     /// The fraction of rows that start an episode (COptiDICE's `init_state_propotion`).
     pub init_proportion: f64,
 }
@@ -71,11 +72,12 @@ pub struct Batch {
 }
 
 impl Transitions {
-    pub fn new(data: &Demonstrations) -> anyhow::Result<Transitions> {
+    /// The transitions as tensors on `device` (the one the learner trains on).
+    pub fn new(data: &Demonstrations, device: &Device) -> anyhow::Result<Transitions> {
         let (o, a, rows) = (data.obs_dim, data.act_dim, data.rows());
         anyhow::ensure!(rows > 0, "no transitions to learn from");
-        let m = |v: &[f32], cols: usize| Tensor::from_vec(v.to_vec(), (rows, cols), &Device::Cpu);
-        let column = |v: &[f32]| Tensor::from_vec(v.to_vec(), rows, &Device::Cpu);
+        let m = |v: &[f32], cols: usize| Tensor::from_vec(v.to_vec(), (rows, cols), device);
+        let column = |v: &[f32]| Tensor::from_vec(v.to_vec(), rows, device);
         let is_init: Vec<f32> = std::iter::once(1.0)
             .chain(data.dones[..rows - 1].iter().copied())
             .collect();
@@ -89,8 +91,14 @@ impl Transitions {
             done: column(&data.dones)?,
             is_init: column(&is_init)?,
             rows,
+            device: device.clone(),
             init_proportion,
         })
+    }
+
+    /// The device the transitions (and so the learner) live on.
+    pub fn device(&self) -> &Device {
+        &self.device
     }
 
     /// `size` rows drawn uniformly with replacement from `noise`.
@@ -98,7 +106,7 @@ impl Transitions {
         let idx: Vec<u32> = (0..size)
             .map(|_| (noise.next_u64() % self.rows as u64) as u32)
             .collect();
-        let idx = Tensor::from_vec(idx, size, &Device::Cpu)?;
+        let idx = Tensor::from_vec(idx, size, &self.device)?;
         let pick = |t: &Tensor| t.index_select(&idx, 0);
         Ok(Batch {
             obs: pick(&self.obs)?,
@@ -122,13 +130,10 @@ impl Transitions {
     }
 }
 
-/// `[rows, cols]` standard normal draws from `noise`.
-pub fn normals(noise: &mut Noise, rows: usize, cols: usize) -> anyhow::Result<Tensor> {
-    Ok(Tensor::from_vec(
-        noise.normals_f32(rows * cols),
-        (rows, cols),
-        &Device::Cpu,
-    )?)
+/// `[rows, cols]` standard normal draws from `noise` (drawn on the host, so a run's numbers do not depend on the
+/// device), on `device`.
+pub fn normals(noise: &mut Noise, rows: usize, cols: usize, device: &Device) -> anyhow::Result<Tensor> {
+    Ok(Tensor::from_vec(noise.normals_f32(rows * cols), (rows, cols), device)?)
 }
 
 /// Writes a trained squashed Gaussian actor as the evaluator's `squashed_gaussian_mlp` for threshold `kappa` (it
@@ -231,7 +236,7 @@ pub(crate) mod tests {
     #[test]
     fn batches_mark_episode_starts_and_the_standard_deviations_are_numpys() {
         let data = toy();
-        let t = Transitions::new(&data).unwrap();
+        let t = Transitions::new(&data, &Device::Cpu).unwrap();
         // 30 episodes in 300 rows.
         assert!((t.init_proportion - 0.1).abs() < 1e-12);
         let starts: Vec<f32> = t.is_init.to_vec1().unwrap();
