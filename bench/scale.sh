@@ -21,6 +21,7 @@ file="$work/SafetyCarPush2Gymnasium-v0-250-$episodes.hdf5"
 echo "writing $file" >&2
 .venv-golden/bin/python bench/make_dsrl_scale.py "$file" "$episodes"
 size=$(stat -c %s "$file")
+load=$(cut -d' ' -f1-3 /proc/loadavg)
 
 "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
   > "$work/server.out" 2> "$work/server.log" &
@@ -78,7 +79,7 @@ read -r s p < <(measure "$bin/dsrl-client" fetch "$task" --format hdf5); row "fe
 table=$work/table.md
 {
   echo "File: $(basename "$file"), $(( size / 1048576 )) MiB, $episodes trajectories x 1000 steps, 88 observation features."
-  echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), AVX-512: $(grep -q avx512f /proc/cpuinfo && echo yes || echo no), $(date -u +%F); release build of $(git rev-parse --short=12 HEAD)."
+  echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), AVX-512: $(grep -q avx512f /proc/cpuinfo && echo yes || echo no), $(date -u +%F); release build of $(git rev-parse --short=12 HEAD); load average at the start: $load (other work on the machine slows both columns)."
   echo
   echo "| step | ours: wall s | ours: server peak RSS | DSRL 0.1.0 on the same file |"
   echo "|---|---|---|---|"

@@ -1,9 +1,9 @@
 //! Files written front to back whose pages are sent to disk while the rest is still being produced.
 //!
-//! Linux holds written pages in memory until a tenth of it is dirty (2.4 GB on a 24 GB machine), so a dataset of a
-//! few GB reaches the disk only in the final `fsync`, after all the encoding: at ~160 MB/s that wait was a third of
-//! an uncached filter of the paper's largest file. Starting each range's write-back as soon as it is complete lets
-//! the disk work beside the encoder, and the final sync finds little left to do.
+//! Linux starts writing dirty pages on its own only past its thresholds (a share of memory, or an age of 30 s), so
+//! the final `fsync` of a file written faster than that may have to write gigabytes while the caller waits. Starting
+//! each range's write-back as soon as it is complete lets the disk work beside the encoder, and the final sync finds
+//! little left to do.
 
 use std::fs::File;
 use std::io::Write;
