@@ -234,7 +234,11 @@ impl Cache {
         options: &FetchOptions,
     ) -> Result<(), ClientError> {
         let expected = parquet_sum(manifest);
-        if cheap_check(&dir.join(&manifest.file_name), checksums.files.get(&manifest.file_name), &expected) {
+        if cheap_check(
+            &dir.join(&manifest.file_name),
+            checksums.files.get(&manifest.file_name),
+            &expected,
+        ) {
             return Ok(());
         }
         let (resumed_from, downloaded) = download(client, manifest, dir, options).await?;

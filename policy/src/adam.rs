@@ -36,8 +36,14 @@ struct Param {
 /// order, so on the CPU they give the same bits (a test checks it).
 enum Moments {
     /// Flat, in the variable's element order.
-    Host { m: Vec<f32>, v: Vec<f32> },
-    Device { m: Tensor, v: Tensor },
+    Host {
+        m: Vec<f32>,
+        v: Vec<f32>,
+    },
+    Device {
+        m: Tensor,
+        v: Tensor,
+    },
 }
 
 impl Moments {
@@ -180,13 +186,15 @@ impl Adam {
                     if self.weight_decay != 0.0 {
                         x = x.affine(f64::from(decay), 0.0)?;
                     }
-                    *m = m.affine(f64::from(b1), 0.0)?.add(&g.affine(f64::from(one_minus_b1), 0.0)?)?;
-                    *v = v.affine(f64::from(b2), 0.0)?.add(&g.sqr()?.affine(f64::from(one_minus_b2), 0.0)?)?;
-                    let update = m.affine(f64::from(inv_c1), 0.0)?.div(
-                        &v.affine(f64::from(inv_c2), 0.0)?
-                            .sqrt()?
-                            .affine(1.0, f64::from(eps))?,
-                    )?;
+                    *m = m
+                        .affine(f64::from(b1), 0.0)?
+                        .add(&g.affine(f64::from(one_minus_b1), 0.0)?)?;
+                    *v = v
+                        .affine(f64::from(b2), 0.0)?
+                        .add(&g.sqr()?.affine(f64::from(one_minus_b2), 0.0)?)?;
+                    let update = m
+                        .affine(f64::from(inv_c1), 0.0)?
+                        .div(&v.affine(f64::from(inv_c2), 0.0)?.sqrt()?.affine(1.0, f64::from(eps))?)?;
                     p.var.set(&x.sub(&update.affine(f64::from(lr), 0.0)?)?)?;
                 }
             }

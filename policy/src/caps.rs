@@ -164,7 +164,11 @@ impl CapsNetworks {
     pub fn to_device(self, device: &candle_core::Device) -> Result<CapsNetworks> {
         Ok(CapsNetworks {
             trunk: self.trunk.to_device(device)?,
-            heads: self.heads.into_iter().map(|h| h.to_device(device)).collect::<Result<_>>()?,
+            heads: self
+                .heads
+                .into_iter()
+                .map(|h| h.to_device(device))
+                .collect::<Result<_>>()?,
             reward_q: self.reward_q.to_device(device)?,
             cost_q: self.cost_q.to_device(device)?,
             ..self

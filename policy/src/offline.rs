@@ -112,7 +112,11 @@ impl Ensemble {
 
     pub fn to_device(self, device: &Device) -> Result<Ensemble> {
         Ok(Ensemble {
-            nets: self.nets.into_iter().map(|n| n.to_device(device)).collect::<Result<_>>()?,
+            nets: self
+                .nets
+                .into_iter()
+                .map(|n| n.to_device(device))
+                .collect::<Result<_>>()?,
         })
     }
 }

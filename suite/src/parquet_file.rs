@@ -26,11 +26,13 @@ use arrow_array::{
 };
 use arrow_schema::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
+use parquet::arrow::arrow_writer::{ArrowColumnChunk, ArrowColumnWriter, ArrowRowGroupWriterFactory, compute_leaves};
 use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
 use parquet::basic::{Compression, Encoding, Type as PhysicalType, ZstdLevel};
 use parquet::errors::ParquetError;
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
+use parquet::file::writer::SerializedFileWriter;
 
 use crate::transitions::TransitionChunk;
 use crate::validate::{Numbering, ValidationError, flags_from_numbers};
@@ -101,7 +103,11 @@ fn row_bytes(obs_dim: usize, act_dim: usize) -> usize {
 
 /// Writes validated transitions as the canonical Parquet layout.
 pub struct DatasetWriter<W: Write + Send> {
-    writer: ArrowWriter<W>,
+    writer: SerializedFileWriter<W>,
+    /// Makes each row group's column writers (the ones `ArrowWriter` would use, with the same properties).
+    columns: ArrowRowGroupWriterFactory,
+    /// Threads a row group's columns are encoded on.
+    threads: usize,
     schema: SchemaRef,
     /// Validated rows not yet written; always starts at an episode boundary.
     pending: TransitionChunk,
@@ -142,10 +148,13 @@ impl<W: Write + Send> DatasetWriter<W> {
                 .set_column_dictionary_enabled(column.path().clone(), false)
                 .set_column_encoding(column.path().clone(), encoding);
         }
-        let writer = ArrowWriter::try_new(out, schema.clone(), Some(props.build()))?;
+        let (writer, columns) =
+            ArrowWriter::try_new(out, schema.clone(), Some(props.build()))?.into_serialized_writer()?;
         let target_rows = (ROW_GROUP_TARGET_BYTES / row_bytes(obs_dim, act_dim)).max(1);
         Ok(DatasetWriter {
             writer,
+            columns,
+            threads: encoding_threads(),
             schema,
             pending: TransitionChunk::empty(obs_dim, act_dim),
             pending_numbering: Numbering::default(),
@@ -193,8 +202,27 @@ impl<W: Write + Send> DatasetWriter<W> {
         let episode = std::mem::replace(&mut self.pending_numbering.episode, rest_episode);
         let step = std::mem::replace(&mut self.pending_numbering.step, rest_step);
         let batch = record_batch(&self.schema, chunk, episode, step, self.compact)?;
-        self.writer.write(&batch)?;
-        self.writer.flush()
+        let writers = self
+            .columns
+            .create_column_writers(self.writer.flushed_row_groups().len())?;
+        let mut writers = writers.into_iter();
+        let mut jobs = Vec::new();
+        for (field, column) in self.schema.fields().iter().zip(batch.columns()) {
+            for leaf in compute_leaves(field.as_ref(), column)? {
+                let writer = writers
+                    .next()
+                    .ok_or_else(|| ParquetError::General("fewer column writers than leaves".into()))?;
+                let bytes = leaf_bytes(column);
+                jobs.push((writer, leaf, bytes));
+            }
+        }
+        let chunks = encode_columns(jobs, self.threads)?;
+        let mut row_group = self.writer.next_row_group()?;
+        for chunk in chunks {
+            chunk.append_to_row_group(&mut row_group)?;
+        }
+        row_group.close()?;
+        Ok(())
     }
 
     /// Writes the remaining closed episodes and the footer; returns the output.
@@ -209,6 +237,89 @@ impl<W: Write + Send> DatasetWriter<W> {
         }
         self.writer.into_inner()
     }
+}
+
+/// At most this many threads encode one row group's columns: the two observation columns are most of its bytes.
+const ENCODING_THREADS: usize = 4;
+
+/// Threads that encode a row group's columns: the cores, at most [`ENCODING_THREADS`], or `DSRL_ENCODING_THREADS`
+/// (1 encodes every column on the writing thread, as `ArrowWriter` does; the file is the same either way).
+fn encoding_threads() -> usize {
+    std::env::var("DSRL_ENCODING_THREADS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|&n| n >= 1)
+        .unwrap_or_else(|| {
+            std::thread::available_parallelism()
+                .map_or(1, |n| n.get())
+                .min(ENCODING_THREADS)
+        })
+}
+
+/// A column's size in memory, to share the encoding out evenly.
+fn leaf_bytes(column: &ArrayRef) -> usize {
+    column.get_array_memory_size()
+}
+
+/// Encodes and compresses each column (its writer given its leaf) on up to `threads` threads, the largest columns
+/// dealt first to the least loaded thread; returns the chunks in the columns' order. Each column's bytes are those
+/// `ArrowWriter` writes for it (the same writer, fed the same leaf), so the file is the same whatever the threads.
+fn encode_columns(
+    jobs: Vec<(ArrowColumnWriter, parquet::arrow::arrow_writer::ArrowLeafColumn, usize)>,
+    threads: usize,
+) -> Result<Vec<ArrowColumnChunk>, ParquetError> {
+    let encode = |(mut writer, leaf, _): (ArrowColumnWriter, _, usize)| -> Result<ArrowColumnChunk, ParquetError> {
+        writer.write(&leaf)?;
+        writer.close()
+    };
+    if threads <= 1 || jobs.len() <= 1 {
+        return jobs.into_iter().map(encode).collect();
+    }
+    let mut order: Vec<usize> = (0..jobs.len()).collect();
+    order.sort_by_key(|&i| std::cmp::Reverse(jobs[i].2));
+    let mut bins: Vec<(usize, Vec<usize>)> = vec![(0, Vec::new()); threads];
+    for i in order {
+        let bin = bins.iter_mut().min_by_key(|b| b.0).expect("threads > 1");
+        bin.0 += jobs[i].2;
+        bin.1.push(i);
+    }
+    let mut slots: Vec<Option<_>> = jobs.into_iter().map(Some).collect();
+    let work: Vec<Vec<(usize, _)>> = bins
+        .into_iter()
+        .filter(|b| !b.1.is_empty())
+        .map(|b| {
+            b.1.into_iter()
+                .map(|i| (i, slots[i].take().expect("each column once")))
+                .collect()
+        })
+        .collect();
+    let mut chunks: Vec<Option<ArrowColumnChunk>> = (0..slots.len()).map(|_| None).collect();
+    std::thread::scope(|scope| -> Result<(), ParquetError> {
+        let handles: Vec<_> = work
+            .into_iter()
+            .map(|columns| {
+                scope.spawn(move || {
+                    columns
+                        .into_iter()
+                        .map(|(i, job)| Ok((i, encode(job)?)))
+                        .collect::<Result<Vec<_>, ParquetError>>()
+                })
+            })
+            .collect();
+        for handle in handles {
+            let encoded = handle
+                .join()
+                .map_err(|_| ParquetError::General("a column encoding thread panicked".into()))??;
+            for (i, chunk) in encoded {
+                chunks[i] = Some(chunk);
+            }
+        }
+        Ok(())
+    })?;
+    chunks
+        .into_iter()
+        .map(|c| c.ok_or_else(|| ParquetError::General("a column was not encoded".into())))
+        .collect()
 }
 
 fn record_batch(
@@ -804,4 +915,51 @@ fn numbers(array: &ArrayRef) -> Option<Vec<f64>> {
         DataType::Float64 => conv!(Float64Type),
         _ => return None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synthetic::{SyntheticSpec, transitions};
+    use crate::validate::{EpisodeTracker, Expectation};
+
+    /// The bytes of a dataset written with `threads` encoding threads, in row groups of at most 700 rows.
+    fn written(threads: usize) -> Vec<u8> {
+        let catalog = crate::catalog::Catalog::embedded().unwrap();
+        let task = catalog.get("OfflineCarCircle-v0").unwrap();
+        let spec = SyntheticSpec::for_task(task, 12, 5);
+        let (o, a) = (spec.obs_dim, spec.act_dim);
+        let mut writer = DatasetWriter::new(Vec::new(), o, a, vec![("k".into(), "v".into())]).unwrap();
+        writer.threads = threads;
+        writer.target_rows = 700;
+        let mut tracker = EpisodeTracker::new(Expectation {
+            obs_dim: o,
+            act_dim: a,
+            max_episode_steps: task.max_episode_steps,
+        });
+        for chunk in transitions(spec) {
+            let numbering = tracker.check(&chunk).unwrap();
+            writer.push(&chunk, numbering).unwrap();
+        }
+        writer.finish().unwrap()
+    }
+
+    #[test]
+    fn columns_encoded_on_several_threads_write_the_same_file() {
+        let one = written(1);
+        for threads in [2, 3, 8] {
+            assert_eq!(written(threads), one, "{threads} threads");
+        }
+        let file = tempfile::tempfile().unwrap();
+        (&file).write_all(&one).unwrap();
+        let metadata = ParquetRecordBatchReaderBuilder::try_new(file)
+            .unwrap()
+            .metadata()
+            .clone();
+        assert!(
+            metadata.num_row_groups() > 2,
+            "several row groups: {}",
+            metadata.num_row_groups()
+        );
+    }
 }

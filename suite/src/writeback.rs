@@ -79,7 +79,11 @@ mod tests {
         for _ in 0..8 {
             w.write_all(&block).unwrap();
         }
-        assert!(w.flushed >= WRITEBACK_BYTES, "write-back started after {} bytes", w.flushed);
+        assert!(
+            w.flushed >= WRITEBACK_BYTES,
+            "write-back started after {} bytes",
+            w.flushed
+        );
         w.into_inner().sync_all().unwrap();
         let mut back = Vec::new();
         File::open(&path).unwrap().read_to_end(&mut back).unwrap();

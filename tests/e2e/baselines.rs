@@ -164,7 +164,10 @@ fn each_baseline_records_its_training_and_the_same_seed_trains_the_same_weights(
         assert!(!output.status.success(), "{algorithm}: {stderr}");
         assert!(stderr.contains("without the `cuda` feature"), "{algorithm}: {stderr}");
     }
-    assert!(!models.path().join("cuda").exists(), "nothing is written for a device that is not there");
+    assert!(
+        !models.path().join("cuda").exists(),
+        "nothing is written for a device that is not there"
+    );
 
     // Each of these is scored by the leaderboard in the reference script's test below (every method, trained by
     // the script and scored with the paper's protocol), which makes its own checkpoints the same way.

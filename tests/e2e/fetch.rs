@@ -90,7 +90,11 @@ fn hdf5_export_loads_like_dsrl_and_equals_the_parquet() {
     assert!(h5.ends_with(&format!("{version}/SafetyDroneRun-v0-140-7.hdf5")), "{h5}");
     // Only the export came down: the Parquet file is not needed for it.
     assert_eq!(out["parquet_path"], serde_json::Value::Null, "{out}");
-    assert_eq!(out["downloaded_bytes"].as_u64(), std::fs::metadata(&h5).ok().map(|m| m.len()), "{out}");
+    assert_eq!(
+        out["downloaded_bytes"].as_u64(),
+        std::fs::metadata(&h5).ok().map(|m| m.len()),
+        "{out}"
+    );
     let plain = env.cli.run(&["--json", "fetch", task]).ok().json();
     let parquet = plain["path"].as_str().unwrap().to_owned();
     assert_eq!(plain["parquet_path"].as_str(), Some(parquet.as_str()));

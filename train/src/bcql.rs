@@ -109,8 +109,8 @@ impl BcqlLearner {
             &mut noise,
         )?
         .to_device(device)?;
-        let critic =
-            DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?.to_device(device)?;
+        let critic = DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
+            .to_device(device)?;
         let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
             .to_device(device)?;
         let (kp, ki, kd) = settings.pid;

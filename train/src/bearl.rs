@@ -133,8 +133,8 @@ impl BearlLearner {
         let (o, a) = (data.obs_dim, data.act_dim);
         let mut noise = Noise::seeded(settings.seed);
         let actor = SquashedGaussianActor::new(o, a, &settings.hidden_sizes, &mut noise)?.to_device(device)?;
-        let critic =
-            DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?.to_device(device)?;
+        let critic = DoubleCritic::new("critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
+            .to_device(device)?;
         let cost_critic = DoubleCritic::new("cost_critic", o + a, &settings.hidden_sizes, settings.num_q, &mut noise)?
             .to_device(device)?;
         let vae = Vae::new(o, a, settings.vae_hidden, 2 * a, MAX_ACTION, &mut noise)?.to_device(device)?;

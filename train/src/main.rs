@@ -457,8 +457,12 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
         batch_size: data.batch_size.unwrap_or(default.batch_size),
         ..default
     };
-    let mut learner =
-        CapsLearner::on_device(settings.clone(), &demonstrations, task.max_episode_steps as usize, &device)?;
+    let mut learner = CapsLearner::on_device(
+        settings.clone(),
+        &demonstrations,
+        task.max_episode_steps as usize,
+        &device,
+    )?;
     let trained = train_loop(data.steps, "caps", 100, 5, || learner.step())?;
     let extra = serde_json::json!({
         "settings": format!("{settings:?}"),
