@@ -106,8 +106,10 @@ pub struct DatasetWriter<W: Write + Send> {
     writer: SerializedFileWriter<W>,
     /// Makes each row group's column writers (the ones `ArrowWriter` would use, with the same properties).
     columns: ArrowRowGroupWriterFactory,
-    /// Threads a row group's columns are encoded on.
+    /// Threads a row group's columns are encoded on, at most.
     threads: usize,
+    /// Whether the threads beyond the writing one come from the process's budget (tests may ask for more).
+    budgeted: bool,
     schema: SchemaRef,
     /// Validated rows not yet written; always starts at an episode boundary.
     pending: TransitionChunk,
@@ -155,6 +157,7 @@ impl<W: Write + Send> DatasetWriter<W> {
             writer,
             columns,
             threads: encoding_threads(),
+            budgeted: true,
             schema,
             pending: TransitionChunk::empty(obs_dim, act_dim),
             pending_numbering: Numbering::default(),
@@ -216,7 +219,14 @@ impl<W: Write + Send> DatasetWriter<W> {
                 jobs.push((writer, leaf, bytes));
             }
         }
-        let chunks = encode_columns(jobs, self.threads)?;
+        // Helpers beyond the writing thread come from a budget the whole process shares: where other writes already
+        // keep the cores busy (concurrent derivations), a write encodes alone instead of adding threads, each of
+        // which holds its own column's buffers at the same time.
+        let wanted = self.threads.saturating_sub(1);
+        let helpers = EncodingHelpers::take(if self.budgeted { wanted } else { 0 });
+        let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
+        let chunks = encode_columns(jobs, threads)?;
+        drop(helpers);
         let mut row_group = self.writer.next_row_group()?;
         for chunk in chunks {
             chunk.append_to_row_group(&mut row_group)?;
@@ -243,7 +253,8 @@ impl<W: Write + Send> DatasetWriter<W> {
 const ENCODING_THREADS: usize = 4;
 
 /// Threads that encode a row group's columns: the cores, at most [`ENCODING_THREADS`], or `DSRL_ENCODING_THREADS`
-/// (1 encodes every column on the writing thread, as `ArrowWriter` does; the file is the same either way).
+/// (1 encodes every column on the writing thread, as `ArrowWriter` does; the file is the same either way); the
+/// threads beyond the writing one are taken from the process's budget of helpers, so fewer may run.
 fn encoding_threads() -> usize {
     std::env::var("DSRL_ENCODING_THREADS")
         .ok()
@@ -254,6 +265,39 @@ fn encoding_threads() -> usize {
                 .map_or(1, |n| n.get())
                 .min(ENCODING_THREADS)
         })
+}
+
+/// Encoding threads beyond each writing thread that the process may run at once: one fewer than the cores.
+static HELPERS_FREE: std::sync::OnceLock<std::sync::atomic::AtomicUsize> = std::sync::OnceLock::new();
+
+/// Helper threads taken from the process's budget for one row group, given back when dropped.
+struct EncodingHelpers {
+    count: usize,
+}
+
+impl EncodingHelpers {
+    /// Up to `wanted` helpers, as many as are free now (never waits).
+    fn take(wanted: usize) -> EncodingHelpers {
+        use std::sync::atomic::Ordering;
+        let free = HELPERS_FREE.get_or_init(|| {
+            let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            std::sync::atomic::AtomicUsize::new(cores.saturating_sub(1))
+        });
+        let mut count = 0;
+        let _ = free.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+            count = n.min(wanted);
+            Some(n - count)
+        });
+        EncodingHelpers { count }
+    }
+}
+
+impl Drop for EncodingHelpers {
+    fn drop(&mut self) {
+        if let Some(free) = HELPERS_FREE.get() {
+            free.fetch_add(self.count, std::sync::atomic::Ordering::AcqRel);
+        }
+    }
 }
 
 /// A column's size in memory, to share the encoding out evenly.
@@ -931,6 +975,7 @@ mod tests {
         let (o, a) = (spec.obs_dim, spec.act_dim);
         let mut writer = DatasetWriter::new(Vec::new(), o, a, vec![("k".into(), "v".into())]).unwrap();
         writer.threads = threads;
+        writer.budgeted = false;
         writer.target_rows = 700;
         let mut tracker = EpisodeTracker::new(Expectation {
             obs_dim: o,
