@@ -110,6 +110,7 @@ pub struct DatasetWriter<W: Write + Send> {
     threads: usize,
     /// Whether the threads beyond the writing one come from the process's budget (tests may ask for more).
     budgeted: bool,
+    _active: ActiveWriter,
     schema: SchemaRef,
     /// Validated rows not yet written; always starts at an episode boundary.
     pending: TransitionChunk,
@@ -158,6 +159,7 @@ impl<W: Write + Send> DatasetWriter<W> {
             columns,
             threads: encoding_threads(),
             budgeted: true,
+            _active: ActiveWriter::new(),
             schema,
             pending: TransitionChunk::empty(obs_dim, act_dim),
             pending_numbering: Numbering::default(),
@@ -219,9 +221,9 @@ impl<W: Write + Send> DatasetWriter<W> {
                 jobs.push((writer, leaf, bytes));
             }
         }
-        // Helpers beyond the writing thread come from a budget the whole process shares: where other writes already
-        // keep the cores busy (concurrent derivations), a write encodes alone instead of adding threads, each of
-        // which holds its own column's buffers at the same time.
+        // Helpers beyond the writing thread only for idle cores: where other writes already keep the cores busy
+        // (concurrent derivations), a write encodes alone instead of adding threads, each of which would hold its
+        // own column's buffers at the same time.
         let wanted = self.threads.saturating_sub(1);
         let helpers = EncodingHelpers::take(if self.budgeted { wanted } else { 0 });
         let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
@@ -254,7 +256,7 @@ const ENCODING_THREADS: usize = 4;
 
 /// Threads that encode a row group's columns: the cores, at most [`ENCODING_THREADS`], or `DSRL_ENCODING_THREADS`
 /// (1 encodes every column on the writing thread, as `ArrowWriter` does; the file is the same either way); the
-/// threads beyond the writing one are taken from the process's budget of helpers, so fewer may run.
+/// threads beyond the writing one are taken only for cores no other writer or helper is using, so fewer may run.
 fn encoding_threads() -> usize {
     std::env::var("DSRL_ENCODING_THREADS")
         .ok()
@@ -267,36 +269,52 @@ fn encoding_threads() -> usize {
         })
 }
 
-/// Encoding threads beyond each writing thread that the process may run at once: one fewer than the cores.
-static HELPERS_FREE: std::sync::OnceLock<std::sync::atomic::AtomicUsize> = std::sync::OnceLock::new();
+/// The process's writers and helper threads now: a helper is taken only for a core no writer or helper is using,
+/// so a lone write spreads its columns over the idle cores while concurrent writes (derivations running at once)
+/// encode alone, each holding only its own buffers.
+static ENCODING: std::sync::Mutex<(usize, usize)> = std::sync::Mutex::new((0, 0));
 
-/// Helper threads taken from the process's budget for one row group, given back when dropped.
+fn encoding_state() -> std::sync::MutexGuard<'static, (usize, usize)> {
+    ENCODING.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// A writer counted among the process's active writers while it lives.
+struct ActiveWriter;
+
+impl ActiveWriter {
+    fn new() -> ActiveWriter {
+        encoding_state().0 += 1;
+        ActiveWriter
+    }
+}
+
+impl Drop for ActiveWriter {
+    fn drop(&mut self) {
+        let mut state = encoding_state();
+        state.0 = state.0.saturating_sub(1);
+    }
+}
+
+/// Helper threads taken for one row group, given back when dropped.
 struct EncodingHelpers {
     count: usize,
 }
 
 impl EncodingHelpers {
-    /// Up to `wanted` helpers, as many as are free now (never waits).
+    /// Up to `wanted` helpers, as many cores as no writer or helper is using now (never waits).
     fn take(wanted: usize) -> EncodingHelpers {
-        use std::sync::atomic::Ordering;
-        let free = HELPERS_FREE.get_or_init(|| {
-            let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-            std::sync::atomic::AtomicUsize::new(cores.saturating_sub(1))
-        });
-        let mut count = 0;
-        let _ = free.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
-            count = n.min(wanted);
-            Some(n - count)
-        });
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let mut state = encoding_state();
+        let count = wanted.min(cores.saturating_sub(state.0 + state.1));
+        state.1 += count;
         EncodingHelpers { count }
     }
 }
 
 impl Drop for EncodingHelpers {
     fn drop(&mut self) {
-        if let Some(free) = HELPERS_FREE.get() {
-            free.fetch_add(self.count, std::sync::atomic::Ordering::AcqRel);
-        }
+        let mut state = encoding_state();
+        state.1 = state.1.saturating_sub(self.count);
     }
 }
 
