@@ -259,17 +259,8 @@ impl Cache {
     fn cached_manifest(&self, task: &str, version: &str) -> Option<Manifest> {
         let dir = self.version_dir(task, version);
         let manifest: Manifest = serde_json::from_slice(&std::fs::read(dir.join(MANIFEST)).ok()?).ok()?;
-        let expected = FileSum {
-            sha256: version.to_owned(),
-            size: manifest.byte_size,
-        };
         let checksums = read_checksums(&dir);
-        let ok = manifest.version.as_str() == version
-            && cheap_check(
-                &dir.join(&manifest.file_name),
-                checksums.files.get(&manifest.file_name),
-                &expected,
-            );
+        let ok = manifest.version.as_str() == version && self.complete_parquet(&dir, &manifest, &checksums).is_some();
         ok.then_some(manifest)
     }
 
@@ -350,7 +341,6 @@ impl Cache {
     }
 }
 
-/// Size and recorded hash agree with what the manifest promises.
 /// The checksum a version's Parquet file must have: its sha256 is the version id.
 fn parquet_sum(manifest: &Manifest) -> FileSum {
     FileSum {
@@ -359,6 +349,7 @@ fn parquet_sum(manifest: &Manifest) -> FileSum {
     }
 }
 
+/// Size and recorded hash agree with what the manifest promises.
 fn cheap_check(path: &Path, recorded: Option<&FileSum>, expected: &FileSum) -> bool {
     recorded == Some(expected) && file_size(path) == Some(expected.size)
 }
@@ -614,20 +605,14 @@ fn write_and_hash(
     } else {
         File::create(part)?
     };
-    let mut file = file;
-    let mut written = start;
-    let mut flushed = start;
+    let mut file = dsrl_suite::writeback::WritebackFile::resuming(file, start);
     for chunk in chunks {
         hasher.update(&chunk);
         file.write_all(&chunk)?;
-        written += chunk.len() as u64;
-        if written - flushed >= dsrl_suite::writeback::WRITEBACK_BYTES {
-            dsrl_suite::writeback::start_writeback(&file, flushed, written - flushed);
-            flushed = written;
-        }
     }
+    let written = file.bytes_written();
     // Most pages are already on their way to disk, so this wait is short.
-    file.sync_data()?;
+    file.into_inner().sync_data()?;
     Ok((hasher.finalize().into(), written))
 }
 

@@ -319,6 +319,17 @@ mod tests {
         }
     }
 
+    /// loss = Σ w³/3, whose gradient is w².
+    fn cubic_loss(w: &Var) -> Tensor {
+        w.as_tensor()
+            .powf(3.0)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .affine(1.0 / 3.0, 0.0)
+            .unwrap()
+    }
+
     /// The update as the chain of candle tensor operations it replaced.
     fn tensor_chain_step(w: &Var, m: &mut Tensor, v: &mut Tensor, g: &Tensor, t: i32, lr: f64, scale: f64) {
         let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-8);
@@ -367,18 +378,8 @@ mod tests {
             theirs.as_tensor().zeros_like().unwrap(),
         );
         for t in 1..=5 {
-            // loss = Σ w³/3 → gradient w².
-            let loss = |w: &Var| {
-                w.as_tensor()
-                    .powf(3.0)
-                    .unwrap()
-                    .sum_all()
-                    .unwrap()
-                    .affine(1.0 / 3.0, 0.0)
-                    .unwrap()
-            };
-            let norm = adam.step(&loss(&ours).backward().unwrap()).unwrap();
-            let grads = loss(&theirs).backward().unwrap();
+            let norm = adam.step(&cubic_loss(&ours).backward().unwrap()).unwrap();
+            let grads = cubic_loss(&theirs).backward().unwrap();
             let g = grads.get(theirs.as_tensor()).unwrap();
             let scale = 0.5 / (norm + 1e-6);
             tensor_chain_step(&theirs, &mut m, &mut v, g, t, 1e-3, scale);
@@ -400,18 +401,9 @@ mod tests {
         let make = |w: &Var| Adam::adamw(vec![("w".into(), w.clone())], 1e-2, 0.1, Some(0.5)).unwrap();
         let mut host = make(&host_w);
         let mut device = make(&device_w).with_device_moments().unwrap();
-        let loss = |w: &Var| {
-            w.as_tensor()
-                .powf(3.0)
-                .unwrap()
-                .sum_all()
-                .unwrap()
-                .affine(1.0 / 3.0, 0.0)
-                .unwrap()
-        };
         for t in 1..=5 {
-            let a = host.step(&loss(&host_w).backward().unwrap()).unwrap();
-            let b = device.step(&loss(&device_w).backward().unwrap()).unwrap();
+            let a = host.step(&cubic_loss(&host_w).backward().unwrap()).unwrap();
+            let b = device.step(&cubic_loss(&device_w).backward().unwrap()).unwrap();
             assert_eq!(a, b, "step {t}: gradient norms");
             assert_eq!(
                 host_w.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap(),

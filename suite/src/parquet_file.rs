@@ -26,7 +26,9 @@ use arrow_array::{
 };
 use arrow_schema::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
-use parquet::arrow::arrow_writer::{ArrowColumnChunk, ArrowColumnWriter, ArrowRowGroupWriterFactory, compute_leaves};
+use parquet::arrow::arrow_writer::{
+    ArrowColumnChunk, ArrowColumnWriter, ArrowLeafColumn, ArrowRowGroupWriterFactory, compute_leaves,
+};
 use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
 use parquet::basic::{Compression, Encoding, Type as PhysicalType, ZstdLevel};
 use parquet::errors::ParquetError;
@@ -217,8 +219,7 @@ impl<W: Write + Send> DatasetWriter<W> {
                 let writer = writers
                     .next()
                     .ok_or_else(|| ParquetError::General("fewer column writers than leaves".into()))?;
-                let bytes = leaf_bytes(column);
-                jobs.push((writer, leaf, bytes));
+                jobs.push((writer, leaf, column.get_array_memory_size()));
             }
         }
         // Helpers beyond the writing thread only for idle cores: where other writes already keep the cores busy
@@ -318,47 +319,35 @@ impl Drop for EncodingHelpers {
     }
 }
 
-/// A column's size in memory, to share the encoding out evenly.
-fn leaf_bytes(column: &ArrayRef) -> usize {
-    column.get_array_memory_size()
-}
+/// A column to encode: its writer, its leaf and its size in memory (to share the encoding out evenly).
+type ColumnJob = (ArrowColumnWriter, ArrowLeafColumn, usize);
 
 /// Encodes and compresses each column (its writer given its leaf) on up to `threads` threads, the largest columns
 /// dealt first to the least loaded thread; returns the chunks in the columns' order. Each column's bytes are those
 /// `ArrowWriter` writes for it (the same writer, fed the same leaf), so the file is the same whatever the threads.
-fn encode_columns(
-    jobs: Vec<(ArrowColumnWriter, parquet::arrow::arrow_writer::ArrowLeafColumn, usize)>,
-    threads: usize,
-) -> Result<Vec<ArrowColumnChunk>, ParquetError> {
-    let encode = |(mut writer, leaf, _): (ArrowColumnWriter, _, usize)| -> Result<ArrowColumnChunk, ParquetError> {
+fn encode_columns(jobs: Vec<ColumnJob>, threads: usize) -> Result<Vec<ArrowColumnChunk>, ParquetError> {
+    let encode = |(mut writer, leaf, _): ColumnJob| -> Result<ArrowColumnChunk, ParquetError> {
         writer.write(&leaf)?;
         writer.close()
     };
     if threads <= 1 || jobs.len() <= 1 {
         return jobs.into_iter().map(encode).collect();
     }
-    let mut order: Vec<usize> = (0..jobs.len()).collect();
-    order.sort_by_key(|&i| std::cmp::Reverse(jobs[i].2));
-    let mut bins: Vec<(usize, Vec<usize>)> = vec![(0, Vec::new()); threads];
-    for i in order {
+    let columns = jobs.len();
+    let mut largest_first: Vec<(usize, ColumnJob)> = jobs.into_iter().enumerate().collect();
+    largest_first.sort_by_key(|(_, job)| std::cmp::Reverse(job.2));
+    let mut bins: Vec<(usize, Vec<(usize, ColumnJob)>)> = (0..threads).map(|_| (0, Vec::new())).collect();
+    for (i, job) in largest_first {
         let bin = bins.iter_mut().min_by_key(|b| b.0).expect("threads > 1");
-        bin.0 += jobs[i].2;
-        bin.1.push(i);
+        bin.0 += job.2;
+        bin.1.push((i, job));
     }
-    let mut slots: Vec<Option<_>> = jobs.into_iter().map(Some).collect();
-    let work: Vec<Vec<(usize, _)>> = bins
-        .into_iter()
-        .filter(|b| !b.1.is_empty())
-        .map(|b| {
-            b.1.into_iter()
-                .map(|i| (i, slots[i].take().expect("each column once")))
-                .collect()
-        })
-        .collect();
-    let mut chunks: Vec<Option<ArrowColumnChunk>> = (0..slots.len()).map(|_| None).collect();
+    let mut chunks: Vec<Option<ArrowColumnChunk>> = (0..columns).map(|_| None).collect();
     std::thread::scope(|scope| -> Result<(), ParquetError> {
-        let handles: Vec<_> = work
+        let handles: Vec<_> = bins
             .into_iter()
+            .map(|(_, columns)| columns)
+            .filter(|columns| !columns.is_empty())
             .map(|columns| {
                 scope.spawn(move || {
                     columns

@@ -36,11 +36,21 @@ pub struct WritebackFile {
 
 impl WritebackFile {
     pub fn new(file: File) -> WritebackFile {
+        WritebackFile::resuming(file, 0)
+    }
+
+    /// A file whose first `offset` bytes are already written (and left to the final sync); writes continue there.
+    pub fn resuming(file: File, offset: u64) -> WritebackFile {
         WritebackFile {
             file,
-            written: 0,
-            flushed: 0,
+            written: offset,
+            flushed: offset,
         }
+    }
+
+    /// Bytes in the file: those it was resumed from and those written since.
+    pub fn bytes_written(&self) -> u64 {
+        self.written
     }
 
     pub fn into_inner(self) -> File {

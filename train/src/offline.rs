@@ -54,7 +54,6 @@ pub struct Transitions {
     done: Tensor,
     is_init: Tensor,
     rows: usize,
-    device: Device,
     /// The fraction of rows that start an episode (COptiDICE's `init_state_propotion`).
     pub init_proportion: f64,
 }
@@ -91,14 +90,13 @@ impl Transitions {
             done: column(&data.dones)?,
             is_init: column(&is_init)?,
             rows,
-            device: device.clone(),
             init_proportion,
         })
     }
 
     /// The device the transitions (and so the learner) live on.
     pub fn device(&self) -> &Device {
-        &self.device
+        self.obs.device()
     }
 
     /// `size` rows drawn uniformly with replacement from `noise`.
@@ -106,7 +104,7 @@ impl Transitions {
         let idx: Vec<u32> = (0..size)
             .map(|_| (noise.next_u64() % self.rows as u64) as u32)
             .collect();
-        let idx = Tensor::from_vec(idx, size, &self.device)?;
+        let idx = Tensor::from_vec(idx, size, self.device())?;
         let pick = |t: &Tensor| t.index_select(&idx, 0);
         Ok(Batch {
             obs: pick(&self.obs)?,
