@@ -416,9 +416,14 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
                     let room = chunk_start[key] + chunk_rows - (at + r);
                     let end = (r + room).min(c.len());
                     let buf = &mut pending[key];
+                    // HDF5's little-endian float32 is the machine's own layout here: one copy of the bytes.
                     let floats = |values: &[f32], buf: &mut Vec<u8>| {
-                        for v in values {
-                            buf.extend_from_slice(&v.to_le_bytes());
+                        if cfg!(target_endian = "little") {
+                            buf.extend_from_slice(arrow_buffer::ToByteSlice::to_byte_slice(values));
+                        } else {
+                            for v in values {
+                                buf.extend_from_slice(&v.to_le_bytes());
+                            }
                         }
                     };
                     match key {

@@ -24,11 +24,9 @@ use arrow_array::types::{UInt8Type, UInt16Type, UInt32Type, UInt64Type};
 use arrow_array::{
     Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, RecordBatch, StructArray, UInt32Array,
 };
-use arrow_schema::{DataType, Field, Schema, SchemaRef};
+use arrow_schema::{DataType, Field, FieldRef, Schema, SchemaRef};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
-use parquet::arrow::arrow_writer::{
-    ArrowColumnChunk, ArrowColumnWriter, ArrowLeafColumn, ArrowRowGroupWriterFactory, compute_leaves,
-};
+use parquet::arrow::arrow_writer::{ArrowColumnChunk, ArrowColumnWriter, ArrowRowGroupWriterFactory, compute_leaves};
 use parquet::arrow::{ArrowSchemaConverter, ArrowWriter, ProjectionMask};
 use parquet::basic::{Compression, Encoding, Type as PhysicalType, ZstdLevel};
 use parquet::errors::ParquetError;
@@ -114,10 +112,14 @@ pub struct DatasetWriter<W: Write + Send> {
     budgeted: bool,
     _active: ActiveWriter,
     schema: SchemaRef,
-    /// Validated rows not yet written; always starts at an episode boundary.
+    /// The row group being written, once it has rows.
+    group: Option<OpenRowGroup>,
+    /// Validated rows not yet encoded: those after the last episode end handed to a row group.
     pending: TransitionChunk,
     pending_numbering: Numbering,
     target_rows: usize,
+    /// [`SLICE_TARGET_ROWS`]; tests make it small.
+    slice_target_rows: usize,
     compact: bool,
 }
 
@@ -162,87 +164,164 @@ impl<W: Write + Send> DatasetWriter<W> {
             threads: encoding_threads(),
             budgeted: true,
             _active: ActiveWriter::new(),
+            group: None,
             schema,
             pending: TransitionChunk::empty(obs_dim, act_dim),
             pending_numbering: Numbering::default(),
             target_rows,
+            slice_target_rows: SLICE_TARGET_ROWS,
             compact,
         })
     }
 
-    /// Appends rows that the episode tracker has checked and numbered.
+    /// Appends rows that the episode tracker has checked and numbered. The rows of the row group being written are
+    /// encoded as soon as they are known to belong to it (they end an episode within the group's target), so only
+    /// the group's encoded bytes and an unfinished episode wait in memory, never the group's rows.
     pub fn push(&mut self, chunk: &TransitionChunk, numbering: Numbering) -> Result<(), ParquetError> {
         self.pending.append(chunk);
         self.pending_numbering.episode.extend(numbering.episode);
         self.pending_numbering.step.extend(numbering.step);
-        while let Some(cut) = self.row_group_cut(false) {
-            self.write_front(cut)?;
-        }
-        Ok(())
+        self.advance(false)
     }
 
-    /// Where to end the next row group: the last episode end within the target, or the first episode end if
-    /// a single episode is larger than the target. `None` while fewer closed rows than the target are pending
-    /// (unless `finishing`).
-    fn row_group_cut(&self, finishing: bool) -> Option<usize> {
-        let p = &self.pending;
-        let mut last_end = None;
-        for i in 0..p.len() {
-            if p.is_done(i) {
-                let end = i + 1;
-                if end > self.target_rows {
-                    return Some(last_end.unwrap_or(end));
+    /// Hands the pending rows to row groups as far as the cut rule allows: a row group ends at the last episode end
+    /// within the target rows, or at the first episode end when a single episode is longer than the target; when
+    /// `finishing`, also at the last episode end so far.
+    fn advance(&mut self, finishing: bool) -> Result<(), ParquetError> {
+        loop {
+            let in_group = self.group.as_ref().map_or(0, |g| g.rows);
+            let (mut take, mut close) = (0, false);
+            for i in 0..self.pending.len() {
+                if !self.pending.is_done(i) {
+                    continue;
                 }
-                last_end = Some(end);
+                let end = in_group + i + 1;
+                if end <= self.target_rows {
+                    take = i + 1;
+                    if end == self.target_rows {
+                        close = true;
+                        break;
+                    }
+                } else {
+                    if in_group == 0 && take == 0 {
+                        take = i + 1;
+                    }
+                    close = true;
+                    break;
+                }
+            }
+            if take > 0 {
+                self.feed(take)?;
+            }
+            if close || (finishing && self.group.is_some()) {
+                self.close_group()?;
+            } else {
+                return Ok(());
             }
         }
-        match last_end {
-            Some(end) if finishing || end == self.target_rows => Some(end),
-            _ => None,
-        }
     }
 
-    fn write_front(&mut self, rows: usize) -> Result<(), ParquetError> {
+    /// Encodes the first `rows` pending rows into the open row group (opening one if none is).
+    fn feed(&mut self, rows: usize) -> Result<(), ParquetError> {
         let chunk = self.pending.take_front(rows);
         let rest_episode = self.pending_numbering.episode.split_off(rows);
         let rest_step = self.pending_numbering.step.split_off(rows);
         let episode = std::mem::replace(&mut self.pending_numbering.episode, rest_episode);
         let step = std::mem::replace(&mut self.pending_numbering.step, rest_step);
         let batch = record_batch(&self.schema, chunk, episode, step, self.compact)?;
-        let writers = self
+        let mut group = match self.group.take() {
+            Some(group) => group,
+            None => self.open_group()?,
+        };
+        let jobs = std::mem::take(&mut group.columns)
+            .into_iter()
+            .zip(batch.columns().iter().cloned())
+            .map(|(feed, column)| {
+                let size = column.get_array_memory_size();
+                ((feed, column), size)
+            })
+            .collect();
+        let threads = self.take_threads();
+        group.columns = on_threads(jobs, threads.1, |(mut feed, column)| {
+            feed.feed(column)?;
+            Ok(feed)
+        })?;
+        drop(threads);
+        group.rows += rows;
+        self.group = Some(group);
+        Ok(())
+    }
+
+    fn open_group(&mut self) -> Result<OpenRowGroup, ParquetError> {
+        let mut writers = self
             .columns
-            .create_column_writers(self.writer.flushed_row_groups().len())?;
-        let mut writers = writers.into_iter();
-        let mut jobs = Vec::new();
-        for (field, column) in self.schema.fields().iter().zip(batch.columns()) {
-            for leaf in compute_leaves(field.as_ref(), column)? {
-                let writer = writers
-                    .next()
-                    .ok_or_else(|| ParquetError::General("fewer column writers than leaves".into()))?;
-                jobs.push((writer, leaf, column.get_array_memory_size()));
-            }
+            .create_column_writers(self.writer.flushed_row_groups().len())?
+            .into_iter();
+        let mut columns = Vec::new();
+        for field in self.schema.fields() {
+            let mut take = |n: usize| -> Result<Vec<ArrowColumnWriter>, ParquetError> {
+                let taken: Vec<_> = writers.by_ref().take(n).collect();
+                if taken.len() < n {
+                    return Err(ParquetError::General("fewer column writers than leaves".into()));
+                }
+                Ok(taken)
+            };
+            columns.push(match slice_rows(field, self.slice_target_rows) {
+                Some((per_run, rows)) => ColumnFeed::Sliced {
+                    writer: Box::new(take(1)?.pop().expect("one writer")),
+                    field: field.clone(),
+                    per_run,
+                    rows,
+                    leftover: None,
+                },
+                None => ColumnFeed::Whole {
+                    writers: take(leaf_count(field.data_type()))?,
+                    field: field.clone(),
+                    held: Vec::new(),
+                },
+            });
         }
-        // Helpers beyond the writing thread only for idle cores: where other writes already keep the cores busy
-        // (concurrent derivations), a write encodes alone instead of adding threads, each of which would hold its
-        // own column's buffers at the same time.
-        let wanted = self.threads.saturating_sub(1);
-        let helpers = EncodingHelpers::take(if self.budgeted { wanted } else { 0 });
-        let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
-        let chunks = encode_columns(jobs, threads)?;
-        drop(helpers);
+        Ok(OpenRowGroup { columns, rows: 0 })
+    }
+
+    /// Finishes the open row group's columns and appends them to the file, in the schema's order.
+    fn close_group(&mut self) -> Result<(), ParquetError> {
+        let Some(group) = self.group.take() else {
+            return Ok(());
+        };
+        let jobs = group
+            .columns
+            .into_iter()
+            .map(|feed| {
+                let size = feed.waiting_bytes();
+                (feed, size)
+            })
+            .collect();
+        let threads = self.take_threads();
+        let chunks = on_threads(jobs, threads.1, ColumnFeed::close)?;
+        drop(threads);
         let mut row_group = self.writer.next_row_group()?;
-        for chunk in chunks {
+        for chunk in chunks.into_iter().flatten() {
             chunk.append_to_row_group(&mut row_group)?;
         }
         row_group.close()?;
         Ok(())
     }
 
+    /// The threads to encode on now (the helpers are given back when the first is dropped). Helpers beyond the
+    /// writing thread only for idle cores: where other writes already keep the cores busy (concurrent derivations),
+    /// a write encodes alone instead of adding threads, each of which would hold its own column's buffers at the
+    /// same time.
+    fn take_threads(&self) -> (EncodingHelpers, usize) {
+        let wanted = self.threads.saturating_sub(1);
+        let helpers = EncodingHelpers::take(if self.budgeted { wanted } else { 0 });
+        let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
+        (helpers, threads)
+    }
+
     /// Writes the remaining closed episodes and the footer; returns the output.
     pub fn finish(mut self) -> Result<W, ParquetError> {
-        while let Some(cut) = self.row_group_cut(true) {
-            self.write_front(cut)?;
-        }
+        self.advance(true)?;
         if !self.pending.is_empty() {
             return Err(ParquetError::General(
                 "unclosed episode at the end of the dataset".into(),
@@ -319,57 +398,204 @@ impl Drop for EncodingHelpers {
     }
 }
 
-/// A column to encode: its writer, its leaf and its size in memory (to share the encoding out evenly).
-type ColumnJob = (ArrowColumnWriter, ArrowLeafColumn, usize);
+/// Parquet's mini-batch of levels (`WriterProperties::write_batch_size`, left at its default): a column writer takes
+/// its values in runs of this many levels, a repeated column's run extended to the next row's start, and decides
+/// after each run whether to cut a page.
+const PARQUET_WRITE_BATCH_LEVELS: usize = 1024;
 
-/// Encodes and compresses each column (its writer given its leaf) on up to `threads` threads, the largest columns
-/// dealt first to the least loaded thread; returns the chunks in the columns' order. Each column's bytes are those
-/// `ArrowWriter` writes for it (the same writer, fed the same leaf), so the file is the same whatever the threads.
-fn encode_columns(jobs: Vec<ColumnJob>, threads: usize) -> Result<Vec<ArrowColumnChunk>, ParquetError> {
-    let encode = |(mut writer, leaf, _): ColumnJob| -> Result<ArrowColumnChunk, ParquetError> {
-        writer.write(&leaf)?;
-        writer.close()
+/// About this many rows of a column are turned into levels and written at a time ([`slice_rows`]).
+const SLICE_TARGET_ROWS: usize = 8192;
+
+/// The rows in each of parquet's runs of `field` and the rows per slice (a multiple of them), when the column can be
+/// written slice by slice, as its rows arrive, with the bytes of one write of the whole column: every write but a
+/// row group's last a whole number of runs, so the runs, and with them the pages, are the same. `None` for columns whose runs do not fall on fixed rows (nullable lists, structs: the compact form),
+/// which are written whole. Why: a list column's levels take two 16-bit numbers per value, as much memory again as
+/// its floats, for the whole row group at once (measured: most of a filter's peak heap); a slice's levels are small.
+fn slice_rows(field: &Field, target_rows: usize) -> Option<(usize, usize)> {
+    if target_rows == 0 {
+        return None; // tests: every column whole, as `ArrowWriter` writes it
+    }
+    let per_run = match field.data_type() {
+        _ if field.is_nullable() => return None,
+        DataType::FixedSizeList(item, width) if !item.is_nullable() && *width > 0 => {
+            PARQUET_WRITE_BATCH_LEVELS.div_ceil(*width as usize)
+        }
+        DataType::Float32 | DataType::UInt32 | DataType::Boolean => PARQUET_WRITE_BATCH_LEVELS,
+        _ => return None,
     };
-    if threads <= 1 || jobs.len() <= 1 {
-        return jobs.into_iter().map(encode).collect();
+    Some((per_run, per_run * (target_rows / per_run).max(1)))
+}
+
+/// Parquet leaf columns of a field of the layout.
+fn leaf_count(data_type: &DataType) -> usize {
+    match data_type {
+        DataType::Struct(fields) => fields.iter().map(|f| leaf_count(f.data_type())).sum(),
+        _ => 1,
     }
-    let columns = jobs.len();
-    let mut largest_first: Vec<(usize, ColumnJob)> = jobs.into_iter().enumerate().collect();
-    largest_first.sort_by_key(|(_, job)| std::cmp::Reverse(job.2));
-    let mut bins: Vec<(usize, Vec<(usize, ColumnJob)>)> = (0..threads).map(|_| (0, Vec::new())).collect();
-    for (i, job) in largest_first {
+}
+
+/// The row group being written.
+struct OpenRowGroup {
+    /// Per field of the schema, in order.
+    columns: Vec<ColumnFeed>,
+    rows: usize,
+}
+
+/// One field's column writers and what they have not been given yet.
+enum ColumnFeed {
+    /// Written as rows arrive, in slices of `rows` rows, each a multiple of `per_run` ([`slice_rows`]); rows short of
+    /// a whole run wait in `leftover` for the next rows or the group's end.
+    Sliced {
+        writer: Box<ArrowColumnWriter>,
+        field: FieldRef,
+        per_run: usize,
+        rows: usize,
+        leftover: Option<ArrayRef>,
+    },
+    /// Written whole when the group closes (the compact form's structs and nullable lists): its arrays wait here.
+    Whole {
+        writers: Vec<ArrowColumnWriter>,
+        field: FieldRef,
+        held: Vec<ArrayRef>,
+    },
+}
+
+impl ColumnFeed {
+    /// Gives the field's writer `column`, the field's next rows.
+    fn feed(&mut self, mut column: ArrayRef) -> Result<(), ParquetError> {
+        let (writer, field, per_run, rows, leftover) = match self {
+            ColumnFeed::Whole { held, .. } => {
+                held.push(column);
+                return Ok(());
+            }
+            ColumnFeed::Sliced {
+                writer,
+                field,
+                per_run,
+                rows,
+                leftover,
+            } => (writer, field, *per_run, *rows, leftover),
+        };
+        if let Some(left) = leftover.take() {
+            let need = (per_run - left.len()).min(column.len());
+            let head = arrow_select::concat::concat(&[left.as_ref(), column.slice(0, need).as_ref()])?;
+            column = column.slice(need, column.len() - need);
+            if head.len() < per_run {
+                *leftover = Some(head);
+                return Ok(());
+            }
+            write_leaves(writer, field, &head)?;
+        }
+        let whole_runs = column.len() / per_run * per_run;
+        for start in (0..whole_runs).step_by(rows) {
+            write_leaves(writer, field, &column.slice(start, rows.min(whole_runs - start)))?;
+        }
+        if whole_runs < column.len() {
+            *leftover = Some(column.slice(whole_runs, column.len() - whole_runs));
+        }
+        Ok(())
+    }
+
+    /// Bytes still to encode at the group's end (to share that work out evenly).
+    fn waiting_bytes(&self) -> usize {
+        match self {
+            ColumnFeed::Sliced { leftover, .. } => leftover.as_ref().map_or(0, |a| a.get_array_memory_size()),
+            ColumnFeed::Whole { held, .. } => held.iter().map(|a| a.get_array_memory_size()).sum(),
+        }
+    }
+
+    /// The field's encoded column chunks (one per leaf).
+    fn close(self) -> Result<Vec<ArrowColumnChunk>, ParquetError> {
+        match self {
+            ColumnFeed::Sliced {
+                mut writer,
+                field,
+                leftover,
+                ..
+            } => {
+                if let Some(left) = leftover {
+                    write_leaves(&mut writer, &field, &left)?;
+                }
+                Ok(vec![writer.close()?])
+            }
+            ColumnFeed::Whole { writers, field, held } => {
+                let arrays: Vec<&dyn Array> = held.iter().map(|a| a.as_ref()).collect();
+                let column = arrow_select::concat::concat(&arrays)?;
+                let leaves = compute_leaves(field.as_ref(), &column)?;
+                if leaves.len() != writers.len() {
+                    return Err(ParquetError::General(
+                        "column writers and leaves differ in number".into(),
+                    ));
+                }
+                writers
+                    .into_iter()
+                    .zip(leaves)
+                    .map(|(mut writer, leaf)| {
+                        writer.write(&leaf)?;
+                        writer.close()
+                    })
+                    .collect()
+            }
+        }
+    }
+}
+
+fn write_leaves(writer: &mut ArrowColumnWriter, field: &Field, column: &ArrayRef) -> Result<(), ParquetError> {
+    for leaf in compute_leaves(field, column)? {
+        writer.write(&leaf)?;
+    }
+    Ok(())
+}
+
+/// Runs `work` on each item on up to `threads` threads, the largest items (by the given size) dealt first to the
+/// least loaded thread; returns the results in the items' order. Each column's bytes are those one thread writes
+/// for it, so the file is the same whatever the threads.
+fn on_threads<T: Send, R: Send>(
+    items: Vec<(T, usize)>,
+    threads: usize,
+    work: impl Fn(T) -> Result<R, ParquetError> + Sync,
+) -> Result<Vec<R>, ParquetError> {
+    if threads <= 1 || items.len() <= 1 {
+        return items.into_iter().map(|(item, _)| work(item)).collect();
+    }
+    let count = items.len();
+    let mut largest_first: Vec<(usize, (T, usize))> = items.into_iter().enumerate().collect();
+    largest_first.sort_by_key(|(_, (_, size))| std::cmp::Reverse(*size));
+    let mut bins: Vec<(usize, Vec<(usize, T)>)> = (0..threads).map(|_| (0, Vec::new())).collect();
+    for (i, (item, size)) in largest_first {
         let bin = bins.iter_mut().min_by_key(|b| b.0).expect("threads > 1");
-        bin.0 += job.2;
-        bin.1.push((i, job));
+        bin.0 += size;
+        bin.1.push((i, item));
     }
-    let mut chunks: Vec<Option<ArrowColumnChunk>> = (0..columns).map(|_| None).collect();
+    let mut results: Vec<Option<R>> = (0..count).map(|_| None).collect();
+    let work = &work;
     std::thread::scope(|scope| -> Result<(), ParquetError> {
         let handles: Vec<_> = bins
             .into_iter()
-            .map(|(_, columns)| columns)
-            .filter(|columns| !columns.is_empty())
-            .map(|columns| {
+            .map(|(_, items)| items)
+            .filter(|items| !items.is_empty())
+            .map(|items| {
                 scope.spawn(move || {
-                    columns
+                    items
                         .into_iter()
-                        .map(|(i, job)| Ok((i, encode(job)?)))
+                        .map(|(i, item)| Ok((i, work(item)?)))
                         .collect::<Result<Vec<_>, ParquetError>>()
                 })
             })
             .collect();
         for handle in handles {
-            let encoded = handle
+            let done = handle
                 .join()
                 .map_err(|_| ParquetError::General("a column encoding thread panicked".into()))??;
-            for (i, chunk) in encoded {
-                chunks[i] = Some(chunk);
+            for (i, result) in done {
+                results[i] = Some(result);
             }
         }
         Ok(())
     })?;
-    chunks
+    results
         .into_iter()
-        .map(|c| c.ok_or_else(|| ParquetError::General("a column was not encoded".into())))
+        .map(|r| r.ok_or_else(|| ParquetError::General("a column was not encoded".into())))
         .collect()
 }
 
@@ -976,14 +1202,29 @@ mod tests {
 
     /// The bytes of a dataset written with `threads` encoding threads, in row groups of at most 700 rows.
     fn written(threads: usize) -> Vec<u8> {
+        written_as("OfflineCarCircle-v0", 12, threads, 700, SLICE_TARGET_ROWS)
+    }
+
+    /// The bytes of `episodes` synthetic episodes of `task`, in row groups of at most `target_rows` rows, the columns
+    /// written in slices of about `slice_target_rows` rows (0: whole).
+    fn written_as(
+        task: &str,
+        episodes: usize,
+        threads: usize,
+        target_rows: usize,
+        slice_target_rows: usize,
+    ) -> Vec<u8> {
         let catalog = crate::catalog::Catalog::embedded().unwrap();
-        let task = catalog.get("OfflineCarCircle-v0").unwrap();
-        let spec = SyntheticSpec::for_task(task, 12, 5);
+        let task = catalog.get(task).unwrap();
+        let mut spec = SyntheticSpec::for_task(task, episodes, 5);
+        // Pushed in chunks that end anywhere in an episode and in a run.
+        spec.chunk_rows = 777;
         let (o, a) = (spec.obs_dim, spec.act_dim);
         let mut writer = DatasetWriter::new(Vec::new(), o, a, vec![("k".into(), "v".into())]).unwrap();
         writer.threads = threads;
         writer.budgeted = false;
-        writer.target_rows = 700;
+        writer.target_rows = target_rows;
+        writer.slice_target_rows = slice_target_rows;
         let mut tracker = EpisodeTracker::new(Expectation {
             obs_dim: o,
             act_dim: a,
@@ -1013,5 +1254,27 @@ mod tests {
             "several row groups: {}",
             metadata.num_row_groups()
         );
+    }
+
+    #[test]
+    fn columns_written_in_slices_write_the_same_file_as_whole_columns() {
+        // CarCircle: 8 features (a run of parquet's is 128 rows), 300-step episodes; CarPush2: 88 features (12 rows
+        // and 32 levels more than 1024), 1000-step episodes. Row groups of several thousand rows, so the scalar
+        // columns (runs of 1024 rows) are sliced too, and CarPush2's observation columns several 1 MiB pages each
+        // (a page is cut after a run: misplaced runs move the cuts).
+        for (task, episodes, target_rows) in [
+            ("OfflineCarCircle-v0", 30, 2500),
+            ("OfflineCarPush2Gymnasium-v0", 12, 6000),
+        ] {
+            let whole = written_as(task, episodes, 1, target_rows, 0);
+            for slice_target_rows in [1, 100, 1024, 1500, SLICE_TARGET_ROWS] {
+                for threads in [1, 3] {
+                    assert!(
+                        written_as(task, episodes, threads, target_rows, slice_target_rows) == whole,
+                        "{task}: slices of about {slice_target_rows} rows on {threads} threads"
+                    );
+                }
+            }
+        }
     }
 }
