@@ -30,9 +30,11 @@ for _ in $(seq 100); do grep -q listening "$work/server.out" 2>/dev/null && brea
 url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
 export DSRL_SERVER=$url DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") DSRL_DATASET_DIR="$work/cache"
 
-# Runs "$@" while sampling the server's resident memory; prints "seconds peak_bytes".
+# Runs "$@" while sampling the server's resident memory; prints "seconds peak_bytes". The disk is flushed first
+# (untimed), so a step is not charged for the write-back of the gigabytes the step before it wrote.
 measure() {
   local peak=0 rss t0 t1 pid
+  sync
   t0=$(date +%s.%N)
   "$@" > /dev/null &
   pid=$!
@@ -52,6 +54,7 @@ version=$(curl -sf "$url/v1/datasets/$task/versions/latest" | python3 -c 'import
 read -r s p < <(measure "$bin/dsrl-client" fetch "$task"); row "fetch, plain" "$s" "$p" "–"
 rm -rf "$work/cache"  # each fetched copy is removed once timed: the run needs its disk for the server's objects
 for f in noise=0.1 density=0.5; do
+  sync
   ref=$(.venv-golden/bin/python bench/scale_reference.py "$file" "$f")
   ref_s=$(echo "$ref" | python3 -c 'import json,sys; d=json.load(sys.stdin); print("%.1f s (load %.1f + filter %.1f), %d MiB" % (d["seconds"], d["load_seconds"], d["filter_seconds"], d["peak_rss_bytes"] // 1048576))')
   read -r s p < <(measure "$bin/dsrl-client" fetch "$task" --filter "$f"); row "fetch --filter $f, uncached" "$s" "$p" "$ref_s"
