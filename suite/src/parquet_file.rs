@@ -241,12 +241,12 @@ impl<W: Write + Send> DatasetWriter<W> {
                 ((feed, column), size)
             })
             .collect();
-        let threads = self.take_threads();
-        group.columns = on_threads(jobs, threads.1, |(mut feed, column)| {
+        let (helpers, threads) = self.take_threads();
+        group.columns = on_threads(jobs, threads, |(mut feed, column)| {
             feed.feed(column)?;
             Ok(feed)
         })?;
-        drop(threads);
+        drop(helpers);
         group.rows += rows;
         self.group = Some(group);
         Ok(())
@@ -297,9 +297,9 @@ impl<W: Write + Send> DatasetWriter<W> {
                 (feed, size)
             })
             .collect();
-        let threads = self.take_threads();
-        let chunks = on_threads(jobs, threads.1, ColumnFeed::close)?;
-        drop(threads);
+        let (helpers, threads) = self.take_threads();
+        let chunks = on_threads(jobs, threads, ColumnFeed::close)?;
+        drop(helpers);
         let mut row_group = self.writer.next_row_group()?;
         for chunk in chunks.into_iter().flatten() {
             chunk.append_to_row_group(&mut row_group)?;
@@ -408,8 +408,8 @@ const SLICE_TARGET_ROWS: usize = 8192;
 
 /// The rows in each of parquet's runs of `field` and the rows per slice (a multiple of them), when the column can be
 /// written slice by slice, as its rows arrive, with the bytes of one write of the whole column: every write but a
-/// row group's last a whole number of runs, so the runs, and with them the pages, are the same. `None` for columns whose runs do not fall on fixed rows (nullable lists, structs: the compact form),
-/// which are written whole. Why: a list column's levels take two 16-bit numbers per value, as much memory again as
+/// row group's last a whole number of runs, so the runs, and with them the pages, are the same. `None` for columns
+/// whose runs do not fall on fixed rows (nullable lists, structs: the compact form), which are written whole. Why: a list column's levels take two 16-bit numbers per value, as much memory again as
 /// its floats, for the whole row group at once (measured: most of a filter's peak heap); a slice's levels are small.
 fn slice_rows(field: &Field, target_rows: usize) -> Option<(usize, usize)> {
     if target_rows == 0 {
