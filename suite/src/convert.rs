@@ -11,7 +11,7 @@ use crate::episode::EpisodeSummary;
 use crate::hashing::HashingWriter;
 use crate::hdf5_file::{Hdf5Error, Hdf5Transitions};
 use crate::ids::VersionId;
-use crate::parquet_file::{DatasetWriter, ParquetTransitions, ReadError};
+use crate::parquet_file::{DatasetWriter, ParquetTransitions, ReadError, RelabelSource, row_group_rows, target_rows};
 use crate::transitions::TransitionChunk;
 use crate::validate::{EpisodeTracker, Expectation, ValidationError};
 use crate::writeback::WritebackFile;
@@ -68,7 +68,7 @@ pub enum ImportError {
 }
 
 impl ImportError {
-    fn from_parquet(e: ReadError) -> Self {
+    pub(crate) fn from_parquet(e: ReadError) -> Self {
         match e {
             ReadError::Value(v) => ImportError::Invalid(v),
             other => ImportError::Malformed {
@@ -182,15 +182,18 @@ fn write_form(
         )
         .into());
     }
-    let metadata = vec![
-        ("dsrl.format".to_owned(), crate::manifest::FORMAT.to_owned()),
-        ("dsrl.task".to_owned(), task.id.to_string()),
-        ("dsrl.observation_space".to_owned(), space.as_str().to_owned()),
-    ];
-    let file = File::create(out)?;
-    let sink = HashingWriter::new(BufWriter::with_capacity(8 << 20, WritebackFile::new(file)));
-    let mut writer =
-        DatasetWriter::with_form(sink, expect.obs_dim, expect.act_dim, metadata, compact).map_err(parquet_io)?;
+    let sink = HashingWriter::new(BufWriter::with_capacity(
+        8 << 20,
+        WritebackFile::new(File::create(out)?),
+    ));
+    let mut writer = DatasetWriter::with_form(
+        sink,
+        expect.obs_dim,
+        expect.act_dim,
+        file_metadata(task, space),
+        compact,
+    )
+    .map_err(parquet_io)?;
     let mut tracker = EpisodeTracker::new(expect);
     for chunk in chunks {
         let chunk = chunk?;
@@ -202,6 +205,26 @@ fn write_form(
     }
     let episode_index = tracker.finish()?;
     let sink = writer.finish().map_err(parquet_io)?;
+    finish_file(sink, episode_index, dropped_columns)
+}
+
+/// The footer's key-value metadata of a dataset of `task`.
+fn file_metadata(task: &Task, space: ObservationSpace) -> Vec<(String, String)> {
+    vec![
+        ("dsrl.format".to_owned(), crate::manifest::FORMAT.to_owned()),
+        ("dsrl.task".to_owned(), task.id.to_string()),
+        ("dsrl.observation_space".to_owned(), space.as_str().to_owned()),
+    ]
+}
+
+type FileSink = HashingWriter<BufWriter<WritebackFile>>;
+
+/// Flushes and syncs a written dataset file; its version id is the digest of its bytes.
+fn finish_file(
+    sink: FileSink,
+    episode_index: Vec<EpisodeSummary>,
+    dropped_columns: Vec<String>,
+) -> Result<Converted, ImportError> {
     let (buffered, digest, byte_size) = sink.finish();
     let file = buffered.into_inner().map_err(|e| e.into_error())?.into_inner();
     file.sync_all()?;
@@ -211,6 +234,49 @@ fn write_form(
         episode_index,
         dropped_columns,
     })
+}
+
+/// Writes to `out` the canonical dataset of `parent`'s rows with only their rewards and costs changed by `relabel`
+/// (called per row group with its first row and its scalar columns, see [`RelabelSource::write`]), copying every
+/// other column chunk of `parent` instead of encoding it again: the same file as decoding the parent, relabelling
+/// and writing with [`write_canonical`]. `episodes` is the parent's episode index. `None` (and nothing written)
+/// when `parent` is not this writer's canonical layout of those episodes: the caller writes it the long way.
+pub fn write_relabelled(
+    task: &Task,
+    space: ObservationSpace,
+    parent: &Path,
+    episodes: &[EpisodeSummary],
+    mut relabel: impl FnMut(u64, &mut TransitionChunk),
+    out: &Path,
+) -> Result<Option<Converted>, ImportError> {
+    let (obs_dim, act_dim) = (task.observation_dim(space) as usize, task.act_dim as usize);
+    let groups = row_group_rows(
+        episodes.iter().map(|e| e.length as usize),
+        target_rows(obs_dim, act_dim),
+    );
+    let Some(source) =
+        RelabelSource::open(File::open(parent)?, obs_dim, act_dim, &groups).map_err(ImportError::from_parquet)?
+    else {
+        return Ok(None);
+    };
+    let sink = HashingWriter::new(BufWriter::with_capacity(
+        8 << 20,
+        WritebackFile::new(File::create(out)?),
+    ));
+    // The rows' other columns are the parent's, checked when it was written; the tracker checks the new values and
+    // the episodes, and makes the output's episode index.
+    let mut tracker = EpisodeTracker::new(Expectation {
+        obs_dim: 0,
+        act_dim: 0,
+        max_episode_steps: task.max_episode_steps,
+    });
+    let sink = source.write(sink, file_metadata(task, space), |first_row, chunk| {
+        relabel(first_row, chunk);
+        tracker.check(chunk)?;
+        Ok(())
+    })?;
+    let episode_index = tracker.finish()?;
+    finish_file(sink, episode_index, Vec::new()).map(Some)
 }
 
 /// A clear message for the common mismatch: MetaDrive data in the paper's 261-feature space.
@@ -238,7 +304,7 @@ fn check_space(task: &Task, space: ObservationSpace, chunk: &TransitionChunk) ->
 }
 
 /// The canonical writer writes to a local file: its errors are I/O errors, not problems with the upload.
-fn parquet_io(e: parquet::errors::ParquetError) -> ImportError {
+pub(crate) fn parquet_io(e: parquet::errors::ParquetError) -> ImportError {
     ImportError::Io(io::Error::other(e))
 }
 

@@ -699,12 +699,14 @@ impl Datasets {
             let out = self.temp_file("hdf5");
             let out_path = out.path().to_owned();
             let (digest, size) = tokio::task::spawn_blocking(move || -> Result<(String, u64), String> {
-                let file = std::fs::File::open(&source).map_err(|e| e.to_string())?;
-                let transitions =
-                    dsrl_suite::parquet_file::ParquetTransitions::open(file).map_err(|e| e.to_string())?;
+                // Decoding the Parquet file is the export's longest step: its row groups are decoded on every core.
+                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                let transitions = dsrl_suite::parquet_file::ParquetTransitions::open_read_ahead(&source, threads)
+                    .map_err(|e| e.to_string())?;
                 dsrl_suite::hdf5_file::write_dsrl_hdf5(transitions, &out_path).map_err(|e| e.to_string())?;
                 let mut hasher = <sha2::Sha256 as sha2::Digest>::new();
-                let mut file = std::fs::File::open(&out_path).map_err(|e| e.to_string())?;
+                let file = std::fs::File::open(&out_path).map_err(|e| e.to_string())?;
+                let mut file = std::io::BufReader::with_capacity(1 << 20, file);
                 let size = std::io::copy(&mut file, &mut hasher).map_err(|e| e.to_string())?;
                 Ok((hex::encode(sha2::Digest::finalize(hasher)), size))
             })

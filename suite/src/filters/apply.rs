@@ -7,7 +7,7 @@ use std::path::Path;
 use super::numpy_math::numpy_std_f32_nd;
 use super::plan::Plan;
 use crate::catalog::{ObservationSpace, Task};
-use crate::convert::{Converted, ImportError, write_canonical};
+use crate::convert::{Converted, ImportError, write_canonical, write_relabelled};
 use crate::episode::EpisodeSummary;
 use crate::parquet_file::ParquetTransitions;
 use crate::transitions::TransitionChunk;
@@ -128,6 +128,25 @@ fn kept_episodes(plan: &Plan, episodes: usize) -> Vec<bool> {
         kept[e] = true;
     }
     kept
+}
+
+/// Relabels, in place, rows `first_row..` of the parent (whole episodes) as the plan's outliers.
+fn relabel_rows(episodes: &[EpisodeSummary], plan: &Plan, first_row: u64, rows: &mut TransitionChunk) {
+    let end = first_row + rows.len() as u64;
+    let first = episodes.partition_point(|e| e.start + u64::from(e.length) <= first_row);
+    for (e, episode) in episodes.iter().enumerate().skip(first) {
+        if episode.start >= end {
+            break;
+        }
+        let Some(drawn) = plan.relabels.get(&e) else {
+            continue;
+        };
+        let episode_end = episode.start + u64::from(episode.length);
+        for row in episode.start.max(first_row)..episode_end.min(end) {
+            let (i, step) = ((row - first_row) as usize, (row - episode.start) as usize);
+            (rows.rewards[i], rows.costs[i]) = relabelled(rows.rewards[i], rows.costs[i], Some(drawn), step);
+        }
+    }
 }
 
 /// A step's reward and cost after the plan: an outlier's (`drawn`: its relabelled steps) costs become 1 at its drawn
@@ -356,6 +375,14 @@ pub fn filter_to(
         }
     }
     let _remove = Remove(scratch);
+    let keeps_all_in_order = plan.order.len() == episodes.len() && plan.order.iter().enumerate().all(|(i, &e)| i == e);
+    if plan.noise_scale.is_none() && keeps_all_in_order {
+        // Only rewards and costs change (outliers): every other column chunk is copied from the parent.
+        let relabel = |first_row: u64, rows: &mut TransitionChunk| relabel_rows(episodes, plan, first_row, rows);
+        if let Some(written) = write_relabelled(task, space, parent, episodes, relabel, out)? {
+            return Ok(written);
+        }
+    }
     if plan.noise_scale.is_none() && plan.order.windows(2).all(|w| w[0] < w[1]) {
         // Nothing to reorder and no statistics to take first: the kept rows stream from the parent to the writer.
         return write_pipelined(task, space, out, |send| {

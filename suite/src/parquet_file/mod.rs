@@ -35,7 +35,11 @@ use parquet::file::properties::WriterProperties;
 use parquet::file::writer::SerializedFileWriter;
 
 use crate::transitions::TransitionChunk;
+
+mod read_ahead;
+mod relabelled_copy;
 use crate::validate::{Numbering, ValidationError, flags_from_numbers};
+pub use relabelled_copy::RelabelSource;
 
 pub const EPISODE: &str = "episode";
 pub const STEP: &str = "step";
@@ -101,6 +105,65 @@ fn row_bytes(obs_dim: usize, act_dim: usize) -> usize {
     4 * (2 * obs_dim + act_dim) + 4 * 4 + 2
 }
 
+/// Rows a row group aims for: [`ROW_GROUP_TARGET_BYTES`] of rows (never fewer than one episode, see
+/// [`row_group_rows`]).
+pub(crate) fn target_rows(obs_dim: usize, act_dim: usize) -> usize {
+    (ROW_GROUP_TARGET_BYTES / row_bytes(obs_dim, act_dim)).max(1)
+}
+
+/// The row groups, by their rows, that the writer cuts from episodes of these lengths: a group ends at the last
+/// episode end within `target_rows`, or after its first episode when that alone is longer.
+pub fn row_group_rows(lengths: impl IntoIterator<Item = usize>, target_rows: usize) -> Vec<usize> {
+    let mut groups = Vec::new();
+    let mut open = 0;
+    for length in lengths {
+        if open > 0 && open + length > target_rows {
+            groups.push(open);
+            open = 0;
+        }
+        open += length;
+        if open >= target_rows {
+            groups.push(open);
+            open = 0;
+        }
+    }
+    if open > 0 {
+        groups.push(open);
+    }
+    groups
+}
+
+/// The Parquet file writer of the layout (its properties fix every page's bytes), the factory of a row group's
+/// column writers, and the Arrow schema.
+fn file_writer<W: Write + Send>(
+    out: W,
+    obs_dim: usize,
+    act_dim: usize,
+    metadata: Vec<(String, String)>,
+    compact: bool,
+) -> Result<(SerializedFileWriter<W>, ArrowRowGroupWriterFactory, SchemaRef), ParquetError> {
+    let schema = schema_of(obs_dim, act_dim, compact);
+    let parquet_schema = ArrowSchemaConverter::new().convert(&schema)?;
+    let mut props = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(ZstdLevel::try_new(3)?))
+        // Row groups are cut by us at episode boundaries, never by the writer.
+        .set_max_row_group_row_count(None)
+        .set_max_row_group_bytes(None)
+        .set_key_value_metadata(Some(metadata.into_iter().map(|(k, v)| KeyValue::new(k, v)).collect()));
+    for column in parquet_schema.columns() {
+        let encoding = match column.physical_type() {
+            PhysicalType::FLOAT | PhysicalType::DOUBLE => Encoding::BYTE_STREAM_SPLIT,
+            PhysicalType::INT32 | PhysicalType::INT64 => Encoding::DELTA_BINARY_PACKED,
+            _ => continue,
+        };
+        props = props
+            .set_column_dictionary_enabled(column.path().clone(), false)
+            .set_column_encoding(column.path().clone(), encoding);
+    }
+    let (writer, columns) = ArrowWriter::try_new(out, schema.clone(), Some(props.build()))?.into_serialized_writer()?;
+    Ok((writer, columns, schema))
+}
+
 /// Writes validated transitions as the canonical Parquet layout.
 pub struct DatasetWriter<W: Write + Send> {
     writer: SerializedFileWriter<W>,
@@ -137,27 +200,8 @@ impl<W: Write + Send> DatasetWriter<W> {
         metadata: Vec<(String, String)>,
         compact: bool,
     ) -> Result<Self, ParquetError> {
-        let schema = schema_of(obs_dim, act_dim, compact);
-        let parquet_schema = ArrowSchemaConverter::new().convert(&schema)?;
-        let mut props = WriterProperties::builder()
-            .set_compression(Compression::ZSTD(ZstdLevel::try_new(3)?))
-            // Row groups are cut by us at episode boundaries, never by the writer.
-            .set_max_row_group_row_count(None)
-            .set_max_row_group_bytes(None)
-            .set_key_value_metadata(Some(metadata.into_iter().map(|(k, v)| KeyValue::new(k, v)).collect()));
-        for column in parquet_schema.columns() {
-            let encoding = match column.physical_type() {
-                PhysicalType::FLOAT | PhysicalType::DOUBLE => Encoding::BYTE_STREAM_SPLIT,
-                PhysicalType::INT32 | PhysicalType::INT64 => Encoding::DELTA_BINARY_PACKED,
-                _ => continue,
-            };
-            props = props
-                .set_column_dictionary_enabled(column.path().clone(), false)
-                .set_column_encoding(column.path().clone(), encoding);
-        }
-        let (writer, columns) =
-            ArrowWriter::try_new(out, schema.clone(), Some(props.build()))?.into_serialized_writer()?;
-        let target_rows = (ROW_GROUP_TARGET_BYTES / row_bytes(obs_dim, act_dim)).max(1);
+        let (writer, columns, schema) = file_writer(out, obs_dim, act_dim, metadata, compact)?;
+        let target_rows = target_rows(obs_dim, act_dim);
         Ok(DatasetWriter {
             writer,
             columns,
@@ -317,6 +361,12 @@ impl<W: Write + Send> DatasetWriter<W> {
         let helpers = EncodingHelpers::take(if self.budgeted { wanted } else { 0 });
         let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
         (helpers, threads)
+    }
+
+    /// Row groups of at most `rows` rows (beyond one episode), for tests that need several groups of few rows.
+    #[cfg(test)]
+    pub(crate) fn set_target_rows(&mut self, rows: usize) {
+        self.target_rows = rows;
     }
 
     /// Writes the remaining closed episodes and the footer; returns the output.
@@ -741,11 +791,20 @@ pub struct ParquetTransitions {
     next_row: u64,
     /// Compact form: the last row read, whose next observation is the following batch's first observation.
     held: Option<(u64, TransitionChunk)>,
+    /// Row groups read on other threads ([`ParquetTransitions::open_read_ahead`]), in place of `reader`.
+    ahead: Option<read_ahead::ReadAhead>,
 }
 
 impl ParquetTransitions {
     pub fn open(file: std::fs::File) -> Result<Self, ReadError> {
-        let builder = ParquetRecordBatchReaderBuilder::try_new(file)?;
+        Self::from_builder(ParquetRecordBatchReaderBuilder::try_new(file)?, 0)
+    }
+
+    /// The reader of `builder`'s rows (all or some row groups), the first of which is row `first_row` of the file.
+    fn from_builder(
+        builder: ParquetRecordBatchReaderBuilder<std::fs::File>,
+        first_row: u64,
+    ) -> Result<Self, ReadError> {
         let schema = builder.schema().clone();
         let rows = builder.metadata().file_metadata().num_rows() as u64;
         let mut missing = Vec::new();
@@ -803,8 +862,9 @@ impl ParquetTransitions {
             has_step,
             ignored_columns,
             rows,
-            next_row: 0,
+            next_row: first_row,
             held: None,
+            ahead: None,
         })
     }
 
@@ -995,7 +1055,10 @@ fn next_observation_matrix(base: u64, array: &ArrayRef, width: usize) -> Result<
 impl Iterator for ParquetTransitions {
     type Item = Result<TransitionChunk, ReadError>;
     fn next(&mut self) -> Option<Self::Item> {
-        self.next_filled()
+        match &mut self.ahead {
+            Some(ahead) => ahead.next(),
+            None => self.next_filled(),
+        }
     }
 }
 
@@ -1207,7 +1270,7 @@ mod tests {
 
     /// The bytes of `episodes` synthetic episodes of `task`, in row groups of at most `target_rows` rows, the columns
     /// written in slices of about `slice_target_rows` rows (0: whole).
-    fn written_as(
+    pub(super) fn written_as(
         task: &str,
         episodes: usize,
         threads: usize,
@@ -1254,6 +1317,40 @@ mod tests {
             "several row groups: {}",
             metadata.num_row_groups()
         );
+    }
+
+    #[test]
+    fn row_group_rows_are_the_groups_the_writer_cuts() {
+        for (task, episodes, target_rows) in [
+            ("OfflineCarCircle-v0", 30, 700),
+            ("OfflineCarCircle-v0", 30, 2500),
+            ("OfflineCarCircle-v0", 12, 300),
+            ("OfflineCarPush2Gymnasium-v0", 12, 6000),
+        ] {
+            let file = tempfile::NamedTempFile::new().unwrap();
+            std::fs::write(
+                file.path(),
+                written_as(task, episodes, 1, target_rows, SLICE_TARGET_ROWS),
+            )
+            .unwrap();
+            let groups: Vec<usize> = ParquetRecordBatchReaderBuilder::try_new(file.reopen().unwrap())
+                .unwrap()
+                .metadata()
+                .row_groups()
+                .iter()
+                .map(|g| g.num_rows() as usize)
+                .collect();
+            let lengths = read_episode_index(&[file.path().to_path_buf()])
+                .unwrap()
+                .iter()
+                .map(|e| e.length as usize)
+                .collect::<Vec<_>>();
+            assert_eq!(
+                row_group_rows(lengths, target_rows),
+                groups,
+                "{task}, {target_rows} rows"
+            );
+        }
     }
 
     #[test]
