@@ -3,9 +3,10 @@
 //! DSRL's outlier filter (the `noise` filter) keeps every trajectory in order and changes only the rewards and costs
 //! of the ones it relabels. Its output has the parent's rows and episodes, so the writer would cut the same row
 //! groups and encode the same pages for the observation, action, counter and flag columns: those are copied from
-//! the parent as they are (the observations are ~97% of a file's bytes), and only the two relabelled float columns
-//! are encoded. The file is the one a full decode and re-encode writes, byte for byte, when the parent is the
-//! writer's own canonical layout; [`RelabelSource::open`] declines any other parent, and the caller re-encodes.
+//! the parent as they are (the two observation columns are nearly all of a file's bytes), and only the two relabelled
+//! float columns are encoded. The file is the one a full decode and re-encode writes, byte for byte, when the parent
+//! is the writer's own canonical layout; [`RelabelSource::open`] declines any other parent, and the caller
+//! re-encodes.
 
 use std::io::Write;
 use std::sync::Arc;
