@@ -12,7 +12,7 @@ use std::sync::mpsc::{Receiver, sync_channel};
 use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReaderBuilder};
 use parquet::errors::ParquetError;
 
-use super::{NEXT_OBSERVATIONS, ParquetTransitions, ReadError};
+use super::{ActiveWriter, EncodingHelpers, NEXT_OBSERVATIONS, ParquetTransitions, ReadError};
 use crate::transitions::TransitionChunk;
 
 /// What a reading thread hands over: its current row group's next chunk, or `None` at the group's end.
@@ -21,6 +21,10 @@ type Read = Option<Result<TransitionChunk, ReadError>>;
 pub(super) struct ReadAhead {
     /// Thread `k`'s chunks: those of row groups `k`, `k + n`, ...
     threads: Vec<Receiver<Read>>,
+    /// This read counts as a write, and its threads beyond one as helpers, in the budget the Parquet writer takes
+    /// its helper threads from, while it lives: see [`ParquetTransitions::open_read_ahead`].
+    _active: ActiveWriter,
+    _helpers: EncodingHelpers,
     groups: usize,
     /// The row group whose chunks come next; `groups` once done (or failed).
     next_group: usize,
@@ -28,9 +32,17 @@ pub(super) struct ReadAhead {
 
 impl ParquetTransitions {
     /// Like [`ParquetTransitions::open`], decoding the row groups on up to `threads` threads ahead of the caller
-    /// (about one chunk of memory each). Files of one row group, and those whose next observations may be left out
-    /// (the compact form: a left-out row takes the following row's observation), are read on the calling thread.
+    /// (about one chunk of memory each). The threads beyond one are taken, as the Parquet writer takes its helper
+    /// threads, only for cores no other write or helper is using: a lone read (the HDF5 export) decodes on the idle
+    /// cores, one beside other derivations reads on the calling thread and adds no buffers. Files of one row group,
+    /// and those whose next observations may be left out (the compact form: a left-out row takes the following
+    /// row's observation), are read on the calling thread too.
     pub fn open_read_ahead(path: &Path, threads: usize) -> Result<Self, ReadError> {
+        Self::read_ahead(path, threads, true)
+    }
+
+    /// `open_read_ahead`; `budgeted: false` (tests) takes the threads whatever other work runs.
+    fn read_ahead(path: &Path, threads: usize, budgeted: bool) -> Result<Self, ReadError> {
         let file = std::fs::File::open(path).map_err(ParquetError::from)?;
         let metadata = ArrowReaderMetadata::load(&file, Default::default())?;
         let mut reader = Self::from_builder(
@@ -42,9 +54,15 @@ impl ParquetTransitions {
             .schema()
             .field_with_name(NEXT_OBSERVATIONS)
             .is_ok_and(|f| !f.is_nullable());
-        let threads = threads.min(groups);
-        if threads >= 2 && whole_rows {
-            reader.ahead = ReadAhead::start(path.to_owned(), metadata, threads);
+        if groups < 2 || !whole_rows {
+            return Ok(reader);
+        }
+        let active = ActiveWriter::new();
+        let wanted = threads.min(groups).saturating_sub(1);
+        let helpers = EncodingHelpers::take(if budgeted { wanted } else { 0 });
+        let threads = if budgeted { 1 + helpers.count } else { 1 + wanted };
+        if threads >= 2 {
+            reader.ahead = ReadAhead::start(path.to_owned(), metadata, threads, active, helpers);
         }
         Ok(reader)
     }
@@ -52,7 +70,13 @@ impl ParquetTransitions {
 
 impl ReadAhead {
     /// `None` if a thread could not be started: the caller reads on its own thread instead.
-    fn start(path: PathBuf, metadata: ArrowReaderMetadata, threads: usize) -> Option<ReadAhead> {
+    fn start(
+        path: PathBuf,
+        metadata: ArrowReaderMetadata,
+        threads: usize,
+        active: ActiveWriter,
+        helpers: EncodingHelpers,
+    ) -> Option<ReadAhead> {
         let groups = metadata.metadata().num_row_groups();
         let mut first_rows = Vec::with_capacity(groups);
         let mut row = 0u64;
@@ -101,6 +125,8 @@ impl ReadAhead {
         }
         Some(ReadAhead {
             threads: receivers,
+            _active: active,
+            _helpers: helpers,
             groups,
             next_group: 0,
         })
@@ -130,6 +156,7 @@ impl ReadAhead {
 
 #[cfg(test)]
 mod tests {
+    use super::super::encoding_state;
     use super::super::tests::written_as;
     use super::*;
 
@@ -159,15 +186,35 @@ mod tests {
         std::fs::write(file.path(), written_as("OfflineCarCircle-v0", 30, 1, 700, 8192)).unwrap();
         let (plain, _) = all_rows(ParquetTransitions::open(file.reopen().unwrap()).unwrap());
         for threads in [2, 3, 64] {
-            let reader = ParquetTransitions::open_read_ahead(file.path(), threads).unwrap();
+            let reader = ParquetTransitions::read_ahead(file.path(), threads, false).unwrap();
             assert!(reader.ahead.is_some(), "{threads} threads read ahead");
             let (ahead, chunks) = all_rows(reader);
             assert!(chunks > 2, "several row groups: {chunks} chunks");
             assert!(ahead == plain, "{threads} threads: other rows than a plain read");
         }
         // Stopping early ends the threads' work instead of blocking them for good.
-        let mut reader = ParquetTransitions::open_read_ahead(file.path(), 2).unwrap();
+        let mut reader = ParquetTransitions::read_ahead(file.path(), 2, false).unwrap();
         assert!(reader.next().unwrap().is_ok());
         drop(reader);
+    }
+
+    #[test]
+    fn a_read_beside_other_work_reads_on_its_own_thread() {
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), written_as("OfflineCarCircle-v0", 30, 1, 700, 8192)).unwrap();
+        let (plain, _) = all_rows(ParquetTransitions::open(file.reopen().unwrap()).unwrap());
+        // Every core busy (this test's process is its own under nextest): no threads are taken.
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let busy: Vec<ActiveWriter> = (0..cores).map(|_| ActiveWriter::new()).collect();
+        let reader = ParquetTransitions::open_read_ahead(file.path(), 2).unwrap();
+        assert!(reader.ahead.is_none(), "no idle core: read on the calling thread");
+        assert!(all_rows(reader).0 == plain);
+        drop(busy);
+        // The budget is given back when a read-ahead reader is dropped.
+        let before = *encoding_state();
+        let reader = ParquetTransitions::read_ahead(file.path(), 3, false).unwrap();
+        assert_ne!(*encoding_state(), before, "a read ahead counts while it lives");
+        drop(reader);
+        assert_eq!(*encoding_state(), before);
     }
 }
