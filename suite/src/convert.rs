@@ -182,10 +182,7 @@ fn write_form(
         )
         .into());
     }
-    let sink = HashingWriter::new(BufWriter::with_capacity(
-        8 << 20,
-        WritebackFile::new(File::create(out)?),
-    ));
+    let sink = file_sink(out)?;
     let mut writer = DatasetWriter::with_form(
         sink,
         expect.obs_dim,
@@ -218,6 +215,14 @@ fn file_metadata(task: &Task, space: ObservationSpace) -> Vec<(String, String)> 
 }
 
 type FileSink = HashingWriter<BufWriter<WritebackFile>>;
+
+/// A new dataset file at `out`, hashed as it is written, its write-back to disk started as it grows.
+fn file_sink(out: &Path) -> io::Result<FileSink> {
+    Ok(HashingWriter::new(BufWriter::with_capacity(
+        8 << 20,
+        WritebackFile::new(File::create(out)?),
+    )))
+}
 
 /// Flushes and syncs a written dataset file; its version id is the digest of its bytes.
 fn finish_file(
@@ -259,10 +264,7 @@ pub fn write_relabelled(
     else {
         return Ok(None);
     };
-    let sink = HashingWriter::new(BufWriter::with_capacity(
-        8 << 20,
-        WritebackFile::new(File::create(out)?),
-    ));
+    let sink = file_sink(out)?;
     // The rows' other columns are the parent's, checked when it was written; the tracker checks the new values and
     // the episodes, and makes the output's episode index.
     let mut tracker = EpisodeTracker::new(Expectation {

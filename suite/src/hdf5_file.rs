@@ -315,6 +315,7 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
             chunk,
         ))
     };
+    // In the order of `DSRL_KEYS`, which names them by index in errors.
     let keys = [
         (matrix(OBSERVATIONS, obs_dim)?, obs_dim, 4),
         (matrix(NEXT_OBSERVATIONS, obs_dim)?, obs_dim, 4),
@@ -372,7 +373,7 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
                 if status < 0 {
                     return Err(Hdf5Error::Layout(format!(
                         "writing a chunk of {} at row {row}",
-                        DSRL_KEYS_IN_ORDER[key]
+                        DSRL_KEYS[key]
                     )));
                 }
             }
@@ -469,17 +470,6 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
     file.flush()?;
     Ok(())
 }
-
-/// The keys in the order `write_dsrl_hdf5` numbers them.
-const DSRL_KEYS_IN_ORDER: [&str; 7] = [
-    OBSERVATIONS,
-    NEXT_OBSERVATIONS,
-    ACTIONS,
-    REWARDS,
-    COSTS,
-    TERMINALS,
-    TIMEOUTS,
-];
 
 #[cfg(test)]
 mod tests {

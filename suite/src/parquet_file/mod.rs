@@ -35,10 +35,10 @@ use parquet::file::properties::WriterProperties;
 use parquet::file::writer::SerializedFileWriter;
 
 use crate::transitions::TransitionChunk;
+use crate::validate::{Numbering, ValidationError, flags_from_numbers};
 
 mod read_ahead;
 mod relabelled_copy;
-use crate::validate::{Numbering, ValidationError, flags_from_numbers};
 pub use relabelled_copy::RelabelSource;
 
 pub const EPISODE: &str = "episode";
@@ -459,8 +459,9 @@ const SLICE_TARGET_ROWS: usize = 8192;
 /// The rows in each of parquet's runs of `field` and the rows per slice (a multiple of them), when the column can be
 /// written slice by slice, as its rows arrive, with the bytes of one write of the whole column: every write but a
 /// row group's last a whole number of runs, so the runs, and with them the pages, are the same. `None` for columns
-/// whose runs do not fall on fixed rows (nullable lists, structs: the compact form), which are written whole. Why: a list column's levels take two 16-bit numbers per value, as much memory again as
-/// its floats, for the whole row group at once (measured: most of a filter's peak heap); a slice's levels are small.
+/// whose runs do not fall on fixed rows (nullable lists, structs: the compact form), which are written whole. Why: a
+/// list column's levels take two 16-bit numbers per value, as much memory again as its floats, for the whole row
+/// group at once (measured: most of a filter's peak heap); a slice's levels are small.
 fn slice_rows(field: &Field, target_rows: usize) -> Option<(usize, usize)> {
     if target_rows == 0 {
         return None; // tests: every column whole, as `ArrowWriter` writes it

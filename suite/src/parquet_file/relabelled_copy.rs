@@ -119,11 +119,11 @@ impl RelabelSource {
                 .enumerate()
             {
                 let (name, values) = match leaf {
-                    l if l == rewards_leaf => (REWARDS, &chunk.rewards),
-                    l if l == costs_leaf => (COSTS, &chunk.costs),
+                    l if l == rewards_leaf => (REWARDS, std::mem::take(&mut chunk.rewards)),
+                    l if l == costs_leaf => (COSTS, std::mem::take(&mut chunk.costs)),
                     _ => continue,
                 };
-                let array: ArrayRef = Arc::new(Float32Array::from(values.clone()));
+                let array: ArrayRef = Arc::new(Float32Array::from(values));
                 let field = schema
                     .field_with_name(name)
                     .map_err(|e| ImportError::from_parquet(e.into()))?;
