@@ -173,7 +173,8 @@ pub struct DatasetWriter<W: Write + Send> {
     threads: usize,
     /// Whether the threads beyond the writing one come from the process's budget (tests may ask for more).
     budgeted: bool,
-    _active: ActiveWriter,
+    /// This writer, counted in the budget its helper threads come from.
+    active: ActiveWriter,
     schema: SchemaRef,
     /// The row group being written, once it has rows.
     group: Option<OpenRowGroup>,
@@ -207,7 +208,7 @@ impl<W: Write + Send> DatasetWriter<W> {
             columns,
             threads: encoding_threads(),
             budgeted: true,
-            _active: ActiveWriter::new(),
+            active: PROCESS_BUDGET.writer(),
             group: None,
             schema,
             pending: TransitionChunk::empty(obs_dim, act_dim),
@@ -358,7 +359,7 @@ impl<W: Write + Send> DatasetWriter<W> {
     /// same time.
     fn take_threads(&self) -> (EncodingHelpers, usize) {
         let wanted = self.threads.saturating_sub(1);
-        let helpers = EncodingHelpers::take(if self.budgeted { wanted } else { 0 });
+        let helpers = self.active.helpers(if self.budgeted { wanted } else { 0 });
         let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
         (helpers, threads)
     }
@@ -399,51 +400,78 @@ fn encoding_threads() -> usize {
         })
 }
 
-/// The process's writers and helper threads now: a helper is taken only for a core no writer or helper is using,
-/// so a lone write spreads its columns over the idle cores while concurrent writes (derivations running at once)
-/// encode alone, each holding only its own buffers.
-static ENCODING: std::sync::Mutex<(usize, usize)> = std::sync::Mutex::new((0, 0));
-
-fn encoding_state() -> std::sync::MutexGuard<'static, (usize, usize)> {
-    ENCODING.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+/// The writers and helper threads counted in one budget: a helper is taken only for a core no writer or helper in
+/// the budget is using, so a lone write spreads its columns over the idle cores while concurrent writes
+/// (derivations running at once) encode alone, each holding only its own buffers. The process has one
+/// ([`PROCESS_BUDGET`]); a test that checks the counting keeps its own, so the other tests of its process, writing
+/// at the same time, do not move its counts.
+pub(super) struct EncodingBudget {
+    /// (writers, helpers) now.
+    state: std::sync::Mutex<(usize, usize)>,
 }
 
-/// A writer counted among the process's active writers while it lives.
-struct ActiveWriter;
+static PROCESS_BUDGET: EncodingBudget = EncodingBudget::new();
+
+impl EncodingBudget {
+    pub(super) const fn new() -> EncodingBudget {
+        EncodingBudget {
+            state: std::sync::Mutex::new((0, 0)),
+        }
+    }
+
+    fn state(&self) -> std::sync::MutexGuard<'_, (usize, usize)> {
+        self.state.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The writers and helpers counted now.
+    #[cfg(test)]
+    pub(super) fn counts(&self) -> (usize, usize) {
+        *self.state()
+    }
+
+    /// A writer counted in this budget while it lives.
+    pub(super) fn writer(&'static self) -> ActiveWriter {
+        self.state().0 += 1;
+        ActiveWriter { budget: self }
+    }
+}
+
+/// A writer counted among its budget's active writers while it lives.
+pub(super) struct ActiveWriter {
+    budget: &'static EncodingBudget,
+}
 
 impl ActiveWriter {
-    fn new() -> ActiveWriter {
-        encoding_state().0 += 1;
-        ActiveWriter
+    /// Up to `wanted` helpers from the writer's budget, as many cores as no writer or helper is using now (never
+    /// waits).
+    fn helpers(&self, wanted: usize) -> EncodingHelpers {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let mut state = self.budget.state();
+        let count = wanted.min(cores.saturating_sub(state.0 + state.1));
+        state.1 += count;
+        EncodingHelpers {
+            budget: self.budget,
+            count,
+        }
     }
 }
 
 impl Drop for ActiveWriter {
     fn drop(&mut self) {
-        let mut state = encoding_state();
+        let mut state = self.budget.state();
         state.0 = state.0.saturating_sub(1);
     }
 }
 
 /// Helper threads taken for one row group, given back when dropped.
 struct EncodingHelpers {
+    budget: &'static EncodingBudget,
     count: usize,
-}
-
-impl EncodingHelpers {
-    /// Up to `wanted` helpers, as many cores as no writer or helper is using now (never waits).
-    fn take(wanted: usize) -> EncodingHelpers {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let mut state = encoding_state();
-        let count = wanted.min(cores.saturating_sub(state.0 + state.1));
-        state.1 += count;
-        EncodingHelpers { count }
-    }
 }
 
 impl Drop for EncodingHelpers {
     fn drop(&mut self) {
-        let mut state = encoding_state();
+        let mut state = self.budget.state();
         state.1 = state.1.saturating_sub(self.count);
     }
 }

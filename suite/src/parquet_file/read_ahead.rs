@@ -12,7 +12,9 @@ use std::sync::mpsc::{Receiver, sync_channel};
 use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReaderBuilder};
 use parquet::errors::ParquetError;
 
-use super::{ActiveWriter, EncodingHelpers, NEXT_OBSERVATIONS, ParquetTransitions, ReadError};
+use super::{
+    ActiveWriter, EncodingBudget, EncodingHelpers, NEXT_OBSERVATIONS, PROCESS_BUDGET, ParquetTransitions, ReadError,
+};
 use crate::transitions::TransitionChunk;
 
 /// What a reading thread hands over: its current row group's next chunk, or `None` at the group's end.
@@ -38,11 +40,16 @@ impl ParquetTransitions {
     /// and those whose next observations may be left out (the compact form: a left-out row takes the following
     /// row's observation), are read on the calling thread too.
     pub fn open_read_ahead(path: &Path, threads: usize) -> Result<Self, ReadError> {
-        Self::read_ahead(path, threads, true)
+        Self::read_ahead(path, threads, &PROCESS_BUDGET, true)
     }
 
-    /// `open_read_ahead`; `budgeted: false` (tests) takes the threads whatever other work runs.
-    fn read_ahead(path: &Path, threads: usize, budgeted: bool) -> Result<Self, ReadError> {
+    /// `open_read_ahead`, counted in `budget`; `budgeted: false` (tests) takes the threads whatever other work runs.
+    fn read_ahead(
+        path: &Path,
+        threads: usize,
+        budget: &'static EncodingBudget,
+        budgeted: bool,
+    ) -> Result<Self, ReadError> {
         let file = std::fs::File::open(path).map_err(ParquetError::from)?;
         let metadata = ArrowReaderMetadata::load(&file, Default::default())?;
         let mut reader = Self::from_builder(
@@ -57,9 +64,9 @@ impl ParquetTransitions {
         if groups < 2 || !whole_rows {
             return Ok(reader);
         }
-        let active = ActiveWriter::new();
+        let active = budget.writer();
         let wanted = threads.min(groups).saturating_sub(1);
-        let helpers = EncodingHelpers::take(if budgeted { wanted } else { 0 });
+        let helpers = active.helpers(if budgeted { wanted } else { 0 });
         let threads = if budgeted { 1 + helpers.count } else { 1 + wanted };
         if threads >= 2 {
             reader.ahead = ReadAhead::start(path.to_owned(), metadata, threads, active, helpers);
@@ -156,7 +163,6 @@ impl ReadAhead {
 
 #[cfg(test)]
 mod tests {
-    use super::super::encoding_state;
     use super::super::tests::written_as;
     use super::*;
 
@@ -186,14 +192,14 @@ mod tests {
         std::fs::write(file.path(), written_as("OfflineCarCircle-v0", 30, 1, 700, 8192)).unwrap();
         let (plain, _) = all_rows(ParquetTransitions::open(file.reopen().unwrap()).unwrap());
         for threads in [2, 3, 64] {
-            let reader = ParquetTransitions::read_ahead(file.path(), threads, false).unwrap();
+            let reader = ParquetTransitions::read_ahead(file.path(), threads, &PROCESS_BUDGET, false).unwrap();
             assert!(reader.ahead.is_some(), "{threads} threads read ahead");
             let (ahead, chunks) = all_rows(reader);
             assert!(chunks > 2, "several row groups: {chunks} chunks");
             assert!(ahead == plain, "{threads} threads: other rows than a plain read");
         }
         // Stopping early ends the threads' work instead of blocking them for good.
-        let mut reader = ParquetTransitions::read_ahead(file.path(), 2, false).unwrap();
+        let mut reader = ParquetTransitions::read_ahead(file.path(), 2, &PROCESS_BUDGET, false).unwrap();
         assert!(reader.next().unwrap().is_ok());
         drop(reader);
     }
@@ -203,18 +209,23 @@ mod tests {
         let file = tempfile::NamedTempFile::new().unwrap();
         std::fs::write(file.path(), written_as("OfflineCarCircle-v0", 30, 1, 700, 8192)).unwrap();
         let (plain, _) = all_rows(ParquetTransitions::open(file.reopen().unwrap()).unwrap());
-        // Every core busy (this test's process is its own under nextest): no threads are taken.
+        // A budget of its own: the other tests of this process write files at the same time.
+        static BUDGET: EncodingBudget = EncodingBudget::new();
+        // Every core busy: no threads are taken.
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let busy: Vec<ActiveWriter> = (0..cores).map(|_| ActiveWriter::new()).collect();
-        let reader = ParquetTransitions::open_read_ahead(file.path(), 2).unwrap();
+        let busy: Vec<ActiveWriter> = (0..cores).map(|_| BUDGET.writer()).collect();
+        let reader = ParquetTransitions::read_ahead(file.path(), 2, &BUDGET, true).unwrap();
         assert!(reader.ahead.is_none(), "no idle core: read on the calling thread");
         assert!(all_rows(reader).0 == plain);
         drop(busy);
-        // The budget is given back when a read-ahead reader is dropped.
-        let before = *encoding_state();
-        let reader = ParquetTransitions::read_ahead(file.path(), 3, false).unwrap();
-        assert_ne!(*encoding_state(), before, "a read ahead counts while it lives");
-        drop(reader);
-        assert_eq!(*encoding_state(), before);
+        assert_eq!(BUDGET.counts(), (0, 0));
+        // An idle core: a helper is taken, counted while the reader lives and given back when it is dropped.
+        let reader = ParquetTransitions::read_ahead(file.path(), 2, &BUDGET, true).unwrap();
+        if cores >= 2 {
+            assert!(reader.ahead.is_some(), "an idle core: read ahead");
+            assert_eq!(BUDGET.counts(), (1, 1), "a read ahead counts while it lives");
+        }
+        assert!(all_rows(reader).0 == plain);
+        assert_eq!(BUDGET.counts(), (0, 0));
     }
 }
