@@ -17,8 +17,8 @@
 # Scoring server: $DSRL_SERVER with a user token in $DSRL_TOKEN (its daily quota must allow the entries), or, when
 # DSRL_SERVER is unset, a private dsrl-server this script starts on the embedded defaults and the committed
 # starters, with its state under <state>/server (its own held-seed secret, kept between runs), reference import
-# off, quotas lifted, --evaluators evaluators and simulator requests allowed $DSRL_REFERENCE_REQUEST_TIMEOUT_S seconds
-# (900); it is stopped at the end.
+# off, quotas lifted, --evaluators evaluators, simulator requests allowed $DSRL_REFERENCE_REQUEST_TIMEOUT_S seconds
+# (900) and a job claimed up to 10 times; it is stopped at the end.
 #
 # Usage: data/reference_entries.sh [--steps N] [--cdt-steps N] [--caps-steps N] [--bearl-steps N] [--steps-for M=N]...
 #                                  [--batch-size B] [--seeds "0 1 2"] [--jobs J] [--evaluators E] [--methods "..."]
@@ -106,6 +106,9 @@ thresholds() {
 # seconds instead of a public server's 120: a sweep is a batch job, often at low priority beside other work, where
 # building MetaDrive's scenes for a session has taken past 120 s; a slow scoring is fine, a failed one costs a rerun.
 request_timeout=${DSRL_REFERENCE_REQUEST_TIMEOUT_S:-900}
+# Every start of the private server re-claims the jobs it left running, and a public server fails a job on its third
+# claim: here a stopped and resumed sweep is the usual cause, not a job that kills its evaluator.
+max_attempts=10
 server_pid=
 stop_server() { [ -z "$server_pid" ] || kill "$server_pid" 2>/dev/null || true; }
 trap stop_server EXIT
@@ -116,7 +119,8 @@ if [ -z "${DSRL_SERVER:-}" ]; then
   DSRL__SERVER__DATA_DIR=$state/server DSRL__SERVER__LISTEN=127.0.0.1:$port \
     DSRL__LEADERBOARD__IMPORT_REFERENCE_RESULTS=false DSRL__LEADERBOARD__EVALUATORS=$evaluators \
     DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000000 DSRL__LEADERBOARD__CONCURRENT_SUBMISSIONS=1000000 \
-    DSRL__SIMULATORS__REQUEST_TIMEOUT_S=$request_timeout "$server_bin" --starter-datasets "$repo/data/starter" >> "$state/server.log" 2>&1 &
+    DSRL__LEADERBOARD__MAX_ATTEMPTS=$max_attempts DSRL__SIMULATORS__REQUEST_TIMEOUT_S=$request_timeout \
+    "$server_bin" --starter-datasets "$repo/data/starter" >> "$state/server.log" 2>&1 &
   server_pid=$!
   export DSRL_SERVER=http://127.0.0.1:$port
   for _ in $(seq 1 600); do
