@@ -138,7 +138,8 @@ fi
 : "${DSRL_TOKEN:?set DSRL_TOKEN to a user token of $DSRL_SERVER}"
 
 # Task by task: train its models (--jobs at a time), submit its entries (the server scores them while the next
-# task trains), and record every entry whose scoring has finished, so the results file grows as tasks are scored.
+# task trains), and record every entry whose scoring has finished (checked every minute while the next task trains),
+# so the results file grows as entries are scored.
 # A model whose training finished leaves a marker naming its budget; a model trained to another budget is trained
 # again.
 train_unit() {
@@ -265,8 +266,15 @@ for task in "${tasks[@]}"; do
     done
   done
   echo "$(date -u +%FT%TZ) $task: training ${#units[@]} models ($jobs at a time) into $out" >&2
-  # A failed job stops new ones from starting (exit 255), and the script stops before submitting them.
-  printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit
+  # A failed job stops new ones from starting (exit 255), and the script stops before submitting them. While they
+  # train, the entries of the tasks before are recorded as soon as they are scored (checked every minute).
+  printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit &
+  training=$! polled=0
+  while kill -0 "$training" 2> /dev/null; do
+    if [ "$SECONDS" -ge "$polled" ]; then record_finished poll; polled=$((SECONDS + 60)); fi
+    sleep 1
+  done
+  wait "$training"
   [ "$train_only" = no ] || continue
   for seed in $seeds; do
     for method in $methods; do submit "$task" "$seed" "$method"; done
