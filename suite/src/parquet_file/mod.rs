@@ -358,10 +358,7 @@ impl<W: Write + Send> DatasetWriter<W> {
     /// a write encodes alone instead of adding threads, each of which would hold its own column's buffers at the
     /// same time.
     fn take_threads(&self) -> (EncodingHelpers, usize) {
-        let wanted = self.threads.saturating_sub(1);
-        let helpers = self.active.helpers(if self.budgeted { wanted } else { 0 });
-        let threads = if self.budgeted { 1 + helpers.count } else { self.threads };
-        (helpers, threads)
+        self.active.threads(self.threads.saturating_sub(1), self.budgeted)
     }
 
     /// Row groups of at most `rows` rows (beyond one episode), for tests that need several groups of few rows.
@@ -442,17 +439,26 @@ pub(super) struct ActiveWriter {
 }
 
 impl ActiveWriter {
-    /// Up to `wanted` helpers from the writer's budget, as many cores as no writer or helper is using now (never
-    /// waits).
-    fn helpers(&self, wanted: usize) -> EncodingHelpers {
+    /// The threads to work on now, this one and up to `wanted` helpers: those taken from the writer's budget, as
+    /// many cores as no writer or helper is using (never waits), or, unless `budgeted` (tests), all `wanted`
+    /// without taking any. The helpers are given back when the first is dropped.
+    fn threads(&self, wanted: usize, budgeted: bool) -> (EncodingHelpers, usize) {
+        if !budgeted {
+            let none = EncodingHelpers {
+                budget: self.budget,
+                count: 0,
+            };
+            return (none, 1 + wanted);
+        }
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         let mut state = self.budget.state();
         let count = wanted.min(cores.saturating_sub(state.0 + state.1));
         state.1 += count;
-        EncodingHelpers {
+        let helpers = EncodingHelpers {
             budget: self.budget,
             count,
-        }
+        };
+        (helpers, 1 + count)
     }
 }
 

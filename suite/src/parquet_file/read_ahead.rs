@@ -65,9 +65,7 @@ impl ParquetTransitions {
             return Ok(reader);
         }
         let active = budget.writer();
-        let wanted = threads.min(groups).saturating_sub(1);
-        let helpers = active.helpers(if budgeted { wanted } else { 0 });
-        let threads = if budgeted { 1 + helpers.count } else { 1 + wanted };
+        let (helpers, threads) = active.threads(threads.min(groups).saturating_sub(1), budgeted);
         if threads >= 2 {
             reader.ahead = ReadAhead::start(path.to_owned(), metadata, threads, active, helpers);
         }
