@@ -22,7 +22,7 @@
 #
 # Usage: data/reference_entries.sh [--steps N] [--cdt-steps N] [--caps-steps N] [--bearl-steps N] [--steps-for M=N]...
 #                                  [--batch-size B] [--seeds "0 1 2"] [--jobs J] [--evaluators E] [--methods "..."]
-#                                  [--state DIR] [--results FILE] [--train-only] [--gpus G] TASK...
+#                                  [--state DIR] [--results FILE] [--train-only] [--reproduce] [--gpus G] TASK...
 #   --steps N        gradient steps per model (default 100000, OSRL's); BEAR-Lag trains 3 N (OSRL's 300000)
 #   --cdt-steps N    CDT's steps (default: --steps); --caps-steps N likewise; --bearl-steps N instead of 3 N
 #   --steps-for M=N  steps of method M (e.g. cpq=5000), over the options above
@@ -31,6 +31,11 @@
 #   --jobs J         models trained at once (default 1); one core each
 #   --methods "..."  of bc-all bc-safe cdt bcql bearl cpq coptidice caps (default: the first seven)
 #   --train-only     train, submit nothing
+#   --reproduce      train the entries already in the results file again from scratch (into <state>/reproduced) and
+#                    submit nothing: an entry whose checkpoints come out with the digest it was scored with takes the
+#                    new training record (the commit of this dsrl-train, its seconds), keeping its scoring; one that
+#                    does not is left as it is and reported, and the script fails at the end. Give the budgets the
+#                    entries were trained with.
 #   --gpus G         train on G GPUs (cuda:0 .. cuda:G-1, models dealt in turn; --jobs at a time in all) with a
 #                    dsrl-train built by scripts/build-cuda.sh; every method
 #   e.g. data/reference_entries.sh --steps 10000 --methods "bc-all bc-safe" OfflineBallRun-v0 OfflineCarRun-v0
@@ -38,7 +43,7 @@
 # $DSRL_CLIENT, $DSRL_SERVER_BIN.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
-steps=100000 cdt_steps= caps_steps= bearl_steps= batch_size= seeds="0" jobs=1 evaluators=1 train_only=no gpus=0
+steps=100000 cdt_steps= caps_steps= bearl_steps= batch_size= seeds="0" jobs=1 evaluators=1 train_only=no reproduce=no gpus=0
 methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=() overrides=()
 state=${DSRL_REFERENCE_STATE:-$HOME/.dsrl/reference}
 results=$repo/data/reference/results.jsonl
@@ -57,8 +62,9 @@ while [ $# -gt 0 ]; do
     --state) state=$2; shift 2 ;;
     --results) results=$2; shift 2 ;;
     --train-only) train_only=yes; shift ;;
+    --reproduce) reproduce=yes; shift ;;
     --gpus) gpus=$2; shift 2 ;;
-    -h|--help) sed -n '2,37p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,43p' "$0"; exit 0 ;;
     *) tasks+=("$1"); shift ;;
   esac
 done
@@ -70,6 +76,7 @@ client=${DSRL_CLIENT:-dsrl-client}
 server_bin=${DSRL_SERVER_BIN:-dsrl-server}
 catalog=$repo/data/tasks.csv
 out=$state/policies
+[ "$reproduce" = no ] || out=$state/reproduced/policies
 mkdir -p "$state" "$out" "$state/submissions"
 
 # name and dsrl-train arguments of a method (after --task ...); whether it trains per threshold
@@ -198,6 +205,7 @@ failed_scoring() {
   rm -f "$sub.id" "$sub.json" "$sub.recorded"
 }
 in_flight=()   # "task seed method" of submissions not yet recorded, oldest first
+unreproduced=()  # with --reproduce: "task seed S method" of entries whose retraining gave other checkpoints
 record_finished() {
   local mode=$1 e task seed method left=()
   for e in "${in_flight[@]+"${in_flight[@]}"}"; do
@@ -276,11 +284,25 @@ for task in "${tasks[@]}"; do
   done
   wait "$training"
   [ "$train_only" = no ] || continue
+  if [ "$reproduce" = yes ]; then
+    for seed in $seeds; do
+      for method in $methods; do
+        "$train" reference-entry --reproduce --model "$out/$task/seed-$seed/$method" \
+          --method "$(method_name "$method")" --results "$results" || unreproduced+=("$task seed $seed $method")
+      done
+    done
+    continue
+  fi
   for seed in $seeds; do
     for method in $methods; do submit "$task" "$seed" "$method"; done
   done
   record_finished poll
 done
 [ "$train_only" = no ] || exit 0
+if [ "$reproduce" = yes ]; then
+  [ ${#unreproduced[@]} -eq 0 ] || { printf 'not reproduced: %s\n' "${unreproduced[@]}" >&2; exit 1; }
+  echo "$(date -u +%FT%TZ) every entry reproduced; $results names the commit of $train" >&2
+  exit 0
+fi
 record_finished wait
 echo "$(date -u +%FT%TZ) every entry scored and recorded in $results" >&2

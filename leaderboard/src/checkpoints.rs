@@ -14,7 +14,6 @@ use dsrl_policy::Policy;
 use dsrl_policy::checkpoint::{self, Conditioning, PolicyConfig};
 use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
 use dsrl_service::error::ApiError;
 
@@ -42,8 +41,8 @@ pub struct CheckpointRecord {
 /// A submission's checkpoints, in threshold order, and the digest that identifies them.
 pub struct CheckedSubmission {
     pub checkpoints: Vec<CheckedCheckpoint>,
-    /// sha256 over each checkpoint's canonical `policy.json` (without the free-form `training` record) and its
-    /// weights: the same network submitted twice has the same digest, whatever the JSON's formatting.
+    /// [`checkpoint::submission_digest`]: the same network submitted twice has the same digest, whatever the JSON's
+    /// formatting or training record.
     pub sha256: String,
 }
 
@@ -201,22 +200,13 @@ pub fn check(task: &Task, files: Vec<(String, Bytes)>, budget: &JobBudget) -> Re
             ))
         })?;
     }
-    let mut digest = Sha256::new();
-    for c in &checkpoints {
-        let canonical = serde_json::to_vec(&PolicyConfig {
-            training: None,
-            ..c.config.clone()
-        })
-        .map_err(ApiError::internal)?;
-        for part in [&canonical[..], &c.weights_bytes[..]] {
-            digest.update((part.len() as u64).to_le_bytes());
-            digest.update(part);
-        }
-    }
-    Ok(CheckedSubmission {
-        checkpoints,
-        sha256: hex::encode(digest.finalize()),
-    })
+    let sha256 = checkpoint::submission_digest(
+        &checkpoints
+            .iter()
+            .map(|c| (&c.config, &c.weights_bytes[..]))
+            .collect::<Vec<_>>(),
+    );
+    Ok(CheckedSubmission { checkpoints, sha256 })
 }
 
 /// One unconditioned checkpoint, or per-threshold checkpoints covering exactly the task's thresholds (sorted).

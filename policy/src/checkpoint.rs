@@ -12,6 +12,7 @@ use std::path::Path;
 
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
 
 use crate::mlp::Activation;
 use crate::{PolicyError, Result};
@@ -462,6 +463,37 @@ pub fn parse_config(bytes: &[u8]) -> Result<PolicyConfig> {
         )));
     }
     Ok(config)
+}
+
+/// The leaderboard's digest of a submission's checkpoints, `(policy.json, weights bytes)` each: its dedupe key, and
+/// the digest a scored entry records. sha256 over each checkpoint's config without its free-form `training` record
+/// (re-serialized, so the JSON's formatting does not count) and its weights' bytes, each part prefixed by its
+/// length, in cost-threshold order. The same network submitted twice has the same digest; so has the same network
+/// trained again, whatever its training record says of time or commit.
+pub fn submission_digest(checkpoints: &[(&PolicyConfig, &[u8])]) -> String {
+    let mut ordered = checkpoints.to_vec();
+    let key = |c: &PolicyConfig| c.conditioning.cost_threshold().unwrap_or(f64::NEG_INFINITY);
+    ordered.sort_by(|a, b| key(a.0).total_cmp(&key(b.0)));
+    let mut digest = Sha256::new();
+    for (config, weights) in ordered {
+        let canonical = serde_json::to_vec(&PolicyConfig {
+            training: None,
+            ..config.clone()
+        })
+        .expect("a PolicyConfig always serializes");
+        for part in [&canonical[..], weights] {
+            digest.update((part.len() as u64).to_le_bytes());
+            digest.update(part);
+        }
+    }
+    hex::encode(digest.finalize())
+}
+
+/// Reads a checkpoint folder's `policy.json` and the bytes of its weights, both size-limited, as
+/// [`submission_digest`] takes them.
+pub fn read_bytes(dir: &Path) -> Result<(PolicyConfig, Vec<u8>)> {
+    let config = parse_config(&read_limited(&dir.join(CONFIG_FILE), MAX_CONFIG_BYTES)?)?;
+    Ok((config, read_limited(&dir.join(WEIGHTS_FILE), MAX_WEIGHTS_BYTES)?))
 }
 
 /// Reads a checkpoint folder's config and weights.

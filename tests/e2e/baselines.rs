@@ -196,8 +196,9 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     let token = create_user(&env, "reference");
     let state = env.path("reference-state");
     let results = env.path("results.jsonl");
-    let run = || {
+    let run = |extra: &[&str]| {
         Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
+            .args(extra)
             .args([
                 "--steps",
                 "3",
@@ -223,7 +224,7 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
             .output()
             .unwrap()
     };
-    let output = run();
+    let output = run(&[]);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "reference_entries.sh failed: {stderr}");
     assert!(stderr.contains("training 18 models (2 at a time)"), "{stderr}");
@@ -279,11 +280,42 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     }
 
     // A second run finds everything done: it trains, submits and changes nothing.
-    let again = run();
+    let again = run(&[]);
     let stderr = String::from_utf8_lossy(&again.stderr);
     assert!(again.status.success(), "{stderr}");
     assert!(!stderr.contains("submitted as"), "{stderr}");
     assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
     let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
     assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 8);
+
+    // Trained again from scratch (--reproduce), every method's checkpoints come out with the digest their entry was
+    // scored with: training is deterministic given its seed, and the entry keeps its scoring. A dsrl-train built
+    // from uncommitted sources (a working tree, not CI's clone) may not put its name on an entry: then each
+    // reproduction is refused for that reason and the file is left alone.
+    let reproduced = run(&["--reproduce"]);
+    let stderr = String::from_utf8_lossy(&reproduced.stderr);
+    assert!(!stderr.contains("submitted as"), "{stderr}");
+    let reproduced_bearl = state.join("reproduced/policies").join(TASK).join("seed-0/bearl");
+    assert!(reproduced_bearl.join("threshold-40").is_dir());
+    let after = dsrl_suite::reference::read_results(&std::fs::read_to_string(&results).unwrap(), &catalog).unwrap();
+    if entries[0].code_commit.ends_with("-modified") {
+        assert!(!reproduced.status.success(), "{stderr}");
+        assert_eq!(stderr.matches("uncommitted sources").count(), 8, "{stderr}");
+        assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
+    } else {
+        assert!(
+            reproduced.status.success(),
+            "not every method trained to the same networks: {stderr}"
+        );
+        assert!(stderr.contains("every entry reproduced"), "{stderr}");
+        assert_eq!(after.len(), entries.len());
+        for (old, new) in entries.iter().zip(&after) {
+            assert_eq!(
+                (&new.method, &new.checkpoint_sha256),
+                (&old.method, &old.checkpoint_sha256)
+            );
+            assert_eq!((&new.episodes, &new.scoring), (&old.episodes, &old.scoring));
+            assert_eq!(new.code_commit, old.code_commit);
+        }
+    }
 }

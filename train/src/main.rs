@@ -159,14 +159,23 @@ enum Command {
     /// Writes a scored model as a line of the reference results file (data/reference/results.jsonl): its budget,
     /// seed, dataset version and code commit from the models' policy.json, its checkpoint digest, protocol version
     /// and every episode from the leaderboard's JSON for its submission (`dsrl-client status ID --json`). Replaces
-    /// the entry of the same task, method and seed. `data/reference_entries.sh` runs it after each scoring.
+    /// the entry of the same task, method and seed. `data/reference_entries.sh` runs it after each scoring. The
+    /// model's checkpoints must have the digest the submission scored.
+    ///
+    /// With --reproduce instead of --submission: the model was trained again from scratch, and the entry already
+    /// in the file takes its training record (code commit, seconds) when its checkpoints have the digest the entry
+    /// was scored with (so the networks are the ones scored); otherwise it fails and changes nothing
+    /// (`data/reference_entries.sh --reproduce`).
     ReferenceEntry {
-        /// The model folder that was submitted (e.g. policies/<task>/seed-0/bc-safe).
+        /// The model folder that was submitted (e.g. policies/<task>/seed-0/bc-safe), or trained again.
         #[arg(long)]
         model: PathBuf,
         /// The submission's JSON, as the server answered it once finished.
+        #[arg(long, required_unless_present = "reproduce", conflicts_with = "reproduce")]
+        submission: Option<PathBuf>,
+        /// Re-record the existing entry for a model trained again, if its checkpoints are the ones scored.
         #[arg(long)]
-        submission: PathBuf,
+        reproduce: bool,
         /// The method's name as the paper writes it: BC-All, BC-Safe, CDT, BCQ-Lag, BEAR-Lag, CPQ, COptiDICE, CAPS.
         #[arg(long)]
         method: String,
@@ -570,17 +579,26 @@ fn main() -> anyhow::Result<()> {
         Command::ReferenceEntry {
             model,
             submission,
+            reproduce,
             method,
             results,
         } => {
-            let entry = dsrl_train::reference::record(&model, &submission, &method, &results)?;
+            let entry = match submission {
+                Some(submission) => dsrl_train::reference::record(&model, &submission, &method, &results)?,
+                None => {
+                    debug_assert!(reproduce, "clap requires one of the two");
+                    dsrl_train::reference::reproduce(&model, &method, &results)?
+                }
+            };
             println!(
-                "{} {} seed {}: {} episodes under protocol {} -> {}",
+                "{} {} seed {}: {} episodes under protocol {}, checkpoints {} trained by {} -> {}",
                 entry.task,
                 entry.method,
                 entry.seed,
                 entry.episodes.len(),
                 entry.protocol_version,
+                &entry.checkpoint_sha256[..12],
+                entry.code_commit,
                 results.display()
             );
             return Ok(());
