@@ -8,6 +8,8 @@
 #      seed 0: BCQ-Lag 2,000 steps per threshold, BEAR-Lag 6,000, CPQ and COptiDICE 5,000 (1/20), CDT 600 at batch
 #      512, CAPS 2,000 (BallRun 20,000); batch 512 throughout (OSRL's, but CDT's 2048).
 #   3. Training seeds 1 and 2 of all eight on BallRun and CarCircle, at the same budgets.
+#   1r. Phase 1 trained again from scratch (--reproduce): its entries take the commit of this dsrl-train where the
+#      checkpoints come out as scored. Phase 1 was trained by a build with uncommitted learner sources.
 # Usage: data/reference_sweep.sh [--jobs J] [--phases "1 2 3"]   (J models trained at once, one core each; 2)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -16,7 +18,7 @@ while [ $# -gt 0 ]; do
   case $1 in
     --jobs) jobs=$2; shift 2 ;;
     --phases) phases=$2; shift 2 ;;
-    -h|--help) sed -n '2,14p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
     *) echo "unknown argument $1" >&2; exit 2 ;;
   esac
 done
@@ -36,6 +38,10 @@ for phase in $phases; do
     1)
       run --methods "bc-all bc-safe" --steps 10000 "${others[@]}"
       run --methods "bc-all bc-safe" --steps 20000 "${metadrive[@]}"
+      ;;
+    1r)
+      run --reproduce --methods "bc-all bc-safe" --steps 10000 "${others[@]}"
+      run --reproduce --methods "bc-all bc-safe" --steps 20000 "${metadrive[@]}"
       ;;
     2)
       run "${offline[@]}" --methods "cdt bcql cpq coptidice caps" "${six[@]:1}"

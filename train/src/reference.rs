@@ -170,8 +170,13 @@ fn known_method(method: &str) -> anyhow::Result<()> {
 }
 
 /// Puts `entry` into `results` in place of any entry of the same (task, method, seed); the file is checked by
-/// reading it back, then replaced atomically.
+/// reading it back, then replaced atomically. Two writers (a sweep recording scorings beside a reproduction) take
+/// turns on a lock file beside it, so neither writes over the other's entry.
 fn write_entry(results: &Path, entry: ReferenceEntry, catalog: &Catalog) -> anyhow::Result<()> {
+    let lock_path = results.with_extension("jsonl.lock");
+    let lock = std::fs::File::create(&lock_path).with_context(|| format!("creating {}", lock_path.display()))?;
+    lock.lock()
+        .with_context(|| format!("locking {}", lock_path.display()))?;
     let mut entries = if results.exists() {
         read_results(&std::fs::read_to_string(results)?, catalog)?
     } else {
@@ -450,5 +455,30 @@ mod tests {
         );
         let text = std::fs::read_to_string(&results).unwrap();
         assert_eq!(read_results(&text, &Catalog::embedded().unwrap()).unwrap(), vec![entry]);
+    }
+
+    #[test]
+    fn writers_at_once_lose_no_entry() {
+        let dir = tempfile::tempdir().unwrap();
+        let scored = dir.path().join("scored");
+        model(&scored, b"weights");
+        let sub = dir.path().join("sub.json");
+        submission(&sub, &digest_of(&scored));
+        let results = dir.path().join("results.jsonl");
+        let entry = record(&scored, &sub, "BC-Safe", &results).unwrap();
+        let catalog = Catalog::embedded().unwrap();
+        std::thread::scope(|scope| {
+            for writer in 0..4u64 {
+                let (entry, results, catalog) = (&entry, &results, &catalog);
+                scope.spawn(move || {
+                    for i in 0..8 {
+                        let seed = 1 + writer * 8 + i;
+                        write_entry(results, ReferenceEntry { seed, ..entry.clone() }, catalog).unwrap();
+                    }
+                });
+            }
+        });
+        let text = std::fs::read_to_string(&results).unwrap();
+        assert_eq!(read_results(&text, &catalog).unwrap().len(), 1 + 4 * 8);
     }
 }
