@@ -391,6 +391,25 @@ mod tests {
         checkpoint::submission_digest(&read.iter().map(|(c, w)| (c, &w[..])).collect::<Vec<_>>())
     }
 
+    fn entries_in(results: &Path) -> Vec<ReferenceEntry> {
+        read_results(
+            &std::fs::read_to_string(results).unwrap(),
+            &Catalog::embedded().unwrap(),
+        )
+        .unwrap()
+    }
+
+    /// A model of `weights` in `dir`/scored, scored and recorded in `dir`/results.jsonl.
+    fn recorded(dir: &Path, weights: &[u8]) -> (PathBuf, PathBuf, ReferenceEntry) {
+        let scored = dir.join("scored");
+        model(&scored, weights);
+        let sub = dir.join("sub.json");
+        submission(&sub, &digest_of(&scored));
+        let results = dir.join("results.jsonl");
+        let entry = record(&scored, &sub, "BC-Safe", &results).unwrap();
+        (scored, results, entry)
+    }
+
     #[test]
     fn an_entry_pairs_a_model_only_with_the_submission_that_scored_it() {
         let dir = tempfile::tempdir().unwrap();
@@ -409,36 +428,44 @@ mod tests {
         assert_eq!(entry.checkpoint_sha256, digest_of(&scored));
         assert_eq!((entry.training.models, entry.training.seconds), (3, 4.5));
         assert_eq!(entry.scoring.seconds, 90.0);
-        let text = std::fs::read_to_string(&results).unwrap();
-        assert_eq!(read_results(&text, &Catalog::embedded().unwrap()).unwrap(), vec![entry]);
+        assert_eq!(entries_in(&results), vec![entry]);
     }
 
     #[test]
     fn an_entry_takes_the_record_of_a_retraining_only_when_it_gives_the_networks_scored() {
         let dir = tempfile::tempdir().unwrap();
-        let scored = dir.path().join("scored");
-        model(&scored, b"the weights that were scored");
-        let sub = dir.path().join("sub.json");
-        submission(&sub, &digest_of(&scored));
-        let results = dir.path().join("results.jsonl");
-        let first = record(&scored, &sub, "BC-Safe", &results).unwrap();
+        let (_, results, first) = recorded(dir.path(), b"the weights that were scored");
         let text = std::fs::read_to_string(&results).unwrap();
 
-        // Other weights, or the same weights recorded for another budget: refused, the file untouched.
-        let other = dir.path().join("other");
-        model_by(&other, b"weights of another build", "fedcba987654", 3);
-        let refused = reproduce(&other, "BC-Safe", &results).unwrap_err().to_string();
-        assert!(refused.starts_with("not reproduced"), "{refused}");
-        let longer = dir.path().join("longer");
-        model_by(&longer, b"the weights that were scored", "fedcba987654", 4);
-        let refused = reproduce(&longer, "BC-Safe", &results).unwrap_err().to_string();
-        assert!(refused.contains("4 steps"), "{refused}");
-        let refused = reproduce(&scored, "BC-All", &results).unwrap_err().to_string();
-        assert!(refused.contains("no BC-All entry"), "{refused}");
-        let dirty = dir.path().join("dirty");
-        model_by(&dirty, b"the weights that were scored", "fedcba987654-modified", 3);
-        let refused = reproduce(&dirty, "BC-Safe", &results).unwrap_err().to_string();
-        assert!(refused.contains("uncommitted sources"), "{refused}");
+        // Other weights, another budget, another method, a build of uncommitted sources: refused, the file untouched.
+        let scored_weights: &[u8] = b"the weights that were scored";
+        for (name, weights, commit, steps, method, refusal) in [
+            (
+                "other",
+                &b"weights of another build"[..],
+                "fedcba987654",
+                3,
+                "BC-Safe",
+                "not reproduced",
+            ),
+            ("longer", scored_weights, "fedcba987654", 4, "BC-Safe", "4 steps"),
+            ("scored", scored_weights, "0123456789ab", 3, "BC-All", "no BC-All entry"),
+            (
+                "dirty",
+                scored_weights,
+                "fedcba987654-modified",
+                3,
+                "BC-Safe",
+                "uncommitted sources",
+            ),
+        ] {
+            let again = dir.path().join(name);
+            if name != "scored" {
+                model_by(&again, weights, commit, steps);
+            }
+            let refused = reproduce(&again, method, &results).unwrap_err().to_string();
+            assert!(refused.contains(refusal), "{name}: {refused}");
+        }
         assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
 
         // The same networks from another commit: the entry names that commit and keeps its scoring.
@@ -453,19 +480,13 @@ mod tests {
             },
             first
         );
-        let text = std::fs::read_to_string(&results).unwrap();
-        assert_eq!(read_results(&text, &Catalog::embedded().unwrap()).unwrap(), vec![entry]);
+        assert_eq!(entries_in(&results), vec![entry]);
     }
 
     #[test]
     fn writers_at_once_lose_no_entry() {
         let dir = tempfile::tempdir().unwrap();
-        let scored = dir.path().join("scored");
-        model(&scored, b"weights");
-        let sub = dir.path().join("sub.json");
-        submission(&sub, &digest_of(&scored));
-        let results = dir.path().join("results.jsonl");
-        let entry = record(&scored, &sub, "BC-Safe", &results).unwrap();
+        let (_, results, entry) = recorded(dir.path(), b"weights");
         let catalog = Catalog::embedded().unwrap();
         std::thread::scope(|scope| {
             for writer in 0..4u64 {
@@ -478,7 +499,6 @@ mod tests {
                 });
             }
         });
-        let text = std::fs::read_to_string(&results).unwrap();
-        assert_eq!(read_results(&text, &catalog).unwrap().len(), 1 + 4 * 8);
+        assert_eq!(entries_in(&results).len(), 1 + 4 * 8);
     }
 }
