@@ -325,6 +325,7 @@ impl Leaderboard {
         tracing::info!(
             imported = report.imported,
             present = report.present,
+            updated = report.updated,
             held_by_submissions = report.held_by_submissions,
             withdrawn = report.withdrawn,
             protocol = %self.protocol.version,

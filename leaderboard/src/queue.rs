@@ -392,6 +392,17 @@ pub async fn insert_finished(db: &Db, new: &Imported<'_>) -> Result<bool, ApiErr
     Ok(true)
 }
 
+/// Replaces the record of an imported reference entry (its `reference` JSON: method, seed, training, code commit,
+/// scoring), its scores unchanged: the same checkpoint and scoring, recorded anew (trained again by another commit).
+pub async fn set_reference(db: &Db, id: i64, reference: &str) -> Result<(), ApiError> {
+    sqlx::query("UPDATE submissions SET reference = $2 WHERE id = $1 AND reference IS NOT NULL")
+        .bind(id)
+        .bind(reference)
+        .execute(db.pool())
+        .await?;
+    Ok(())
+}
+
 /// Withdraws one finished submission (cancelled with the reason: kept in the database, off the tables).
 pub async fn withdraw(db: &Db, id: i64, reason: &str) -> Result<(), ApiError> {
     sqlx::query("UPDATE submissions SET state = 'cancelled', reason = $2 WHERE id = $1 AND state = 'finished'")

@@ -3,8 +3,9 @@
 //! training budget, dataset version, code commit, how it was scored) and every episode. Importing, not re-scoring:
 //! a fresh server shows them at once, the larger checkpoints need not be in the repository, and each entry keeps
 //! the protocol version it was scored under, so an entry from another protocol is counted, not ranked (see
-//! ARCHITECTURE.md, "Reference entries"). Idempotent: an entry already present is left alone, and the reference
-//! account's entries that the file no longer holds are withdrawn (kept, off the tables).
+//! ARCHITECTURE.md, "Reference entries"). Idempotent: an entry already present is left alone (its record brought up
+//! to the file's when only that changed, as when its checkpoints were reproduced by another commit), and the
+//! reference account's entries that the file no longer holds are withdrawn (kept, off the tables).
 
 use serde::{Deserialize, Serialize};
 
@@ -39,6 +40,8 @@ pub fn entry_name(method: &str, seed: u64) -> String {
 pub struct ImportReport {
     pub imported: usize,
     pub present: usize,
+    /// Entries present with the same scoring whose record (training, code commit) the file has changed.
+    pub updated: usize,
     /// Entries whose checkpoint a user's live submission already holds on this server.
     pub held_by_submissions: usize,
     pub withdrawn: u64,
@@ -53,7 +56,7 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
         let task = leaderboard.task(&entry.task)?;
         let Some(score) = entry.score(task) else { continue };
         let existing = sqlx::query(sqlx::AssertSqlSafe(format!(
-            "SELECT id, user_id, protocol_version, finished_at FROM submissions
+            "SELECT id, user_id, protocol_version, finished_at, reference FROM submissions
              WHERE task = $1 AND checkpoint_sha256 = $2 AND {}",
             queue::HOLDS_CHECKPOINT
         )))
@@ -61,6 +64,14 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
         .bind(&entry.checkpoint_sha256)
         .fetch_optional(db.pool())
         .await?;
+        let record = ReferenceRecord {
+            method: entry.method.clone(),
+            seed: entry.seed,
+            training: entry.training.clone(),
+            code_commit: entry.code_commit.clone(),
+            scoring: entry.scoring.clone(),
+        };
+        let record = serde_json::to_string(&record).map_err(ApiError::internal)?;
         if let Some(row) = existing {
             use sqlx::Row;
             let (id, owner): (i64, i64) = (row.try_get(0)?, row.try_get(1)?);
@@ -72,7 +83,13 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
             if protocol.as_deref() == Some(entry.protocol_version.as_str())
                 && finished.as_deref() == Some(entry.scoring.finished_at.as_str())
             {
-                report.present += 1;
+                let stored: Option<String> = row.try_get(4)?;
+                if stored.as_deref() == Some(record.as_str()) {
+                    report.present += 1;
+                } else {
+                    queue::set_reference(db, id, &record).await?;
+                    report.updated += 1;
+                }
                 continue;
             }
             // The same checkpoint scored again (under another protocol, say): the new scoring replaces the old.
@@ -83,13 +100,6 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
             )
             .await?;
         }
-        let record = ReferenceRecord {
-            method: entry.method.clone(),
-            seed: entry.seed,
-            training: entry.training.clone(),
-            code_commit: entry.code_commit.clone(),
-            scoring: entry.scoring.clone(),
-        };
         let thresholds = task.cost_thresholds.len().max(1);
         let stored = queue::insert_finished(
             db,
@@ -102,7 +112,7 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
                 finished_at: &entry.scoring.finished_at,
                 episodes_per_threshold: (entry.episodes.len() / thresholds) as u32,
                 dataset_version: &entry.dataset_version,
-                reference: &serde_json::to_string(&record).map_err(ApiError::internal)?,
+                reference: &record,
                 result: Scores {
                     episodes: &entry.episodes,
                     normalized_reward: score.reward,

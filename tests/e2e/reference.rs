@@ -114,7 +114,46 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     );
     assert_eq!(summary.matches("<tr class=\"agrees\">").count(), overall.agreeing);
 
-    // A restart imports nothing twice.
+    // A restart imports nothing twice; an entry whose record changed in the file (its checkpoints reproduced by
+    // another commit: same digest, same scoring) is brought up to the file's record. Here the server's copy of one
+    // record is made an older one, as a server that imported an earlier file would hold.
+    let (task, e) = current
+        .iter()
+        .map(|e| (catalog.get(&e.task).unwrap(), e))
+        .next()
+        .unwrap();
+    let row = |board: &serde_json::Value| {
+        let table = board["tasks"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["task"] == task.id.as_str())
+            .unwrap();
+        let name = dsrl_leaderboard::reference::entry_name(&e.method, e.seed);
+        table["entries"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|r| r["name"] == name.as_str())
+            .unwrap()
+            .clone()
+    };
+    let id = row(&board)["submission"].as_i64().unwrap();
+    let older = dsrl_leaderboard::reference::ReferenceRecord {
+        method: e.method.clone(),
+        seed: e.seed,
+        training: e.training.clone(),
+        code_commit: "000000000000-modified".into(),
+        scoring: e.scoring.clone(),
+    };
+    let db_file = env.server.data_dir.join("dsrl.sqlite3");
+    crate::block_on(async move {
+        let db = dsrl_service::db::Db::open(&db_file).await.unwrap();
+        let older = serde_json::to_string(&older).unwrap();
+        dsrl_leaderboard::queue::set_reference(&db, id, &older).await.unwrap();
+    });
+    let tampered = get_json(&format!("{}/v1/leaderboard", env.server.url));
+    assert_eq!(row(&tampered)["reference"]["code_commit"], "000000000000-modified");
     env.restart();
     let again = get_json(&format!("{}/v1/leaderboard", env.server.url));
     let count = |b: &serde_json::Value| {
@@ -126,5 +165,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             .sum::<usize>()
     };
     assert_eq!(count(&again), count(&board));
+    assert_eq!(row(&again)["reference"]["code_commit"], e.code_commit.as_str());
+    assert_eq!(row(&again)["submission"], id, "updated in place, not imported again");
     assert_eq!(count(&board), current.len());
 }
