@@ -140,6 +140,24 @@ pub fn reference_sections(
             format!(" Not yet trained and scored: {}.", missing.join(", "))
         }
     );
+    // Which builds trained them: an entry of a build with uncommitted sources is not reproducible from its commit
+    // alone (`data/reference_entries.sh --reproduce` trains it again with a clean one).
+    let mut commits: BTreeMap<&str, usize> = BTreeMap::new();
+    for e in &current {
+        *commits.entry(e.code_commit.as_str()).or_default() += 1;
+    }
+    let by_commit: Vec<String> = commits
+        .iter()
+        .map(|(commit, n)| {
+            let dirty = if commit.ends_with("-modified") {
+                " (uncommitted sources)"
+            } else {
+                ""
+            };
+            format!("`{commit}`{dirty}: {n} entries")
+        })
+        .collect();
+    let _ = writeln!(s, "Trained by the `dsrl-train` of {}.\n", by_commit.join("; "));
     s.push_str(
         "| family | (task, method) cells | verdicts that agree | share | mean \\|Δ reward\\| | mean \\|Δ cost\\| |\n\
          |---|---|---|---|---|---|\n",
