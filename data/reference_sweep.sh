@@ -11,6 +11,9 @@
 #   1r. Phase 1 trained again from scratch (--reproduce): its entries take the commit of this dsrl-train where the
 #      checkpoints come out as scored. Phase 1 was trained by a build with uncommitted learner sources.
 # Usage: data/reference_sweep.sh [--jobs J] [--phases "1 2 3"]   (J models trained at once, one core each; 2)
+#   In the background beside other work: setsid nohup nice -n 19 data/reference_sweep.sh ... &. Started as its own
+#   session's leader, it also lowers its session's scheduling group (Linux autogroup, where `nice` ranks processes
+#   only within their session: a sweep at nice 19 in its own session would otherwise get an equal share).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 jobs=2 phases="1 2 3"
@@ -22,6 +25,9 @@ while [ $# -gt 0 ]; do
     *) echo "unknown argument $1" >&2; exit 2 ;;
   esac
 done
+if [ "$(ps -o sid= -p $$ | tr -d ' ')" = "$$" ] && [ -w /proc/self/autogroup ]; then
+  echo 19 > /proc/self/autogroup 2> /dev/null || true
+fi
 run() { data/reference_entries.sh --jobs "$jobs" --evaluators 2 "$@"; }
 metadrive=()
 others=()
