@@ -498,9 +498,8 @@ pub fn read_bytes(dir: &Path) -> Result<(PolicyConfig, Vec<u8>)> {
 
 /// Reads a checkpoint folder's config and weights.
 pub fn read(dir: &Path) -> Result<(PolicyConfig, HashMap<String, Tensor>)> {
-    let config = parse_config(&read_limited(&dir.join(CONFIG_FILE), MAX_CONFIG_BYTES)?)?;
-    let tensors = parse_weights(&read_limited(&dir.join(WEIGHTS_FILE), MAX_WEIGHTS_BYTES)?)?;
-    Ok((config, tensors))
+    let (config, weights) = read_bytes(dir)?;
+    Ok((config, parse_weights(&weights)?))
 }
 
 #[cfg(test)]

@@ -30,12 +30,6 @@ struct Training {
     cpu_seconds: Option<f64>,
 }
 
-#[derive(Deserialize)]
-struct TrainingOnly {
-    task: String,
-    training: Option<Training>,
-}
-
 /// What the entry needs of the leaderboard's view of the submission (`GET /v1/submissions/{id}`).
 #[derive(Deserialize)]
 struct Submission {
@@ -49,16 +43,15 @@ struct Submission {
     episodes: Vec<EpisodeResult>,
 }
 
-/// The `policy.json` files of a model folder: its own, or one per threshold folder.
-fn model_configs(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
-    let top = dir.join(CONFIG_FILE);
-    if top.is_file() {
-        return Ok(vec![top]);
+/// The checkpoint folders of a model folder: itself, or one per threshold folder (those with a `policy.json`).
+fn model_checkpoints(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    if dir.join(CONFIG_FILE).is_file() {
+        return Ok(vec![dir.to_owned()]);
     }
     let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("reading {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path().join(CONFIG_FILE)))
-        .filter(|p| p.is_file())
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join(CONFIG_FILE).is_file())
         .collect();
     found.sort();
     ensure!(
@@ -90,21 +83,25 @@ impl Model {
         let mut task = None;
         let mut trainings = Vec::new();
         let mut checkpoints = Vec::new();
-        for path in model_configs(dir)? {
-            let parsed: TrainingOnly = serde_json::from_slice(&std::fs::read(&path)?)
-                .with_context(|| format!("{}: no readable training record", path.display()))?;
+        // Each policy.json is read once, size-limited: its training record here, the whole of it for the digest.
+        for slot in model_checkpoints(dir)? {
+            let (config, weights) =
+                checkpoint::read_bytes(&slot).with_context(|| format!("reading {}", slot.display()))?;
+            let config_file = slot.join(CONFIG_FILE);
             ensure!(
-                task.get_or_insert_with(|| parsed.task.clone()) == &parsed.task,
+                task.get_or_insert_with(|| config.task.clone()) == &config.task,
                 "the models in {} are of different tasks",
                 dir.display()
             );
+            let training = config
+                .training
+                .clone()
+                .with_context(|| format!("{}: no training record", config_file.display()))?;
             trainings.push(
-                parsed
-                    .training
-                    .with_context(|| format!("{}: no training record", path.display()))?,
+                serde_json::from_value::<Training>(training)
+                    .with_context(|| format!("{}: no readable training record", config_file.display()))?,
             );
-            let slot = path.parent().context("a policy.json lies in a folder")?;
-            checkpoints.push(checkpoint::read_bytes(slot).with_context(|| format!("reading {}", slot.display()))?);
+            checkpoints.push((config, weights));
         }
         let first = &trainings[0];
         for m in &trainings {
