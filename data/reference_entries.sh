@@ -11,7 +11,8 @@
 #
 # Resumable: all state lives in --state (default ~/.dsrl/reference), outside the clone. A model whose training
 # finished is not trained again (a marker names its budget); a submission already made is waited for, not made
-# again; a scored entry already in the results file with the same checkpoint is left alone. Kill it and run the
+# again; an entry the results file already holds, trained to the same budget on the dataset version hosted now, is
+# neither trained nor submitted again, so a fresh machine resumes from the committed results. Kill it and run the
 # same command again.
 #
 # Scoring server: $DSRL_SERVER with a user token in $DSRL_TOKEN (its daily quota must allow the entries), or, when
@@ -144,14 +145,15 @@ if [ -z "${DSRL_SERVER:-}" ]; then
 fi
 : "${DSRL_TOKEN:?set DSRL_TOKEN to a user token of $DSRL_SERVER}"
 
-# Task by task: train its models (--jobs at a time), submit its entries (the server scores them while the next
-# task trains), and record every entry whose scoring has finished (checked every minute while the next task trains),
+# Task by task: train its models (--jobs at a time), submit each entry as soon as its models have trained (the
+# server scores it while the rest train), and record every entry whose scoring has finished (checked every minute),
 # so the results file grows as entries are scored.
 # A model whose training finished leaves a marker naming its budget; a model trained to another budget is trained
 # again.
+marker_of() { echo "$out/$1/seed-$2/.trained-$3-$4-steps-$5-batch-${batch_size:-osrl}"; }
 train_unit() {
   local task=$1 seed=$2 method=$3 kappa=$4 n=$5 device=$6 args marker
-  marker=$out/$task/seed-$seed/.trained-$method-$kappa-steps-$n-batch-${batch_size:-osrl}
+  marker=$(marker_of "$task" "$seed" "$method" "$kappa" "$n")
   [ -e "$marker" ] && return 0
   args=(--task "$task" --server "$DSRL_SERVER" --seed "$seed" --out "$out/$task/seed-$seed" --steps "$n")
   [ -z "$batch_size" ] || args+=(--batch-size "$batch_size")
@@ -165,7 +167,7 @@ train_unit() {
   rm -f "$out/$task/seed-$seed/.trained-$method-$kappa-"*
   touch "$marker"
 }
-export -f train_unit
+export -f marker_of train_unit
 export batch_size train out DSRL_SERVER
 
 sub_of() { echo "$state/submissions/$1/seed-$2/$3"; }
@@ -255,6 +257,59 @@ submit() {
   in_flight+=("$task $seed $method")
 }
 
+# Whether the results file holds the entry of task $1, seed $2, method $3 already (a fresh machine, whose --state is
+# empty, resumes from the committed results), trained to $4 steps at this batch size on dataset version $5: then it
+# is neither trained nor submitted again (with --reproduce, trained again all the same). Says why in $why.
+recorded() {
+  why=$(python3 - "$results" "$@" "$batch_size" <<'EOF'
+import json, sys
+path, task, seed, method, steps, version, batch = sys.argv[1:]
+try:
+    lines = open(path).read().splitlines()
+except FileNotFoundError:
+    sys.exit(1)
+for line in lines:
+    e = json.loads(line)
+    if (e["task"], e["method"], str(e["seed"])) != (task, method, seed):
+        continue
+    t = e["training"]
+    if t["steps"] != int(steps) or t["batch_size"] != (int(batch) if batch else t["osrl_batch_size"]):
+        sys.exit(1)
+    if e["dataset_version"] != version:
+        sys.exit(1)
+    print(f"{steps} steps, batch {t['batch_size']}, dataset {version[:12]}")
+    sys.exit(0)
+sys.exit(1)
+EOF
+  )
+}
+
+# Whether every model of task $1, seed $2, method $3 has finished training.
+trained() {
+  local kappa
+  for kappa in $(case $3 in bc-all | cdt | caps) echo - ;; *) thresholds "$1" ;; esac); do
+    [ -e "$(marker_of "$1" "$2" "$3" "$kappa" "$(method_steps "$3")")" ] || return 1
+  done
+}
+# Hands in each method of this task whose models have all trained: submits it or, with --reproduce, checks it. A
+# run stopped while a task trains then loses only the models still training, not those of its finished methods.
+hand_in_trained() {
+  local e seed method left=()
+  [ "$train_only" = no ] || return 0
+  for e in "${pending[@]+"${pending[@]}"}"; do
+    read -r seed method <<< "$e"
+    if ! trained "$task" "$seed" "$method"; then
+      left+=("$e")
+    elif [ "$reproduce" = yes ]; then
+      "$train" reference-entry --reproduce --model "$out/$task/seed-$seed/$method" \
+        --method "$(method_name "$method")" --results "$results" || unreproduced+=("$task seed $seed $method")
+    else
+      submit "$task" "$seed" "$method"
+    fi
+  done
+  pending=("${left[@]+"${left[@]}"}")
+}
+
 # The device of the next model (in $device): the CPU, or the GPUs in turn.
 dealt=0 device=cpu
 next_device() {
@@ -262,41 +317,37 @@ next_device() {
 }
 for task in "${tasks[@]}"; do
   "$client" fetch "$task" >&2  # fetched once, so parallel jobs read one verified cached file
-  units=()
+  version=$("$client" --json show "$task" | python3 -c 'import json, sys; print(json.load(sys.stdin)["version"])')
+  units=() todo=()
   kappas=$(thresholds "$task")
   for seed in $seeds; do
     for method in $methods; do
       n=$(method_steps "$method")
+      if [ "$reproduce" = no ] && recorded "$task" "$seed" "$(method_name "$method")" "$n" "$version"; then
+        echo "$task seed $seed: $(method_name "$method") is in $results already ($why); not trained again" >&2
+        continue
+      fi
+      todo+=("$seed $method")
       case $method in
         bc-all | cdt | caps) next_device; units+=("$task $seed $method - $n $device") ;;
         *) for kappa in $kappas; do next_device; units+=("$task $seed $method $kappa $n $device"); done ;;
       esac
     done
   done
+  [ ${#todo[@]} -gt 0 ] || continue
   echo "$(date -u +%FT%TZ) $task: training ${#units[@]} models ($jobs at a time) into $out" >&2
-  # A failed job stops new ones from starting (exit 255), and the script stops before submitting them. While they
-  # train, the entries of the tasks before are recorded as soon as they are scored (checked every minute).
+  # Every minute while they train: the methods whose models have all trained are handed in, and the entries scored
+  # meanwhile are recorded. A failed job stops new ones from starting (exit 255), and the script stops with it.
+  pending=("${todo[@]}")
   printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit &
   training=$! polled=0
   while kill -0 "$training" 2> /dev/null; do
-    if [ "$SECONDS" -ge "$polled" ]; then record_finished poll; polled=$((SECONDS + 60)); fi
+    if [ "$SECONDS" -ge "$polled" ]; then hand_in_trained; record_finished poll; polled=$((SECONDS + 60)); fi
     sleep 1
   done
   wait "$training"
-  [ "$train_only" = no ] || continue
-  if [ "$reproduce" = yes ]; then
-    for seed in $seeds; do
-      for method in $methods; do
-        "$train" reference-entry --reproduce --model "$out/$task/seed-$seed/$method" \
-          --method "$(method_name "$method")" --results "$results" || unreproduced+=("$task seed $seed $method")
-      done
-    done
-    continue
-  fi
-  for seed in $seeds; do
-    for method in $methods; do submit "$task" "$seed" "$method"; done
-  done
-  record_finished poll
+  hand_in_trained
+  [ "$reproduce" = yes ] || record_finished poll
 done
 [ "$train_only" = no ] || exit 0
 if [ "$reproduce" = yes ]; then

@@ -34,6 +34,15 @@ others=()
 for task in $(awk -F, 'NR > 1 { print $1 }' data/tasks.csv); do
   case $task in OfflineMetadrive-*) metadrive+=("$task") ;; *) others+=("$task") ;; esac
 done
+# Those of the given tasks that have an entry in the results file naming a build with uncommitted sources.
+modified() {
+  python3 - data/reference/results.jsonl "$@" <<'EOF'
+import json, sys
+entries = [json.loads(line) for line in open(sys.argv[1])]
+unmade = {e["task"] for e in entries if e["code_commit"].endswith("-modified")}
+sys.stdout.writelines(f"{t}\n" for t in sys.argv[2:] if t in unmade)
+EOF
+}
 six=(OfflineBallRun-v0 OfflineCarRun-v0 OfflineBallCircle-v0 OfflineCarCircle-v0 OfflinePointGoal1Gymnasium-v0
      OfflineMetadrive-easysparse-v0)
 offline=(--batch-size 512 --steps 2000 --bearl-steps 6000 --steps-for cpq=5000 --steps-for coptidice=5000
@@ -46,8 +55,11 @@ for phase in $phases; do
       run --methods "bc-all bc-safe" --steps 20000 "${metadrive[@]}"
       ;;
     1r)
-      run --reproduce --methods "bc-all bc-safe" --steps 10000 "${others[@]}"
-      run --reproduce --methods "bc-all bc-safe" --steps 20000 "${metadrive[@]}"
+      # Only the tasks whose entries still name that build: the others were reproduced already.
+      mapfile -t todo < <(modified "${others[@]}")
+      [ ${#todo[@]} -eq 0 ] || run --reproduce --methods "bc-all bc-safe" --steps 10000 "${todo[@]}"
+      mapfile -t todo < <(modified "${metadrive[@]}")
+      [ ${#todo[@]} -eq 0 ] || run --reproduce --methods "bc-all bc-safe" --steps 20000 "${todo[@]}"
       ;;
     2)
       run "${offline[@]}" --methods "cdt bcql cpq coptidice caps" "${six[@]:1}"
