@@ -239,7 +239,7 @@ pub fn reference_sections(
 
     let mut s = String::from(
         "| task | method | seed | models | steps | training CPU s | CPU s per step | OSRL's budget, CPU h (one thread per \
-         model) | training wall s | scoring wall s | dataset | code |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+         model) | training wall s | scoring wall s | dataset | code | CPU |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let (mut cpu_total, mut osrl_total, mut wall_total, mut score_total) = (0.0, 0.0, 0.0, 0.0);
     for task in catalog.tasks() {
@@ -252,7 +252,7 @@ pub fn reference_sections(
             score_total += e.scoring.seconds;
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.0} | `{}` | `{}` |",
+                "| {} | {} | {} | {} | {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.0} | `{}` | `{}` | {} |",
                 short(&e.task),
                 e.method,
                 e.seed,
@@ -265,12 +265,13 @@ pub fn reference_sections(
                 e.scoring.seconds,
                 &e.dataset_version[..12.min(e.dataset_version.len())],
                 e.code_commit,
+                t.cpu.as_deref().unwrap_or("not recorded"),
             );
         }
     }
     let _ = writeln!(
         s,
-        "| **all** | | | | | {:.0} ({:.1} h) | | {:.0} | {:.0} ({:.1} h) | {:.0} ({:.1} h) | | |",
+        "| **all** | | | | | {:.0} ({:.1} h) | | {:.0} | {:.0} ({:.1} h) | {:.0} ({:.1} h) | | | |",
         cpu_total,
         cpu_total / 3600.0,
         osrl_total / 3600.0,

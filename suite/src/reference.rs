@@ -60,6 +60,10 @@ pub struct TrainingBudget {
     /// CPU seconds of training (each model's training thread, user + system), all models together: the compute,
     /// whatever else shared the machine.
     pub cpu_seconds: f64,
+    /// The CPU the models were trained on (model name, AVX-512 or not), as their training records name it: CPU
+    /// seconds are comparable only on one CPU. Absent for entries trained before the records named it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpu: Option<String>,
     /// OSRL's steps and batch size for the method on the task, for the fraction of its budget.
     pub osrl_steps: u64,
     pub osrl_batch_size: usize,
@@ -358,6 +362,7 @@ mod tests {
                 models: 1,
                 seconds: 1.0,
                 cpu_seconds: 1.0,
+                cpu: None,
                 osrl_steps: 100_000,
                 osrl_batch_size: 512,
             },

@@ -272,6 +272,9 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
             "{}",
             e.method
         );
+        // The CPU its seconds were measured on (Linux: /proc/cpuinfo names it).
+        let cpu = e.training.cpu.as_deref().unwrap_or_default();
+        assert!(cpu.contains("AVX-512: "), "{}: {cpu:?}", e.method);
         // The line's scores are the server's.
         let row = shown.iter().find(|r| r["submission"] == e.scoring.submission).unwrap();
         let score = e.score(catalog.get(TASK).unwrap()).unwrap();

@@ -344,6 +344,7 @@ impl Source {
             "seed": data.seed,
             "code_commit": CODE_COMMIT,
             "device": self.device,
+            "cpu": cpu_model(),
             "final": trained.last(),
             "seconds": trained.seconds,
             "cpu_seconds": trained.cpu_seconds,
@@ -366,6 +367,24 @@ fn thread_cpu_seconds() -> f64 {
     } else {
         f64::NAN
     }
+}
+
+/// The CPU this process trains on, as training records name it: its model name and whether it has AVX-512 (what
+/// moves the CPU seconds per step most between machines); None where `/proc/cpuinfo` does not say.
+fn cpu_model() -> Option<String> {
+    let info = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    let field = |key: &str| {
+        info.lines()
+            .find(|l| l.split(':').next().is_some_and(|k| k.trim() == key))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, v)| v.trim())
+    };
+    let avx512 = field("flags").is_some_and(|f| f.split_whitespace().any(|f| f == "avx512f"));
+    Some(format!(
+        "{}, AVX-512: {}",
+        field("model name")?,
+        if avx512 { "yes" } else { "no" }
+    ))
 }
 
 /// Runs `step` `steps` times under a progress bar labelled `label` (its first `shown` figures every `every` steps).
@@ -700,6 +719,7 @@ fn main() -> anyhow::Result<()> {
             "seed": seed,
             "code_commit": CODE_COMMIT,
             "device": dsrl_train::device_name(&device),
+            "cpu": cpu_model(),
             "final_mse": loss,
             "seconds": seconds,
             "cpu_seconds": trained.cpu_seconds,

@@ -28,6 +28,7 @@ struct Training {
     code_commit: Option<String>,
     seconds: f64,
     cpu_seconds: Option<f64>,
+    cpu: Option<String>,
 }
 
 /// What the entry needs of the leaderboard's view of the submission (`GET /v1/submissions/{id}`).
@@ -132,6 +133,18 @@ impl Model {
         })
     }
 
+    /// The CPU the models trained on, when every training record names it (each distinct one, joined by " + ").
+    fn cpu(&self) -> Option<String> {
+        let mut cpus = self
+            .trainings
+            .iter()
+            .map(|m| m.cpu.clone())
+            .collect::<Option<Vec<String>>>()?;
+        cpus.sort_unstable();
+        cpus.dedup();
+        Some(cpus.join(" + "))
+    }
+
     fn budget(&self, dir: &Path, method: &str, task: &dsrl_suite::Task) -> anyhow::Result<TrainingBudget> {
         let first = &self.trainings[0];
         let (osrl_steps, osrl_batch_size) = osrl_budget(method, task).context("a reference method has a budget")?;
@@ -151,6 +164,7 @@ impl Model {
                         dir.display()
                     )
                 })?,
+            cpu: self.cpu(),
             osrl_steps,
             osrl_batch_size,
         })
@@ -355,7 +369,7 @@ mod tests {
                 },
                 training: Some(serde_json::json!({
                     "steps": steps, "batch_size": 16, "seed": 0, "dataset_version": "ab".repeat(32),
-                    "code_commit": commit, "seconds": 1.5, "cpu_seconds": 1.25,
+                    "code_commit": commit, "seconds": 1.5, "cpu_seconds": 1.25, "cpu": "Test CPU, AVX-512: no",
                 })),
             };
             std::fs::write(slot.join(CONFIG_FILE), serde_json::to_vec_pretty(&config).unwrap()).unwrap();
@@ -424,6 +438,7 @@ mod tests {
         let entry = record(&scored, &sub, "BC-Safe", &results).unwrap();
         assert_eq!(entry.checkpoint_sha256, digest_of(&scored));
         assert_eq!((entry.training.models, entry.training.seconds), (3, 4.5));
+        assert_eq!(entry.training.cpu.as_deref(), Some("Test CPU, AVX-512: no"));
         assert_eq!(entry.scoring.seconds, 90.0);
         assert_eq!(entries_in(&results), vec![entry]);
     }
