@@ -186,9 +186,12 @@ impl ChildPlayer {
         }
     }
 
-    /// Why the pipe broke, from the child's exit status, as observed: killed by a signal it did not raise itself
-    /// (SIGKILL from outside: an operator, the kernel's OOM killer) is not the checkpoint's fault and the job goes
-    /// back to the queue; an abort is what an allocation past the process's own memory limit ends in.
+    /// Why the pipe broke, from the child's exit status, as observed. A crash signal is the process's own doing
+    /// and would come again with the same checkpoint: an abort is what an allocation past its memory limit ends in,
+    /// the others (SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGXCPU, SIGSYS, SIGTRAP) a fault while playing it. Any other
+    /// signal came from outside (no participant code runs in the child): an operator's or a service manager's
+    /// SIGTERM or SIGINT to the server's process group, a SIGHUP, the kernel's OOM killer's SIGKILL. That is not
+    /// the checkpoint's fault, and the job goes back to the queue instead of failing it for good.
     async fn died(&mut self, what: &str) -> EvaluationError {
         let status = match tokio::time::timeout(std::time::Duration::from_secs(5), self.child.wait()).await {
             Ok(Ok(status)) => status,
@@ -202,12 +205,6 @@ impl ChildPlayer {
         {
             use std::os::unix::process::ExitStatusExt;
             match status.signal() {
-                Some(libc::SIGKILL) => {
-                    return EvaluationError::Unavailable(format!(
-                        "the policy process was killed by SIGKILL from outside the evaluator during a {what} \
-                         request (not by its own limits); the job goes back to the queue"
-                    ));
-                }
                 Some(libc::SIGABRT) => {
                     return EvaluationError::InvalidArgument(format!(
                         "the policy process aborted during a {what} request, as it does when an allocation fails \
@@ -215,9 +212,23 @@ impl ChildPlayer {
                         self.memory_limit_bytes >> 20
                     ));
                 }
-                Some(signal) => {
+                Some(
+                    signal @ (libc::SIGSEGV
+                    | libc::SIGBUS
+                    | libc::SIGILL
+                    | libc::SIGFPE
+                    | libc::SIGXCPU
+                    | libc::SIGSYS
+                    | libc::SIGTRAP),
+                ) => {
                     return EvaluationError::InvalidArgument(format!(
-                        "the policy process ended on signal {signal} during a {what} request"
+                        "the policy process crashed on signal {signal} during a {what} request"
+                    ));
+                }
+                Some(signal) => {
+                    return EvaluationError::Unavailable(format!(
+                        "the policy process was stopped by signal {signal} from outside the evaluator during a \
+                         {what} request (not by its own limits); the job goes back to the queue"
                     ));
                 }
                 None => {}
@@ -394,5 +405,56 @@ fn handle(rollout: &mut Rollout<'_>, op: u8, payload: &[u8]) -> Result<Vec<u8>, 
             Ok(Vec::new())
         }
         other => Err(format!("unknown request {other}")),
+    }
+}
+
+#[cfg(all(test, unix))]
+mod tests {
+    use super::*;
+
+    /// A child that answers nothing, stopped by `signal` before it is asked to act: `sleep` stands in for the
+    /// policy process, since what is tested is how its exit status is read, not how it plays (no core file).
+    async fn stopped_by(signal: i32) -> EvaluationError {
+        let mut child = tokio::process::Command::new("sh")
+            .args(["-c", "ulimit -c 0; exec sleep 600"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap();
+        let (stdin, stdout) = (child.stdin.take().unwrap(), child.stdout.take().unwrap());
+        // Let the shell exec sleep, so the signal reaches the process that stands in for the policy.
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+        // SAFETY: a plain system call on the pid of a child this test owns and has not reaped.
+        assert_eq!(unsafe { libc::kill(child.id().unwrap() as i32, signal) }, 0);
+        let mut player = ChildPlayer {
+            child,
+            stdin,
+            stdout,
+            memory_limit_bytes: 64 << 20,
+            request_timeout: std::time::Duration::from_secs(30),
+        };
+        player.call(ACT, b"observations").await.unwrap_err()
+    }
+
+    #[tokio::test]
+    async fn a_policy_process_stopped_from_outside_gives_its_job_back_and_a_crash_fails_it() {
+        for signal in [libc::SIGTERM, libc::SIGINT, libc::SIGHUP, libc::SIGKILL] {
+            let e = stopped_by(signal).await;
+            assert!(
+                matches!(&e, EvaluationError::Unavailable(m) if m.contains(&format!("signal {signal} from outside"))),
+                "signal {signal}: {e:?}"
+            );
+        }
+        let e = stopped_by(libc::SIGSEGV).await;
+        assert!(
+            matches!(&e, EvaluationError::InvalidArgument(m) if m.contains("crashed on signal")),
+            "{e:?}"
+        );
+        let e = stopped_by(libc::SIGABRT).await;
+        assert!(
+            matches!(&e, EvaluationError::InvalidArgument(m) if m.contains("64 MB memory limit")),
+            "{e:?}"
+        );
     }
 }
