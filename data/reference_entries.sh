@@ -194,7 +194,8 @@ record() {
   touch "$sub.recorded"
 }
 # A scoring that failed for the service's sake (a simulator worker that stopped answering on an overloaded machine
-# fails a job after its attempts) is submitted again, twice at most; a third failure stops the script with its reason.
+# fails a job after its attempts) is submitted again, twice at most; a third failure, or one the leaderboard puts down
+# to the checkpoint, stops the script with its reason.
 failed_scoring() {
   local sub tries
   sub=$(sub_of "$1" "$2" "$3")
@@ -202,6 +203,11 @@ failed_scoring() {
   tries=$(( $(cat "$sub.retries" 2> /dev/null || echo 0) + 1 ))
   echo "$1 seed $2: $(method_name "$3") submission $(cat "$sub.id") failed: $(python3 -c \
     'import json, sys; print(json.load(sys.stdin).get("reason") or "no reason given")' < "$sub.json")" >&2
+  # The checkpoint's own failure would come again, and the server refuses the same checkpoint while that
+  # submission stands.
+  if python3 -c 'import json, sys; sys.exit(json.load(sys.stdin).get("failure") != "checkpoint")' < "$sub.json"; then
+    echo "the leaderboard failed it as the checkpoint's fault: not submitted again" >&2; exit 1
+  fi
   if [ "$tries" -gt 2 ]; then echo "giving up after $tries failed scorings" >&2; exit 1; fi
   echo "$tries" > "$sub.retries"
   rm -f "$sub.id" "$sub.json" "$sub.recorded"

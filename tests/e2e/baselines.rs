@@ -326,3 +326,42 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
         }
     }
 }
+
+/// A scoring the leaderboard fails as the checkpoint's fault (here: a policy memory limit too small to load any
+/// weights) would fail again, and the server refuses the same checkpoint while that submission stands: the script
+/// stops with the reason after one submission instead of "retrying" the submission it already has.
+#[test]
+fn the_reference_entries_script_stops_at_a_scoring_failed_for_the_checkpoints_sake() {
+    let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
+    let env = crate::Env::with(
+        &[],
+        &[
+            ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
+            ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
+            ("DSRL__LEADERBOARD__POLICY_MEMORY_LIMIT_BYTES", "50000000"),
+        ],
+    );
+    env.cli
+        .run(&["admin", "ingest", "--task", TASK, crate::s(&starter())])
+        .ok();
+    let token = create_user(&env, "reference");
+    let output = Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
+        .args(["--steps", "3", "--batch-size", "16", "--methods", "bc-all", TASK])
+        .arg("--state")
+        .arg(env.path("reference-state"))
+        .arg("--results")
+        .arg(env.path("results.jsonl"))
+        .env("DSRL_SERVER", &env.server.url)
+        .env("DSRL_TOKEN", &token)
+        .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
+        .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
+        .env("DSRL_DATASET_DIR", env.path("cache"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(stderr.contains("MB memory limit"), "{stderr}");
+    assert!(stderr.contains("failed it as the checkpoint's fault"), "{stderr}");
+    assert_eq!(stderr.matches("submitted as").count(), 1, "{stderr}");
+    assert!(!env.path("results.jsonl").exists(), "nothing is recorded");
+}
