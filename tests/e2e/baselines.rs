@@ -180,49 +180,28 @@ fn each_baseline_records_its_training_and_the_same_seed_trains_the_same_weights(
 fn the_reference_entries_script_trains_scores_and_records_every_method_and_resumes() {
     // Two episodes per threshold: the script's path, not the protocol's count, is what is tested (the protocol's
     // twenty are scored in the leaderboard's own test).
-    let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
-    let env = crate::Env::with(
-        &[],
-        &[
-            ("DSRL__SIMULATORS__LOCAL_WORKERS", "2"),
-            ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
-            ("DSRL__LEADERBOARD__EPISODES_PER_THRESHOLD", "2"),
-            ("DSRL__LEADERBOARD__ENVS_PER_SESSION", "2"),
-        ],
-    );
-    env.cli
-        .run(&["admin", "ingest", "--task", TASK, crate::s(&starter())])
-        .ok();
-    let token = create_user(&env, "reference");
+    let (env, token) = scoring_server(&[
+        ("DSRL__SIMULATORS__LOCAL_WORKERS", "2"),
+        ("DSRL__LEADERBOARD__EPISODES_PER_THRESHOLD", "2"),
+        ("DSRL__LEADERBOARD__ENVS_PER_SESSION", "2"),
+    ]);
     let state = env.path("reference-state");
     let results = env.path("results.jsonl");
     let run = |extra: &[&str]| {
-        Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
-            .args(extra)
-            .args([
-                "--steps",
-                "3",
-                "--cdt-steps",
-                "1",
-                "--caps-steps",
-                "3",
-                "--batch-size",
-                "16",
-                "--jobs",
-                "2",
-            ])
-            .args(["--methods", "bc-all bc-safe cdt bcql bearl cpq coptidice caps", TASK])
-            .arg("--state")
-            .arg(&state)
-            .arg("--results")
-            .arg(&results)
-            .env("DSRL_SERVER", &env.server.url)
-            .env("DSRL_TOKEN", &token)
-            .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
-            .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
-            .env("DSRL_DATASET_DIR", env.path("cache"))
-            .output()
-            .unwrap()
+        let budgets = [
+            "--steps",
+            "3",
+            "--cdt-steps",
+            "1",
+            "--caps-steps",
+            "3",
+            "--batch-size",
+            "16",
+            "--jobs",
+            "2",
+        ];
+        let methods = ["--methods", "bc-all bc-safe cdt bcql bearl cpq coptidice caps"];
+        reference_entries(&env, &token, &[extra, &budgets, &methods].concat())
     };
     let output = run(&[]);
     let stderr = String::from_utf8_lossy(&output.stderr);
@@ -332,36 +311,52 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
 /// stops with the reason after one submission instead of "retrying" the submission it already has.
 #[test]
 fn the_reference_entries_script_stops_at_a_scoring_failed_for_the_checkpoints_sake() {
-    let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
-    let env = crate::Env::with(
-        &[],
-        &[
-            ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
-            ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
-            ("DSRL__LEADERBOARD__POLICY_MEMORY_LIMIT_BYTES", "50000000"),
-        ],
+    let (env, token) = scoring_server(&[
+        ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
+        ("DSRL__LEADERBOARD__POLICY_MEMORY_LIMIT_BYTES", "50000000"),
+    ]);
+    let output = reference_entries(
+        &env,
+        &token,
+        &["--steps", "3", "--batch-size", "16", "--methods", "bc-all"],
     );
-    env.cli
-        .run(&["admin", "ingest", "--task", TASK, crate::s(&starter())])
-        .ok();
-    let token = create_user(&env, "reference");
-    let output = Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
-        .args(["--steps", "3", "--batch-size", "16", "--methods", "bc-all", TASK])
-        .arg("--state")
-        .arg(env.path("reference-state"))
-        .arg("--results")
-        .arg(env.path("results.jsonl"))
-        .env("DSRL_SERVER", &env.server.url)
-        .env("DSRL_TOKEN", &token)
-        .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
-        .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
-        .env("DSRL_DATASET_DIR", env.path("cache"))
-        .output()
-        .unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success(), "{stderr}");
     assert!(stderr.contains("MB memory limit"), "{stderr}");
     assert!(stderr.contains("failed it as the checkpoint's fault"), "{stderr}");
     assert_eq!(stderr.matches("submitted as").count(), 1, "{stderr}");
     assert!(!env.path("results.jsonl").exists(), "nothing is recorded");
+}
+
+/// A server hosting the BallRun starter on its own simulator workers, with `settings`, and a user's token.
+fn scoring_server(settings: &[(&str, &str)]) -> (crate::Env, String) {
+    let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
+    let env = crate::Env::with(
+        &[],
+        &[&[("DSRL__SIMULATORS__WORKER_BINARY", binary.as_str())], settings].concat(),
+    );
+    env.cli
+        .run(&["admin", "ingest", "--task", TASK, crate::s(&starter())])
+        .ok();
+    let token = create_user(&env, "reference");
+    (env, token)
+}
+
+/// `data/reference_entries.sh ARGS` on BallRun against `env`'s server as the user of `token`, its state and
+/// results file in `env`'s folder.
+fn reference_entries(env: &crate::Env, token: &str, args: &[&str]) -> std::process::Output {
+    Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
+        .args(args)
+        .arg(TASK)
+        .arg("--state")
+        .arg(env.path("reference-state"))
+        .arg("--results")
+        .arg(env.path("results.jsonl"))
+        .env("DSRL_SERVER", &env.server.url)
+        .env("DSRL_TOKEN", token)
+        .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
+        .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
+        .env("DSRL_DATASET_DIR", env.path("cache"))
+        .output()
+        .unwrap()
 }
