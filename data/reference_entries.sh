@@ -117,9 +117,15 @@ request_timeout=${DSRL_REFERENCE_REQUEST_TIMEOUT_S:-900}
 # Every start of the private server re-claims the jobs it left running, and a public server fails a job on its third
 # claim: here a stopped and resumed sweep is the usual cause, not a job that kills its evaluator.
 max_attempts=10
-server_pid=
-stop_server() { [ -z "$server_pid" ] || kill "$server_pid" 2>/dev/null || true; }
-trap stop_server EXIT
+server_pid= training=
+# However the script ends (a failed model or scoring, a signal), nothing it started outlives it: models left training
+# would go on against a server that is gone, beside the copies a rerun starts of them. The training job (xargs, its
+# shells, their dsrl-train processes) is a process group of its own.
+on_exit() {
+  [ -z "$training" ] || kill -- "-$training" 2> /dev/null || true
+  [ -z "$server_pid" ] || kill "$server_pid" 2>/dev/null || true
+}
+trap on_exit EXIT
 if [ -z "${DSRL_SERVER:-}" ]; then
   port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
   mkdir -p "$state/server"
@@ -159,11 +165,12 @@ train_unit() {
   [ -z "$batch_size" ] || args+=(--batch-size "$batch_size")
   [ "$kappa" = - ] || args+=(--cost-threshold "$kappa")
   [ "$device" = cpu ] || args+=(--device "$device")
+  # Run by xargs in a shell of its own, without errexit: a failed training must return here, before its marker.
   case $method in
     bc-all) "$train" bc --mode all "${args[@]}" ;;
     bc-safe) "$train" bc --mode safe "${args[@]}" ;;
     *) "$train" "$method" "${args[@]}" ;;
-  esac
+  esac || return 1
   rm -f "$out/$task/seed-$seed/.trained-$method-$kappa-"*
   touch "$marker"
 }
@@ -345,13 +352,18 @@ for task in "${tasks[@]}"; do
   # Every minute while they train: the methods whose models have all trained are handed in, and the entries scored
   # meanwhile are recorded. A failed job stops new ones from starting (exit 255), and the script stops with it.
   pending=("${todo[@]}")
-  printf '%s\n' "${units[@]}" | xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit &
+  # The job runs in a process group of its own (job control on for its start), so that on exit the whole of it can
+  # be stopped, even models a failed xargs left running.
+  set -m
+  xargs -P "$jobs" -L 1 bash -c 'train_unit "$@" || exit 255' train_unit < <(printf '%s\n' "${units[@]}") &
   training=$! polled=0
+  set +m
   while kill -0 "$training" 2> /dev/null; do
     if [ "$SECONDS" -ge "$polled" ]; then hand_in_trained; record_finished poll; polled=$((SECONDS + 60)); fi
     sleep 1
   done
   wait "$training"
+  training=
   hand_in_trained
   [ "$reproduce" = yes ] || record_finished poll
 done

@@ -328,6 +328,66 @@ fn the_reference_entries_script_stops_at_a_scoring_failed_for_the_checkpoints_sa
     assert!(!env.path("results.jsonl").exists(), "nothing is recorded");
 }
 
+/// A model whose training fails leaves no marker (a rerun trains it again rather than taking it for done) and
+/// stops the script once the models training beside it have finished (their work is kept); a script stopped by a
+/// signal stops its models too, so none trains on beside the copies a rerun would start.
+#[test]
+fn the_reference_entries_script_stops_whole_at_a_failed_training_or_a_signal() {
+    let (env, token) = scoring_server(&[("DSRL__SIMULATORS__LOCAL_WORKERS", "1")]);
+    let models = env.path("reference-state").join("policies").join(TASK).join("seed-0");
+    let markers = || -> Vec<String> {
+        let mut found: Vec<String> = std::fs::read_dir(&models)
+            .map(|d| {
+                d.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                    .collect()
+            })
+            .unwrap_or_default();
+        found.retain(|n| n.starts_with(".trained"));
+        found
+    };
+    // BCQ-Lag's steps are refused by dsrl-train's parser.
+    let args = [
+        "--steps",
+        "3",
+        "--steps-for",
+        "bcql=-1",
+        "--jobs",
+        "2",
+        "--methods",
+        "bc-all bcql",
+    ];
+    let output = reference_entries(&env, &token, &args);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert_eq!(markers(), [".trained-bc-all---steps-3-batch-osrl"], "{stderr}");
+
+    // Stopped while BC-All trains (long enough to be still training): nothing is left training into the state.
+    let state = env.path("reference-state").display().to_string();
+    let training = || -> usize {
+        std::fs::read_dir("/proc")
+            .unwrap()
+            .filter_map(|e| std::fs::read(e.ok()?.path().join("cmdline")).ok())
+            .map(|c| String::from_utf8_lossy(&c).replace('\0', " "))
+            .filter(|c| c.contains(&state) && c.contains("dsrl-train bc"))
+            .count()
+    };
+    let mut script = reference_entries_command(&env, &token, &["--steps", "100000000", "--methods", "bc-all"])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    while training() == 0 {
+        assert!(std::time::Instant::now() < deadline, "BC-All never started training");
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    let kill = Command::new("kill").args(["-TERM", &script.id().to_string()]).status();
+    assert!(kill.unwrap().success());
+    assert!(!script.wait().unwrap().success());
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    assert_eq!(training(), 0, "a model trains on after its script stopped");
+    assert_eq!(markers(), [".trained-bc-all---steps-3-batch-osrl"]);
+}
+
 /// A server hosting the BallRun starter on its own simulator workers, with `settings`, and a user's token.
 fn scoring_server(settings: &[(&str, &str)]) -> (crate::Env, String) {
     let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
@@ -345,7 +405,12 @@ fn scoring_server(settings: &[(&str, &str)]) -> (crate::Env, String) {
 /// `data/reference_entries.sh ARGS` on BallRun against `env`'s server as the user of `token`, its state and
 /// results file in `env`'s folder.
 fn reference_entries(env: &crate::Env, token: &str, args: &[&str]) -> std::process::Output {
-    Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"))
+    reference_entries_command(env, token, args).output().unwrap()
+}
+
+fn reference_entries_command(env: &crate::Env, token: &str, args: &[&str]) -> Command {
+    let mut command = Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"));
+    command
         .args(args)
         .arg(TASK)
         .arg("--state")
@@ -356,7 +421,6 @@ fn reference_entries(env: &crate::Env, token: &str, args: &[&str]) -> std::proce
         .env("DSRL_TOKEN", token)
         .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
         .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
-        .env("DSRL_DATASET_DIR", env.path("cache"))
-        .output()
-        .unwrap()
+        .env("DSRL_DATASET_DIR", env.path("cache"));
+    command
 }
