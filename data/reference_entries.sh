@@ -297,10 +297,12 @@ EOF
   )
 }
 
+# The models of method $2 on task $1: "-" for the methods trained once, else the task's thresholds.
+models_of() { case $2 in bc-all | cdt | caps) echo - ;; *) thresholds "$1" ;; esac; }
 # Whether every model of task $1, seed $2, method $3 has finished training.
 trained() {
   local kappa
-  for kappa in $(case $3 in bc-all | cdt | caps) echo - ;; *) thresholds "$1" ;; esac); do
+  for kappa in $(models_of "$1" "$3"); do
     [ -e "$(marker_of "$1" "$2" "$3" "$kappa" "$(method_steps "$3")")" ] || return 1
   done
 }
@@ -332,7 +334,6 @@ for task in "${tasks[@]}"; do
   "$client" fetch "$task" >&2  # fetched once, so parallel jobs read one verified cached file
   version=$("$client" --json show "$task" | python3 -c 'import json, sys; print(json.load(sys.stdin)["version"])')
   units=() todo=()
-  kappas=$(thresholds "$task")
   for seed in $seeds; do
     for method in $methods; do
       n=$(method_steps "$method")
@@ -341,10 +342,10 @@ for task in "${tasks[@]}"; do
         continue
       fi
       todo+=("$seed $method")
-      case $method in
-        bc-all | cdt | caps) next_device; units+=("$task $seed $method - $n $device") ;;
-        *) for kappa in $kappas; do next_device; units+=("$task $seed $method $kappa $n $device"); done ;;
-      esac
+      for kappa in $(models_of "$task" "$method"); do
+        next_device
+        units+=("$task $seed $method $kappa $n $device")
+      done
     done
   done
   [ ${#todo[@]} -gt 0 ] || continue
