@@ -151,7 +151,7 @@ if [ -z "${DSRL_SERVER:-}" ]; then
 fi
 : "${DSRL_TOKEN:?set DSRL_TOKEN to a user token of $DSRL_SERVER}"
 
-# Task by task: train its models (--jobs at a time), submit each entry as soon as its models have trained (the
+# Train every task's models (--jobs at a time, one pool), submit each entry as soon as its models have trained (the
 # server scores it while the rest train), and record every entry whose scoring has finished (checked every minute),
 # so the results file grows as entries are scored.
 # A model whose training finished leaves a marker naming its budget; a model trained to another budget is trained
@@ -306,13 +306,13 @@ trained() {
     [ -e "$(marker_of "$1" "$2" "$3" "$kappa" "$(method_steps "$3")")" ] || return 1
   done
 }
-# Hands in each method of this task whose models have all trained: submits it or, with --reproduce, checks it. A
-# run stopped while a task trains then loses only the models still training, not those of its finished methods.
+# Hands in each pending method whose models have all trained: submits it or, with --reproduce, checks it. A run
+# stopped while models train then loses only those still training, not the finished methods'.
 hand_in_trained() {
-  local e seed method left=()
+  local e task seed method left=()
   [ "$train_only" = no ] || return 0
   for e in "${pending[@]+"${pending[@]}"}"; do
-    read -r seed method <<< "$e"
+    read -r task seed method <<< "$e"
     if ! trained "$task" "$seed" "$method"; then
       left+=("$e")
     elif [ "$reproduce" = yes ]; then
@@ -330,10 +330,13 @@ dealt=0 device=cpu
 next_device() {
   if [ "$gpus" -gt 0 ]; then device=cuda:$((dealt % gpus)) dealt=$((dealt + 1)); fi
 }
+# Every task's models train in one pool, --jobs at a time, task after task: a task's last models train beside the
+# next task's first, so no core waits for a task (say, its third BEAR-Lag threshold) to finish.
+units=() pending=() pooled=()
 for task in "${tasks[@]}"; do
   "$client" fetch "$task" >&2  # fetched once, so parallel jobs read one verified cached file
   version=$("$client" --json show "$task" | python3 -c 'import json, sys; print(json.load(sys.stdin)["version"])')
-  units=() todo=()
+  before=${#units[@]}
   for seed in $seeds; do
     for method in $methods; do
       n=$(method_steps "$method")
@@ -341,18 +344,19 @@ for task in "${tasks[@]}"; do
         echo "$task seed $seed: $(method_name "$method") is in $results already ($why); not trained again" >&2
         continue
       fi
-      todo+=("$seed $method")
+      pending+=("$task $seed $method")
       for kappa in $(models_of "$task" "$method"); do
         next_device
         units+=("$task $seed $method $kappa $n $device")
       done
     done
   done
-  [ ${#todo[@]} -gt 0 ] || continue
-  echo "$(date -u +%FT%TZ) $task: training ${#units[@]} models ($jobs at a time) into $out" >&2
+  [ ${#units[@]} -eq "$before" ] || pooled+=("$task")
+done
+if [ ${#units[@]} -gt 0 ]; then
+  echo "$(date -u +%FT%TZ) training ${#units[@]} models ($jobs at a time) of ${pooled[*]} into $out" >&2
   # Every minute while they train: the methods whose models have all trained are handed in, and the entries scored
   # meanwhile are recorded. A failed job stops new ones from starting (exit 255), and the script stops with it.
-  pending=("${todo[@]}")
   # The job runs in a process group of its own (job control on for its start), so that on exit the whole of it can
   # be stopped, even models a failed xargs left running.
   set -m
@@ -367,7 +371,7 @@ for task in "${tasks[@]}"; do
   training=
   hand_in_trained
   [ "$reproduce" = yes ] || record_finished poll
-done
+fi
 [ "$train_only" = no ] || exit 0
 if [ "$reproduce" = yes ]; then
   [ ${#unreproduced[@]} -eq 0 ] || { printf 'not reproduced: %s\n' "${unreproduced[@]}" >&2; exit 1; }

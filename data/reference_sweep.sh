@@ -62,16 +62,17 @@ for phase in $phases; do
       [ ${#todo[@]} -eq 0 ] || run --reproduce --methods "bc-all bc-safe" --steps 20000 "${todo[@]}"
       ;;
     2)
-      run "${offline[@]}" --methods "cdt bcql cpq coptidice caps" "${six[@]:1}"
-      run "${offline[@]}" --methods "cdt bcql cpq coptidice" OfflineBallRun-v0
-      run "${offline[@]}" --methods caps --caps-steps 20000 OfflineBallRun-v0
-      run "${offline[@]}" --methods bearl "${six[@]}"
+      # Longest models first, so the pool ends on short ones (data/reference_entries.sh trains all of a run's tasks
+      # in one pool); BallRun's CAPS beside the rest rather than alone after them.
+      run "${offline[@]}" --methods "bearl cdt cpq bcql coptidice caps" "${six[@]:1}"
+      run "${offline[@]}" --methods "caps bearl cdt cpq bcql coptidice" --caps-steps 20000 OfflineBallRun-v0
       ;;
     3)
-      run --seeds "1 2" --methods "bc-all bc-safe" --steps 10000 OfflineBallRun-v0 OfflineCarCircle-v0
-      run --seeds "1 2" "${offline[@]}" --methods "cdt bcql cpq coptidice bearl" OfflineBallRun-v0 OfflineCarCircle-v0
-      run --seeds "1 2" "${offline[@]}" --methods caps OfflineCarCircle-v0
-      run --seeds "1 2" "${offline[@]}" --methods caps --caps-steps 20000 OfflineBallRun-v0
+      bc=(--steps-for bc-all=10000 --steps-for bc-safe=10000)  # phase 1's budget
+      run --seeds "1 2" "${offline[@]}" "${bc[@]}" --methods "bearl cdt cpq bcql coptidice bc-safe bc-all caps" \
+        OfflineCarCircle-v0
+      run --seeds "1 2" "${offline[@]}" "${bc[@]}" --methods "caps bearl cdt cpq bcql coptidice bc-safe bc-all" \
+        --caps-steps 20000 OfflineBallRun-v0
       ;;
     *) echo "no phase $phase" >&2; exit 2 ;;
   esac

@@ -388,6 +388,53 @@ fn the_reference_entries_script_stops_whole_at_a_failed_training_or_a_signal() {
     assert_eq!(markers(), [".trained-bc-all---steps-3-batch-osrl"]);
 }
 
+/// All of a run's tasks train in one pool (a task's last models beside the next task's first, no core waiting for a
+/// task to finish), and each method is handed in as soon as its own models have trained, whichever task it is of.
+#[test]
+fn the_reference_entries_script_trains_all_its_tasks_in_one_pool() {
+    const CAR_RUN: &str = "OfflineCarRun-v0";
+    let (env, token) = scoring_server(&[
+        ("DSRL__SIMULATORS__LOCAL_WORKERS", "2"),
+        ("DSRL__LEADERBOARD__EPISODES_PER_THRESHOLD", "2"),
+        ("DSRL__LEADERBOARD__ENVS_PER_SESSION", "2"),
+    ]);
+    let car_run = dsrl_e2e::repo_root().join("data/starter/OfflineCarRun-v0/SafetyCarRun-v0-40-590.parquet");
+    env.cli
+        .run(&["admin", "ingest", "--task", CAR_RUN, crate::s(&car_run)])
+        .ok();
+    let args = [
+        "--steps",
+        "3",
+        "--batch-size",
+        "16",
+        "--jobs",
+        "2",
+        "--methods",
+        "bc-all",
+        CAR_RUN,
+    ];
+    let output = reference_entries(&env, &token, &args);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert_eq!(stderr.matches("training ").count(), 1, "{stderr}");
+    assert!(
+        stderr.contains(&format!("training 2 models (2 at a time) of {CAR_RUN} {TASK}")),
+        "{stderr}"
+    );
+    let catalog = dsrl_suite::Catalog::embedded().unwrap();
+    let text = std::fs::read_to_string(env.path("results.jsonl")).unwrap();
+    let mut recorded: Vec<(String, String)> = dsrl_suite::reference::read_results(&text, &catalog)
+        .unwrap()
+        .into_iter()
+        .map(|e| (e.task, e.method))
+        .collect();
+    recorded.sort();
+    assert_eq!(
+        recorded,
+        [(TASK, "BC-All"), (CAR_RUN, "BC-All")].map(|(t, m)| (t.to_owned(), m.to_owned()))
+    );
+}
+
 /// A server hosting the BallRun starter on its own simulator workers, with `settings`, and a user's token.
 fn scoring_server(settings: &[(&str, &str)]) -> (crate::Env, String) {
     let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
