@@ -11,6 +11,8 @@ import time
 import numpy as np
 import pyarrow.parquet as pq
 
+from columns import matrix
+
 
 def main():
     p = argparse.ArgumentParser()
@@ -19,8 +21,8 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     table = pq.read_table(args.dataset, columns=["observations", "actions"])
-    obs = np.stack(table.column("observations").to_numpy(zero_copy_only=False)).astype(np.float32)
-    act = np.stack(table.column("actions").to_numpy(zero_copy_only=False)).astype(np.float32)
+    obs = matrix(table, "observations")[0]
+    act = matrix(table, "actions")[0]
     rng = np.random.default_rng(args.seed)
     sizes = [obs.shape[1], 256, 256, act.shape[1]]
     params = []

@@ -13,6 +13,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import torch
 
+from columns import matrix
+
 
 def main():
     p = argparse.ArgumentParser()
@@ -25,8 +27,8 @@ def main():
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     table = pq.read_table(args.dataset, columns=["observations", "actions"])
-    obs = torch.from_numpy(np.stack(table.column("observations").to_numpy(zero_copy_only=False)).astype(np.float32))
-    act = torch.from_numpy(np.stack(table.column("actions").to_numpy(zero_copy_only=False)).astype(np.float32))
+    obs = torch.from_numpy(matrix(table, "observations")[0])
+    act = torch.from_numpy(matrix(table, "actions")[0])
     device = torch.device(args.device)
     obs, act = obs.to(device), act.to(device)
     sizes = [obs.shape[1], 256, 256, act.shape[1]]

@@ -9,9 +9,10 @@
 #     steps first.
 # PyTorch and OSRL live in their own environment, .venv-bench (bench/requirements-torch.txt, plus osrl-lib and
 # fast-safe-rl installed with --no-deps: their own pins ask for torch 1.13, wandb, simulators), made on first use.
-# Prints a Markdown table (also bench/out/offline_step.md) with the CPU, whether it has AVX-512 and the load average
-# when the run started (other work on the machine slows every column). Usage: bench/offline_step.sh [STEPS=50]
-# SKIP_BUILD=1 uses the dsrl-train already built instead of running cargo.
+# Prints a Markdown table (also bench/out/offline_step.md, and into BENCHMARKS.md at 50 steps) with the CPU, whether it
+# has AVX-512 and the load average when the run started (other work on the machine slows every column). Usage: bench/offline_step.sh [STEPS=50]
+# SKIP_BUILD=1 uses the dsrl-train already built instead of running cargo. BEFORE=<a dsrl-train> adds its column beside
+# the build's, in the same run (a change's before and after), with BEFORE_LABEL naming it (e.g. its commit).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 steps=${1:-50}
@@ -44,35 +45,59 @@ torch_step() { .venv-bench/bin/python bench/offline_step_torch.py "$data" --algo
   --warmup "$warmup" --threads "$2" | ms; }
 rows=()
 cdt_steps=${CDT_STEPS:-3}
-for algo in bcql bearl cpq coptidice cdt; do
+# ms a step of the dsrl-train $1 on ${args[@]} (into $2), from its own timer, its first step left out.
+candle_step() {
+  "$1" "${args[@]}" --out "$2" >&2
+  python3 -c "import json; t=json.load(open('$2/$policy'))['training']; print(1000*(t['seconds']-t['first_step_seconds'])/(t['steps']-1))"
+}
+cdt_small_steps=${CDT_SMALL_STEPS:-10}
+# CDT twice: at OSRL's batch 2048, where a step's time varies by tens of percent from run to run (its 40-170 MB
+# tensors), and at the sweep's batch 512, steadier.
+for algo in bcql bearl cpq coptidice cdt cdt-512; do
   echo "== $algo" >&2
-  if [ "$algo" = cdt ]; then
-    # CDT is trained once (no threshold) at batch 2048 and takes seconds a step: fewer steps, one warm-up.
-    "$bin/dsrl-train" cdt --task OfflineCarRun-v0 --dataset "$data" --steps $((cdt_steps + 1)) --out "$work" >&2
-    policy=$work/cdt/policy.json
-    torch1=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$cdt_steps" --warmup 1 \
-      --threads 1 | ms)
-    torch_all=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$cdt_steps" \
-      --warmup 1 --threads "$threads" | ms)
+  if [ "$algo" = cdt ] || [ "$algo" = cdt-512 ]; then
+    # CDT is trained once (no threshold) and takes seconds a step: fewer steps, one warm-up.
+    if [ "$algo" = cdt ]; then batch=2048 n=$cdt_steps; else batch=512 n=$cdt_small_steps; fi
+    label="cdt (batch $batch)"
+    args=(cdt --task OfflineCarRun-v0 --dataset "$data" --steps $((n + 1)) --batch-size "$batch")
+    policy=cdt/policy.json
+    torch1=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$n" --warmup 1 \
+      --threads 1 --cdt-batch "$batch" | ms)
+    torch_all=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$n" \
+      --warmup 1 --threads "$threads" --cdt-batch "$batch" | ms)
   else
-    "$bin/dsrl-train" "$algo" --task OfflineCarRun-v0 --dataset "$data" --steps $((steps + 1)) --cost-threshold 10 \
-      --out "$work" >&2
-    policy=$work/$algo/threshold-10/policy.json
+    args=("$algo" --task OfflineCarRun-v0 --dataset "$data" --steps $((steps + 1)) --cost-threshold 10)
+    policy=$algo/threshold-10/policy.json
+    label=$algo
     torch1=$(torch_step "$algo" 1)
     torch_all=$(torch_step "$algo" "$threads")
   fi
-  candle=$(python3 -c "import json; t=json.load(open('$policy'))['training']; print(1000*(t['seconds']-t['first_step_seconds'])/(t['steps']-1))")
-  rows+=("$(python3 -c "print('| %s | %.1f | %.1f | %.1f | %.2f |' % ('$algo', $candle, $torch1, $torch_all, \
-$candle / $torch1))")")
+  candle=$(candle_step "$bin/dsrl-train" "$work/new-$algo")
+  before=None
+  [ -z "${BEFORE:-}" ] || before=$(candle_step "$BEFORE" "$work/before-$algo")
+  rows+=("$(python3 -c "b = $before; print('| %s | %.1f |%s %.1f | %.1f | %.2f |' % ('$label', $candle, \
+'' if b is None else ' %.1f |' % b, $torch1, $torch_all, $candle / $torch1))")")
 done
 {
-  echo "| algorithm | candle, 1 thread (ms/step) | PyTorch $torch_version, 1 thread (ms/step) | PyTorch $torch_version, $threads threads (ms/step) | candle / PyTorch 1 thread |"
-  echo "|---|---|---|---|---|"
+  if [ -n "${BEFORE:-}" ]; then
+    echo "| algorithm | candle, 1 thread (ms/step) | candle before (${BEFORE_LABEL:-BEFORE}), 1 thread (ms/step) | PyTorch $torch_version, 1 thread (ms/step) | PyTorch $torch_version, $threads threads (ms/step) | candle / PyTorch 1 thread |"
+    echo "|---|---|---|---|---|---|"
+  else
+    echo "| algorithm | candle, 1 thread (ms/step) | PyTorch $torch_version, 1 thread (ms/step) | PyTorch $torch_version, $threads threads (ms/step) | candle / PyTorch 1 thread |"
+    echo "|---|---|---|---|---|"
+  fi
   printf '%s\n' "${rows[@]}"
   echo
-  echo "CPU: $cpu ($threads cores), AVX-512: $avx512. $steps steps per run at batch 512 (CDT: $cdt_steps at batch 2048),"
+  echo "candle: the dsrl-train of \`$(python3 -c "import json; print(json.load(open('$work/new-bcql/bcql/threshold-10/policy.json'))['training']['code_commit'])")\`."
+  echo "CPU: $cpu ($threads cores), AVX-512: $avx512. $steps steps per run at batch 512 (CDT: $cdt_steps at batch 2048,"
+  echo "$cdt_small_steps at batch 512),"
   echo "OfflineCarRun-v0 starter;"
   echo "PyTorch after $warmup warm-up steps with batches built beforehand (OSRL osrl-lib 0.1.0); candle after its first"
-  echo "step, its time including drawing its batches. Load average at start: $load."
+  echo "step, its time including drawing its batches. Load average at start: $load. Measured $(date -u +%F)."
 } > bench/out/offline_step.md
 cat bench/out/offline_step.md
+# The table goes into BENCHMARKS.md between its markers (only from a run at the documented count of steps).
+if [ "$steps" = 50 ] && [ "$cdt_steps" = 3 ] && [ "$cdt_small_steps" = 10 ]; then
+  python3 bench/into_benchmarks.py offline_step.sh bench/out/offline_step.md
+  echo "written into BENCHMARKS.md" >&2
+fi

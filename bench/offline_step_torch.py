@@ -35,6 +35,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import torch
 
+from columns import matrix
+
 BATCH = 512
 HIDDEN = [256, 256]
 COMMON = dict(gamma=0.99, cost_limit=10, episode_len=200)  # OfflineCarRun-v0: 200 steps per episode
@@ -88,14 +90,6 @@ def stand_in_loggers():
                 setattr(sys.modules[".".join(parts[:i - 1])], parts[i - 1], sys.modules[full])
         for key, value in attrs.items():
             setattr(sys.modules[name], key, value)
-
-
-def matrix(table, name):
-    """A FixedSizeList<f32> column as an (n, d) array; rows the compact form leaves null come back as NaN."""
-    arr = table.column(name).combine_chunks()
-    d = arr.type.list_size
-    values = arr.values.to_numpy(zero_copy_only=False)[arr.offset * d:(arr.offset + len(arr)) * d]
-    return values.reshape(len(arr), d).astype(np.float32), arr.is_null().to_numpy(zero_copy_only=False)
 
 
 def load(path):
@@ -167,6 +161,7 @@ def main():
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--cdt-batch", type=int, default=2048, help="CDT's batch (OSRL's 2048)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -246,7 +241,7 @@ def time_cdt(args, rng, algorithms, DummyLogger, osrl):
     model.to(args.device)
     total = args.warmup + args.steps
     started = time.perf_counter()
-    batches = [[x.to(args.device) for x in b] for b in cdt_batches(d, rng, total)]
+    batches = [[x.to(args.device) for x in b] for b in cdt_batches(d, rng, total, batch=args.cdt_batch)]
     batch_seconds = time.perf_counter() - started
     for batch in batches[:args.warmup]:
         trainer.train_one_step(*batch)
