@@ -9,8 +9,9 @@
 #     steps first.
 # PyTorch and OSRL live in their own environment, .venv-bench (bench/requirements-torch.txt, plus osrl-lib and
 # fast-safe-rl installed with --no-deps: their own pins ask for torch 1.13, wandb, simulators), made on first use.
-# Prints a Markdown table (also bench/out/offline_step.md, and into BENCHMARKS.md at 50 steps) with the CPU, whether it
-# has AVX-512 and the load average when the run started (other work on the machine slows every column). Usage: bench/offline_step.sh [STEPS=50]
+# Prints a Markdown table (also bench/out/offline_step.md, and into BENCHMARKS.md at 50 steps) with the CPU, whether
+# it has AVX-512 and the load average when the run started (other work on the machine slows every column).
+# Usage: bench/offline_step.sh [STEPS=50]
 # SKIP_BUILD=1 uses the dsrl-train already built instead of running cargo. BEFORE=<a dsrl-train> adds its column beside
 # the build's, in the same run (a change's before and after), with BEFORE_LABEL naming it (e.g. its commit).
 set -euo pipefail
@@ -41,8 +42,8 @@ cpu=$(lscpu | sed -n 's/^Model name: *//p' | head -1)
 if grep -q -m1 avx512 /proc/cpuinfo; then avx512=yes; else avx512=no; fi
 torch_version=$(.venv-bench/bin/python -c "import torch; print(torch.__version__)")
 ms() { python3 -c "import json,sys; print(json.loads(sys.stdin.read().strip().splitlines()[-1])['ms_per_step'])"; }
-torch_step() { .venv-bench/bin/python bench/offline_step_torch.py "$data" --algo "$1" --steps "$steps" \
-  --warmup "$warmup" --threads "$2" | ms; }
+# ms a step of OSRL's code on $1 threads, for ${torch_args[@]} (algorithm, steps, warm-up, ...).
+torch_step() { .venv-bench/bin/python bench/offline_step_torch.py "$data" "${torch_args[@]}" --threads "$1" | ms; }
 rows=()
 cdt_steps=${CDT_STEPS:-3}
 # ms a step of the dsrl-train $1 on ${args[@]} (into $2), from its own timer, its first step left out.
@@ -61,17 +62,15 @@ for algo in bcql bearl cpq coptidice cdt cdt-512; do
     label="cdt (batch $batch)"
     args=(cdt --task OfflineCarRun-v0 --dataset "$data" --steps $((n + 1)) --batch-size "$batch")
     policy=cdt/policy.json
-    torch1=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$n" --warmup 1 \
-      --threads 1 --cdt-batch "$batch" | ms)
-    torch_all=$(.venv-bench/bin/python bench/offline_step_torch.py "$data" --algo cdt --steps "$n" \
-      --warmup 1 --threads "$threads" --cdt-batch "$batch" | ms)
+    torch_args=(--algo cdt --steps "$n" --warmup 1 --cdt-batch "$batch")
   else
     args=("$algo" --task OfflineCarRun-v0 --dataset "$data" --steps $((steps + 1)) --cost-threshold 10)
     policy=$algo/threshold-10/policy.json
     label=$algo
-    torch1=$(torch_step "$algo" 1)
-    torch_all=$(torch_step "$algo" "$threads")
+    torch_args=(--algo "$algo" --steps "$steps" --warmup "$warmup")
   fi
+  torch1=$(torch_step 1)
+  torch_all=$(torch_step "$threads")
   candle=$(candle_step "$bin/dsrl-train" "$work/new-$algo")
   before=None
   [ -z "${BEFORE:-}" ] || before=$(candle_step "$BEFORE" "$work/before-$algo")
@@ -88,7 +87,7 @@ done
   fi
   printf '%s\n' "${rows[@]}"
   echo
-  echo "candle: the dsrl-train of \`$(python3 -c "import json; print(json.load(open('$work/new-bcql/bcql/threshold-10/policy.json'))['training']['code_commit'])")\`."
+  echo "candle: the dsrl-train of \`$(python3 -c "import json; print(json.load(open('$work/new-$algo/$policy'))['training']['code_commit'])")\`."
   echo "CPU: $cpu ($threads cores), AVX-512: $avx512. $steps steps per run at batch 512 (CDT: $cdt_steps at batch 2048,"
   echo "$cdt_small_steps at batch 512),"
   echo "OfflineCarRun-v0 starter;"
