@@ -98,6 +98,15 @@ fn short(task: &str) -> String {
     t.strip_suffix("Gymnasium").unwrap_or(t).to_owned()
 }
 
+/// "1 entry", "2 entries".
+fn entries_count(n: usize) -> String {
+    if n == 1 {
+        "1 entry".to_owned()
+    } else {
+        format!("{n} entries")
+    }
+}
+
 /// The reference sections: the agreement with the paper, every entry with its interval and the paper's row, and
 /// every entry's compute.
 pub fn reference_sections(
@@ -125,8 +134,8 @@ pub fn reference_sections(
         .collect();
     let _ = writeln!(
         s,
-        "{} entries of protocol `{protocol_version}` on {} of {} tasks{}.{}\n",
-        current.len(),
+        "{} of protocol `{protocol_version}` on {} of {} tasks{}.{}\n",
+        entries_count(current.len()),
         covered.len(),
         catalog.tasks().len(),
         if others > 0 {
@@ -154,7 +163,7 @@ pub fn reference_sections(
             } else {
                 ""
             };
-            format!("`{commit}`{dirty}: {n} entries")
+            format!("`{commit}`{dirty}: {}", entries_count(*n))
         })
         .collect();
     let _ = writeln!(s, "Trained by the `dsrl-train` of {}.\n", by_commit.join("; "));
@@ -403,5 +412,12 @@ mod tests {
                 .to_string()
                 .contains("no end marker")
         );
+    }
+
+    #[test]
+    fn entry_counts_read_as_english() {
+        assert_eq!(entries_count(0), "0 entries");
+        assert_eq!(entries_count(1), "1 entry");
+        assert_eq!(entries_count(101), "101 entries");
     }
 }
