@@ -22,4 +22,5 @@ if ! wait "$setup_pid"; then
   exit 1
 fi
 cat "$setup_log" >&2
-cargo test --locked --workspace
+# --no-fail-fast: one failing test binary does not hide the results of the others.
+cargo test --locked --workspace --no-fail-fast
