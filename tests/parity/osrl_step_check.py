@@ -12,8 +12,9 @@ The initial weights are OSRL's (torch.manual_seed), loaded into dsrl-train by mo
 parameter name, as its exports) through `dsrl-train parity` (hidden). CDT runs without dropout, so its step draws
 nothing; its gradients are taken before OSRL clips them (dsrl-train's optimizer records them before clipping too).
 
-Usage: .venv-bench/bin/python tests/parity/osrl_step_check.py DSRL_TRAIN [ALGO ...]   (see osrl_step_check.sh)
-Prints one JSON line per algorithm with the largest differences; exits non-zero when one is over its tolerance.
+Usage: .venv-bench/bin/python tests/parity/osrl_step_check.py DSRL_TRAIN [--table FILE] [ALGO ...]
+(see osrl_step_check.sh). Prints one JSON line per algorithm with the largest differences (and with --table writes
+them as a Markdown table); exits non-zero when one is over its tolerance.
 """
 import contextlib
 import json
@@ -272,8 +273,10 @@ def check(algo, dsrl_train, algorithms, DummyLogger):
 def compare(algo, losses, losses64, grads, grads64, params, params64, init, ours):
     """candle against OSRL in float32, and both against OSRL in float64 (the float32 rounding both have to live
     with): a difference passes when it is within the tolerance, or when candle is no further from the float64
-    result than SLACK times PyTorch's own float32 result is. Prints one JSON line; True when all pass."""
-    worst = {"loss": (0.0, ""), "grad": (0.0, ""), "param": (0.0, "")}
+    result than SLACK times PyTorch's own float32 result is. Prints and returns the result (`ok`: all pass)."""
+    # Per kind: the largest difference, where, and (when over its tolerance) how far candle and PyTorch's float32
+    # each are from float64.
+    worst = {"loss": (0.0, "", None), "grad": (0.0, "", None), "param": (0.0, "", None)}
     failures = []
 
     def judge(kind, key, theirs, mine, exact, before=None):
@@ -285,13 +288,15 @@ def compare(algo, losses, losses64, grads, grads64, params, params64, init, ours
             ulps = (theirs - mine).abs().max().item() / ((theirs + before).abs().max().item() * 2.0 ** -23 + 1e-30)
             if ulps <= ULPS:
                 d = 0.0
-        if d > worst[kind][0]:
-            worst[kind] = (d, key)
+        float64 = None
         if d > TOLERANCE[kind]:
             candle_error, torch_error = relative(exact, mine), relative(exact, theirs)
+            float64 = {"candle": candle_error, "pytorch": torch_error}
             if candle_error > SLACK * torch_error:
                 failures.append(f"{key}: {d:.2e} from OSRL's float32; from float64 candle {candle_error:.2e}, "
                                 f"PyTorch float32 {torch_error:.2e}")
+        if d > worst[kind][0]:
+            worst[kind] = (d, key, float64)
 
     for figure, value in losses.items():
         judge("loss", f"loss/{figure}", torch.tensor(value, dtype=torch.float64),
@@ -310,11 +315,13 @@ def compare(algo, losses, losses64, grads, grads64, params, params64, init, ours
     for key, p in params.items():
         judge("param", f"param/{key}", p.double(), ours[f"param/{key}"].double(), params64[key].double(),
               before=init[key].double())
-    print(json.dumps({"algorithm": algo, "ok": not failures,
-                      "largest_relative_difference": {k: v[0] for k, v in worst.items()},
-                      "where": {k: v[1] for k, v in worst.items()}, "failures": failures[:10],
-                      "losses": losses, "tolerance": TOLERANCE, "slack": SLACK}))
-    return not failures
+    result = {"algorithm": algo, "ok": not failures,
+              "largest_relative_difference": {k: v[0] for k, v in worst.items()},
+              "where": {k: v[1] for k, v in worst.items()},
+              "float64_error": {k: v[2] for k, v in worst.items() if v[2] is not None}, "failures": failures[:10],
+              "losses": losses, "tolerance": TOLERANCE, "slack": SLACK}
+    print(json.dumps(result))
+    return result
 
 
 # CDT at small sizes: embedding, layers, heads, window; episodes of CDT_EPISODE steps; batch CDT_BATCH windows.
@@ -417,8 +424,14 @@ def check_cdt(dsrl_train, algorithms):
 
 
 def main():
-    dsrl_train = sys.argv[1]
-    algos = sys.argv[2:] or list(PLANS) + ["cdt"]
+    args = sys.argv[1:]
+    table = None
+    if "--table" in args:
+        i = args.index("--table")
+        table = args[i + 1]
+        del args[i:i + 2]
+    dsrl_train = args[0]
+    algos = args[1:] or list(PLANS) + ["cdt"]
     stand_in_loggers()
     with contextlib.redirect_stdout(sys.stderr):
         import osrl.algorithms as algorithms
@@ -426,7 +439,30 @@ def main():
     torch.set_num_threads(1)
     results = [check_cdt(dsrl_train, algorithms) if a == "cdt" else check(a, dsrl_train, algorithms, DummyLogger)
                for a in algos]
-    sys.exit(0 if all(results) else 1)
+    if table:
+        Path(table).write_text(markdown(results))
+    sys.exit(0 if all(r["ok"] for r in results) else 1)
+
+
+NAMES = {"bcql": "BCQ-Lag", "bearl": "BEAR-Lag", "cpq": "CPQ", "coptidice": "COptiDICE", "cdt": "CDT"}
+
+
+def markdown(results):
+    """The results as README.md's table: per algorithm whether it passed and its largest differences, where, and
+    (over the tolerance) how far each side is from float64."""
+    def cell(r, kind):
+        d, where, f64 = r["largest_relative_difference"][kind], r["where"][kind], r["float64_error"].get(kind)
+        if d == 0:  # weights: every change within ULPS float32 steps of the weight (judge above)
+            return f"within {ULPS} ulp" if kind == "param" else "0"
+        text = f"{d:.1e} (`{where}`)"
+        if f64:
+            text += f"; float64: candle {f64['candle']:.1e}, PyTorch {f64['pytorch']:.1e}"
+        return text
+    rows = ["| algorithm | passes | largest loss difference | largest gradient difference "
+            "| largest weight-update difference |", "|---|---|---|---|---|"]
+    rows += [f"| {NAMES.get(r['algorithm'], r['algorithm'])} | {'yes' if r['ok'] else 'NO'} | {cell(r, 'loss')} "
+             f"| {cell(r, 'grad')} | {cell(r, 'param')} |" for r in results]
+    return "\n".join(rows) + "\n"
 
 
 if __name__ == "__main__":
