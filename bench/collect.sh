@@ -4,7 +4,8 @@
 # the simulators, the policy's forward passes while acting, the PPO-Lagrangian update). Short budgets of the
 # committed recipes: Bullet OfflineBallRun-v0 and OfflineAntRun-v0, Safety-Gymnasium OfflinePointGoal1Gymnasium-v0
 # and OfflineCarCircle1Gymnasium-v0 (experts), MetaDrive OfflineMetadrive-easysparse-v0 (the IDM sweep,
-# one episode per setting). Prints a Markdown table (also written to bench/out/collect.md).
+# one episode per setting). Prints a Markdown table (also written to bench/out/collect.md, and into BENCHMARKS.md at
+# SCALE=1 with every row and this build).
 # *Worker idle s* is how long the workers had no request in flight, on average over the sessions (training.csv's
 # worker_idle_seconds; "–" where the binary does not record it).
 # Usage: bench/collect.sh [SCALE=1]   (SCALE multiplies the budgets)
@@ -13,6 +14,7 @@
 #        ONLY=REGEX bench/collect.sh   (only the rows whose family or task matches)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source bench/lib.sh
 scale=${1:-1}
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
@@ -25,6 +27,8 @@ trap 'rm -rf "$work"' EXIT
 
 out=bench/out/collect.md
 {
+  machine_line
+  echo
   echo "| family | task | method | env-steps | episodes | wall s | env-steps/s | episodes/min | simulator s | acting s | update s | worker idle s | update per collect (ms) |"
   echo "|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 } > "$out"
@@ -63,3 +67,4 @@ metadrive OfflineMetadrive-easysparse-v0 --episodes-per-setting 1
 EOF_TASKS
 )
 cat "$out"
+if [ "$scale" = 1 ] && [ -z "${ONLY:-}" ] && [ -z "${DSRL_ADMIN:-}" ]; then bench_section collect.sh "$out"; fi

@@ -4,11 +4,13 @@
 #   curl   of the download URL (-o file)
 #   dsrl-client fetch into an empty cache (download + sha256 verification + fsync + rename)
 # then 32 concurrent dsrl-client fetches (separate caches): errors and aggregate throughput.
-# Usage: bench/fetch.sh [EPISODES=110] [ROUNDS=5]   (release build; prints a Markdown table for BENCHMARKS.md)
+# Usage: bench/fetch.sh [EPISODES=150] [ROUNDS=7]   (release build; prints a Markdown table, also bench/out/fetch.md,
+# and writes it into BENCHMARKS.md when run with the defaults)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-episodes=${1:-110}
-rounds=${2:-5}
+source bench/lib.sh
+episodes=${1:-150}
+rounds=${2:-7}
 task=OfflineMetadrive-easysparse-v0
 cargo build --release --locked --workspace --bins >&2
 bin=${CARGO_TARGET_DIR:-target}/release
@@ -65,15 +67,23 @@ wall=$(echo "$t1 - $t0" | bc)
 aggregate=$(echo "scale=1; $n * $size / 1048576 / $wall" | bc)
 
 cp_t=$(echo "${times[cp]}" | median); curl_t=$(echo "${times[curl]}" | median); client_t=$(echo "${times[client]}" | median)
-echo
-echo "Dataset: $task, $episodes synthetic episodes, $size bytes ($(echo "scale=1; $size/1048576" | bc) MiB); $rounds rounds, median."
-echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(date -u +%F)."
-echo
-echo "| method | median seconds | MiB/s | vs curl |"
-echo "|---|---|---|---|"
-echo "| cp of the stored file (warm cache) | $cp_t | $(mbps "$cp_t") | $(echo "scale=2; $curl_t / $cp_t" | bc)x |"
-echo "| curl -o (loopback) | $curl_t | $(mbps "$curl_t") | 1.00x |"
-echo "| dsrl-client fetch (verify + fsync + rename) | $client_t | $(mbps "$client_t") | $(echo "scale=2; $curl_t / $client_t" | bc)x |"
-echo
-echo "32 concurrent dsrl-client fetches: $failures errors, ${wall} s wall, aggregate ${aggregate} MiB/s."
-echo "All rounds (s): cp ${times[cp]}| curl ${times[curl]}| client ${times[client]}"
+ratio=$(echo "scale=2; $curl_t / $client_t" | bc)
+mkdir -p bench/out
+{
+  echo "Dataset: $task, $episodes synthetic episodes, $size bytes ($(echo "scale=1; $size/1048576" | bc) MiB); $rounds rounds, median."
+  machine_line
+  echo
+  echo "| method | median seconds | MiB/s | vs curl |"
+  echo "|---|---|---|---|"
+  echo "| cp of the stored file (warm cache) | $cp_t | $(mbps "$cp_t") | $(echo "scale=2; $curl_t / $cp_t" | bc)x |"
+  echo "| curl -o (loopback) | $curl_t | $(mbps "$curl_t") | 1.00x |"
+  echo "| dsrl-client fetch (verify + fsync + rename) | $client_t | $(mbps "$client_t") | **${ratio}x** |"
+  echo
+  echo "Goal (dsrl-client fetch at >= 0.8x curl's speed): $(echo "$ratio >= 0.8" | bc | sed 's/1/met/; s/0/not met/')."
+  echo
+  echo "$n concurrent dsrl-client fetches: **$failures errors**, ${wall} s wall, **aggregate ${aggregate} MiB/s**."
+  echo
+  echo "All rounds (s): cp ${times[cp]}| curl ${times[curl]}| client ${times[client]}"
+} > bench/out/fetch.md
+cat bench/out/fetch.md
+if [ "$episodes" = 150 ] && [ "$rounds" = 7 ]; then bench_section fetch.sh bench/out/fetch.md; fi

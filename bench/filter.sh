@@ -2,9 +2,11 @@
 # Benchmark: DSRL's pre_process_data (arrays already in memory) vs our server answering a filter request end to end
 # (read the parent version, filter, write and store the Parquet result, stream it back), uncached and cached, side
 # by side in one run on one >= 300k-transition dataset (synthetic, OfflineAntRun-v0 shape, 33 features).
-# Usage: bench/filter.sh [ROUNDS=3]   (release build; needs PyPI access once for .venv-golden)
+# Usage: bench/filter.sh [ROUNDS=3]   (release build; needs PyPI access once for .venv-golden). Prints a Markdown
+# table (also bench/out/filter.md), written into BENCHMARKS.md at 3 rounds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source bench/lib.sh
 rounds=${1:-3}
 task=OfflineAntRun-v0
 tests/golden/reference-venv.sh >&2
@@ -50,18 +52,32 @@ for round in $(seq "$rounds"); do
 done
 
 rows=$(echo "$reference" | python3 -c 'import json,sys; print(json.load(sys.stdin)["rows"])')
-echo
-echo "Dataset: $task shape, $rows transitions, 1700 episodes (synthetic, seed 21); $rounds rounds, median seconds."
-echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(date -u +%F)."
-echo
-echo "| filter | reference, as shipped (with its PNG) | reference, plotting stubbed | ours, uncached (read, filter, write, store, download) | speed-up vs as shipped | ours, cached (download only) |"
-echo "|---|---|---|---|---|---|"
-for f in "${filters[@]}"; do
-  shipped=$(echo "$reference" | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["seconds"][sys.argv[1]]["as_shipped"], 3))' "$f")
-  stubbed=$(echo "$reference" | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["seconds"][sys.argv[1]]["stubbed"], 3))' "$f")
-  u=$(echo "${uncached[$f]}" | median); c=$(echo "${cached[$f]}" | median)
-  printf '| %s | %.3f | %.3f | %.3f | %.2fx | %.3f |\n' "$f" "$shipped" "$stubbed" "$u" "$(echo "$shipped / $u" | bc -l)" "$c"
-done
-echo
-echo "Each round's uncached requests computed exactly one filtered version per filter (checked via /metrics); the"
-echo "cached requests computed none."
+speedups=() cached_speedups=()
+mkdir -p bench/out
+{
+  echo "Dataset: $task shape, $rows transitions, 1700 episodes (synthetic, seed 21); $rounds rounds, median seconds."
+  machine_line
+  echo
+  echo "| filter | reference, as shipped (with its PNG) | reference, plotting stubbed | ours, uncached (read, filter, write, store, download) | speed-up vs as shipped | ours, cached (download only) |"
+  echo "|---|---|---|---|---|---|"
+  for f in "${filters[@]}"; do
+    shipped=$(echo "$reference" | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["seconds"][sys.argv[1]]["as_shipped"], 3))' "$f")
+    stubbed=$(echo "$reference" | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["seconds"][sys.argv[1]]["stubbed"], 3))' "$f")
+    u=$(echo "${uncached[$f]}" | median); c=$(echo "${cached[$f]}" | median)
+    speedups+=("$(echo "$shipped / $u" | bc -l)"); cached_speedups+=("$(echo "$shipped / $c" | bc -l)")
+    printf '| %s | %.3f | %.3f | %.3f | %.2fx | %.3f |\n' "$f" "$shipped" "$stubbed" "$u" "${speedups[-1]}" "$c"
+  done
+  echo
+  echo "Each round's uncached requests computed exactly one filtered version per filter (checked via /metrics); the"
+  echo "cached requests computed none."
+  echo
+  python3 - "${speedups[*]}" "${cached_speedups[*]}" <<'PY'
+import sys
+u = [float(x) for x in sys.argv[1].split()]
+c = [float(x) for x in sys.argv[2].split()]
+print("Goal (uncached >= 20x faster than the reference as shipped): %s; uncached runs at %.2f-%.2fx the reference's"
+      " speed, cached at %.1f-%.1fx." % ("met" if min(u) >= 20 else "**not met**", min(u), max(u), min(c), max(c)))
+PY
+} > bench/out/filter.md
+cat bench/out/filter.md
+if [ "$rounds" = 3 ]; then bench_section filter.sh bench/out/filter.md; fi

@@ -11,9 +11,10 @@
 # 10 s per figure (20 s for downloads, 4 connections). PostgreSQL is Debian's, started here in a temporary folder.
 # The object store is local; the second replica sees the first's objects through a symlinked folder (a stand-in
 # for a shared filesystem: S3 through moto would measure moto). Everything, wrk included, shares this machine's
-# cores. Prints a Markdown table (also bench/out/replicas.md). Usage: bench/replicas.sh
+# cores. Prints a Markdown table (also bench/out/replicas.md, and into BENCHMARKS.md). Usage: bench/replicas.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source bench/lib.sh
 if ! command -v wrk > /dev/null; then
   echo "installing wrk (Debian package)" >&2
   sudo=""; [ "$(id -u)" -eq 0 ] || sudo=sudo
@@ -138,11 +139,10 @@ q_sqlite_4=$(queue sqlite 4 1000)
 q_pg_1=$(queue "$pgurl" 1 1000)
 q_pg_4=$(queue "$pgurl" 4 1000)
 
-cpu=$(grep -m1 "model name" /proc/cpuinfo | cut -d: -f2 | sed 's/^ //')
-avx512=$(grep -qw avx512f /proc/cpuinfo && echo yes || echo no)
 mkdir -p bench/out
 {
-  echo "$(nproc) cores, $cpu, AVX-512: $avx512; download: $((size / 1000000)) MB; wrk $(wrk -v 2>&1 | head -1 | cut -d' ' -f2)"
+  machine_line
+  echo "Download: $((size / 1000000)) MB; wrk $(wrk -v 2>&1 | head -1 | cut -d' ' -f2)."
   echo
   echo "| deployment | catalog req/s | catalog p99 ms | manifest req/s | manifest p99 ms | download req/s | download p99 ms | download MB/s |"
   echo "|---|---|---|---|---|---|---|---|"
@@ -154,3 +154,4 @@ mkdir -p bench/out
   echo "| PostgreSQL | $q_pg_1 | $q_pg_4 |"
 } > bench/out/replicas.md
 cat bench/out/replicas.md
+bench_section replicas.sh bench/out/replicas.md

@@ -5,10 +5,12 @@
 # side by side in one run. The protocol runs lockstep (step all K, wait, repeat) and, at K > 1, pipelined: the K
 # envs in two groups, each group's next step sent while the other's is answered. Overhead = how much longer the
 # protocol takes per env-step than the raw Python loop (the Batch for MetaDrive K=16, where one process cannot
-# host 16 MetaDrive envs). Prints a Markdown table (also written to bench/out/sim.md).
+# host 16 MetaDrive envs). Prints a Markdown table (also written to bench/out/sim.md, and into BENCHMARKS.md at
+# SCALE=1) with the machine and whether each K = 16 row meets the goal (at most 10% overhead).
 # Usage: bench/sim.sh [SCALE=1]   (SCALE multiplies the step counts)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source bench/lib.sh
 scale=${1:-1}
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
@@ -28,6 +30,8 @@ rate() { sed -n 's/.*"env_steps_per_s": \([0-9.]*\).*/\1/p'; }
 
 out=bench/out/sim.md
 {
+  machine_line
+  echo
   echo "| task | K | env-steps | Python, raw env loop | Python, dsrl_sim Batch | protocol, lockstep | protocol, 2 groups pipelined | overhead lockstep / pipelined |"
   echo "|---|---|---|---|---|---|---|---|"
 } > "$out"
@@ -62,4 +66,20 @@ SafetyPointGoal1-v0 16 150
 SafeMetaDrive-easymean-v0 1 600
 SafeMetaDrive-easymean-v0 16 150
 TASKS
+# The goal, per K = 16 row: lockstep and pipelined overhead at most 10%.
+python3 - "$out" >> "$out" <<'PY'
+import sys
+rows = [line.split("|")[1:-1] for line in open(sys.argv[1]) if line.startswith("| Safe")]
+verdicts = []
+for cells in rows:
+    task, k, overheads = cells[0].strip(), cells[1].strip(), cells[-1].strip()
+    if k != "16":
+        continue
+    lock, piped = (float(x.strip().rstrip("%")) for x in overheads.split("/"))
+    verdicts.append("%s lockstep %s, pipelined %s" % (task, "met" if lock <= 10 else "**missed**",
+                                                      "met" if piped <= 10 else "**missed**"))
+print()
+print("Goal (at most 10% overhead at K = 16): " + "; ".join(verdicts) + ".")
+PY
 cat "$out"
+if [ "$scale" = 1 ]; then bench_section sim.sh "$out"; fi

@@ -1,0 +1,20 @@
+# Sourced by the bench scripts: the machine line under every table, and writing a table into BENCHMARKS.md.
+
+# The load when the script started: other work on the machine slows every column.
+bench_load=$(cut -d' ' -f1-3 /proc/loadavg)
+
+# One line: cores, CPU model, AVX-512, date, the commit built (marked when code differs from it), the load at start.
+machine_line() {
+  local commit
+  commit=$(git rev-parse --short=12 HEAD)
+  git diff --quiet HEAD -- . ':!*.md' ':!bench/out' || commit="$commit (with uncommitted changes)"
+  echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), AVX-512:" \
+    "$(grep -q avx512f /proc/cpuinfo && echo yes || echo no), $(date -u +%F); release build of $commit; load" \
+    "average at the start: $bench_load."
+}
+
+# bench_section NAME FILE: FILE goes into BENCHMARKS.md between bench/NAME's markers.
+bench_section() {
+  python3 bench/into_benchmarks.py "$1" "$2"
+  echo "written into BENCHMARKS.md" >&2
+}
