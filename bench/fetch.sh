@@ -63,11 +63,14 @@ done
 failures=0
 for p in "${pids[@]}"; do wait "$p" || failures=$((failures + 1)); done
 t1=$(now)
-wall=$(echo "$t1 - $t0" | bc)
+wall=$(printf '%.1f' "$(echo "$t1 - $t0" | bc)")
 aggregate=$(echo "scale=1; $n * $size / 1048576 / $wall" | bc)
 
-cp_t=$(echo "${times[cp]}" | median); curl_t=$(echo "${times[curl]}" | median); client_t=$(echo "${times[client]}" | median)
-ratio=$(echo "scale=2; $curl_t / $client_t" | bc)
+# Seconds to milliseconds' precision (bc prints .0721...).
+fmt() { for x in "$@"; do printf '%.3f ' "$x"; done; }
+cp_t=$(fmt "$(echo "${times[cp]}" | median)"); curl_t=$(fmt "$(echo "${times[curl]}" | median)")
+client_t=$(fmt "$(echo "${times[client]}" | median)")
+ratio=$(printf '%.2f' "$(echo "scale=4; $curl_t / $client_t" | bc)")
 mkdir -p bench/out
 {
   echo "Dataset: $task, $episodes synthetic episodes, $size bytes ($(echo "scale=1; $size/1048576" | bc) MiB); $rounds rounds, median."
@@ -75,7 +78,7 @@ mkdir -p bench/out
   echo
   echo "| method | median seconds | MiB/s | vs curl |"
   echo "|---|---|---|---|"
-  echo "| cp of the stored file (warm cache) | $cp_t | $(mbps "$cp_t") | $(echo "scale=2; $curl_t / $cp_t" | bc)x |"
+  echo "| cp of the stored file (warm cache) | $cp_t | $(mbps "$cp_t") | $(printf '%.2f' "$(echo "scale=4; $curl_t / $cp_t" | bc)")x |"
   echo "| curl -o (loopback) | $curl_t | $(mbps "$curl_t") | 1.00x |"
   echo "| dsrl-client fetch (verify + fsync + rename) | $client_t | $(mbps "$client_t") | **${ratio}x** |"
   echo
@@ -83,7 +86,7 @@ mkdir -p bench/out
   echo
   echo "$n concurrent dsrl-client fetches: **$failures errors**, ${wall} s wall, **aggregate ${aggregate} MiB/s**."
   echo
-  echo "All rounds (s): cp ${times[cp]}| curl ${times[curl]}| client ${times[client]}"
+  echo "All rounds (s): cp $(fmt ${times[cp]})| curl $(fmt ${times[curl]})| client $(fmt ${times[client]})"
 } > bench/out/fetch.md
 cat bench/out/fetch.md
 if [ "$episodes" = 150 ] && [ "$rounds" = 7 ]; then bench_section fetch.sh bench/out/fetch.md; fi

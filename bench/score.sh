@@ -10,14 +10,15 @@
 # The checkpoint is BC-All trained by dsrl-train on the committed BallCircle starter (2000 steps; its quality does
 # not matter here, only that both sides play the same network). Prints a Markdown table (bench/out/score.md, and into
 # BENCHMARKS.md at 3 rounds with the default sessions) with the machine and whether the goal was met.
-# Usage: bench/score.sh [ROUNDS=3]
+# Usage: bench/score.sh [ROUNDS=3]   (SKIP_BUILD=1: play the binaries already built)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source bench/lib.sh
 rounds=${1:-3}
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
-cargo build --release --locked -p dsrl-server -p dsrl-client -p dsrl-train -p dsrl-sim --bins >&2
+# SKIP_BUILD=1 plays the binaries already in $CARGO_TARGET_DIR/release (another build's, for a before/after).
+[ "${SKIP_BUILD:-0}" = 1 ] || cargo build --release --locked -p dsrl-server -p dsrl-client -p dsrl-train -p dsrl-sim --bins >&2
 bin=$(realpath "${CARGO_TARGET_DIR:-target}/release")
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-score-bench.XXXXXX")
 server_pid=
@@ -65,14 +66,15 @@ for round in $(seq "$rounds"); do
 done
 steps=$(curl -s "$url/v1/submissions/$id" | python3 -c 'import json,sys; print(sum(e["length"] for e in json.load(sys.stdin)["episodes"]))')
 steps_py=$(python3 -c "import json; print(sum(e['length'] for e in json.load(open('$work/python.json'))['episodes']))")
-median() { printf '%s\n' "$@" | sort -g | awk '{a[NR]=$1} END{print a[int((NR+1)/2)]}'; }
+median() { printf '%s\n' "$@" | sort -g | awk '{a[NR]=$1} END{printf "%.2f", a[int((NR+1)/2)]}'; }
+rounded() { printf '%.2f ' "$@"; }
 {
   machine_line
   echo
   echo "| scoring one submission on $task (3 thresholds x 20 episodes) | env-steps | median wall s ($rounds rounds) | each round, s |"
   echo "|---|---|---|---|"
-  echo "| sequential in-process Python loop (OSRL-style, 1 env) | $steps_py | $(median "${python_s[@]}") | ${python_s[*]} |"
-  echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | ${dsrl_s[*]} |"
+  echo "| sequential in-process Python loop (OSRL-style, 1 env) | $steps_py | $(median "${python_s[@]}") | $(rounded "${python_s[@]}")|"
+  echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | $(rounded "${dsrl_s[@]}")|"
   echo
   python3 -c "p, d = $(median "${python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring faster than the sequential loop): %s, %.2fx the loop\'s speed (median).' % ('met' if d < p else '**not met**', p / d))"
 } > bench/out/score.md
