@@ -7,7 +7,8 @@ bench_load=$(cut -d' ' -f1-3 /proc/loadavg)
 machine_line() {
   local commit
   commit=$(git rev-parse --short=12 HEAD)
-  git diff --quiet HEAD -- . ':!*.md' ':!bench/out' || commit="$commit (with uncommitted changes)"
+  # Documents and data (the reference sweep writes its results while it runs) are not code.
+  git diff --quiet HEAD -- . ':!*.md' ':!bench/out' ':!data' || commit="$commit (with uncommitted changes)"
   echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), AVX-512:" \
     "$(grep -q avx512f /proc/cpuinfo && echo yes || echo no), $(date -u +%F); release build of $commit; load" \
     "average at the start: $bench_load."

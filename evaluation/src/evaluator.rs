@@ -246,8 +246,6 @@ async fn play_group(
             }
         }
     }
-    // The last episodes' observations were sent without waiting for their answers.
-    rollout.settle().await?;
     session.close().await?;
     Ok(scores)
 }

@@ -12,10 +12,6 @@
 //! - `START` = slot (u32), episode seed (u64);
 //! - `ACT` = n (u32), n slots (u32), observations (f32, row-major) → actions (f32, row-major);
 //! - `OBSERVE` = n (u32), n slots (u32), n rewards (f64), n costs (f64).
-//!
-//! Every request is answered, in order. The parent reads the answers of `START` and `OBSERVE` (empty unless they
-//! failed) only with the next `ACT`'s: one round trip per step instead of two, where each trip wakes two processes
-//! on cores the simulators need.
 
 use std::io::{Read, Write};
 use std::path::PathBuf;
@@ -86,7 +82,7 @@ impl<'a> Player<'a> {
                 let mut payload = BytesMut::with_capacity(12);
                 payload.put_u32_le(slot as u32);
                 payload.put_u64_le(seed);
-                child.defer(START, &payload).await
+                child.call(START, &payload).await.map(drop)
             }
         }
     }
@@ -115,27 +111,9 @@ impl<'a> Player<'a> {
                 put_slots(&mut payload, slots);
                 rewards.iter().for_each(|&x| payload.put_f64_le(x));
                 costs.iter().for_each(|&x| payload.put_f64_le(x));
-                child.defer(OBSERVE, &payload).await
+                child.call(OBSERVE, &payload).await.map(drop)
             }
         }
-    }
-
-    /// Reads the answers of requests sent without waiting, so that a failure among them is not lost when no `act`
-    /// follows them.
-    pub async fn settle(&mut self) -> Result<(), EvaluationError> {
-        match self {
-            Player::Local(_) => Ok(()),
-            Player::Child(child) => child.settle().await,
-        }
-    }
-}
-
-fn request_name(op: u8) -> &'static str {
-    match op {
-        LOAD => "load",
-        START => "start",
-        ACT => "act",
-        _ => "observe",
     }
 }
 
@@ -151,8 +129,6 @@ pub struct ChildPlayer {
     stdout: tokio::process::ChildStdout,
     memory_limit_bytes: u64,
     request_timeout: std::time::Duration,
-    /// Requests sent whose answers are not read yet (`START`, `OBSERVE`), oldest first.
-    unanswered: std::collections::VecDeque<u8>,
 }
 
 impl ChildPlayer {
@@ -176,7 +152,6 @@ impl ChildPlayer {
             stdout,
             memory_limit_bytes: policy.memory_limit_bytes,
             request_timeout: policy.request_timeout,
-            unanswered: std::collections::VecDeque::new(),
         };
         let mut payload = BytesMut::with_capacity(policy.config.len() + policy.weights.len() + 16);
         payload.put_u32_le(policy.config.len() as u32);
@@ -188,63 +163,27 @@ impl ChildPlayer {
         Ok(player)
     }
 
-    /// Sends a request and returns its answer, after reading those of the requests sent before it.
     async fn call(&mut self, op: u8, payload: &[u8]) -> Result<Bytes, EvaluationError> {
-        self.send(op, payload).await?;
-        self.settle().await?;
-        self.answer(op).await
-    }
-
-    /// Sends a request whose answer is read with a later one's (`call`, `settle`).
-    async fn defer(&mut self, op: u8, payload: &[u8]) -> Result<(), EvaluationError> {
-        self.send(op, payload).await?;
-        self.unanswered.push_back(op);
-        Ok(())
-    }
-
-    /// Reads the answers of every deferred request; the first failure among them is the result.
-    async fn settle(&mut self) -> Result<(), EvaluationError> {
-        while let Some(op) = self.unanswered.pop_front() {
-            self.answer(op).await?;
-        }
-        Ok(())
-    }
-
-    async fn send(&mut self, op: u8, payload: &[u8]) -> Result<(), EvaluationError> {
-        let mut head = [0u8; 5];
-        head[0] = op;
-        head[1..].copy_from_slice(&(payload.len() as u32).to_le_bytes());
-        let write = async {
-            self.stdin.write_all(&head).await?;
-            self.stdin.write_all(payload).await?;
-            self.stdin.flush().await
+        let what = match op {
+            LOAD => "load",
+            START => "start",
+            ACT => "act",
+            _ => "observe",
         };
-        match tokio::time::timeout(self.request_timeout, write).await {
-            Ok(Ok(())) => Ok(()),
-            Ok(Err(_)) => Err(self.died(request_name(op)).await),
-            Err(_) => Err(self.stop_unanswered(op)),
-        }
-    }
-
-    /// The answer to the oldest request not yet answered, `op`.
-    async fn answer(&mut self, op: u8) -> Result<Bytes, EvaluationError> {
-        match tokio::time::timeout(self.request_timeout, self.read_answer()).await {
+        match tokio::time::timeout(self.request_timeout, self.exchange(op, payload)).await {
             Ok(Ok(Ok(answer))) => Ok(answer),
             // The policy itself failed (a shape it cannot handle, a non-finite action): not worth a retry.
             Ok(Ok(Err(message))) => Err(policy_error(message)),
-            Ok(Err(_)) => Err(self.died(request_name(op)).await),
-            Err(_) => Err(self.stop_unanswered(op)),
+            Err(_) => {
+                let _ = self.child.start_kill();
+                Err(EvaluationError::InvalidArgument(format!(
+                    "the policy process did not answer a {what} request within {} s \
+                     (leaderboard.policy_request_seconds); it was stopped",
+                    self.request_timeout.as_secs_f64()
+                )))
+            }
+            Ok(Err(_)) => Err(self.died(what).await),
         }
-    }
-
-    fn stop_unanswered(&mut self, op: u8) -> EvaluationError {
-        let _ = self.child.start_kill();
-        EvaluationError::InvalidArgument(format!(
-            "the policy process did not answer a {} request within {} s (leaderboard.policy_request_seconds); it \
-             was stopped",
-            request_name(op),
-            self.request_timeout.as_secs_f64()
-        ))
     }
 
     /// Why the pipe broke, from the child's exit status, as observed. A crash signal is the process's own doing
@@ -298,8 +237,13 @@ impl ChildPlayer {
         EvaluationError::InvalidArgument(format!("the policy process exited ({status}) during a {what} request"))
     }
 
-    async fn read_answer(&mut self) -> std::io::Result<Result<Bytes, String>> {
+    async fn exchange(&mut self, op: u8, payload: &[u8]) -> std::io::Result<Result<Bytes, String>> {
         let mut head = [0u8; 5];
+        head[0] = op;
+        head[1..].copy_from_slice(&(payload.len() as u32).to_le_bytes());
+        self.stdin.write_all(&head).await?;
+        self.stdin.write_all(payload).await?;
+        self.stdin.flush().await?;
         self.stdout.read_exact(&mut head).await?;
         let len = u32::from_le_bytes(head[1..].try_into().expect("4 bytes"));
         if len > MAX_FRAME {
@@ -489,61 +433,8 @@ mod tests {
             stdout,
             memory_limit_bytes: 64 << 20,
             request_timeout: std::time::Duration::from_secs(30),
-            unanswered: std::collections::VecDeque::new(),
         };
         player.call(ACT, b"observations").await.unwrap_err()
-    }
-
-    /// A child that reads nothing and writes `answers` (whole frames), then waits: a stand-in for the policy
-    /// process whose answers are given, to test how the parent reads them.
-    fn answering(answers: &[u8]) -> ChildPlayer {
-        let script = answers.iter().map(|b| format!("\\{b:03o}")).collect::<String>();
-        let mut child = tokio::process::Command::new("sh")
-            .args(["-c", &format!("printf '{script}'; exec sleep 600")])
-            .stdin(std::process::Stdio::piped())
-            .stdout(std::process::Stdio::piped())
-            .kill_on_drop(true)
-            .spawn()
-            .unwrap();
-        let (stdin, stdout) = (child.stdin.take().unwrap(), child.stdout.take().unwrap());
-        ChildPlayer {
-            child,
-            stdin,
-            stdout,
-            memory_limit_bytes: 64 << 20,
-            request_timeout: std::time::Duration::from_secs(30),
-            unanswered: std::collections::VecDeque::new(),
-        }
-    }
-
-    fn frame(status: u8, body: &[u8]) -> Vec<u8> {
-        let mut f = vec![status];
-        f.extend_from_slice(&(body.len() as u32).to_le_bytes());
-        f.extend_from_slice(body);
-        f
-    }
-
-    #[tokio::test]
-    async fn a_deferred_request_that_failed_fails_the_next_act_and_a_settle() {
-        // OBSERVE answered with an error, then ACT's actions: the act reports the observe's failure.
-        let mut player = answering(&[frame(1, b"observe went wrong"), frame(0, &1.5f32.to_le_bytes())].concat());
-        player.defer(OBSERVE, b"rewards").await.unwrap();
-        let e = player.call(ACT, b"observations").await.unwrap_err();
-        assert!(format!("{e:?}").contains("observe went wrong"), "{e:?}");
-        // START and OBSERVE answered, then ACT's: the act returns its own answer after reading theirs.
-        let mut player = answering(&[frame(0, b""), frame(0, b""), frame(0, &1.5f32.to_le_bytes())].concat());
-        player.defer(START, b"seed").await.unwrap();
-        player.defer(OBSERVE, b"rewards").await.unwrap();
-        assert_eq!(
-            &player.call(ACT, b"observations").await.unwrap()[..],
-            &1.5f32.to_le_bytes()
-        );
-        // A failure among the last deferred answers, with no act after them, comes out of settle.
-        let mut player = answering(&[frame(0, b""), frame(1, b"the last observe failed")].concat());
-        player.defer(OBSERVE, b"rewards").await.unwrap();
-        player.defer(OBSERVE, b"rewards").await.unwrap();
-        let e = player.settle().await.unwrap_err();
-        assert!(format!("{e:?}").contains("the last observe failed"), "{e:?}");
     }
 
     #[tokio::test]
