@@ -68,8 +68,8 @@ aggregate=$(echo "scale=1; $n * $size / 1048576 / $wall" | bc)
 
 # Seconds to milliseconds' precision (bc prints .0721...).
 fmt() { for x in "$@"; do printf '%.3f ' "$x"; done; }
-cp_t=$(fmt "$(echo "${times[cp]}" | median)"); curl_t=$(fmt "$(echo "${times[curl]}" | median)")
-client_t=$(fmt "$(echo "${times[client]}" | median)")
+cp_t=$(printf '%.3f' "$(echo "${times[cp]}" | median)"); curl_t=$(printf '%.3f' "$(echo "${times[curl]}" | median)")
+client_t=$(printf '%.3f' "$(echo "${times[client]}" | median)")
 ratio=$(printf '%.2f' "$(echo "scale=4; $curl_t / $client_t" | bc)")
 mkdir -p bench/out
 {
