@@ -8,6 +8,7 @@
 # its markers. Usage: bench/encoding_threads.sh [EPISODES=1500]   (a release build; ~2 GB of disk per 1,000 episodes)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source bench/lib.sh
 episodes=${1:-1500}
 task=OfflineCarPush2Gymnasium-v0
 tests/golden/reference-venv.sh >&2
@@ -21,7 +22,6 @@ trap cleanup EXIT
 file="$work/SafetyCarPush2Gymnasium-v0-250-$episodes.hdf5"
 echo "writing $file" >&2
 .venv-golden/bin/python bench/make_dsrl_scale.py "$file" "$episodes" >&2
-load=$(cut -d' ' -f1-3 /proc/loadavg)
 seconds() { python3 -c "import sys; print('%.1f' % (float(sys.argv[2]) - float(sys.argv[1])))" "$1" "$2"; }
 rows=()
 # One variant: a fresh server with DSRL_ENCODING_THREADS=$1 ("" for the default), the ingest, two noise filters.
@@ -59,12 +59,12 @@ done
 table=$work/table.md
 {
   echo "File: $(basename "$file"), $(( $(stat -c %s "$file") / 1048576 )) MiB, $episodes trajectories x 1000 steps."
-  echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), AVX-512: $(grep -q avx512f /proc/cpuinfo && echo yes || echo no), $(date -u +%F); release build of $(git rev-parse --short=12 HEAD); load average at the start: $load."
+  machine_line
   echo
   echo "| round | encoding threads | ingest (s) | noise=0.1, uncached (s) | noise=0.2, uncached (s) | version id |"
   echo "|---|---|---|---|---|---|"
   printf '%s\n' "${rows[@]}"
 } > "$table"
 cat "$table"
-python3 bench/into_benchmarks.py encoding_threads.sh "$table"
+bench_section encoding_threads.sh "$table"
 echo "written into BENCHMARKS.md" >&2

@@ -7,6 +7,7 @@
 # Usage: bench/scale.sh [EPISODES=4407]   (needs ~25 GB of free disk in $TMPDIR; PyPI once for .venv-golden)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source bench/lib.sh
 episodes=${1:-4407}
 task=OfflineCarPush2Gymnasium-v0
 tests/golden/reference-venv.sh >&2
@@ -21,7 +22,6 @@ file="$work/SafetyCarPush2Gymnasium-v0-250-$episodes.hdf5"
 echo "writing $file" >&2
 .venv-golden/bin/python bench/make_dsrl_scale.py "$file" "$episodes"
 size=$(stat -c %s "$file")
-load=$(cut -d' ' -f1-3 /proc/loadavg)
 
 "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
   > "$work/server.out" 2> "$work/server.log" &
@@ -89,7 +89,7 @@ read -r s p < <(measure "$bin/dsrl-client" fetch "$task" --format hdf5); row "fe
 table=$work/table.md
 {
   echo "File: $(basename "$file"), $(( size / 1048576 )) MiB, $episodes trajectories x 1000 steps, 88 observation features."
-  echo "Machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), AVX-512: $(grep -q avx512f /proc/cpuinfo && echo yes || echo no), $(date -u +%F); release build of $(git rev-parse --short=12 HEAD); load average at the start: $load (other work on the machine slows both columns)."
+  machine_line
   echo
   echo "| step | ours: wall s | ours: server peak RSS | DSRL 0.1.0 on the same file |"
   echo "|---|---|---|---|"
@@ -98,6 +98,6 @@ table=$work/table.md
 cat "$table"
 # The table goes into BENCHMARKS.md between its markers (only from a run at the paper's count).
 if [ "$episodes" = 4407 ]; then
-  python3 bench/into_benchmarks.py scale.sh "$table"
+  bench_section scale.sh "$table"
   echo "written into BENCHMARKS.md" >&2
 fi
