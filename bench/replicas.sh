@@ -132,8 +132,16 @@ b_url=$(serve "$work/pg-b" DSRL__DATABASE__URL="$pgurl")
 rows+=("$(row "2 replicas, PostgreSQL" "$a_url" "$b_url")")
 
 echo "queue throughput" >&2
-queue() { "$bin/examples/queue_claims" --database "$1" --evaluators "$2" --jobs "$3" \
-  | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["claims_per_second"]))'; }
+# Claims per second, or the error that stopped the run (the table keeps the other figures; the error is shown, not
+# dropped).
+queue() {
+  local out
+  if out=$(RUST_BACKTRACE=0 "$bin/examples/queue_claims" --database "$1" --evaluators "$2" --jobs "$3" 2>&1); then
+    echo "$out" | tail -1 | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["claims_per_second"]))'
+  else
+    echo "failed: $(echo "$out" | grep -m1 -i error | cut -c1-120)"
+  fi
+}
 q_sqlite_1=$(queue sqlite 1 1000)
 q_sqlite_4=$(queue sqlite 4 1000)
 q_pg_1=$(queue "$pgurl" 1 1000)
