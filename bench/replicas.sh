@@ -139,7 +139,7 @@ queue() {
   if out=$(RUST_BACKTRACE=0 "$bin/examples/queue_claims" --database "$1" --evaluators "$2" --jobs "$3" 2>&1); then
     echo "$out" | tail -1 | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["claims_per_second"]))'
   else
-    echo "failed: $(echo "$out" | grep -m1 -i error | cut -c1-120)"
+    echo "failed: $(echo "$out" | grep -m1 -i error | tr "|" "/" | cut -c1-120)"
   fi
 }
 q_sqlite_1=$(queue sqlite 1 1000)
