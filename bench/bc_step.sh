@@ -26,9 +26,7 @@ data=$(ls data/starter/OfflineCarRun-v0/*.parquet)
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-bc-bench.XXXXXX")
 trap 'rm -rf "$work"' EXIT
 mkdir -p bench/out
-load=$(cut -d' ' -f1-3 /proc/loadavg)
-cpu=$(lscpu | sed -n 's/^Model name: *//p' | head -1)
-if grep -q -m1 avx512 /proc/cpuinfo; then avx512=yes; else avx512=no; fi
+source bench/lib.sh  # here: the load is read after the build
 ms() { python3 -c "import json,sys; print(json.load(sys.stdin)['ms_per_step'])"; }
 "$bin/dsrl-train" bc --task OfflineCarRun-v0 --mode all --dataset "$data" --steps "$steps" --out "$work" >&2
 training() { python3 -c "import json; t=json.load(open('$work/bc-all/policy.json'))['training']; print($1)"; }
@@ -46,14 +44,13 @@ torch_version=$(.venv-bench/bin/python -c "import torch; print(torch.__version__
   printf "| PyTorch %s on CPU, %s threads | %.2f |\n" "$torch_version" "$(nproc)" "$torch_all"
   printf "| NumPy/OpenBLAS by hand, 1 thread | %.2f |\n" "$numpy"
   echo
-  echo "candle: the dsrl-train of \`$commit\`. CPU: $cpu ($(nproc) cores), AVX-512: $avx512. $steps steps, OfflineCarRun-v0"
-  echo "starter. Load average at start: $load. Measured $(date -u +%F)."
+  echo "candle: the dsrl-train of \`$commit\`. CPU: $(cpu_model) ($(nproc) cores), AVX-512: $(has_avx512). $steps steps, OfflineCarRun-v0"
+  echo "starter. Load average at start: $bench_load. Measured $(date -u +%F)."
   echo
   python3 -c "r = $candle / $torch1; print('Goal (no slower than PyTorch on 1 thread): %s, candle / PyTorch 1 thread = %.2f.' % ('met' if r <= 1 else 'not met', r))"
 } > bench/out/bc_step.md
 cat bench/out/bc_step.md
 # The table goes into BENCHMARKS.md between its markers (only from a run at the documented count of steps).
 if [ "$steps" = 3000 ]; then
-  python3 bench/into_benchmarks.py bc_step.sh bench/out/bc_step.md
-  echo "written into BENCHMARKS.md" >&2
+  bench_section bc_step.sh bench/out/bc_step.md
 fi

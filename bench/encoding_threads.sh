@@ -67,4 +67,3 @@ table=$work/table.md
 } > "$table"
 cat "$table"
 bench_section encoding_threads.sh "$table"
-echo "written into BENCHMARKS.md" >&2

@@ -37,9 +37,7 @@ work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-offline-bench.XXXXXX")
 trap 'rm -rf "$work"' EXIT
 mkdir -p bench/out
 threads=$(nproc)
-load=$(cut -d' ' -f1-3 /proc/loadavg)
-cpu=$(lscpu | sed -n 's/^Model name: *//p' | head -1)
-if grep -q -m1 avx512 /proc/cpuinfo; then avx512=yes; else avx512=no; fi
+source bench/lib.sh  # here: the load is read after the build
 torch_version=$(.venv-bench/bin/python -c "import torch; print(torch.__version__)")
 ms() { python3 -c "import json,sys; print(json.loads(sys.stdin.read().strip().splitlines()[-1])['ms_per_step'])"; }
 # ms a step of OSRL's code on $1 threads, for ${torch_args[@]} (algorithm, steps, warm-up, ...).
@@ -88,15 +86,14 @@ done
   printf '%s\n' "${rows[@]}"
   echo
   echo "candle: the dsrl-train of \`$(python3 -c "import json; print(json.load(open('$work/new-$algo/$policy'))['training']['code_commit'])")\`."
-  echo "CPU: $cpu ($threads cores), AVX-512: $avx512. $steps steps per run at batch 512 (CDT: $cdt_steps at batch 2048,"
+  echo "CPU: $(cpu_model) ($threads cores), AVX-512: $(has_avx512). $steps steps per run at batch 512 (CDT: $cdt_steps at batch 2048,"
   echo "$cdt_small_steps at batch 512),"
   echo "OfflineCarRun-v0 starter;"
   echo "PyTorch after $warmup warm-up steps with batches built beforehand (OSRL osrl-lib 0.1.0); candle after its first"
-  echo "step, its time including drawing its batches. Load average at start: $load. Measured $(date -u +%F)."
+  echo "step, its time including drawing its batches. Load average at start: $bench_load. Measured $(date -u +%F)."
 } > bench/out/offline_step.md
 cat bench/out/offline_step.md
 # The table goes into BENCHMARKS.md between its markers (only from a run at the documented count of steps).
 if [ "$steps" = 50 ] && [ "$cdt_steps" = 3 ] && [ "$cdt_small_steps" = 10 ]; then
-  python3 bench/into_benchmarks.py offline_step.sh bench/out/offline_step.md
-  echo "written into BENCHMARKS.md" >&2
+  bench_section offline_step.sh bench/out/offline_step.md
 fi

@@ -99,5 +99,4 @@ cat "$table"
 # The table goes into BENCHMARKS.md between its markers (only from a run at the paper's count).
 if [ "$episodes" = 4407 ]; then
   bench_section scale.sh "$table"
-  echo "written into BENCHMARKS.md" >&2
 fi

@@ -22,8 +22,8 @@ fi
 bin=${CARGO_TARGET_DIR:-target}/release/dsrl-train
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-parity.XXXXXX")
 trap 'rm -rf "$work"' EXIT
-# The commit of what shapes dsrl-train's weights (as its build records it: train/build.rs), "-modified" when the
-# working tree differs there.
+# The last commit that changed what shapes dsrl-train's weights (train/build.rs's sources; its build records HEAD,
+# which names the same code), "-modified" when the working tree differs there.
 sources=(train/src policy/src suite/src Cargo.lock)
 commit=$(git log -1 --format=%h -- "${sources[@]}")
 git diff --quiet HEAD -- "${sources[@]}" || commit="$commit-modified"
