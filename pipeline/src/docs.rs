@@ -290,7 +290,109 @@ pub fn reference_sections(
         score_total / 3600.0
     );
     sections.insert("reference-compute".to_owned(), s);
+    sections.insert("reference-seeds".to_owned(), seeds_section(catalog, paper, &current));
     sections
+}
+
+/// The (task, method) cells with more than one training seed: each seed's scores and verdict, their spread, and how
+/// often one seed alone would have given another verdict than the mean over seeds. This measures how much the single
+/// seed of most cells limits the agreement figure.
+fn seeds_section(catalog: &Catalog, paper: &PaperResults, current: &[&ReferenceEntry]) -> String {
+    let verdict = |safe: bool| if safe { "safe" } else { "unsafe" };
+    let mut rows = String::new();
+    let (mut cells, mut split, mut seed_verdicts, mut seed_agreeing, mut paper_cells, mut mean_agreeing) =
+        (0, 0, 0, 0, 0, 0);
+    let (mut reward_spread_sum, mut cost_spread_sum) = (0.0, 0.0);
+    for task in catalog.tasks() {
+        let mut methods: Vec<&str> = current
+            .iter()
+            .filter(|e| e.task == task.id.as_str())
+            .map(|e| e.method.as_str())
+            .collect();
+        let mut seen = std::collections::BTreeSet::new();
+        methods.retain(|m| seen.insert(*m));
+        for method in methods {
+            let mut seeds: Vec<(u64, dsrl_suite::NormalizedScore)> = current
+                .iter()
+                .filter(|e| e.task == task.id.as_str() && e.method == method)
+                .filter_map(|e| Some((e.seed, e.score(task)?)))
+                .collect();
+            if seeds.len() < 2 {
+                continue;
+            }
+            seeds.sort_by_key(|(seed, _)| *seed);
+            let n = seeds.len() as f64;
+            let mean = dsrl_suite::NormalizedScore {
+                reward: seeds.iter().map(|(_, s)| s.reward).sum::<f64>() / n,
+                cost: seeds.iter().map(|(_, s)| s.cost).sum::<f64>() / n,
+            };
+            let spread = |f: fn(&dsrl_suite::NormalizedScore) -> f64| {
+                let values = seeds.iter().map(|(_, s)| f(s));
+                values.clone().fold(f64::NEG_INFINITY, f64::max) - values.fold(f64::INFINITY, f64::min)
+            };
+            let (reward_spread, cost_spread) = (spread(|s| s.reward), spread(|s| s.cost));
+            cells += 1;
+            reward_spread_sum += reward_spread;
+            cost_spread_sum += cost_spread;
+            if seeds.iter().any(|(_, s)| s.is_safe() != seeds[0].1.is_safe()) {
+                split += 1;
+            }
+            let paper_safe = paper.get(task.id.as_str(), method).map(|row| row.safe);
+            if let Some(paper_safe) = paper_safe {
+                paper_cells += 1;
+                mean_agreeing += usize::from(mean.is_safe() == paper_safe);
+                seed_verdicts += seeds.len();
+                seed_agreeing += seeds.iter().filter(|(_, s)| s.is_safe() == paper_safe).count();
+            }
+            let join = |f: &dyn Fn(&dsrl_suite::NormalizedScore) -> String| {
+                seeds.iter().map(|(_, s)| f(s)).collect::<Vec<_>>().join(" · ")
+            };
+            let _ = writeln!(
+                rows,
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                short(task.id.as_str()),
+                method,
+                seeds
+                    .iter()
+                    .map(|(seed, _)| seed.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                join(&|s| num(s.reward)),
+                join(&|s| num(s.cost)),
+                num(reward_spread),
+                num(cost_spread),
+                join(&|s| verdict(s.is_safe()).to_owned()),
+                verdict(mean.is_safe()),
+                paper_safe.map(verdict).unwrap_or("–"),
+            );
+        }
+    }
+    if cells == 0 {
+        return "No (task, method) has more than one training seed yet.\n".to_owned();
+    }
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "{cells} (task, method) cells have more than one training seed. In {split} of them the seeds' safe/unsafe \
+         verdicts differ from one another. Mean spread (largest minus smallest over the seeds): normalized reward {}, \
+         normalized cost {}.",
+        num(reward_spread_sum / cells as f64),
+        num(cost_spread_sum / cells as f64),
+    );
+    if paper_cells > 0 {
+        let _ = writeln!(
+            s,
+            "\nIn the {paper_cells} of them that the paper has, {seed_agreeing} of {seed_verdicts} single-seed \
+             verdicts agree with the paper's, and {mean_agreeing} of {paper_cells} verdicts of the mean over seeds \
+             (the agreement table's)."
+        );
+    }
+    s.push_str(
+        "\n| task | method | seeds | reward per seed | cost per seed | reward spread | cost spread | verdict per seed \
+         | verdict of the mean | paper's verdict |\n|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    s.push_str(&rows);
+    s
 }
 
 /// Every generated section the committed data gives, from the repository at `root`, and the whole generated files.
@@ -411,6 +513,89 @@ mod tests {
                 .unwrap_err()
                 .to_string()
                 .contains("no end marker")
+        );
+    }
+
+    fn entry(method: &str, seed: u64, reward: f64, cost: f64) -> ReferenceEntry {
+        use dsrl_suite::reference::{ScoringRecord, TrainingBudget};
+        use dsrl_suite::score::EpisodeResult;
+        let episodes = [10.0, 20.0, 40.0]
+            .iter()
+            .flat_map(|&k| {
+                (0..2).map(move |i| EpisodeResult {
+                    cost_threshold: k,
+                    episode: i,
+                    reward_return: reward,
+                    cost_return: cost,
+                    length: 10,
+                })
+            })
+            .collect();
+        ReferenceEntry {
+            task: "OfflineBallRun-v0".into(),
+            method: method.into(),
+            seed,
+            training: TrainingBudget {
+                steps: 10,
+                batch_size: 512,
+                models: 1,
+                seconds: 1.0,
+                cpu_seconds: 1.0,
+                cpu: None,
+                osrl_steps: 100_000,
+                osrl_batch_size: 512,
+            },
+            dataset_version: "0".repeat(64),
+            code_commit: "abc".into(),
+            checkpoint_sha256: format!("{method}{seed}"),
+            protocol_version: "p1.x".into(),
+            scoring: ScoringRecord {
+                submission: 1,
+                started_at: "a".into(),
+                finished_at: "b".into(),
+                seconds: 1.0,
+            },
+            episodes,
+        }
+    }
+
+    #[test]
+    fn the_seeds_section_shows_each_seed_and_how_often_one_seed_would_change_the_verdict() {
+        let catalog = Catalog::embedded().unwrap();
+        let paper = PaperResults::embedded(&catalog).unwrap();
+        // BallRun (thresholds 10, 20, 40): cost 5 is safe, cost 50 unsafe; the paper's BC-All is unsafe.
+        let entries = [
+            entry("BC-All", 0, 100.0, 5.0),
+            entry("BC-All", 1, 200.0, 50.0),
+            entry("BC-All", 2, 100.0, 5.0),
+            entry("BC-Safe", 0, 100.0, 5.0),
+            entry("CAPS", 0, 100.0, 5.0),
+            entry("CAPS", 1, 100.0, 5.0),
+        ];
+        assert!(!paper.get("OfflineBallRun-v0", "BC-All").unwrap().safe);
+        let all: Vec<&ReferenceEntry> = entries.iter().collect();
+        let s = seeds_section(&catalog, &paper, &all);
+        assert!(
+            s.starts_with("2 (task, method) cells have more than one training seed. In 1 of them"),
+            "{s}"
+        );
+        assert!(
+            s.contains("In the 1 of them that the paper has, 1 of 3 single-seed verdicts agree"),
+            "{s}"
+        );
+        assert!(s.contains("and 1 of 1 verdicts of the mean"), "{s}");
+        let bc_all = s.lines().find(|l| l.starts_with("| BallRun | BC-All |")).unwrap();
+        assert!(bc_all.contains("| 0, 1, 2 |"), "{bc_all}");
+        assert!(
+            bc_all.ends_with("| safe · unsafe · safe | unsafe | unsafe |"),
+            "{bc_all}"
+        );
+        let caps = s.lines().find(|l| l.starts_with("| BallRun | CAPS |")).unwrap();
+        assert!(caps.ends_with("| 0.000 | 0.000 | safe · safe | safe | – |"), "{caps}");
+        assert!(!s.contains("BC-Safe"), "one seed is not a spread: {s}");
+        assert_eq!(
+            seeds_section(&catalog, &paper, &all[3..4]),
+            "No (task, method) has more than one training seed yet.\n"
         );
     }
 

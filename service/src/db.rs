@@ -189,7 +189,6 @@ impl Db {
         self.select_versions(task, None).await
     }
 
-    /// The version a filter made from `parent`, if it was made before.
     /// The version a filter made from `parent`, if it was made before, and when it was last asked for
     /// (milliseconds since the epoch).
     pub async fn derivation(
