@@ -51,11 +51,12 @@ impl Backend {
     }
 
     /// Appended to a subquery that picks a queued job: on PostgreSQL, concurrent evaluators skip rows another one
-    /// is claiming instead of waiting for it (SQLite has one writer at a time, so nothing to skip).
-    pub fn skip_locked(self) -> &'static str {
+    /// is claiming instead of waiting for it (SQLite has one writer at a time, so nothing to skip). Only the rows of
+    /// the table aliased `table` are locked.
+    pub fn skip_locked(self, table: &str) -> String {
         match self {
-            Backend::Sqlite => "",
-            Backend::Postgres => " FOR UPDATE SKIP LOCKED",
+            Backend::Sqlite => String::new(),
+            Backend::Postgres => format!(" FOR UPDATE OF {table} SKIP LOCKED"),
         }
     }
 
