@@ -203,7 +203,17 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
 /// The condition of a job waiting for an evaluator: queued, or running under a lease that ran out before the time
 /// (milliseconds) in the parameter `now`. One definition for the claim and the queue depth.
 fn waiting(now: &str) -> String {
-    format!("(state = 'queued' OR (state = 'running' AND lease_expires_ms < {now}))")
+    waiting_of("", now)
+}
+
+/// `waiting` on the columns of the table aliased `table`.
+fn waiting_of(table: &str, now: &str) -> String {
+    let t = if table.is_empty() {
+        String::new()
+    } else {
+        format!("{table}.")
+    };
+    format!("({t}state = 'queued' OR ({t}state = 'running' AND {t}lease_expires_ms < {now}))")
 }
 
 /// The waiting jobs (`s`, joined to `q`) with what their fair order (`FAIR_ORDER`) sorts by: round-robin across
@@ -215,16 +225,23 @@ fn waiting(now: &str) -> String {
 /// jobs for each waiting job, which made a claim quadratic in the queue's length: 65 ms at 1,000 queued jobs of one
 /// user, all of it under SQLite's write lock, so that concurrent claims and submissions waited and, with a longer
 /// queue, ran past `busy_timeout` ("database is locked"). The last claim is one index lookup per job
-/// (`submissions_user_claims`). On PostgreSQL the claim locks rows of `s` alone (`FOR UPDATE OF s`): a locking
-/// clause may not reach into a query with a window function.
+/// (`submissions_user_claims`).
+///
+/// On PostgreSQL the claim locks rows of `s` alone (`FOR UPDATE OF s`): a locking clause may not reach into a query
+/// with a window function. The waiting condition is stated on `s` as well as inside `q`, because it is what keeps two
+/// evaluators from claiming one job: a claim that finds a row another claim has just committed re-checks that row's
+/// new version against the conditions on `s` only (READ COMMITTED's recheck; `q` keeps its snapshot), so without
+/// them the second claim would take the job the first had taken.
 fn fair_queue(now: &str) -> String {
     format!(
         "submissions s JOIN
            (SELECT w.id, ROW_NUMBER() OVER (PARTITION BY w.user_id ORDER BY w.id) AS round,
                    (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = w.user_id) AS last_claim
             FROM submissions w WHERE {}) q
-         ON q.id = s.id",
-        waiting(now)
+         ON q.id = s.id
+         WHERE {}",
+        waiting_of("w", now),
+        waiting_of("s", now)
     )
 }
 
