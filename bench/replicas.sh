@@ -5,7 +5,8 @@
 #   2. one dsrl-server on PostgreSQL;
 #   3. two dsrl-server replicas on the same PostgreSQL, the load split between them;
 # and the leaderboard queue's throughput (jobs claimed and finished per second, 60 episodes stored per job) with 1
-# and 4 evaluators on SQLite and PostgreSQL (leaderboard/examples/queue_claims.rs).
+# and 4 evaluators on 1000 queued jobs, and 1 on 4000 (the claim's cost must not grow with the queue), on SQLite and
+# PostgreSQL (leaderboard/examples/queue_claims.rs), with the disk's sync latency beside them.
 #
 # Load comes from wrk (Debian's package, installed if missing), 16 connections in all (8 per replica with two),
 # 10 s per figure (20 s for downloads, 4 connections). PostgreSQL is Debian's, started here in a temporary folder.
@@ -142,10 +143,31 @@ queue() {
     echo "failed: $(echo "$out" | grep -m1 -i error | tr "|" "/" | cut -c1-120)"
   fi
 }
+# Every claim and finish commits with a sync to disk, so the queue's per-job cost follows this disk's sync latency,
+# which varies with what else writes to it: measured just before and just after the queue runs, in the folder the
+# SQLite files are in (50 appends of 4 KiB, each followed by fsync, as SQLite syncs its write-ahead log).
+sync_latency() {
+  python3 - "${TMPDIR:-/tmp}" <<'PY'
+import os, statistics, sys, tempfile, time
+with tempfile.NamedTemporaryFile(dir=sys.argv[1]) as f:
+    times = []
+    for _ in range(50):
+        os.write(f.fileno(), b"x" * 4096)
+        t = time.perf_counter()
+        os.fsync(f.fileno())
+        times.append(time.perf_counter() - t)
+times.sort()
+print(f"median {1000 * statistics.median(times):.2f} ms, slowest {1000 * times[-1]:.2f} ms")
+PY
+}
+sync_before=$(sync_latency)
 q_sqlite_1=$(queue sqlite 1 1000)
 q_sqlite_4=$(queue sqlite 4 1000)
+q_sqlite_long=$(queue sqlite 1 4000)
 q_pg_1=$(queue "$pgurl" 1 1000)
 q_pg_4=$(queue "$pgurl" 4 1000)
+q_pg_long=$(queue "$pgurl" 1 4000)
+sync_after=$(sync_latency)
 
 mkdir -p bench/out
 {
@@ -156,10 +178,12 @@ mkdir -p bench/out
   echo "|---|---|---|---|---|---|---|---|"
   printf "%s\n" "${rows[@]}"
   echo
-  echo "| queue (jobs claimed + finished with 60 episodes, per second) | 1 evaluator | 4 evaluators |"
-  echo "|---|---|---|"
-  echo "| SQLite | $q_sqlite_1 | $q_sqlite_4 |"
-  echo "| PostgreSQL | $q_pg_1 | $q_pg_4 |"
+  echo "| queue (jobs claimed + finished with 60 episodes, per second) | 1 evaluator, 1000 jobs | 4 evaluators, 1000 jobs | 1 evaluator, 4000 jobs |"
+  echo "|---|---|---|---|"
+  echo "| SQLite | $q_sqlite_1 | $q_sqlite_4 | $q_sqlite_long |"
+  echo "| PostgreSQL | $q_pg_1 | $q_pg_4 | $q_pg_long |"
+  echo
+  echo "Disk sync (fsync after a 4 KiB append, 50 times, in ${TMPDIR:-/tmp}): before the queue runs $sync_before; after them $sync_after."
 } > bench/out/replicas.md
 cat bench/out/replicas.md
 bench_section replicas.sh bench/out/replicas.md
