@@ -176,12 +176,9 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
         "UPDATE submissions
          SET state = 'running', attempts = attempts + 1, lease_owner = $1, lease_expires_ms = $2,
              started_at = COALESCE(started_at, $3), claimed_ms = $4, heartbeat_ms = $4, episodes_done = 0
-         WHERE id = (SELECT s.id FROM {}
-                     ORDER BY {FAIR_ORDER}
-                     LIMIT 1{})
+         WHERE id = ({})
          RETURNING id, task, checkpoints, episodes_per_threshold, attempts",
-        fair_queue("$4"),
-        db.backend().skip_locked("s")
+        pick(db.backend(), "$4")
     )))
     .bind(owner)
     .bind(now + lease_ms)
@@ -216,37 +213,55 @@ fn waiting_of(table: &str, now: &str) -> String {
     format!("({t}state = 'queued' OR ({t}state = 'running' AND {t}lease_expires_ms < {now}))")
 }
 
-/// The waiting jobs (`s`, joined to `q`) with what their fair order (`FAIR_ORDER`) sorts by: round-robin across
-/// users, where a user's k-th waiting job is in round k (`q.round`, counted from 1); within a round, the user whose
-/// last claim is oldest goes first (`q.last_claim`); then submission order. One user's many submissions cannot hold
-/// back another's first, whether or not an evaluator has claimed anything yet.
+/// The waiting jobs with what their fair order (`FAIR_ORDER`) sorts by: round-robin across users, where a user's
+/// k-th waiting job is in round k (`round`, counted from 1); within a round, the user whose last claim is oldest goes
+/// first (`last_claim`); then submission order. One user's many submissions cannot hold back another's first,
+/// whether or not an evaluator has claimed anything yet.
 ///
 /// The round is a window function, one pass over the waiting jobs. It was a count of the user's earlier waiting
 /// jobs for each waiting job, which made a claim quadratic in the queue's length: 65 ms at 1,000 queued jobs of one
 /// user, all of it under SQLite's write lock, so that concurrent claims and submissions waited and, with a longer
 /// queue, ran past `busy_timeout` ("database is locked"). The last claim is one index lookup per job
 /// (`submissions_user_claims`).
-///
-/// On PostgreSQL the claim locks rows of `s` alone (`FOR UPDATE OF s`): a locking clause may not reach into a query
-/// with a window function. The waiting condition is stated on `s` as well as inside `q`, because it is what keeps two
-/// evaluators from claiming one job: a claim that finds a row another claim has just committed re-checks that row's
-/// new version against the conditions on `s` only (READ COMMITTED's recheck; `q` keeps its snapshot), so without
-/// them the second claim would take the job the first had taken.
 fn fair_queue(now: &str) -> String {
     format!(
-        "submissions s JOIN
-           (SELECT w.id, ROW_NUMBER() OVER (PARTITION BY w.user_id ORDER BY w.id) AS round,
-                   (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = w.user_id) AS last_claim
-            FROM submissions w WHERE {}) q
-         ON q.id = s.id
-         WHERE {}",
-        waiting_of("w", now),
-        waiting_of("s", now)
+        "SELECT w.id, w.task, ROW_NUMBER() OVER (PARTITION BY w.user_id ORDER BY w.id) AS round,
+                (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = w.user_id) AS last_claim
+         FROM submissions w WHERE {}",
+        waiting_of("w", now)
     )
 }
 
-/// The fair order of `fair_queue`'s jobs.
+/// The fair order of `fair_queue`'s jobs, aliased `q`.
 const FAIR_ORDER: &str = "q.round, q.last_claim, q.id";
+
+/// How many jobs at the head of the fair order a claim considers. Only jobs that other evaluators are claiming at
+/// the same instant are passed over, so this bounds the evaluators that can claim at once without one of them
+/// finding nothing (it then tries again a second later, as on an empty queue).
+const CLAIM_CANDIDATES: usize = 128;
+
+/// The subquery that picks the job to claim: the first of the head of the fair order (computed once, `MATERIALIZED`)
+/// that is still waiting, and on PostgreSQL not being claimed by another evaluator (`FOR UPDATE OF s SKIP LOCKED`).
+///
+/// - The fair order is computed apart from the row it locks because PostgreSQL allows no locking clause beside a
+///   window function. Joined directly, PostgreSQL's plan for a table it had not yet analyzed (a fresh server's
+///   first burst of submissions) recomputed the window for every waiting job, quadratic again: 0.5 s a claim at a
+///   few hundred jobs. The materialized head is at most `CLAIM_CANDIDATES` rows, whatever the plan.
+/// - The waiting condition is stated again on the locked row `s`: a claim that meets a row another claim has just
+///   committed re-checks that row's new version against the conditions on `s` alone (READ COMMITTED's recheck; `q`
+///   keeps its snapshot), so without it two evaluators would take one job.
+fn pick(backend: dsrl_service::db::Backend, now: &str) -> String {
+    format!(
+        "WITH q AS MATERIALIZED ({} ORDER BY round, last_claim, id LIMIT {CLAIM_CANDIDATES})
+         SELECT s.id FROM q JOIN submissions s ON s.id = q.id
+         WHERE {}
+         ORDER BY {FAIR_ORDER}
+         LIMIT 1{}",
+        fair_queue(now),
+        waiting_of("s", now),
+        backend.skip_locked("s")
+    )
+}
 
 /// Jobs waiting for an evaluator: queued, or running under a lease that ran out.
 pub async fn depth(db: &Db) -> Result<i64, ApiError> {
@@ -658,7 +673,7 @@ pub async fn episodes(db: &Db, id: i64) -> Result<Vec<EpisodeRow>, ApiError> {
 /// tasks.
 pub async fn waiting_in_order(db: &Db) -> Result<Vec<(i64, String)>, ApiError> {
     let rows = sqlx::query(AssertSqlSafe(format!(
-        "SELECT s.id, s.task FROM {} ORDER BY {FAIR_ORDER}",
+        "SELECT q.id, q.task FROM ({}) q ORDER BY {FAIR_ORDER}",
         fair_queue("$1")
     )))
     .bind(now_ms())
