@@ -155,11 +155,11 @@ async fn already_submitted(db: &Db, new: &NewSubmission<'_>) -> Result<Option<Ap
     ))))
 }
 
-/// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the next runnable job: of the
-/// waiting jobs' users, the one served longest ago (never served first), then that user's oldest job. So one user's
-/// queue of slow submissions delays another user's by at most the job being scored. On PostgreSQL the pick skips
-/// rows another evaluator is claiming (`FOR UPDATE SKIP LOCKED`), so concurrent claims neither wait for each other
-/// nor take the same job.
+/// Fails running jobs whose lease ran out after `max_attempts` claims, then claims the next runnable job in the fair
+/// order (`fair_queue`): each user's oldest waiting job comes before anyone's second, and among those the user served
+/// longest ago (never served first) goes first. So one user's queue of slow submissions delays another user's by at
+/// most the job being scored. On PostgreSQL the pick skips rows another evaluator is claiming (`FOR UPDATE SKIP
+/// LOCKED`), so concurrent claims neither wait for each other nor take the same job.
 pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Result<Option<Job>, ApiError> {
     let now = now_ms();
     sqlx::query(
