@@ -517,46 +517,9 @@ mod tests {
     }
 
     fn entry(method: &str, seed: u64, reward: f64, cost: f64) -> ReferenceEntry {
-        use dsrl_suite::reference::{ScoringRecord, TrainingBudget};
-        use dsrl_suite::score::EpisodeResult;
-        let episodes = [10.0, 20.0, 40.0]
-            .iter()
-            .flat_map(|&k| {
-                (0..2).map(move |i| EpisodeResult {
-                    cost_threshold: k,
-                    episode: i,
-                    reward_return: reward,
-                    cost_return: cost,
-                    length: 10,
-                })
-            })
-            .collect();
-        ReferenceEntry {
-            task: "OfflineBallRun-v0".into(),
-            method: method.into(),
-            seed,
-            training: TrainingBudget {
-                steps: 10,
-                batch_size: 512,
-                models: 1,
-                seconds: 1.0,
-                cpu_seconds: 1.0,
-                cpu: None,
-                osrl_steps: 100_000,
-                osrl_batch_size: 512,
-            },
-            dataset_version: "0".repeat(64),
-            code_commit: "abc".into(),
-            checkpoint_sha256: format!("{method}{seed}"),
-            protocol_version: "p1.x".into(),
-            scoring: ScoringRecord {
-                submission: 1,
-                started_at: "a".into(),
-                finished_at: "b".into(),
-                seconds: 1.0,
-            },
-            episodes,
-        }
+        let catalog = Catalog::embedded().unwrap();
+        let task = catalog.get("OfflineBallRun-v0").unwrap();
+        dsrl_suite::synthetic::reference_entry(task, method, seed, reward, cost)
     }
 
     #[test]

@@ -338,46 +338,7 @@ mod tests {
 
     fn entry(task: &str, method: &str, seed: u64, cost: f64) -> ReferenceEntry {
         let catalog = Catalog::embedded().unwrap();
-        let t = catalog.get(task).unwrap();
-        let episodes = t
-            .cost_thresholds
-            .iter()
-            .flat_map(|&k| {
-                (0..2).map(move |i| EpisodeResult {
-                    cost_threshold: k,
-                    episode: i,
-                    reward_return: 100.0,
-                    cost_return: cost,
-                    length: 10,
-                })
-            })
-            .collect();
-        ReferenceEntry {
-            task: task.into(),
-            method: method.into(),
-            seed,
-            training: TrainingBudget {
-                steps: 10,
-                batch_size: 512,
-                models: 1,
-                seconds: 1.0,
-                cpu_seconds: 1.0,
-                cpu: None,
-                osrl_steps: 100_000,
-                osrl_batch_size: 512,
-            },
-            dataset_version: "0".repeat(64),
-            code_commit: "abc".into(),
-            checkpoint_sha256: format!("{task}{method}{seed}"),
-            protocol_version: "p1.x".into(),
-            scoring: ScoringRecord {
-                submission: 1,
-                started_at: "a".into(),
-                finished_at: "b".into(),
-                seconds: 1.0,
-            },
-            episodes,
-        }
+        crate::synthetic::reference_entry(catalog.get(task).unwrap(), method, seed, 100.0, cost)
     }
 
     #[test]
