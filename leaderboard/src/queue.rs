@@ -197,20 +197,11 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
     }))
 }
 
-/// The condition of a job waiting for an evaluator: queued, or running under a lease that ran out before the time
-/// (milliseconds) in the parameter `now`. One definition for the claim and the queue depth.
-fn waiting(now: &str) -> String {
-    waiting_of("", now)
-}
-
-/// `waiting` on the columns of the table aliased `table`.
-fn waiting_of(table: &str, now: &str) -> String {
-    let t = if table.is_empty() {
-        String::new()
-    } else {
-        format!("{table}.")
-    };
-    format!("({t}state = 'queued' OR ({t}state = 'running' AND {t}lease_expires_ms < {now}))")
+/// The condition of a job waiting for an evaluator, on the columns of the table aliased `table`: queued, or running
+/// under a lease that ran out before the time (milliseconds) in the parameter `now`. One definition for the claim,
+/// the queue positions and the queue depth.
+fn waiting(table: &str, now: &str) -> String {
+    format!("({table}.state = 'queued' OR ({table}.state = 'running' AND {table}.lease_expires_ms < {now}))")
 }
 
 /// The waiting jobs with what their fair order (`FAIR_ORDER`) sorts by: round-robin across users, where a user's
@@ -228,7 +219,7 @@ fn fair_queue(now: &str) -> String {
         "SELECT w.id, w.task, ROW_NUMBER() OVER (PARTITION BY w.user_id ORDER BY w.id) AS round,
                 (SELECT COALESCE(MAX(c.claimed_ms), 0) FROM submissions c WHERE c.user_id = w.user_id) AS last_claim
          FROM submissions w WHERE {}",
-        waiting_of("w", now)
+        waiting("w", now)
     )
 }
 
@@ -258,7 +249,7 @@ fn pick(backend: dsrl_service::db::Backend, now: &str) -> String {
          ORDER BY {FAIR_ORDER}
          LIMIT 1{}",
         fair_queue(now),
-        waiting_of("s", now),
+        waiting("s", now),
         backend.skip_locked("s")
     )
 }
@@ -266,8 +257,8 @@ fn pick(backend: dsrl_service::db::Backend, now: &str) -> String {
 /// Jobs waiting for an evaluator: queued, or running under a lease that ran out.
 pub async fn depth(db: &Db) -> Result<i64, ApiError> {
     let row = sqlx::query(AssertSqlSafe(format!(
-        "SELECT COUNT(*) FROM submissions WHERE {}",
-        waiting("$1")
+        "SELECT COUNT(*) FROM submissions s WHERE {}",
+        waiting("s", "$1")
     )))
     .bind(now_ms())
     .fetch_one(db.pool())
@@ -796,13 +787,8 @@ mod tests {
         }
         // A queue with history: finished jobs with earlier claims, jobs running under a live lease (not waiting),
         // jobs whose lease lapsed (waiting again), and queued ones, spread unevenly over four users.
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = |n: u64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state % n
-        };
+        let mut random = dsrl_suite::synthetic::SplitMix64::new(7);
+        let mut next = |n: u64| random.next_u64() % n;
         let mut rows = Vec::new();
         for id in 1..=80i64 {
             let user = [1, 1, 1, 2, 2, 3, 4][next(7) as usize];
