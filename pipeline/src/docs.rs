@@ -23,7 +23,7 @@ use anyhow::{Context, bail};
 use dsrl_suite::Catalog;
 use dsrl_suite::leaderboard::entry_interval;
 use dsrl_suite::paper::PaperResults;
-use dsrl_suite::reference::{ReferenceEntry, agreement, read_results, scored_entries, summarize};
+use dsrl_suite::reference::{ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize};
 
 /// The documents that hold generated sections, relative to the repository root.
 pub const DOCUMENTS: [&str; 2] = ["data/README.md", "data/reference/README.md"];
@@ -321,11 +321,7 @@ fn seeds_section(catalog: &Catalog, paper: &PaperResults, current: &[&ReferenceE
                 continue;
             }
             seeds.sort_by_key(|(seed, _)| *seed);
-            let n = seeds.len() as f64;
-            let mean = dsrl_suite::NormalizedScore {
-                reward: seeds.iter().map(|(_, s)| s.reward).sum::<f64>() / n,
-                cost: seeds.iter().map(|(_, s)| s.cost).sum::<f64>() / n,
-            };
+            let mean = mean_over_seeds(seeds.iter().map(|(_, s)| *s));
             let spread = |f: fn(&dsrl_suite::NormalizedScore) -> f64| {
                 let values = seeds.iter().map(|(_, s)| f(s));
                 values.clone().fold(f64::NEG_INFINITY, f64::max) - values.fold(f64::INFINITY, f64::min)

@@ -260,6 +260,16 @@ pub struct AgreementSummary {
     pub mean_abs_cost_difference: Option<f64>,
 }
 
+/// The mean of one (task, method)'s scores over its training seeds, as the paper averages its seeds: what our
+/// verdict on a cell is taken from. Called with at least one score (none gives NaN).
+pub fn mean_over_seeds(scores: impl ExactSizeIterator<Item = NormalizedScore> + Clone) -> NormalizedScore {
+    let n = scores.len() as f64;
+    NormalizedScore {
+        reward: scores.clone().map(|s| s.reward).sum::<f64>() / n,
+        cost: scores.map(|s| s.cost).sum::<f64>() / n,
+    }
+}
+
 /// Every (task, method) that both our entries and the paper's table have, in catalog then method order. Our
 /// verdict uses the benchmark's rule (normalized cost at most 1) on the mean over seeds.
 pub fn agreement(catalog: &Catalog, paper: &PaperResults, ours: &[ScoredEntry]) -> Vec<Agreement> {
@@ -276,9 +286,7 @@ pub fn agreement(catalog: &Catalog, paper: &PaperResults, ours: &[ScoredEntry]) 
             if seeds.is_empty() {
                 continue;
             }
-            let n = seeds.len() as f64;
-            let reward = seeds.iter().map(|e| e.score.reward).sum::<f64>() / n;
-            let cost = seeds.iter().map(|e| e.score.cost).sum::<f64>() / n;
+            let NormalizedScore { reward, cost } = mean_over_seeds(seeds.iter().map(|e| e.score));
             let safe = NormalizedScore { reward, cost }.is_safe();
             cells.push(Agreement {
                 task: task.id.to_string(),
