@@ -298,7 +298,7 @@ impl Leaderboard {
             .map_err(ApiError::internal)
             .and_then(|embedded| PaperResults::embedded(&embedded).map_err(ApiError::internal))?;
         Ok(Leaderboard {
-            protocol: protocol::current(&catalog, config.episodes_per_threshold),
+            protocol: protocol::current(&catalog, config.episodes_per_threshold, config.envs_per_session),
             paper,
             intervals: Mutex::new(HashMap::new()),
             evaluators: supervision::Evaluators::default(),

@@ -400,8 +400,11 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
         &std::fs::read_to_string(&results_path).with_context(|| format!("reading {}", results_path.display()))?,
         &catalog,
     )?;
-    let protocol =
-        dsrl_evaluation::protocol::current(&catalog, dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD);
+    let protocol = dsrl_evaluation::protocol::current(
+        &catalog,
+        dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD,
+        dsrl_evaluation::protocol::DEFAULT_ENVS_PER_SESSION,
+    );
     let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version);
     let starters = crate::hosted::read_starters(&catalog, &root.join("data/starter"))?;
     all.extend(crate::hosted::sections(&catalog, &starters));

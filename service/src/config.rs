@@ -34,6 +34,8 @@ pub struct LeaderboardConfig {
     pub episodes_per_threshold: u32,
     /// Environments per threshold while scoring: one session each, every environment playing
     /// `episodes_per_threshold / envs_per_session` episodes in turn (creating environments costs more than stepping).
+    /// Part of the protocol version: on some tasks an environment's episode depends on the one it played before, so
+    /// another layout scores other episodes.
     pub envs_per_session: u32,
     /// An evaluator's claim on a job lapses this long after its last heartbeat; another evaluator then re-runs it.
     pub lease_seconds: u64,
@@ -71,7 +73,7 @@ impl Default for LeaderboardConfig {
         LeaderboardConfig {
             evaluators: 1,
             episodes_per_threshold: dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD,
-            envs_per_session: 5,
+            envs_per_session: dsrl_evaluation::protocol::DEFAULT_ENVS_PER_SESSION,
             lease_seconds: 60,
             max_attempts: 3,
             submissions_per_day: 10,

@@ -4,6 +4,9 @@
 //!   thresholds;
 //! - the simulator pins (the pinned requirements and the fixes applied to them);
 //! - the episodes played per threshold;
+//! - the scoring layout (environments per threshold, each playing several episodes in turn): on some tasks an
+//!   environment's later episodes depend on its earlier ones (Bullet keeps motor targets across a reset), so another
+//!   layout plays other episodes from the same seeds;
 //! - the held-seed policy (how episode seeds are derived);
 //! - the scorer's revision (bumped by hand when the scoring code changes what an episode scores; a drift test in
 //!   `dsrl-evaluation` names the sources it covers),
@@ -18,6 +21,10 @@ use crate::catalog::Catalog;
 /// The revision of the benchmark rules themselves (how scores are aggregated, what is safe, how entries rank).
 pub const RULES: u32 = 1;
 
+/// The scoring layout every result had before the layout entered the digest. It stays out of the digest's input, so
+/// the versions of those results stand; any other layout enters it and gives another version.
+pub const DEFAULT_ENVS_PER_SESSION: u32 = 5;
+
 /// What the version is computed from.
 #[derive(Debug, Clone)]
 pub struct ProtocolParts<'a> {
@@ -25,6 +32,8 @@ pub struct ProtocolParts<'a> {
     /// The simulator environment's pins and fixes, as text.
     pub simulator_pins: &'a str,
     pub episodes_per_threshold: u32,
+    /// Environments per threshold while scoring (one session each).
+    pub envs_per_session: u32,
     /// The held-seed policy's name.
     pub held_seeds: &'a str,
     pub scorer_revision: u32,
@@ -42,8 +51,14 @@ pub struct Protocol {
     pub catalog_sha256: String,
     pub simulator_pins_sha256: String,
     pub episodes_per_threshold: u32,
+    #[serde(default = "default_envs_per_session")]
+    pub envs_per_session: u32,
     pub held_seeds: String,
     pub scorer_revision: u32,
+}
+
+fn default_envs_per_session() -> u32 {
+    DEFAULT_ENVS_PER_SESSION
 }
 
 #[derive(Serialize)]
@@ -85,18 +100,18 @@ impl ProtocolParts<'_> {
             .collect();
         let catalog_sha256 = sha256_hex(&serde_json::to_vec(&facts).expect("task facts serialize"));
         let simulator_pins_sha256 = sha256_hex(self.simulator_pins.as_bytes());
-        let digest = sha256_hex(
-            serde_json::json!({
-                "rules": RULES,
-                "catalog": catalog_sha256,
-                "simulator_pins": simulator_pins_sha256,
-                "episodes_per_threshold": self.episodes_per_threshold,
-                "held_seeds": self.held_seeds,
-                "scorer_revision": self.scorer_revision,
-            })
-            .to_string()
-            .as_bytes(),
-        );
+        let mut parts = serde_json::json!({
+            "rules": RULES,
+            "catalog": catalog_sha256,
+            "simulator_pins": simulator_pins_sha256,
+            "episodes_per_threshold": self.episodes_per_threshold,
+            "held_seeds": self.held_seeds,
+            "scorer_revision": self.scorer_revision,
+        });
+        if self.envs_per_session != DEFAULT_ENVS_PER_SESSION {
+            parts["envs_per_session"] = self.envs_per_session.into();
+        }
+        let digest = sha256_hex(parts.to_string().as_bytes());
         Protocol {
             version: format!("p{RULES}.{}", &digest[..10]),
             rules: RULES,
@@ -104,6 +119,7 @@ impl ProtocolParts<'_> {
             catalog_sha256,
             simulator_pins_sha256,
             episodes_per_threshold: self.episodes_per_threshold,
+            envs_per_session: self.envs_per_session,
             held_seeds: self.held_seeds.to_owned(),
             scorer_revision: self.scorer_revision,
         }
@@ -121,11 +137,27 @@ mod tests {
             catalog: &catalog,
             simulator_pins: "safety-gymnasium==1.0.0\n",
             episodes_per_threshold: 20,
+            envs_per_session: DEFAULT_ENVS_PER_SESSION,
             held_seeds: "held-seeds/1",
             scorer_revision: 1,
         };
         let version = base.protocol().version;
         assert!(version.starts_with("p1.") && version.len() == 13, "{version}");
+        // The default layout is not in the digest's input: the version is the one computed before it was a part.
+        // (The committed reference results are checked against the current version by the documents' test.)
+        let before = sha256_hex(
+            serde_json::json!({
+                "rules": RULES,
+                "catalog": base.protocol().catalog_sha256,
+                "simulator_pins": base.protocol().simulator_pins_sha256,
+                "episodes_per_threshold": 20,
+                "held_seeds": "held-seeds/1",
+                "scorer_revision": 1,
+            })
+            .to_string()
+            .as_bytes(),
+        );
+        assert_eq!(version, format!("p1.{}", &before[..10]));
         assert_eq!(
             base.protocol().version,
             version,
@@ -154,6 +186,10 @@ mod tests {
             },
             ProtocolParts {
                 episodes_per_threshold: 10,
+                ..base.clone()
+            },
+            ProtocolParts {
+                envs_per_session: 10,
                 ..base.clone()
             },
             ProtocolParts {

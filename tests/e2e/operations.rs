@@ -252,6 +252,18 @@ fn the_queue_is_fair_shows_positions_and_counts_and_the_board_downloads_as_data(
 
     // Counts beside scores, on the table and on the user's page.
     let board = get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
+    // Its layout (2 environments per threshold) is part of its protocol: the same episodes on the default layout
+    // would be another version.
+    assert_eq!(board["protocol"]["envs_per_session"], 2);
+    let catalog = dsrl_suite::Catalog::embedded().unwrap();
+    assert_eq!(
+        board["protocol"]["version"],
+        dsrl_evaluation::protocol::current(&catalog, 2, 2).version
+    );
+    assert_ne!(
+        board["protocol"]["version"],
+        dsrl_evaluation::protocol::current(&catalog, 2, 5).version
+    );
     let entries = board["tasks"][0]["entries"].as_array().unwrap();
     for e in entries {
         let expected = if e["user"] == "alice" { 3 } else { 1 };

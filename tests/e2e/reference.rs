@@ -18,7 +18,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     let paper = PaperResults::embedded(&catalog).unwrap();
     let file = dsrl_e2e::repo_root().join("data/reference/results.jsonl");
     let entries = read_results(&std::fs::read_to_string(&file).unwrap(), &catalog).unwrap();
-    let protocol = dsrl_evaluation::protocol::current(&catalog, 20);
+    let protocol = dsrl_evaluation::protocol::current(&catalog, 20, 5);
     let current: Vec<_> = entries
         .iter()
         .filter(|e| e.protocol_version == protocol.version)
@@ -32,6 +32,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     let board = get_json(&format!("{}/v1/leaderboard", env.server.url));
     assert_eq!(board["protocol"]["version"], protocol.version.as_str());
     assert_eq!(board["protocol"]["episodes_per_threshold"], 20);
+    assert_eq!(board["protocol"]["envs_per_session"], 5);
     let tables = board["tasks"].as_array().unwrap();
     assert_eq!(tables.len(), 38, "every task has a table: the paper's rows at least");
     for (table, task) in tables.iter().zip(catalog.tasks()) {

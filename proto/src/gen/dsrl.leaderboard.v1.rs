@@ -319,6 +319,10 @@ pub struct Protocol {
     pub held_seeds: ::prost::alloc::string::String,
     #[prost(uint32, tag = "8")]
     pub scorer_revision: u32,
+    /// Environments per threshold while scoring (one session each): on some tasks an environment's episode depends
+    /// on the one it played before, so the layout is part of the protocol.
+    #[prost(uint32, tag = "9")]
+    pub envs_per_session: u32,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]

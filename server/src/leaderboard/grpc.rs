@@ -184,6 +184,7 @@ fn board(board: Board) -> pb::Leaderboard {
             catalog_sha256: board.protocol.catalog_sha256,
             simulator_pins_sha256: board.protocol.simulator_pins_sha256,
             episodes_per_threshold: board.protocol.episodes_per_threshold,
+            envs_per_session: board.protocol.envs_per_session,
             held_seeds: board.protocol.held_seeds,
             scorer_revision: board.protocol.scorer_revision,
         }),
