@@ -9,7 +9,9 @@
 #     the same checkpoint for 60 episodes.
 # The checkpoint is BC-All trained by dsrl-train on the committed BallCircle starter (2000 steps; its quality does
 # not matter here, only that both sides play the same network). Prints a Markdown table (bench/out/score.md, and into
-# BENCHMARKS.md at 3 rounds with the default sessions) with the machine and whether the goal was met.
+# BENCHMARKS.md at 3 rounds with the default sessions) with the machine and whether the goal was met, and a second
+# table of where the time goes: CPU seconds per simulator worker, of the server and of its policy processes, beside
+# the loop's.
 # Usage: bench/score.sh [ROUNDS=3]   (SKIP_BUILD=1: play the binaries already built)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -43,13 +45,28 @@ for _ in $(seq 600); do
 done
 export DSRL_TOKEN=$(DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin create-user bench)
 
-python_s=() dsrl_s=()
+# Where the time goes, per round: CPU seconds of each simulator worker, of the server itself and of the policy
+# processes it ran and reaped (its children's time; the workers, also its children, live on and are not in it), the
+# evaluator's own time from its log, and the Python loop's CPU seconds.
+workers=$(pgrep -P "$server_pid" -f dsrl-sim-worker | sort -n | tr '\n' ' ')
+[ "$(echo $workers | wc -w)" = 2 ] || { echo "expected the server's two simulator workers, found: $workers" >&2; exit 1; }
+cpu_snapshot() {
+  python3 -c '
+import os, sys
+hz = os.sysconf("SC_CLK_TCK")
+for pid in sys.argv[1:]:
+    f = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    print((int(f[11]) + int(f[12])) / hz, (int(f[13]) + int(f[14])) / hz, end=" ")
+' "$server_pid" $workers
+}
+python_s=() dsrl_s=() breakdown=()
 for round in $(seq "$rounds"); do
   # A new network each round (max_action differs in the last digit), so the dedupe does not answer from the
   # first result; the play is the same.
   dir="$work/round-$round"; mkdir -p "$dir"
   cp "$work/policy/bc-all/policy.safetensors" "$dir/"
   python3 -c "import json,sys; c=json.load(open('$work/policy/bc-all/policy.json')); c['architecture']['max_action']=1.0-$round*1e-9; json.dump(c, open('$dir/policy.json','w'))"
+  before=$(cpu_snapshot)
   start=$(date +%s.%N)
   id=$("$bin/dsrl-client" submit "$dir" --task $task --name "bench-$round" 2>/dev/null)
   while :; do
@@ -58,11 +75,26 @@ for round in $(seq "$rounds"); do
     sleep 0.05
   done
   end=$(date +%s.%N)
+  after=$(cpu_snapshot)
   dsrl_s+=("$(python3 -c "print($end - $start)")")
+  evaluated=$(sed -n "s/.*evaluation finished id=$id .*seconds=\([0-9.]*\).*/\1/p" "$work/server.log")
   start=$(date +%s.%N)
-  OPENBLAS_NUM_THREADS=1 .venv-sim/bin/python tests/parity/evaluate_in_python.py "$dir" --sim-id SafetyBallCircle-v0 --episodes 60 > "$work/python.json"
+  # The loop's CPU seconds: its process's, as the parent sees them once it has exited.
+  loop_cpu=$(python3 -c '
+import resource, subprocess, sys
+with open(sys.argv[1], "w") as out:
+    subprocess.run(sys.argv[2:], stdout=out, check=True)
+r = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(r.ru_utime + r.ru_stime)
+' "$work/python.json" env OPENBLAS_NUM_THREADS=1 .venv-sim/bin/python tests/parity/evaluate_in_python.py "$dir" \
+    --sim-id SafetyBallCircle-v0 --episodes 60)
   end=$(date +%s.%N)
   python_s+=("$(python3 -c "print($end - $start)")")
+  # Per round: the evaluator's own seconds, then CPU seconds of worker 1, worker 2, the server, its policy
+  # processes, and the loop.
+  breakdown+=("$(python3 -c "
+b, a = [float(x) for x in '$before'.split()], [float(x) for x in '$after'.split()]
+print($evaluated, a[2] - b[2], a[4] - b[4], a[0] - b[0], a[1] - b[1], $loop_cpu)")")
 done
 steps=$(curl -s "$url/v1/submissions/$id" | python3 -c 'import json,sys; print(sum(e["length"] for e in json.load(sys.stdin)["episodes"]))')
 steps_py=$(python3 -c "import json; print(sum(e['length'] for e in json.load(open('$work/python.json'))['episodes']))")
@@ -77,6 +109,19 @@ rounded() { printf '%.2f ' "$@"; }
   echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | $(rounded "${dsrl_s[@]}")|"
   echo
   python3 -c "p, d = $(median "${python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring faster than the sequential loop): %s, %.2fx the loop\'s speed (median).' % ('met' if d < p else '**not met**', p / d))"
+  echo
+  echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loop's with its start and imports; the evaluator's seconds from its log, from"
+  echo "claiming the job to storing its episodes):"
+  echo
+  printf '%s\n' "${breakdown[@]}" | python3 -c '
+import statistics, sys
+rows = [[float(x) for x in line.split()] for line in sys.stdin if line.strip()]
+m = [statistics.median(c) for c in zip(*rows)]
+evaluated, w1, w2, server, policy, loop = m
+print("| dsrl-server: evaluator s | CPU s: worker 1 | CPU s: worker 2 | CPU s: server | CPU s: policy processes | CPU s: all of dsrl | CPU s: the Python loop |")
+print("|---|---|---|---|---|---|---|")
+print("| %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |" % (evaluated, w1, w2, server, policy, w1 + w2 + server + policy, loop))
+'
 } > bench/out/score.md
 cat bench/out/score.md
 if [ "$rounds" = 3 ] && [ -z "${DSRL__LEADERBOARD__ENVS_PER_SESSION:-}" ]; then bench_section score.sh bench/out/score.md; fi
