@@ -415,13 +415,24 @@ mod tests {
     /// A child that answers nothing, stopped by `signal` before it is asked to act: `sleep` stands in for the
     /// policy process, since what is tested is how its exit status is read, not how it plays (no core file).
     async fn stopped_by(signal: i32) -> EvaluationError {
-        let mut child = tokio::process::Command::new("sh")
+        let mut command = tokio::process::Command::new("sh");
+        command
             .args(["-c", "ulimit -c 0; exec sleep 600"])
             .stdin(std::process::Stdio::piped())
             .stdout(std::process::Stdio::piped())
-            .kill_on_drop(true)
-            .spawn()
-            .unwrap();
+            .kill_on_drop(true);
+        // A test run started in the background (`nohup … &`) hands its children SIGINT and SIGHUP ignored, and an
+        // ignored signal survives exec (a shell cannot even trap it again): restore the defaults the test sends.
+        // SAFETY: `signal` is async-signal-safe, as a pre_exec closure must be.
+        unsafe {
+            command.pre_exec(|| {
+                for signal in [libc::SIGINT, libc::SIGHUP, libc::SIGQUIT] {
+                    libc::signal(signal, libc::SIG_DFL);
+                }
+                Ok(())
+            });
+        }
+        let mut child = command.spawn().unwrap();
         let (stdin, stdout) = (child.stdin.take().unwrap(), child.stdout.take().unwrap());
         // Let the shell exec sleep, so the signal reaches the process that stands in for the policy.
         tokio::time::sleep(std::time::Duration::from_millis(200)).await;
