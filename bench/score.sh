@@ -110,8 +110,8 @@ rounded() { printf '%.2f ' "$@"; }
   echo
   python3 -c "p, d = $(median "${python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring faster than the sequential loop): %s, %.2fx the loop\'s speed (median).' % ('met' if d < p else '**not met**', p / d))"
   echo
-  echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loop's with its start and imports; the evaluator's seconds from its log, from"
-  echo "claiming the job to storing its episodes):"
+  echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loop's with its start and imports;"
+  echo "the evaluator's seconds from its log, from claiming the job to storing its episodes):"
   echo
   printf '%s\n' "${breakdown[@]}" | python3 -c '
 import statistics, sys

@@ -1,6 +1,7 @@
 //! The protocol a leaderboard scores under: its catalog, the simulator pins compiled in here, its episodes per
-//! threshold and scoring layout, the held-seed policy and the scorer's revision (`dsrl_suite::protocol`). Every result records the
-//! version it was scored under; the tables rank only the current one's, and the documents' reference tables use it.
+//! threshold and scoring layout, the held-seed policy and the scorer's revision (`dsrl_suite::protocol`). Every
+//! result records the version it was scored under; the tables rank only the current one's, and the documents'
+//! reference tables use it.
 
 use dsrl_suite::Catalog;
 use dsrl_suite::protocol::{Protocol, ProtocolParts};

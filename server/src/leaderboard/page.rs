@@ -121,9 +121,9 @@ pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
          normalized cost is at most 1. Safe entries rank by normalized reward, then unsafe ones by cost. Reference \
          entries (user <em>{}</em>) are the paper's baselines trained by <code>dsrl-train</code> on the hosted \
          data at the budget shown; the paper's own rows are shown beside each task, unranked.</p>\n\
-         <p id=\"protocol\">Protocol <strong>{}</strong>: {} tasks, {} episodes per threshold on {} environments, held seeds \
-         <code>{}</code>, scorer revision {}, rules {}; catalog sha256 <code>{}</code>, simulator pins sha256 \
-         <code>{}</code>. Only results scored under it are ranked.</p>\n",
+         <p id=\"protocol\">Protocol <strong>{}</strong>: {} tasks, {} episodes per threshold on {} environments, \
+         held seeds <code>{}</code>, scorer revision {}, rules {}; catalog sha256 <code>{}</code>, simulator pins \
+         sha256 <code>{}</code>. Only results scored under it are ranked.</p>\n",
         escape(crate::leaderboard::users::REFERENCE_USER),
         escape(&p.version),
         p.tasks,
