@@ -286,8 +286,8 @@ pub fn agreement(catalog: &Catalog, paper: &PaperResults, ours: &[ScoredEntry]) 
             if seeds.is_empty() {
                 continue;
             }
-            let NormalizedScore { reward, cost } = mean_over_seeds(seeds.iter().map(|e| e.score));
-            let safe = NormalizedScore { reward, cost }.is_safe();
+            let mean = mean_over_seeds(seeds.iter().map(|e| e.score));
+            let (reward, cost, safe) = (mean.reward, mean.cost, mean.is_safe());
             cells.push(Agreement {
                 task: task.id.to_string(),
                 method: method.to_owned(),
