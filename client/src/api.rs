@@ -141,7 +141,7 @@ impl Client {
         })
     }
 
-    /// The server's version and limits; with a token, also checks it (a wrong one is an error).
+    /// The server's version and limits, and whether the client's token is the admin token.
     pub async fn server_info(&self) -> Result<ServerInfo, ClientError> {
         let mut request = self.http.get(self.url("/v1/server"));
         if let Some(token) = &self.token {
@@ -237,6 +237,14 @@ impl Client {
             .len();
         self.require_token()?;
         let info = self.server_info().await?;
+        if !info.admin {
+            return Err(ClientError::Server {
+                status: 403,
+                code: "permission_denied".into(),
+                message: "the token given is not this server's admin token (uploads need it)".into(),
+                suggestions: Vec::new(),
+            });
+        }
         self.task(task).await?;
         if size > info.max_upload_bytes {
             return Err(ClientError::TooLarge {

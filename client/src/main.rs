@@ -599,9 +599,12 @@ fn report_submission(s: &serde_json::Value, json: bool, episodes: bool) -> u8 {
                 q["position"],
                 q["jobs_ahead"].as_array().map_or(0, Vec::len),
                 q["running"],
-                q["estimated_start"].as_str().unwrap_or("?"),
-                q["estimated_finish"].as_str().unwrap_or("?")
+                q["estimated_start"].as_str().unwrap_or("unknown"),
+                q["estimated_finish"].as_str().unwrap_or("unknown")
             );
+            if let Some(why) = q["estimate_unknown"].as_str() {
+                out!("  (estimates unknown: {why})");
+            }
         }
         let p = &s["progress"];
         if p.is_object() {
@@ -612,6 +615,9 @@ fn report_submission(s: &serde_json::Value, json: bool, episodes: bool) -> u8 {
                 p["evaluator"].as_str().unwrap_or("?"),
                 p["last_heartbeat"].as_str().unwrap_or("?")
             );
+            if p["heartbeat_stale"] == true {
+                out!("  the evaluator's heartbeat is stale: it has probably stopped; the job returns to the queue");
+            }
         }
         if let Some(n) = s["author_submissions_to_task"].as_u64() {
             out!("  {n} submission(s) by this user to this task");

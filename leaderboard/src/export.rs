@@ -123,13 +123,62 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
     rows
 }
 
-/// The rows as CSV with a header line.
-pub fn csv(rows: &[impl Serialize]) -> Result<Vec<u8>, ApiError> {
+/// The exported board's columns, in `BoardRow`'s field order (a test holds the two together).
+pub const BOARD_COLUMNS: &[&str] = &[
+    "protocol_version",
+    "scope",
+    "table",
+    "kind",
+    "rank",
+    "user",
+    "name",
+    "reference",
+    "normalized_reward",
+    "reward_low",
+    "reward_high",
+    "normalized_cost",
+    "cost_low",
+    "cost_high",
+    "safe",
+    "author_submissions_to_task",
+    "tasks",
+    "submission",
+    "dataset_version",
+    "finished_at",
+];
+
+/// A submission's episode columns, in `EpisodeRow`'s field order.
+pub const EPISODE_COLUMNS: &[&str] = &["cost_threshold", "episode", "reward_return", "cost_return", "length"];
+
+/// The rows as CSV: the header line always (an empty table is a header alone, not an empty file), then one line
+/// per row with its fields in `columns`' order. Text cells a spreadsheet would read as a formula (starting with
+/// `=`, `+`, `-`, `@`, a tab or CR) get a leading `'`, OWASP's rule; numbers are written as they are, so a
+/// negative score stays a number.
+pub fn csv(rows: &[impl Serialize], columns: &[&str]) -> Result<Vec<u8>, ApiError> {
     let mut writer = csv::Writer::from_writer(Vec::new());
+    writer.write_record(columns).map_err(ApiError::internal)?;
     for row in rows {
-        writer.serialize(row).map_err(ApiError::internal)?;
+        let value = serde_json::to_value(row).map_err(ApiError::internal)?;
+        let record: Vec<String> = columns
+            .iter()
+            .map(|c| match &value[*c] {
+                serde_json::Value::Null => String::new(),
+                serde_json::Value::String(text) => neutralized(text),
+                other => other.to_string(),
+            })
+            .collect();
+        writer.write_record(&record).map_err(ApiError::internal)?;
     }
     writer.into_inner().map_err(ApiError::internal)
+}
+
+/// A text cell as a spreadsheet may open it: one that starts like a formula is prefixed with `'`.
+pub fn neutralized(text: &str) -> String {
+    if text.starts_with(['=', '+', '-', '@', '\t', '\r']) {
+        format!("'{text}")
+    } else {
+        text.to_owned()
+    }
 }
 
 /// The rows as one Parquet file (zstd).
@@ -224,5 +273,87 @@ pub fn parquet(rows: &[BoardRow]) -> Result<Vec<u8>, ApiError> {
 
 /// A submission's episodes as CSV: cost_threshold, episode, reward_return, cost_return, length.
 pub fn episodes_csv(episodes: &[EpisodeRow]) -> Result<Vec<u8>, ApiError> {
-    csv(episodes)
+    csv(episodes, EPISODE_COLUMNS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The header `csv::Writer` derives from a row's serde fields.
+    fn serde_header(row: &impl Serialize) -> Vec<String> {
+        let mut writer = csv::Writer::from_writer(Vec::new());
+        writer.serialize(row).unwrap();
+        let text = String::from_utf8(writer.into_inner().unwrap()).unwrap();
+        text.lines().next().unwrap().split(',').map(str::to_owned).collect()
+    }
+
+    fn board_row(name: &str, dataset_version: Option<&str>) -> BoardRow {
+        BoardRow {
+            protocol_version: "p1".into(),
+            scope: "task",
+            table: "OfflineBallRun-v0".into(),
+            kind: "entry",
+            rank: Some(1),
+            user: "alice".into(),
+            name: name.into(),
+            reference: false,
+            normalized_reward: -0.25,
+            reward_low: Some(-0.5),
+            reward_high: None,
+            normalized_cost: 0.5,
+            cost_low: Some(0.25),
+            cost_high: Some(0.75),
+            safe: true,
+            author_submissions_to_task: Some(2),
+            tasks: None,
+            submission: Some(7),
+            dataset_version: dataset_version.map(str::to_owned),
+            finished_at: None,
+        }
+    }
+
+    #[test]
+    fn the_column_lists_are_the_rows_fields_in_order() {
+        assert_eq!(serde_header(&board_row("a", None)), BOARD_COLUMNS);
+        let episode = EpisodeRow {
+            cost_threshold: 10.0,
+            episode: 0,
+            reward_return: 1.0,
+            cost_return: 2.0,
+            length: 3,
+        };
+        assert_eq!(serde_header(&episode), EPISODE_COLUMNS);
+    }
+
+    #[test]
+    fn formulas_in_text_cells_are_neutralized_and_numbers_kept() {
+        let rows = [board_row("=HYPERLINK(\"http://evil.example\")", Some("@SUM(A1)"))];
+        let text = String::from_utf8(csv(&rows, BOARD_COLUMNS).unwrap()).unwrap();
+        let mut reader = csv::Reader::from_reader(text.as_bytes());
+        let header = reader.headers().unwrap().clone();
+        let row = reader.records().next().unwrap().unwrap();
+        let cell = |name: &str| row[header.iter().position(|h| h == name).unwrap()].to_owned();
+        assert_eq!(cell("name"), "'=HYPERLINK(\"http://evil.example\")");
+        assert_eq!(cell("dataset_version"), "'@SUM(A1)");
+        assert_eq!(cell("normalized_reward"), "-0.25");
+        assert_eq!(cell("reward_low"), "-0.5");
+        assert_eq!(cell("reward_high"), "");
+        assert_eq!(cell("safe"), "true");
+        for (text, want) in [
+            ("-x", "'-x"),
+            ("+x", "'+x"),
+            ("\tx", "'\tx"),
+            ("\rx", "'\rx"),
+            ("x=1", "x=1"),
+        ] {
+            assert_eq!(neutralized(text), want);
+        }
+    }
+
+    #[test]
+    fn an_empty_table_is_its_header() {
+        let text = String::from_utf8(episodes_csv(&[]).unwrap()).unwrap();
+        assert_eq!(text, format!("{}\n", EPISODE_COLUMNS.join(",")));
+    }
 }

@@ -134,10 +134,15 @@ pub struct QueuePlace {
     pub jobs_ahead: Vec<i64>,
     /// Jobs being scored now.
     pub running: usize,
-    pub estimated_start: String,
-    pub estimated_finish: String,
-    /// Seconds this task's jobs recently took (the mean of the last five), or the default guess when none was scored.
-    pub task_scoring_seconds: f64,
+    /// Evaluators alive now (waiting for work or scoring), in every process that shares the queue.
+    pub live_evaluators: usize,
+    /// `None` when it cannot be known (`estimate_unknown` says why).
+    pub estimated_start: Option<String>,
+    pub estimated_finish: Option<String>,
+    /// Why the estimates are missing: no live evaluator, or a task with no scoring history.
+    pub estimate_unknown: Option<String>,
+    /// Seconds this task's jobs recently took (the mean of the last five); `None` when none was scored.
+    pub task_scoring_seconds: Option<f64>,
 }
 
 /// A running submission's progress.
@@ -149,7 +154,11 @@ pub struct Progress {
     /// Episodes finished in this attempt, of all it plays.
     pub episodes_done: u32,
     pub episodes_total: u32,
+    /// `None` when the task has no scoring history or the heartbeat is stale.
     pub estimated_finish: Option<String>,
+    /// The evaluator has sent no heartbeat for two intervals: it has probably stopped, and the job goes back to
+    /// the queue when its lease lapses.
+    pub heartbeat_stale: bool,
 }
 
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
@@ -263,17 +272,15 @@ pub struct UserSubmission {
     pub protocol_version: Option<String>,
 }
 
-/// A task's scoring time when none of its jobs has been scored yet (and no task's has): a guess, said to be one.
-const DEFAULT_SCORING_SECONDS: f64 = 300.0;
-
+/// Recent scoring times per task. A task none of whose jobs has been scored has no estimate: another task's time is
+/// no guide (a MetaDrive job takes minutes where a Bullet one takes seconds), so its estimates say "unknown".
 struct Estimates {
     recent: HashMap<String, f64>,
-    default: f64,
 }
 
 impl Estimates {
-    fn seconds(&self, task: &str) -> f64 {
-        self.recent.get(task).copied().unwrap_or(self.default)
+    fn seconds(&self, task: &str) -> Option<f64> {
+        self.recent.get(task).copied()
     }
 }
 
@@ -338,6 +345,30 @@ impl Leaderboard {
         Ok(self.catalog.get(id)?)
     }
 
+    /// What a checkpoint says it was trained on (`training.dataset_version`, one id or several joined by `,`) is
+    /// published with its scores, in the exports too: each must be the id of one of the task's versions this server
+    /// holds, so nothing free-form reaches a table or a spreadsheet.
+    async fn check_dataset_version(&self, task: &Task, said: &str) -> Result<(), ApiError> {
+        for version in said.split(',') {
+            let hosted = match version.parse::<dsrl_suite::VersionId>() {
+                Ok(id) => self.db.version(&task.id, &id).await?.is_some(),
+                Err(_) => false,
+            };
+            if !hosted {
+                let shown: String = version.chars().take(80).collect();
+                return Err(ApiError::InvalidArgument(format!(
+                    "policy.json's training.dataset_version {shown:?}{} is not a version of {} on this server: it \
+                     must be the 64-hex id of a hosted version (GET /v1/datasets/{}/versions lists them), or be left \
+                     out",
+                    if shown.len() < version.len() { " (cut)" } else { "" },
+                    task.id,
+                    task.id
+                )));
+            }
+        }
+        Ok(())
+    }
+
     /// Checks, stores and queues a submission.
     pub async fn submit(
         &self,
@@ -359,6 +390,9 @@ impl Leaderboard {
             .await
             .map_err(ApiError::internal)??;
         let dataset_version = checked.dataset_version();
+        if let Some(said) = &dataset_version {
+            self.check_dataset_version(task, said).await?;
+        }
         // Each request stores its own copy (keyed by a random id beside the digest), so a refused one deletes what it
         // stored without touching another request's objects: nothing of a refused request stays behind.
         let request = dsrl_service::secrets::random_hex().map_err(ApiError::internal)?;
@@ -429,8 +463,9 @@ impl Leaderboard {
         }
     }
 
-    pub async fn cancel(&self, user: &User, id: i64) -> Result<SubmissionView, ApiError> {
-        queue::cancel(&self.db, id, user.id).await?;
+    /// Cancels a queued or running submission: its submitter's (`Canceller::User`) or, for the admin, any.
+    pub async fn cancel(&self, by: queue::Canceller, id: i64) -> Result<SubmissionView, ApiError> {
+        queue::cancel(&self.db, id, by).await?;
         // An evaluator of this process scoring it stops at once (others within a second).
         self.cancelled.notify_waiters();
         self.view(id).await
@@ -454,8 +489,12 @@ impl Leaderboard {
     /// `/healthz` of a process with evaluators: the database, and every evaluator's state; degraded when the
     /// database does not answer or none of the configured evaluators is running.
     pub async fn health(&self) -> (bool, supervision::Health) {
+        // A read and a committed write: a database that reads but cannot commit fails every submission.
         let database = match self.db.ping().await {
-            Ok(()) => "ok".to_owned(),
+            Ok(()) => match self.db.probe_write().await {
+                Ok(()) => "ok".to_owned(),
+                Err(e) => format!("reads answer, writes fail: {e}"),
+            },
             Err(e) => format!("unavailable: {e}"),
         };
         let evaluators = self.evaluators.states();
@@ -482,8 +521,11 @@ impl Leaderboard {
             "queued" => (self.queue_place(id, &row.task).await?, None),
             "running" => {
                 let estimate = self.estimates().await?;
-                let per = estimate.seconds(&row.task);
-                let left = per * (1.0 - f64::from(row.episodes_done) / f64::from(episodes_total.max(1)));
+                let stale = self.heartbeat_stale(row.heartbeat_ms);
+                let done = f64::from(row.episodes_done) / f64::from(episodes_total.max(1));
+                let estimated_finish = estimate.seconds(&row.task).filter(|_| !stale).map(|per| {
+                    dsrl_service::db::rfc3339_at_ms(queue::now_ms() + (per * (1.0 - done)).max(0.0) as i64 * 1000)
+                });
                 (
                     None,
                     Some(Progress {
@@ -491,9 +533,8 @@ impl Leaderboard {
                         last_heartbeat: row.heartbeat_ms.map(dsrl_service::db::rfc3339_at_ms),
                         episodes_done: row.episodes_done,
                         episodes_total,
-                        estimated_finish: Some(dsrl_service::db::rfc3339_at_ms(
-                            queue::now_ms() + (left.max(0.0) * 1000.0) as i64,
-                        )),
+                        estimated_finish,
+                        heartbeat_stale: stale,
                     }),
                 )
             }
@@ -540,17 +581,22 @@ impl Leaderboard {
 
     /// Recent scoring times per task and the number of evaluators at work, for the queue's estimates.
     async fn estimates(&self) -> Result<Estimates, ApiError> {
-        let recent = queue::recent_scoring_seconds(&self.db, 5).await?;
-        let default = if recent.is_empty() {
-            DEFAULT_SCORING_SECONDS
-        } else {
-            recent.values().sum::<f64>() / recent.len() as f64
-        };
-        Ok(Estimates { recent, default })
+        Ok(Estimates {
+            recent: queue::recent_scoring_seconds(&self.db, 5).await?,
+        })
+    }
+
+    /// Whether a running job's last heartbeat is older than two heartbeat intervals (a third of the lease each):
+    /// its evaluator has probably died, and the job will go back to the queue when the lease lapses.
+    fn heartbeat_stale(&self, heartbeat_ms: Option<i64>) -> bool {
+        let interval_ms = (self.config.lease_seconds.max(1) * 1000 / 3) as i64;
+        heartbeat_ms.is_none_or(|beat| queue::now_ms() - beat > 2 * interval_ms)
     }
 
     /// Where a queued job stands: its position in the claim order, the jobs ahead, and when it should start and
-    /// finish if the evaluators at work take the jobs in that order, each as long as its task recently took.
+    /// finish if the live evaluators take the jobs in that order, each as long as its task recently took. A time
+    /// that cannot be known is `None` and `estimate_unknown` says why: no evaluator alive, or a task (this one, one
+    /// ahead of it, or one being scored) with no scoring history, or a running job whose evaluator went silent.
     async fn queue_place(&self, id: i64, task: &str) -> Result<Option<QueuePlace>, ApiError> {
         let order = queue::waiting_in_order(&self.db).await?;
         let Some(position) = order.iter().position(|(j, _)| *j == id) else {
@@ -558,33 +604,57 @@ impl Leaderboard {
         };
         let running = queue::running(&self.db).await?;
         let estimate = self.estimates().await?;
+        let live = queue::live_evaluators(&self.db).await?;
         let now = queue::now_ms() as f64 / 1000.0;
-        // When each evaluator is next free: the running jobs' remaining time; idle evaluators now.
-        let evaluators = (self.config.evaluators as usize).max(running.len()).max(1);
-        let mut free: Vec<f64> = running
-            .iter()
-            .map(|(_, t, claimed, _, _)| {
-                let end = *claimed as f64 / 1000.0 + estimate.seconds(t);
-                (end - now).max(0.0)
-            })
-            .collect();
-        free.resize(evaluators, 0.0);
+        let own = estimate.seconds(task);
+        let mut unknown: Option<String> = None;
+        if live == 0 {
+            unknown = Some("no evaluator is running".into());
+        }
+        // When each live evaluator is next free: the running jobs' remaining time; idle ones now.
+        let mut free: Vec<f64> = Vec::new();
+        for (_, t, claimed, _, _, heartbeat) in &running {
+            if self.heartbeat_stale(*heartbeat) {
+                unknown.get_or_insert_with(|| "a running job's evaluator stopped sending heartbeats".into());
+            }
+            match estimate.seconds(t) {
+                Some(seconds) => free.push((*claimed as f64 / 1000.0 + seconds - now).max(0.0)),
+                None => {
+                    unknown.get_or_insert_with(|| format!("{t}, being scored, has no scoring history"));
+                }
+            }
+        }
+        free.resize((live as usize).max(free.len()).max(1), 0.0);
         for (_, t) in &order[..position] {
             let next = free
                 .iter_mut()
                 .min_by(|a, b| a.total_cmp(b))
                 .expect("at least one evaluator");
-            *next += estimate.seconds(t);
+            match estimate.seconds(t) {
+                Some(seconds) => *next += seconds,
+                None => {
+                    unknown.get_or_insert_with(|| format!("{t}, ahead in the queue, has no scoring history"));
+                }
+            }
         }
         let start = free.iter().copied().fold(f64::INFINITY, f64::min);
-        let own = estimate.seconds(task);
         let at = |s: f64| dsrl_service::db::rfc3339_at_ms(((now + s) * 1000.0) as i64);
+        let (estimated_start, estimated_finish) = match (&unknown, own) {
+            (None, Some(own)) => (Some(at(start)), Some(at(start + own))),
+            (None, None) => {
+                unknown = Some(format!("{task} has no scoring history"));
+                (Some(at(start)), None)
+            }
+            (Some(_), _) => (None, None),
+        };
         Ok(Some(QueuePlace {
             position: position + 1,
             jobs_ahead: order[..position].iter().map(|(j, _)| *j).collect(),
             running: running.len(),
-            estimated_start: at(start),
-            estimated_finish: at(start + own),
+            live_evaluators: live as usize,
+            estimated_start,
+            estimated_finish,
+            estimate_unknown: unknown,
             task_scoring_seconds: own,
         }))
     }
@@ -594,7 +664,7 @@ impl Leaderboard {
         let running = queue::running(&self.db).await?;
         let waiting = queue::waiting_in_order(&self.db).await?;
         let mut jobs = Vec::new();
-        for (id, _, _, done, per_threshold) in running {
+        for (id, _, _, done, per_threshold, _) in running {
             let row = queue::get(&self.db, id).await?;
             let thresholds = self.task(&row.task).map_or(3, |t| t.cost_thresholds.len()) as u32;
             jobs.push(QueuedJob {

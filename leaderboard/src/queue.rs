@@ -59,6 +59,9 @@ pub struct NewSubmission<'a> {
     pub dataset_version: Option<&'a str>,
 }
 
+/// The `Retry-After` of a refusal for too many live submissions: a job's scoring takes about this long.
+pub const CONCURRENT_QUOTA_RETRY_SECONDS: u64 = 60;
+
 pub struct Quotas {
     pub per_day: u32,
     pub concurrent: u32,
@@ -81,27 +84,38 @@ pub async fn insert(db: &Db, new: NewSubmission<'_>, quotas: &Quotas) -> Result<
     .fetch_optional(&mut *tx)
     .await?;
     let now = now_ms();
+    // Cancelled submissions are not counted: withdrawn work used nothing of the day's evaluation.
+    let day_ms = 24 * 3600 * 1000;
     let row = sqlx::query(
         "SELECT
-            (SELECT COUNT(*) FROM submissions WHERE user_id = $1 AND created_ms > $2),
+            (SELECT COUNT(*) FROM submissions WHERE user_id = $1 AND created_ms > $2 AND state != 'cancelled'),
+            (SELECT MIN(created_ms) FROM submissions WHERE user_id = $1 AND created_ms > $2 AND state != 'cancelled'),
             (SELECT COUNT(*) FROM submissions WHERE user_id = $1 AND state IN ('queued', 'running'))",
     )
     .bind(new.user_id)
-    .bind(now - 24 * 3600 * 1000)
+    .bind(now - day_ms)
     .fetch_one(&mut *tx)
     .await?;
-    let (today, live): (i64, i64) = (row.try_get(0)?, row.try_get(1)?);
+    let (today, oldest, live): (i64, Option<i64>, i64) = (row.try_get(0)?, row.try_get(1)?, row.try_get(2)?);
     if today >= i64::from(quotas.per_day) {
-        return Err(ApiError::QuotaExceeded(format!(
-            "{today} submissions in the last 24 hours; the limit is {} a day",
-            quotas.per_day
-        )));
+        // The day's oldest counted submission leaves the window first.
+        let retry_after = oldest.map_or(60, |t| ((t + day_ms - now) / 1000).max(1) as u64);
+        return Err(ApiError::RateLimited {
+            message: format!(
+                "quota exceeded: {today} submissions in the last 24 hours; the limit is {} a day",
+                quotas.per_day
+            ),
+            retry_after,
+        });
     }
     if live >= i64::from(quotas.concurrent) {
-        return Err(ApiError::QuotaExceeded(format!(
-            "{live} of your submissions are queued or running; the limit is {} at once",
-            quotas.concurrent
-        )));
+        return Err(ApiError::RateLimited {
+            message: format!(
+                "quota exceeded: {live} of your submissions are queued or running; the limit is {} at once",
+                quotas.concurrent
+            ),
+            retry_after: CONCURRENT_QUOTA_RETRY_SECONDS,
+        });
     }
     let inserted = sqlx::query(
         "INSERT INTO submissions (user_id, task, name, checkpoint_sha256, checkpoints, state, created_at, created_ms,
@@ -172,6 +186,9 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
     .bind(now_rfc3339())
     .execute(db.pool())
     .await?;
+    // A transaction whose commit is checked: in autocommit the RETURNING row arrives before the implicit commit, so
+    // a commit that failed would hand out a job the database does not hold as claimed.
+    let mut tx = db.begin().await?;
     let row = sqlx::query(AssertSqlSafe(format!(
         "UPDATE submissions
          SET state = 'running', attempts = attempts + 1, lease_owner = $1, lease_expires_ms = $2,
@@ -184,8 +201,9 @@ pub async fn claim(db: &Db, owner: &str, lease_ms: i64, max_attempts: u32) -> Re
     .bind(now + lease_ms)
     .bind(now_rfc3339())
     .bind(now)
-    .fetch_optional(db.pool())
+    .fetch_optional(&mut *tx)
     .await?;
+    tx.commit().await?;
     let Some(row) = row else { return Ok(None) };
     let checkpoints: String = row.try_get(2)?;
     Ok(Some(Job {
@@ -520,26 +538,37 @@ pub async fn release(db: &Db, id: i64, owner: &str, reason: &str) -> Result<(), 
     Ok(())
 }
 
-/// Cancels a queued or running submission of `user_id`.
-pub async fn cancel(db: &Db, id: i64, user_id: i64) -> Result<(), ApiError> {
+/// Who cancels a submission: its submitter, or the admin (any submission).
+#[derive(Debug, Clone, Copy)]
+pub enum Canceller {
+    User(i64),
+    Admin,
+}
+
+/// Cancels a queued or running submission, by its submitter or by the admin.
+pub async fn cancel(db: &Db, id: i64, by: Canceller) -> Result<(), ApiError> {
     let row = sqlx::query("SELECT user_id, state FROM submissions WHERE id = $1")
         .bind(id)
         .fetch_optional(db.pool())
         .await?
         .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))?;
     let (owner, state): (i64, String) = (row.try_get(0)?, row.try_get(1)?);
-    if owner != user_id {
-        return Err(ApiError::Forbidden(format!(
-            "submission {id} belongs to another user; only its submitter can cancel it"
-        )));
-    }
+    let reason = match by {
+        Canceller::User(user_id) if user_id != owner => {
+            return Err(ApiError::Forbidden(format!(
+                "submission {id} belongs to another user; only its submitter (or the admin) can cancel it"
+            )));
+        }
+        Canceller::User(_) => "cancelled by its submitter",
+        Canceller::Admin => "cancelled by the admin",
+    };
     let done = sqlx::query(
-        "UPDATE submissions SET state = 'cancelled', lease_owner = NULL, finished_at = $2,
-             reason = 'cancelled by its submitter'
+        "UPDATE submissions SET state = 'cancelled', lease_owner = NULL, finished_at = $2, reason = $3
          WHERE id = $1 AND state IN ('queued', 'running')",
     )
     .bind(id)
     .bind(now_rfc3339())
+    .bind(reason)
     .execute(db.pool())
     .await?;
     if done.rows_affected() == 0 {
@@ -674,9 +703,9 @@ pub async fn waiting_in_order(db: &Db) -> Result<Vec<(i64, String)>, ApiError> {
 }
 
 /// The running jobs (with a live lease): id, task, claimed at (ms), episodes done, episodes in all.
-pub async fn running(db: &Db) -> Result<Vec<(i64, String, i64, u32, u32)>, ApiError> {
+pub async fn running(db: &Db) -> Result<Vec<RunningJob>, ApiError> {
     let rows = sqlx::query(
-        "SELECT id, task, COALESCE(claimed_ms, 0), episodes_done, episodes_per_threshold FROM submissions
+        "SELECT id, task, COALESCE(claimed_ms, 0), episodes_done, episodes_per_threshold, heartbeat_ms FROM submissions
          WHERE state = 'running' AND lease_expires_ms >= $1 ORDER BY id",
     )
     .bind(now_ms())
@@ -690,9 +719,49 @@ pub async fn running(db: &Db) -> Result<Vec<(i64, String, i64, u32, u32)>, ApiEr
                 r.try_get(2)?,
                 r.try_get::<i64, _>(3)? as u32,
                 r.try_get::<i64, _>(4)? as u32,
+                r.try_get(5)?,
             ))
         })
         .collect()
+}
+
+/// A running job under a live lease: id, task, when it was claimed (ms), episodes done, episodes per threshold,
+/// the last heartbeat (ms).
+pub type RunningJob = (i64, String, i64, u32, u32, Option<i64>);
+
+/// How often an evaluator says it is alive while it waits for work.
+pub const LIVENESS_INTERVAL_MS: i64 = 5_000;
+
+/// Records that the evaluator `owner` is alive now (`evaluator_liveness`).
+pub async fn evaluator_alive(db: &Db, owner: &str) -> Result<(), ApiError> {
+    sqlx::query(
+        "INSERT INTO evaluator_liveness (owner, seen_ms) VALUES ($1, $2)
+         ON CONFLICT (owner) DO UPDATE SET seen_ms = excluded.seen_ms",
+    )
+    .bind(owner)
+    .bind(now_ms())
+    .execute(db.pool())
+    .await?;
+    Ok(())
+}
+
+/// Evaluators alive now, in any process: seen within three liveness intervals while waiting, or holding a running
+/// job whose lease has not lapsed (a scoring evaluator heartbeats the job instead).
+pub async fn live_evaluators(db: &Db) -> Result<i64, ApiError> {
+    let now = now_ms();
+    let row = sqlx::query(
+        "SELECT COUNT(*) FROM (
+             SELECT owner FROM evaluator_liveness WHERE seen_ms >= $1
+             UNION
+             SELECT lease_owner FROM submissions WHERE state = 'running' AND lease_expires_ms >= $2
+                 AND lease_owner IS NOT NULL
+         ) AS alive",
+    )
+    .bind(now - 3 * LIVENESS_INTERVAL_MS)
+    .bind(now)
+    .fetch_one(db.pool())
+    .await?;
+    Ok(row.try_get(0)?)
 }
 
 /// Mean scoring time in seconds of the last `last` finished jobs of each task that has any.

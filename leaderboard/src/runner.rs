@@ -87,11 +87,19 @@ async fn supervise(leaderboard: Arc<Leaderboard>, index: usize) {
 
 async fn evaluator(leaderboard: Arc<Leaderboard>, index: usize, owner: String) {
     let lease_ms = (leaderboard.config.lease_seconds.max(1) * 1000) as i64;
+    let mut said_alive: Option<std::time::Instant> = None;
     loop {
         // Waits for a simulator worker before taking a job, so a server without workers only queues.
         if !leaderboard.simulators.workers().iter().any(|w| w.healthy) {
             tokio::time::sleep(Duration::from_millis(500)).await;
             continue;
+        }
+        // Queue estimates count the evaluators that say they are alive (and able to score: workers are up).
+        if said_alive.is_none_or(|t| t.elapsed() >= Duration::from_millis(queue::LIVENESS_INTERVAL_MS as u64)) {
+            match queue::evaluator_alive(&leaderboard.db, &owner).await {
+                Ok(()) => said_alive = Some(std::time::Instant::now()),
+                Err(e) => tracing::warn!(error = %e, "recording that the evaluator is alive"),
+            }
         }
         let job = match queue::claim(&leaderboard.db, &owner, lease_ms, leaderboard.config.max_attempts).await {
             Ok(Some(job)) => job,

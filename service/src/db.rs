@@ -113,6 +113,18 @@ impl Db {
                     Ok(())
                 })
             })
+            // A connection goes back to the pool only outside a transaction. When a statement, COMMIT or ROLLBACK
+            // fails (an I/O error, a full disk), sqlx keeps its transaction depth above zero: handed out again, the
+            // connection refused every later `begin` ("non-zero transaction depth") until the process restarted.
+            // The ping first runs the rollback a dropped transaction queued; whatever is still open after it closes
+            // the connection, and the pool opens a fresh one.
+            .after_release(|conn, _| {
+                Box::pin(async move {
+                    sqlx::Connection::ping(conn).await?;
+                    Ok(!sqlx::Connection::is_in_transaction(conn))
+                })
+            })
+            .before_acquire(|conn, _| Box::pin(async move { Ok(!sqlx::Connection::is_in_transaction(conn)) }))
             .connect(url)
             .await?;
         migrator(backend).run(&pool).await?;
@@ -133,6 +145,20 @@ impl Db {
 
     pub async fn ping(&self) -> Result<(), sqlx::Error> {
         sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
+    }
+
+    /// Writes and commits one row: what `/healthz` asks of the database. A read (`ping`) succeeds on a database
+    /// whose files cannot be written, where every submission and upload fails.
+    pub async fn probe_write(&self) -> Result<(), sqlx::Error> {
+        let mut tx = self.begin().await?;
+        sqlx::query(
+            "INSERT INTO health_probe (id, probed_ms) VALUES (1, $1)
+             ON CONFLICT (id) DO UPDATE SET probed_ms = excluded.probed_ms",
+        )
+        .bind(now_ms())
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await
     }
 
     /// A write transaction. On SQLite it takes the write lock at its start (`BEGIN IMMEDIATE`): a deferred one that
@@ -232,8 +258,9 @@ impl Db {
     /// parent of another derivation (those go in a later pass, after their children).
     pub async fn collectable_derivations(&self) -> Result<Vec<DerivationRecord>, sqlx::Error> {
         let rows = sqlx::query(
-            "SELECT d.task, d.parent, d.filter, d.version, v.byte_size, d.last_used_ms
+            "SELECT d.task, d.parent, d.filter, d.version, v.byte_size + COALESCE(e.byte_size, 0), d.last_used_ms
              FROM dataset_derivations d JOIN dataset_versions v ON v.task = d.task AND v.version = d.version
+                  LEFT JOIN dataset_hdf5_exports e ON e.task = d.task AND e.version = d.version
              WHERE v.derived
                AND NOT EXISTS (SELECT 1 FROM dataset_tags t WHERE t.task = d.task AND t.version = d.version)
                AND NOT EXISTS (SELECT 1 FROM dataset_derivations c WHERE c.task = d.task AND c.parent = d.version)
@@ -255,11 +282,16 @@ impl Db {
             .collect()
     }
 
-    /// Bytes of every filtered version (cast: PostgreSQL sums BIGINT to NUMERIC, which the Any driver cannot read).
+    /// Bytes of every filtered version, with its HDF5 export where one was made: both are derived, and removing the
+    /// version removes its export (cast: PostgreSQL sums BIGINT to NUMERIC, which the Any driver cannot read).
     pub async fn derived_bytes(&self) -> Result<u64, sqlx::Error> {
-        let row = sqlx::query("SELECT CAST(COALESCE(SUM(byte_size), 0) AS BIGINT) FROM dataset_versions WHERE derived")
-            .fetch_one(&self.pool)
-            .await?;
+        let row = sqlx::query(
+            "SELECT CAST(COALESCE(SUM(v.byte_size + COALESCE(e.byte_size, 0)), 0) AS BIGINT)
+             FROM dataset_versions v LEFT JOIN dataset_hdf5_exports e ON e.task = v.task AND e.version = v.version
+             WHERE v.derived",
+        )
+        .fetch_one(&self.pool)
+        .await?;
         Ok(row.try_get::<i64, _>(0)? as u64)
     }
 
@@ -382,6 +414,11 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
         "queue_operations",
         include_str!("../../migrations/sqlite/20261126000002_queue_operations.sql"),
     ),
+    (
+        20261128000001,
+        "liveness",
+        include_str!("../../migrations/sqlite/20261128000001_liveness.sql"),
+    ),
 ];
 
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -404,6 +441,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         20261126000002,
         "queue_operations",
         include_str!("../../migrations/postgres/20261126000002_queue_operations.sql"),
+    ),
+    (
+        20261128000001,
+        "liveness",
+        include_str!("../../migrations/postgres/20261128000001_liveness.sql"),
     ),
 ];
 
@@ -510,6 +552,7 @@ pub struct DerivationRecord {
     pub parent: String,
     pub filter: String,
     pub version: String,
+    /// The filtered version's bytes, with its HDF5 export's where one was made.
     pub byte_size: u64,
     pub last_used_ms: i64,
 }

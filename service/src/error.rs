@@ -21,11 +21,12 @@ pub enum ErrorCode {
     AlreadyExists,
     ResourceExhausted,
     Unavailable,
+    InsufficientStorage,
     Internal,
 }
 
 impl ErrorCode {
-    pub const ALL: [ErrorCode; 10] = [
+    pub const ALL: [ErrorCode; 11] = [
         ErrorCode::NotFound,
         ErrorCode::InvalidArgument,
         ErrorCode::PayloadTooLarge,
@@ -35,6 +36,7 @@ impl ErrorCode {
         ErrorCode::AlreadyExists,
         ErrorCode::ResourceExhausted,
         ErrorCode::Unavailable,
+        ErrorCode::InsufficientStorage,
         ErrorCode::Internal,
     ];
 
@@ -50,6 +52,9 @@ impl ErrorCode {
             ErrorCode::AlreadyExists => (StatusCode::CONFLICT, tonic::Code::AlreadyExists),
             ErrorCode::ResourceExhausted => (StatusCode::TOO_MANY_REQUESTS, tonic::Code::ResourceExhausted),
             ErrorCode::Unavailable => (StatusCode::SERVICE_UNAVAILABLE, tonic::Code::Unavailable),
+            // The server's disk (or its database's) is full: nothing the client sent is wrong, and the same request
+            // may succeed once space is freed, hence UNAVAILABLE over gRPC.
+            ErrorCode::InsufficientStorage => (StatusCode::INSUFFICIENT_STORAGE, tonic::Code::Unavailable),
             ErrorCode::Internal => (StatusCode::INTERNAL_SERVER_ERROR, tonic::Code::Internal),
         }
     }
@@ -86,6 +91,7 @@ impl ErrorCode {
             ErrorCode::AlreadyExists => "already_exists",
             ErrorCode::ResourceExhausted => "resource_exhausted",
             ErrorCode::Unavailable => "unavailable",
+            ErrorCode::InsufficientStorage => "insufficient_storage",
             ErrorCode::Internal => "internal",
         }
     }
@@ -121,8 +127,6 @@ pub enum ApiError {
     UnknownUserToken,
     #[error("{0}")]
     AlreadyExists(String),
-    #[error("quota exceeded: {0}")]
-    QuotaExceeded(String),
     #[error("service unavailable: {0}")]
     Unavailable(String),
     /// Too much work waiting: try again after the seconds given (answered with `Retry-After`).
@@ -146,9 +150,12 @@ impl ApiError {
                 ErrorCode::Unauthenticated
             }
             ApiError::AlreadyExists(_) => ErrorCode::AlreadyExists,
-            ApiError::QuotaExceeded(_) | ApiError::RateLimited { .. } => ErrorCode::ResourceExhausted,
+            ApiError::RateLimited { .. } => ErrorCode::ResourceExhausted,
             ApiError::Busy { .. } => ErrorCode::Unavailable,
             ApiError::PermissionDenied | ApiError::Forbidden(_) => ErrorCode::PermissionDenied,
+            // A failed write whose cause is a full disk, wherever it was raised (a file, the object store, the
+            // database, the converter process, which reports in text): the client is told what it is.
+            ApiError::Internal(m) | ApiError::Unavailable(m) if storage_full(m) => ErrorCode::InsufficientStorage,
             ApiError::Unavailable(_) => ErrorCode::Unavailable,
             ApiError::Internal(_) => ErrorCode::Internal,
         }
@@ -158,11 +165,22 @@ impl ApiError {
         ApiError::Internal(e.to_string())
     }
 
+    /// The message a client reads: for a full disk, what that means for it first, then the underlying error.
+    fn message(&self) -> String {
+        match self.code() {
+            ErrorCode::InsufficientStorage => format!(
+                "insufficient storage: the server's disk is full, so nothing was written; try again after \
+                 {STORAGE_RETRY_AFTER_SECONDS} s, or ask its operator to free space ({self})"
+            ),
+            _ => self.to_string(),
+        }
+    }
+
     fn body(&self) -> ErrorBody<'_> {
         ErrorBody {
             error: ErrorDetail {
                 code: self.code(),
-                message: self.to_string(),
+                message: self.message(),
                 suggestions: match self {
                     ApiError::UnknownTask(u) => &u.suggestions,
                     _ => &[],
@@ -183,6 +201,24 @@ struct ErrorDetail<'a> {
     message: String,
     #[serde(skip_serializing_if = "<[String]>::is_empty")]
     suggestions: &'a [String],
+}
+
+/// How long a client is asked to wait after a full disk (`Retry-After`).
+pub const STORAGE_RETRY_AFTER_SECONDS: u64 = 60;
+
+/// Whether an error's text says the disk is full: the OS's ENOSPC and EDQUOT, SQLite's SQLITE_FULL, PostgreSQL's
+/// `could not extend file`. Matched on text because the errors reach here as text from several layers (the converter
+/// is another process, object_store wraps its I/O errors, sqlx the databases').
+pub fn storage_full(message: &str) -> bool {
+    const SIGNS: &[&str] = &[
+        "No space left on device",
+        "os error 28",
+        "Disk quota exceeded",
+        "os error 122",
+        "database or disk is full",
+        "could not extend file",
+    ];
+    SIGNS.iter().any(|sign| message.contains(sign))
 }
 
 impl From<UnknownTask> for ApiError {
@@ -217,7 +253,10 @@ impl From<EvaluationError> for ApiError {
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let code = self.code();
-        if code == ErrorCode::Internal || code == ErrorCode::Unavailable {
+        if matches!(
+            code,
+            ErrorCode::Internal | ErrorCode::Unavailable | ErrorCode::InsufficientStorage
+        ) {
             tracing::error!(error = %self, "request failed");
         }
         let mut response = (code.http_status(), axum::Json(self.body())).into_response();
@@ -234,6 +273,10 @@ impl IntoResponse for ApiError {
             response
                 .headers_mut()
                 .insert(header::RETRY_AFTER, HeaderValue::from(retry_after));
+        } else if code == ErrorCode::InsufficientStorage {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(STORAGE_RETRY_AFTER_SECONDS));
         }
         response
     }
@@ -242,10 +285,13 @@ impl IntoResponse for ApiError {
 impl From<ApiError> for tonic::Status {
     fn from(e: ApiError) -> Self {
         let code = e.code();
-        if code == ErrorCode::Internal || code == ErrorCode::Unavailable {
+        if matches!(
+            code,
+            ErrorCode::Internal | ErrorCode::Unavailable | ErrorCode::InsufficientStorage
+        ) {
             tracing::error!(error = %e, "gRPC request failed");
         }
-        let mut status = tonic::Status::new(code.grpc_code(), e.to_string());
+        let mut status = tonic::Status::new(code.grpc_code(), e.message());
         status
             .metadata_mut()
             .insert("dsrl-error-code", code.as_str().parse().expect("ascii metadata"));
@@ -287,6 +333,26 @@ mod tests {
         assert_eq!(status.code(), tonic::Code::NotFound);
         assert!(status.message().contains("did you mean OfflineAntRun-v0"));
         assert_eq!(status.metadata().get("dsrl-error-code").unwrap(), "not_found");
+    }
+
+    #[test]
+    fn a_full_disk_is_insufficient_storage_with_a_retry_whatever_layer_raised_it() {
+        for error in [
+            ApiError::internal(std::io::Error::from_raw_os_error(28)),
+            ApiError::Internal("database: error returned from database: (code: 13) database or disk is full".into()),
+            ApiError::Unavailable("object store: Generic LocalFileSystem error: No space left on device".into()),
+        ] {
+            assert_eq!(error.code(), ErrorCode::InsufficientStorage, "{error}");
+            let message = error.message();
+            assert!(
+                message.starts_with("insufficient storage: the server's disk is full"),
+                "{message}"
+            );
+            let response = error.into_response();
+            assert_eq!(response.status(), StatusCode::INSUFFICIENT_STORAGE);
+            assert_eq!(response.headers()[header::RETRY_AFTER], "60");
+        }
+        assert_eq!(ApiError::internal("disk I/O error").code(), ErrorCode::Internal);
     }
 
     #[test]

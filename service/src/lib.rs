@@ -120,6 +120,9 @@ pub async fn database_health(db: &Db) -> Result<&'static str, error::ApiError> {
     db.ping()
         .await
         .map_err(|e| error::ApiError::Unavailable(format!("database: {e}")))?;
+    db.probe_write()
+        .await
+        .map_err(|e| error::ApiError::Unavailable(format!("database: reads answer, writes fail: {e}")))?;
     Ok("ok\n")
 }
 

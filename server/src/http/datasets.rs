@@ -75,21 +75,16 @@ pub struct ServerInfo {
     pub version: &'static str,
     /// Largest accepted upload, in bytes.
     pub max_upload_bytes: u64,
-    /// Whether the request carried a valid admin token (a wrong one gets 403).
+    /// Whether the request carried the admin token (any other token, or none, gets the same answer with `false`).
     pub admin: bool,
 }
 
 #[utoipa::path(get, path = "/v1/server", tag = "server",
-    responses((status = 200, body = ServerInfo), (status = 401, description = "An Authorization header that is not a bearer token"),
-        (status = 403, description = "The bearer token presented is wrong")))]
+    responses((status = 200, body = ServerInfo)))]
 pub async fn server_info(State(state): State<AppState>, headers: HeaderMap) -> Result<Json<ServerInfo>, ApiError> {
-    let admin = match headers.get(header::AUTHORIZATION) {
-        None => false,
-        Some(_) => {
-            state.auth.check(&headers)?;
-            true
-        }
-    };
+    // The public view for any caller, whatever token it carries (a user's token is no reason to refuse it);
+    // `admin` says whether the token is the admin token.
+    let admin = headers.contains_key(header::AUTHORIZATION) && state.auth.check(&headers).is_ok();
     Ok(Json(ServerInfo {
         name: "dsrl",
         version: env!("CARGO_PKG_VERSION"),
@@ -167,7 +162,9 @@ pub async fn list_versions(
     params(("task" = String, Path), ("version" = String, Path, description = "Version id (sha256) or tag such as latest"), VersionQuery),
     responses((status = 200, description = "The version's manifest (of the filtered version with ?filter=)", body = dsrl_suite::Manifest),
         (status = 400, description = "An invalid version reference or filter, or a filter this dataset cannot satisfy"),
-        (status = 404, description = "Unknown task or version")))]
+        (status = 404, description = "Unknown task or version"),
+        (status = 429, description = "The anonymous derivation budget of the hour is spent: send a token, or retry after Retry-After"),
+        (status = 503, description = "Too much derivation work waiting: retry after Retry-After")))]
 pub async fn get_manifest(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,
@@ -196,7 +193,9 @@ pub async fn get_manifest(
     params(("task" = String, Path), ("version" = String, Path), VersionQuery),
     responses((status = 200, description = "Cost-reward return scatter with the task's cost thresholds; with ?filter=, \
         removed trajectories in gray and relabelled outliers in red", content_type = "image/svg+xml"),
-        (status = 400, description = "An invalid version reference or filter"), (status = 404, description = "Unknown task or version")))]
+        (status = 400, description = "An invalid version reference or filter"), (status = 404, description = "Unknown task or version"),
+        (status = 429, description = "The anonymous derivation budget of the hour is spent: send a token, or retry after Retry-After"),
+        (status = 503, description = "Too much derivation work waiting: retry after Retry-After")))]
 pub async fn get_plot(
     State(state): State<AppState>,
     Path((task, reference)): Path<(String, String)>,

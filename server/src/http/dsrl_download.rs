@@ -37,7 +37,9 @@ pub fn dsrl_file_name(task: &Task) -> String {
         (status = 304, description = "Not modified (If-None-Match)"),
         (status = 404, description = "Not one of DSRL's file names, no hosted version, or a MetaDrive name \
             while this server does not serve 259-feature data under the paper's 261-feature names"),
-        (status = 416, description = "Range not satisfiable")))]
+        (status = 416, description = "Range not satisfiable"),
+        (status = 429, description = "The anonymous derivation budget of the hour is spent: send a token, or retry after Retry-After"),
+        (status = 503, description = "Too much derivation work waiting: retry after Retry-After")))]
 pub async fn dsrl_download(
     State(state): State<AppState>,
     Path(file): Path<String>,

@@ -9,6 +9,7 @@ use serde::Deserialize;
 
 use crate::AppState;
 use crate::error::ApiError;
+use crate::leaderboard::queue::Canceller;
 use crate::leaderboard::{SubmissionView, checkpoints, page, users};
 
 #[derive(Deserialize, utoipa::ToSchema)]
@@ -180,7 +181,10 @@ pub async fn submission_episodes_csv(
                        dataset_version, finished_at)")))]
 pub async fn leaderboard_csv(State(state): State<AppState>) -> Result<impl IntoResponse, ApiError> {
     let board = state.leaderboard.board(None).await?;
-    let body = crate::leaderboard::export::csv(&crate::leaderboard::export::rows(&board))?;
+    let body = crate::leaderboard::export::csv(
+        &crate::leaderboard::export::rows(&board),
+        crate::leaderboard::export::BOARD_COLUMNS,
+    )?;
     Ok((
         [
             (header::CONTENT_TYPE, "text/csv; charset=utf-8"),
@@ -239,14 +243,14 @@ pub async fn user_page(State(state): State<AppState>, Path(name): Path<String>) 
     ))
 }
 
-/// `POST /v1/submissions/{id}/cancel` (the submitter's token).
+/// `POST /v1/submissions/{id}/cancel` (the submitter's token, or the admin token for any submission).
 #[utoipa::path(post, path = "/v1/submissions/{id}/cancel", tag = "leaderboard",
     params(("id" = String, Path, description = "Submission id (a number)")),
-    security(("user_token" = [])),
+    security(("user_token" = []), ("admin_token" = [])),
     responses(
         (status = 200, body = SubmissionView, description = "Cancelled"),
         (status = 400, description = "Not a submission id, or the submission already ended"),
-        (status = 401, description = "No user token, or one that belongs to no user"),
+        (status = 401, description = "No token, or a user token that belongs to no user"),
         (status = 403, description = "The submission belongs to another user"),
         (status = 404, description = "No such submission")))]
 pub async fn cancel_submission(
@@ -254,8 +258,12 @@ pub async fn cancel_submission(
     headers: HeaderMap,
     Path(id): Path<String>,
 ) -> Result<impl IntoResponse, ApiError> {
-    let user = users::authenticate(&state.leaderboard.db, &headers).await?;
-    Ok(Json(state.leaderboard.cancel(&user, submission_id(&id)?).await?))
+    let by = if state.auth.check(&headers).is_ok() {
+        Canceller::Admin
+    } else {
+        Canceller::User(users::authenticate(&state.leaderboard.db, &headers).await?.id)
+    };
+    Ok(Json(state.leaderboard.cancel(by, submission_id(&id)?).await?))
 }
 
 #[derive(Deserialize, utoipa::IntoParams)]

@@ -123,6 +123,12 @@ impl Modify for Conventions {
                         ));
                     }
                 }
+                // Any route may find the server's disk full (a write, a derivation, the health probe).
+                operation.responses.responses.entry("507".into()).or_insert_with(|| {
+                    RefOr::T(utoipa::openapi::Response::new(
+                        "The server's disk is full: nothing was written; retry after Retry-After",
+                    ))
+                });
                 for (status, response) in operation.responses.responses.iter_mut() {
                     let RefOr::T(response) = response else { continue };
                     if status.as_str() >= "400" && response.content.is_empty() {
@@ -156,7 +162,9 @@ impl Modify for Conventions {
         (status = 206, description = "The requested byte range"),
         (status = 304, description = "Not modified"),
         (status = 400, description = "An invalid version reference or filter"),
-        (status = 404, description = "Unknown task or version"), (status = 416, description = "Range not satisfiable")))]
+        (status = 404, description = "Unknown task or version"), (status = 416, description = "Range not satisfiable"),
+        (status = 429, description = "The anonymous derivation budget of the hour is spent: send a token, or retry after Retry-After"),
+        (status = 503, description = "Too much derivation work waiting: retry after Retry-After")))]
 #[allow(dead_code)]
 fn download_doc() {}
 

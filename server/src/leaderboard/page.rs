@@ -398,26 +398,46 @@ pub fn render_submission(view: &SubmissionView) -> String {
             .unwrap_or_default()
     );
     if let Some(q) = &view.queue {
+        let estimate = match (&q.estimated_start, &q.estimated_finish, &q.estimate_unknown) {
+            (Some(start), Some(finish), _) => format!("estimated start {}, finish {}", escape(start), escape(finish)),
+            (Some(start), None, Some(why)) => {
+                format!("estimated start {}, finish unknown ({})", escape(start), escape(why))
+            }
+            (_, _, why) => format!(
+                "start and finish unknown ({})",
+                escape(why.as_deref().unwrap_or("no estimate"))
+            ),
+        };
+        let recent = q.task_scoring_seconds.map_or_else(
+            || "no job of this task has been scored yet".to_owned(),
+            |s| format!("this task's jobs recently took {s:.0} s"),
+        );
         let _ = writeln!(
             html,
-            "<p id=\"queue-place\">Queued at position {} ({} jobs ahead, {} being scored); estimated start {}, \
-             finish {} (this task's jobs recently took {:.0} s).</p>",
+            "<p id=\"queue-place\">Queued at position {} ({} jobs ahead, {} being scored, {} evaluators alive); \
+             {estimate} ({recent}).</p>",
             q.position,
             q.jobs_ahead.len(),
             q.running,
-            escape(&q.estimated_start),
-            escape(&q.estimated_finish),
-            q.task_scoring_seconds
+            q.live_evaluators,
         );
     }
     if let Some(p) = &view.progress {
         let _ = writeln!(
             html,
-            "<p id=\"progress\">Scoring: {} of {} episodes done; evaluator <code>{}</code>, last heartbeat {}.</p>",
+            "<p id=\"progress\">Scoring: {} of {} episodes done; evaluator <code>{}</code>, last heartbeat {}{}.</p>",
             p.episodes_done,
             p.episodes_total,
             escape(p.evaluator.as_deref().unwrap_or("–")),
-            escape(p.last_heartbeat.as_deref().unwrap_or("–"))
+            escape(p.last_heartbeat.as_deref().unwrap_or("–")),
+            if p.heartbeat_stale {
+                " (stale: the evaluator has probably stopped; the job returns to the queue when its lease lapses)"
+                    .to_owned()
+            } else {
+                p.estimated_finish
+                    .as_deref()
+                    .map_or_else(String::new, |f| format!("; estimated finish {}", escape(f)))
+            }
         );
     }
     if view.thresholds.is_empty() {

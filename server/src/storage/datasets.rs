@@ -463,7 +463,13 @@ impl Datasets {
                 .await
             })
             .await?;
-        // Past the run-time budget, the least recently used filtered versions go (never one being streamed).
+        self.enforce_derived_budget().await?;
+        Ok(record)
+    }
+
+    /// Past the run-time budget (filtered versions and their HDF5 exports), the least recently used filtered
+    /// versions go, with their exports (never one being streamed).
+    async fn enforce_derived_budget(&self) -> Result<(), ApiError> {
         let policy = self.limits.gc.clone();
         if self.db.derived_bytes().await? > policy.max_bytes {
             let report = self.collect_garbage(&policy, false).await?;
@@ -473,7 +479,7 @@ impl Datasets {
                 "derived data over budget"
             );
         }
-        Ok(record)
+        Ok(())
     }
 
     /// Runs `work` while holding the gate named `key`, so that concurrent requests for the same derived object
@@ -674,9 +680,14 @@ impl Datasets {
         let key = format!("hdf5/{}/{}", record.task, record.version);
         self.admit(&key, requester, record.byte_size)?;
         let this = self.clone();
-        let record = record.clone();
-        self.detached(key, async move { this.compute_hdf5_export(&record).await })
-            .await
+        let owned = record.clone();
+        let export = self
+            .detached(key, async move { this.compute_hdf5_export(&owned).await })
+            .await?;
+        // A filtered version's export counts toward the derived budget, as the version itself does (an original
+        // version's does not: the query counts derived versions only).
+        self.enforce_derived_budget().await?;
+        Ok(export)
     }
 
     fn count_export(&self, outcome: &'static str) {
