@@ -342,6 +342,17 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 "provenance        {}",
                 serde_json::to_string(&m.provenance).expect("serializable")
             );
+            if let Some(h) = &m.hosting {
+                out!(
+                    "hosted as         {} ({} of the paper's {} trajectories)",
+                    h.kind,
+                    h.trajectories,
+                    h.paper_trajectories
+                );
+                if let Some(notice) = &h.notice {
+                    out!("notice            {notice}");
+                }
+            }
             if episodes {
                 out!(
                     "\n{:>8} {:>10} {:>7} {:>14} {:>12}",

@@ -27,6 +27,9 @@ use crate::recipe::{Recipe, Setting};
 pub struct Run {
     pub recipe: Recipe,
     pub recipe_path: PathBuf,
+    /// How provenance names the recipe, where it is not the file itself (a full build's recipe is a committed
+    /// recipe with some keys replaced by the plan).
+    pub recipe_label: Option<String>,
     /// Where finished settings and the output live; a re-run with the same folder resumes.
     pub state_dir: PathBuf,
     /// Budget override: episodes per sweep setting (the recipe's by default).
@@ -41,6 +44,8 @@ pub struct Run {
     pub drive_episodes: bool,
     pub simulators: SimulatorsConfig,
     pub progress: bool,
+    /// A bar the caller follows instead of one drawn on the terminal (`dsrl-admin build` reports its position).
+    pub progress_bar: Option<ProgressBar>,
     /// Thin the result to at most this many episodes with the trajectory buffer's grid (starter datasets).
     pub max_episodes: Option<usize>,
     /// Where the output goes (default: the state folder).
@@ -170,10 +175,13 @@ impl Run {
     }
 
     fn progress_bar(&self, len: u64, template: &str) -> ProgressBar {
-        let bar = if self.progress {
-            ProgressBar::new(len)
-        } else {
-            ProgressBar::hidden()
+        let bar = match (&self.progress_bar, self.progress) {
+            (Some(bar), _) => {
+                bar.set_length(len);
+                bar.clone()
+            }
+            (None, true) => ProgressBar::new(len),
+            (None, false) => ProgressBar::hidden(),
         };
         bar.set_style(ProgressStyle::with_template(template).expect("template"));
         bar
@@ -464,7 +472,10 @@ impl Run {
             details.extend(method);
         }
         let provenance = Provenance::Recipe {
-            recipe: recipe_name(&self.recipe_path, task),
+            recipe: self
+                .recipe_label
+                .clone()
+                .unwrap_or_else(|| recipe_name(&self.recipe_path, task)),
             seeds: vec![self.recipe.seed],
             // The commit as well as the version: see build.rs.
             code_version: concat!(

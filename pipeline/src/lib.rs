@@ -11,6 +11,7 @@ pub mod collect;
 pub mod compact;
 pub mod docs;
 pub mod expert;
+pub mod full;
 pub mod hosted;
 pub mod import_dsrl;
 pub mod recipe;

@@ -31,6 +31,29 @@ enum Command {
     /// with the same folder. The result is deterministic for a recipe, its seed and the budget.
     /// Output: <state>/<prefix>-<cost cap>-<episodes>.parquet and <that name>.provenance.json.
     Collect(CollectArgs),
+    /// Build the full datasets, each task's at the paper's size, as data/full_builds.toml plans them, and check each
+    /// against its committed identity (data/full/<task>.json): equal, it says so; different, it fails and says what
+    /// differs (counts, return ranges, the first differing episode).
+    ///
+    /// Each task builds in its own state folder under --root, in a process of its own, with a progress bar; a run
+    /// that is killed at any point resumes where it stopped when started again with the same root. Without TASKs it
+    /// builds every task, in the plan's order (a warm start's source first). How long each task took, and what it
+    /// cost in CPU, is in its record and in data/README.md ("Full builds").
+    Build(BuildArgs),
+    /// One task's full build (what `build` runs in a child process; progress as JSON lines on stdout).
+    #[command(hide = true)]
+    BuildTask {
+        #[arg(long)]
+        task: String,
+        #[arg(long)]
+        plan: PathBuf,
+        #[arg(long)]
+        recipes: PathBuf,
+        #[arg(long)]
+        state: PathBuf,
+        #[arg(long)]
+        workers: u32,
+    },
     /// Score a policy checkpoint (policy.json + policy.safetensors, e.g. an expert's <state>/expert/policy) on the
     /// real simulators: one episode per seed with the policy's deterministic actions, then the mean returns and the
     /// normalized reward and cost at each of the task's benchmark thresholds (safe iff normalized cost <= 1).
@@ -73,6 +96,74 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+}
+
+#[derive(clap::Args, Debug)]
+struct BuildArgs {
+    /// Tasks to build (default: every task of the plan).
+    tasks: Vec<String>,
+    /// The plan: per task, the recipe keys its full build replaces.
+    #[arg(long, default_value = dsrl_pipeline::full::plan::PLAN_PATH)]
+    plan: PathBuf,
+    /// The recipes the plan's keys are applied to.
+    #[arg(long, default_value = "data/recipes")]
+    recipes: PathBuf,
+    /// The committed identities each build is checked against (`<task>.json`, `<task>.episodes.csv`).
+    #[arg(long, default_value = dsrl_pipeline::full::record::RECORDS_DIR)]
+    records: PathBuf,
+    /// Where the builds' state folders (one per task) and logs live (default: ~/.dsrl/full).
+    #[arg(long)]
+    root: Option<PathBuf>,
+    /// Tasks built at once.
+    #[arg(long, default_value_t = 1)]
+    jobs: usize,
+    /// Simulator workers per task (default: the cores shared among the jobs, at least 1).
+    #[arg(long)]
+    workers: Option<u32>,
+    /// Write each finished build's record into --records (how the committed identities are made on purpose).
+    #[arg(long)]
+    record: bool,
+    /// Upload each finished build to this dsrl-server, tagged `full` and made `latest` (the starter keeps its
+    /// `starter` tag there). The admin token comes from --token or DSRL_ADMIN_TOKEN.
+    #[arg(long, env = "DSRL_SERVER")]
+    server: Option<String>,
+    #[arg(long, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Print the outcomes as JSON (and no progress bars).
+    #[arg(long)]
+    json: bool,
+}
+
+async fn build(args: BuildArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.jobs >= 1, "--jobs must be at least 1");
+    anyhow::ensure!(args.workers != Some(0), "--workers must be at least 1");
+    let home = std::env::var_os("HOME").map(PathBuf::from).unwrap_or_default();
+    let options = dsrl_pipeline::full::BuildOptions {
+        plan: args.plan,
+        recipes: args.recipes,
+        records: args.records,
+        root: args.root.unwrap_or_else(|| home.join(".dsrl/full")),
+        tasks: args.tasks,
+        workers: args.workers.unwrap_or_else(|| (cores() / args.jobs as u32).max(1)),
+        jobs: args.jobs,
+        record: args.record,
+        server: args.server,
+        token: args.token,
+        progress: !args.json,
+    };
+    let outcomes = dsrl_pipeline::full::build(&options).await?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&outcomes)?);
+    }
+    let failed: Vec<&str> = outcomes.iter().filter(|o| !o.ok()).map(|o| o.task.as_str()).collect();
+    anyhow::ensure!(
+        failed.is_empty(),
+        "{} of {} builds failed or differ from their committed identity: {}",
+        failed.len(),
+        outcomes.len(),
+        failed.join(", ")
+    );
+    Ok(())
 }
 
 #[derive(clap::Args, Debug)]
@@ -388,6 +479,23 @@ async fn run() -> anyhow::Result<()> {
         json,
     } = match Args::parse().command {
         Command::Evaluate(args) => return evaluate(args).await,
+        Command::Build(args) => return build(args).await,
+        Command::BuildTask {
+            task,
+            plan,
+            recipes,
+            state,
+            workers,
+        } => {
+            let args = dsrl_pipeline::full::TaskBuild {
+                task,
+                plan,
+                recipes,
+                state,
+                workers,
+            };
+            return dsrl_pipeline::full::build_task(&args).await;
+        }
         Command::Compact(args) => return compact(args),
         Command::ImportDsrl {
             dir,
@@ -464,6 +572,7 @@ async fn run() -> anyhow::Result<()> {
     let run = Run {
         recipe,
         recipe_path,
+        recipe_label: None,
         state_dir,
         episodes_per_setting,
         budget_steps,
@@ -476,6 +585,7 @@ async fn run() -> anyhow::Result<()> {
             ..SimulatorsConfig::default()
         },
         progress: !json,
+        progress_bar: None,
         max_episodes,
         out_dir: out,
         compact,

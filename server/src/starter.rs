@@ -3,7 +3,8 @@
 //! provenance; without one the file itself is recorded as the source. A dataset larger than one committed file
 //! may be is committed in parts, `<stem>.part-I-of-N.parquet` (see `dsrl_suite::convert::split_compact`), and
 //! joined back here into one version; its provenance is `<stem>.parquet.provenance.json`. `latest` is set only
-//! where a task has none, so a restart never moves it back from a newer upload.
+//! where a task has none, so a restart never moves it back from a newer upload (a full build, say); every starter
+//! is tagged `starter`.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -59,7 +60,9 @@ pub async fn load(datasets: &Datasets, dir: &Path) -> anyhow::Result<usize> {
                     .map(|n| n.to_string_lossy().into_owned())
                     .unwrap_or_default(),
                 observation_space: ObservationSpace::Simulator,
-                tags: vec![],
+                // Every starter carries the tag, so it stays reachable (and is shown as a starter) once a full
+                // build becomes `latest`.
+                tags: vec![dsrl_suite::TagName::starter()],
                 license: None,
                 recipe,
                 latest: LatestPolicy::IfAbsent,

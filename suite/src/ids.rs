@@ -84,9 +84,17 @@ pub struct TagName(String);
 
 impl TagName {
     pub const LATEST: &'static str = "latest";
+    /// The committed starter dataset a server loads at start-up.
+    pub const STARTER: &'static str = "starter";
+    /// A full build (`dsrl-admin build`): the task's dataset at the paper's size.
+    pub const FULL: &'static str = "full";
 
     pub fn latest() -> Self {
         TagName(Self::LATEST.to_owned())
+    }
+
+    pub fn starter() -> Self {
+        TagName(Self::STARTER.to_owned())
     }
     pub fn as_str(&self) -> &str {
         &self.0

@@ -28,5 +28,5 @@ pub mod writeback;
 pub use catalog::{Catalog, CatalogError, Family, ObservationSpace, Task, UnknownTask};
 pub use episode::EpisodeSummary;
 pub use ids::{IdError, TagName, TaskId, VersionId, VersionRef};
-pub use manifest::{HostedVersion, Manifest, Provenance};
+pub use manifest::{HostedVersion, Hosting, Manifest, Provenance};
 pub use score::NormalizedScore;

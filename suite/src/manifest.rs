@@ -33,6 +33,58 @@ pub struct Manifest {
     pub created_at: String,
     /// One entry per episode, in file order.
     pub episode_index: Vec<EpisodeSummary>,
+    /// What the version is on the server that serves it (its starter, a full build), added when the manifest is
+    /// served: not part of the stored manifest, since a version's tags can change.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hosting: Option<Hosting>,
+}
+
+/// What a hosted version is to the server that serves it, from its tags.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Hosting {
+    /// `starter` (the committed starter dataset, a cut of a build to fit the repository) or `full` (a full build,
+    /// at least the paper's trajectory count where its record says so).
+    pub kind: String,
+    pub trajectories: u64,
+    /// The trajectories of the paper's dataset of the task.
+    pub paper_trajectories: u64,
+    /// For a starter: one line that says so and names the command that builds the full dataset.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notice: Option<String>,
+}
+
+impl Hosting {
+    /// What a version tagged `tags` is, if it is a starter or a full build.
+    pub fn of(task: &crate::Task, trajectories: u64, tags: &[String]) -> Option<Hosting> {
+        let paper_trajectories = u64::from(task.paper_trajectories);
+        if tags.iter().any(|t| t == crate::TagName::FULL) {
+            return Some(Hosting {
+                kind: crate::TagName::FULL.into(),
+                trajectories,
+                paper_trajectories,
+                notice: None,
+            });
+        }
+        if tags.iter().any(|t| t == crate::TagName::STARTER) {
+            return Some(Hosting {
+                kind: crate::TagName::STARTER.into(),
+                trajectories,
+                paper_trajectories,
+                notice: Some(starter_notice(task, trajectories)),
+            });
+        }
+        None
+    }
+}
+
+/// The line a starter is shown with, wherever it is shown.
+pub fn starter_notice(task: &crate::Task, trajectories: u64) -> String {
+    format!(
+        "{} is the starter dataset: {trajectories} of the paper's {} trajectories. The paper-size dataset is built \
+         (and uploaded to a server with --server) by `dsrl-admin build {}`; see data/README.md, \"Full builds\".",
+        task.id, task.paper_trajectories, task.id
+    )
 }
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -160,6 +212,7 @@ impl Manifest {
             license: facts.license,
             created_at: facts.created_at,
             episode_index,
+            hosting: None,
         }
     }
 

@@ -77,10 +77,18 @@ pub async fn index(State(state): State<AppState>) -> Result<Response, ApiError> 
             match latest {
                 Some(v) => {
                     let manifest = state.datasets.manifest(v).await?;
+                    // A starter says so beside its count, with the paper's.
+                    let kind = match dsrl_suite::Hosting::of(task, manifest.episodes, &v.tags) {
+                        Some(h) => format!(
+                            " <span class=\"kind\">({}; the paper's: {})</span>",
+                            h.kind, h.paper_trajectories
+                        ),
+                        None => String::new(),
+                    };
                     let _ = writeln!(
                         body,
                         "<tr class=\"task hosted\" id=\"{id}\"><td class=\"name\"><a href=\"/tasks/{id}\">{id}</a>\
-                         </td><td>{}</td><td>{}</td><td>{}</td><td>{:.1} – {:.1}</td><td>{:.1} – {:.1}</td><td>\
+                         </td><td>{}{kind}</td><td>{}</td><td>{}</td><td>{:.1} – {:.1}</td><td>{:.1} – {:.1}</td><td>\
                          <img src=\"/v1/datasets/{id}/versions/latest/plot.svg\" width=\"120\" alt=\"cost–reward \
                          plot of {id}\" loading=\"lazy\"></td></tr>",
                         manifest.episodes,
@@ -248,6 +256,22 @@ pub async fn card(
         escape(&manifest.license),
         escape(&manifest.created_at),
     );
+    // What the latest version is: the committed starter (said plainly, with the command that builds the full
+    // dataset) or a full build.
+    if let Some(hosting) = dsrl_suite::Hosting::of(task, manifest.episodes, &latest.tags) {
+        match &hosting.notice {
+            Some(notice) => {
+                let _ = writeln!(body, "<p id=\"hosting\" class=\"notice\">{}</p>", escape(notice));
+            }
+            None => {
+                let _ = writeln!(
+                    body,
+                    "<p id=\"hosting\">A full build: {} trajectories (the paper's: {}).</p>",
+                    hosting.trajectories, hosting.paper_trajectories
+                );
+            }
+        }
+    }
     body.push_str(&filter_section(task, &manifest, query.filter.as_deref()));
     let parquet = format!("/v1/datasets/{id}/versions/{version}/download");
     let hdf5 = format!("/download/{}", escape(&dsrl_file_name(task)));

@@ -348,14 +348,26 @@ impl Datasets {
         Ok((task, record))
     }
 
+    /// The manifest as served: the stored one, with what the version is on this server (`hosting`: its starter,
+    /// with the notice that says so, or a full build) where its tags say.
     pub async fn manifest_json(&self, record: &VersionRecord) -> Result<String, ApiError> {
         let (task, version) = ids(record)?;
-        self.db.manifest(&task, &version).await?.ok_or_else(|| {
+        let stored = self.db.manifest(&task, &version).await?.ok_or_else(|| {
             ApiError::Internal(format!(
                 "version {} of {} has no manifest row",
                 record.version, record.task
             ))
-        })
+        })?;
+        let Some(hosting) = dsrl_suite::Hosting::of(self.task(&record.task)?, record.episodes, &record.tags) else {
+            return Ok(stored);
+        };
+        let mut manifest: serde_json::Map<String, serde_json::Value> =
+            serde_json::from_str(&stored).map_err(ApiError::internal)?;
+        manifest.insert(
+            "hosting".into(),
+            serde_json::to_value(hosting).map_err(ApiError::internal)?,
+        );
+        serde_json::to_string(&manifest).map_err(ApiError::internal)
     }
 
     /// The Parquet bytes of a version, or a byte range of them.

@@ -6,6 +6,7 @@ found here and the other way round. A full version id that is complete in the ca
 """
 import hashlib
 import json
+import warnings
 
 import numpy as np
 
@@ -58,6 +59,10 @@ def read_parquet(path):
     return data
 
 
+class StarterDataset(UserWarning):
+    """The dataset served is the task's starter, a cut of its build, not the paper-size dataset."""
+
+
 def load_dataset(task, version="latest", filter=None, server=None, cache_dir=None, progress=True):
     """`task`'s dataset as DSRL's dict: `observations` (N, obs_dim) float32, `next_observations`, `actions`
     (N, act_dim), `rewards`, `costs` (N,) float32, `terminals`, `timeouts` (N,) bool.
@@ -72,6 +77,10 @@ def load_dataset(task, version="latest", filter=None, server=None, cache_dir=Non
     dataset.version = report["version"]
     dataset.path = report["path"]
     dataset.manifest = report.get("manifest")
+    # A server that hosts only the committed starter says so, naming the command that builds the full dataset.
+    notice = ((dataset.manifest or {}).get("hosting") or {}).get("notice")
+    if notice:
+        warnings.warn(notice, StarterDataset, stacklevel=2)
     provenance = (dataset.manifest or {}).get("provenance") or {}
     dataset.filter = provenance.get("filter") if provenance.get("kind") == "filter" else None
     dataset._fingerprint = dataset.fingerprint()

@@ -1,0 +1,453 @@
+//! `dsrl-admin build`: the full builds, every task's dataset at the paper's size, as `data/full_builds.toml` plans
+//! them, each checked against its committed identity (`data/full/<task>.json`).
+//!
+//! Each task is built in a child process of its own (`dsrl-admin build-task`, hidden), in a state folder of its
+//! own under the root (`~/.dsrl/full/<task>`): a recipe run that resumes where it stopped after a kill at any
+//! point (`crate::build::Run`), with its compute counted over its process tree (`compute.rs`). The parent runs
+//! `--jobs` of them at once, draws a progress bar per task from what the children report, compares each result
+//! with the committed record (`record.rs`), and, as asked, writes the records (`--record`) and uploads the builds
+//! to a server (`--server`), tagged `full` and made `latest`.
+
+pub mod compute;
+pub mod plan;
+pub mod record;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use dsrl_client::api::{Client, IngestOptions};
+use dsrl_evaluation::SimulatorsConfig;
+use dsrl_suite::Catalog;
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use tokio::io::AsyncBufReadExt;
+
+use self::plan::Plan;
+use self::record::{BuildRecord, EpisodeLine};
+use crate::build::Run;
+
+/// The tag a server gives an uploaded full build (besides `latest`).
+pub const FULL_TAG: &str = dsrl_suite::TagName::FULL;
+
+/// What the parent asks of one `dsrl-admin build`.
+#[derive(Debug, Clone)]
+pub struct BuildOptions {
+    pub plan: PathBuf,
+    pub recipes: PathBuf,
+    pub records: PathBuf,
+    pub root: PathBuf,
+    pub tasks: Vec<String>,
+    pub jobs: usize,
+    pub workers: u32,
+    pub record: bool,
+    pub server: Option<String>,
+    pub token: Option<String>,
+    pub progress: bool,
+}
+
+/// How one task's build ended.
+#[derive(Debug, Clone, Serialize)]
+pub struct Outcome {
+    pub task: String,
+    pub version: Option<String>,
+    pub trajectories: Option<u64>,
+    /// `matches`, `differs` (a failure), `no committed record`, or `failed`.
+    pub check: String,
+    /// What differs from the committed record, or why the build failed.
+    pub details: Vec<String>,
+    /// The record was written into the records folder (`--record`).
+    pub recorded: bool,
+    /// The server's manifest URL of the upload (`--server`).
+    pub uploaded: Option<String>,
+}
+
+impl Outcome {
+    pub fn ok(&self) -> bool {
+        self.check == "matches" || self.check == "no committed record"
+    }
+}
+
+/// A line a child writes on its standard output.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum ChildReport {
+    Progress { position: u64, length: u64, unit: String },
+    Finished { version: String },
+}
+
+/// `<state>/record.json` and `<state>/record.episodes.csv`: what a finished build in `state` produced.
+fn state_record(state: &Path, task: &str) -> anyhow::Result<Option<(BuildRecord, Vec<EpisodeLine>)>> {
+    let dir = state.join("record");
+    record::read(&dir, task)
+}
+
+/// Runs the builds: every task in order, `jobs` at a time, a warm start's source finished before the task that
+/// starts from it. Returns each task's outcome; a failed task does not stop the others.
+pub async fn build(options: &BuildOptions) -> anyhow::Result<Vec<Outcome>> {
+    let plan = Plan::load(&options.plan)?;
+    let order = plan.order(&options.tasks, &options.recipes)?;
+    // Every recipe is checked before anything starts: a typo fails now, not hours in.
+    let catalog = Catalog::embedded()?;
+    let mut sources = std::collections::HashMap::new();
+    for task in &order {
+        let recipe = plan.recipe(task, &options.recipes)?;
+        recipe.validate(&catalog)?;
+        if let Some(source) = recipe.expert.as_ref().and_then(|e| e.warm_start.as_ref()) {
+            sources.insert(task.clone(), source.task.clone());
+        }
+    }
+    let client = match &options.server {
+        Some(server) => {
+            let client = Client::new(server)?.with_token(options.token.clone());
+            let info = client.server_info().await?;
+            anyhow::ensure!(
+                info.admin,
+                "{server}: uploading needs its admin token (--token or DSRL_ADMIN_TOKEN)"
+            );
+            Some(client)
+        }
+        None => None,
+    };
+    std::fs::create_dir_all(options.root.join("logs"))?;
+    let multi = if options.progress {
+        MultiProgress::new()
+    } else {
+        MultiProgress::with_draw_target(indicatif::ProgressDrawTarget::hidden())
+    };
+    let mut outcomes: Vec<Outcome> = Vec::new();
+    let mut waiting: Vec<String> = order.clone();
+    let mut running = tokio::task::JoinSet::new();
+    let jobs = options.jobs.max(1);
+    loop {
+        // Start what may start: a free slot, and a warm start's source finished (or failed: then this fails too).
+        let mut i = 0;
+        while running.len() < jobs && i < waiting.len() {
+            let task = waiting[i].clone();
+            if let Some(source) = sources.get(&task) {
+                match outcomes.iter().find(|o| &o.task == source) {
+                    // The source is waiting or being built (the order puts it first).
+                    None => {
+                        i += 1;
+                        continue;
+                    }
+                    Some(o) if !o.ok() => {
+                        waiting.remove(i);
+                        outcomes.push(Outcome {
+                            task,
+                            version: None,
+                            trajectories: None,
+                            check: "failed".into(),
+                            details: vec![format!("its warm start's source, {source}, did not build")],
+                            recorded: false,
+                            uploaded: None,
+                        });
+                        continue;
+                    }
+                    Some(_) => {}
+                }
+            }
+            waiting.remove(i);
+            let bar = multi.add(ProgressBar::new(0));
+            bar.set_style(
+                ProgressStyle::with_template("{msg:40} [{elapsed_precise}] {wide_bar} {pos}/{len} (eta {eta})")
+                    .expect("template"),
+            );
+            bar.set_message(task.clone());
+            let options = options.clone();
+            running.spawn(async move {
+                let result = run_child(&options, &task, &bar).await;
+                bar.finish();
+                (task, result)
+            });
+        }
+        let Some(done) = running.join_next().await else {
+            break;
+        };
+        let (task, result) = done?;
+        let outcome = match result {
+            Ok(()) => settle(options, &task, client.as_ref()).await,
+            Err(e) => Err(e),
+        }
+        .unwrap_or_else(|e| Outcome {
+            task: task.clone(),
+            version: None,
+            trajectories: None,
+            check: "failed".into(),
+            details: vec![format!("{e:#}")],
+            recorded: false,
+            uploaded: None,
+        });
+        multi.suspend(|| eprintln!("{}", describe(&outcome)));
+        outcomes.push(outcome);
+    }
+    Ok(outcomes)
+}
+
+/// One line for a person.
+pub fn describe(outcome: &Outcome) -> String {
+    let mut line = format!(
+        "{}: {}{}",
+        outcome.task,
+        outcome.check,
+        outcome
+            .version
+            .as_deref()
+            .map(|v| format!(" (version {v}, {} trajectories)", outcome.trajectories.unwrap_or(0)))
+            .unwrap_or_default()
+    );
+    for detail in &outcome.details {
+        line.push_str("\n  ");
+        line.push_str(detail);
+    }
+    if outcome.recorded {
+        line.push_str("\n  record written");
+    }
+    if let Some(url) = &outcome.uploaded {
+        line.push_str(&format!("\n  uploaded: {url}"));
+    }
+    line
+}
+
+/// Runs `dsrl-admin build-task` for `task` and follows its reports on `bar`; its log goes to `<root>/logs/`.
+async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> anyhow::Result<()> {
+    let log_path = options.root.join("logs").join(format!("{task}.log"));
+    let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path)?;
+    let mut child = tokio::process::Command::new(std::env::current_exe()?)
+        .arg("build-task")
+        .arg("--task")
+        .arg(task)
+        .arg("--plan")
+        .arg(&options.plan)
+        .arg("--recipes")
+        .arg(&options.recipes)
+        .arg("--state")
+        .arg(options.root.join(task))
+        .arg("--workers")
+        .arg(options.workers.to_string())
+        .env("DSRL_LOG", std::env::var("DSRL_LOG").unwrap_or_else(|_| "info".into()))
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(log)
+        .kill_on_drop(true)
+        .spawn()?;
+    let stdout = child.stdout.take().expect("piped");
+    let mut lines = tokio::io::BufReader::new(stdout).lines();
+    while let Some(line) = lines.next_line().await? {
+        match serde_json::from_str::<ChildReport>(&line) {
+            Ok(ChildReport::Progress { position, length, unit }) => {
+                bar.set_length(length);
+                bar.set_position(position);
+                bar.set_message(format!("{task} ({unit})"));
+            }
+            Ok(ChildReport::Finished { .. }) => {}
+            Err(_) => tracing::debug!(task, line, "unexpected line from a build"),
+        }
+    }
+    let status = child.wait().await?;
+    if !status.success() {
+        let text = std::fs::read_to_string(&log_path).unwrap_or_default();
+        let tail: Vec<&str> = text.lines().rev().take(5).collect();
+        anyhow::bail!(
+            "the build stopped ({status}); the end of {}:\n    {}",
+            log_path.display(),
+            tail.into_iter().rev().collect::<Vec<_>>().join("\n    ")
+        );
+    }
+    Ok(())
+}
+
+/// After a child finished: compares its record with the committed one, writes it (`--record`) and uploads the
+/// build (`--server`).
+async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> anyhow::Result<Outcome> {
+    let state = options.root.join(task);
+    let (built, episodes) = state_record(&state, task)?
+        .ok_or_else(|| anyhow::anyhow!("the build finished without its record in {}", state.display()))?;
+    let (check, details) = match record::read(&options.records, task)? {
+        None => ("no committed record".to_owned(), Vec::new()),
+        Some((committed, committed_episodes)) => {
+            let differences = record::differences(&built, &episodes, &committed, &committed_episodes);
+            if differences.is_empty() {
+                ("matches".to_owned(), Vec::new())
+            } else {
+                ("differs".to_owned(), differences)
+            }
+        }
+    };
+    let mut outcome = Outcome {
+        task: task.to_owned(),
+        version: Some(built.version.clone()),
+        trajectories: Some(built.trajectories),
+        check,
+        details,
+        recorded: false,
+        uploaded: None,
+    };
+    if options.record {
+        record::write(&options.records, &built, &episodes)?;
+        outcome.recorded = true;
+    }
+    if let Some(client) = client {
+        let file = state.join(&built.file_name);
+        let provenance = std::fs::read_to_string(format!("{}.provenance.json", file.display()))?;
+        let ingested = client
+            .ingest(
+                task,
+                &file,
+                &IngestOptions {
+                    // `latest` named too: an identical upload (a rebuild) moves only the tags it names.
+                    tags: vec![FULL_TAG.to_owned(), "latest".to_owned()],
+                    provenance_json: Some(provenance),
+                    ..IngestOptions::default()
+                },
+                |_| {},
+            )
+            .await?;
+        outcome.uploaded = Some(ingested.manifest_url);
+    }
+    Ok(outcome)
+}
+
+/// What `build-task` is given: one task's full build in its state folder.
+#[derive(Debug, Clone)]
+pub struct TaskBuild {
+    pub task: String,
+    pub plan: PathBuf,
+    pub recipes: PathBuf,
+    pub state: PathBuf,
+    pub workers: u32,
+}
+
+/// The child's work: builds (or resumes) one task, reporting progress as JSON lines on stdout, and leaves its
+/// record in `<state>/record/`. A state folder whose record names a file that is there is already finished.
+pub async fn build_task(args: &TaskBuild) -> anyhow::Result<()> {
+    let plan = Plan::load(&args.plan)?;
+    let recipe = plan.recipe(&args.task, &args.recipes)?;
+    let catalog = Catalog::embedded()?;
+    let task = recipe.validate(&catalog)?.clone();
+    if let Some((done, _)) = state_record(&args.state, &args.task)?
+        && std::fs::metadata(args.state.join(&done.file_name)).is_ok_and(|m| m.len() == done.bytes)
+    {
+        report(&ChildReport::Finished { version: done.version });
+        return Ok(());
+    }
+    std::fs::create_dir_all(&args.state)?;
+    let meter = Arc::new(compute::Meter::start(&args.state, args.workers)?);
+    let saving = meter.clone().keep_saving(Duration::from_secs(10));
+    let bar = ProgressBar::hidden();
+    let ticking = {
+        let bar = bar.clone();
+        let unit = if recipe.expert.is_some() { "steps" } else { "episodes" };
+        tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(Duration::from_secs(2)).await;
+                report(&ChildReport::Progress {
+                    position: bar.position(),
+                    length: bar.length().unwrap_or(0),
+                    unit: unit.into(),
+                });
+            }
+        })
+    };
+    let run = Run {
+        recipe: recipe.clone(),
+        recipe_path: args.recipes.join(format!("{}.toml", args.task)),
+        recipe_label: Some(plan.recipe_name(&args.task)),
+        state_dir: args.state.clone(),
+        episodes_per_setting: None,
+        budget_steps: None,
+        workers: args.workers.max(1),
+        envs_per_session: 4,
+        settings_per_session: 1,
+        drive_episodes: true,
+        simulators: SimulatorsConfig::default(),
+        progress: false,
+        progress_bar: Some(bar),
+        max_episodes: None,
+        out_dir: None,
+        compact: false,
+        parts: 1,
+        warm_start_dir: None,
+    };
+    let built = run.execute(&catalog).await;
+    ticking.abort();
+    saving.abort();
+    let built = built?;
+    let compute = meter.save()?;
+    let episodes: Vec<EpisodeLine> = built
+        .converted
+        .episode_index
+        .iter()
+        .enumerate()
+        .map(|(i, e)| EpisodeLine {
+            episode: i as u64,
+            length: e.length,
+            reward_return: e.reward_return,
+            cost_return: e.cost_return,
+        })
+        .collect();
+    let range = |f: fn(&EpisodeLine) -> f32| -> [f64; 2] {
+        let values = episodes.iter().map(|e| f64::from(f(e)));
+        [
+            values.clone().fold(f64::INFINITY, f64::min),
+            values.fold(f64::NEG_INFINITY, f64::max),
+        ]
+    };
+    let budget = match (&recipe.expert, &recipe.idm_sweep) {
+        (Some(expert), _) => serde_json::json!({ "budget_steps": expert.budget_steps }),
+        (None, Some(sweep)) => serde_json::json!({
+            "episodes_per_setting": sweep.episodes_per_setting,
+            "settings": recipe.settings(None).len(),
+            "maps": sweep.maps,
+        }),
+        (None, None) => serde_json::Value::Null,
+    };
+    let record = BuildRecord {
+        task: args.task.clone(),
+        version: built.converted.version.to_string(),
+        file_name: built
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        bytes: built.converted.byte_size,
+        trajectories: episodes.len() as u64,
+        transitions: episodes.iter().map(|e| u64::from(e.length)).sum(),
+        reward_return: range(|e| e.reward_return),
+        cost_return: range(|e| e.cost_return),
+        paper_trajectories: u64::from(task.paper_trajectories),
+        recipe: format!("data/recipes/{}.toml", args.task),
+        plan: serde_json::to_value(&plan.entry(&args.task)?.overrides)?,
+        seed: recipe.seed,
+        budget,
+        episodes_collected: built.collected as u64,
+        episodes_after_buffer: built.after_buffer as u64,
+        code_version: match &built.provenance {
+            dsrl_suite::Provenance::Recipe { code_version, .. } => code_version.clone(),
+            _ => String::new(),
+        },
+        compute,
+        finished_at: now_rfc3339(),
+    };
+    record::write(&args.state.join("record"), &record, &episodes)?;
+    report(&ChildReport::Finished {
+        version: record.version,
+    });
+    Ok(())
+}
+
+/// Now in UTC, to the second.
+fn now_rfc3339() -> String {
+    time::OffsetDateTime::now_utc()
+        .replace_nanosecond(0)
+        .ok()
+        .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+        .unwrap_or_default()
+}
+
+fn report(line: &ChildReport) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{}", serde_json::to_string(line).expect("serializable"));
+    let _ = out.flush();
+}
