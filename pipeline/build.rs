@@ -5,9 +5,25 @@
 include!("../suite/build-support/commit.rs");
 
 fn main() {
-    // What shapes the data this crate makes: its source, the sources of the crates it builds on, the locked
-    // dependencies.
-    record_build_commit(&[
+    // The simulator adapter the workers run and its pins, file by file: the folder itself also holds the
+    // `__pycache__` that every run of the workers rewrites.
+    let mut simulator: Vec<String> = ["requirements.txt", "constraints.txt", "apply_fixes.py"]
+        .iter()
+        .map(|f| format!("../sim/python/{f}"))
+        .collect();
+    if let Ok(entries) = std::fs::read_dir("../sim/python/dsrl_sim") {
+        let mut modules: Vec<String> = entries
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|x| x == "py"))
+            .map(|p| p.display().to_string())
+            .collect();
+        modules.sort();
+        simulator.extend(modules);
+    }
+    // What shapes the data this crate makes: its source, the sources of the crates it builds on, the simulator
+    // adapter and its pins, the locked dependencies.
+    let mut sources: Vec<&str> = vec![
         "src",
         "../suite/src",
         "../policy/src",
@@ -15,5 +31,7 @@ fn main() {
         "../evaluation/src",
         "../proto/src",
         "../Cargo.lock",
-    ]);
+    ];
+    sources.extend(simulator.iter().map(String::as_str));
+    record_build_commit(&sources);
 }

@@ -12,8 +12,8 @@
 //! number in a document outside such a section is not a measurement.
 //!
 //! Sections: `reference-*` from the reference results (`data/reference/results.jsonl`) and the paper's table;
-//! `hosted-*` from the committed starters (`data/starter/`, `crate::hosted`). Whole generated files:
-//! `data/starter_gaps.csv`.
+//! `hosted-*` from the committed starters (`data/starter/`, `crate::hosted`); `full-*` from the full builds' records
+//! (`data/full/`, `crate::full::table`). Whole generated files: `data/starter_gaps.csv`, `data/full_build_gaps.csv`.
 
 use std::collections::BTreeMap;
 use std::fmt::Write;
@@ -29,7 +29,7 @@ use dsrl_suite::reference::{ReferenceEntry, agreement, mean_over_seeds, read_res
 pub const DOCUMENTS: [&str; 2] = ["data/README.md", "data/reference/README.md"];
 
 /// Files generated whole.
-pub const GENERATED_FILES: [&str; 1] = ["data/starter_gaps.csv"];
+pub const GENERATED_FILES: [&str; 2] = ["data/starter_gaps.csv", "data/full_build_gaps.csv"];
 
 /// Bootstrap settings of the documents' intervals: the leaderboard's.
 const RESAMPLES: u32 = 2000;
@@ -407,11 +407,21 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
     );
     let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version);
     let starters = crate::hosted::read_starters(&catalog, &root.join("data/starter"))?;
-    all.extend(crate::hosted::sections(&catalog, &starters));
-    let files = BTreeMap::from([(
-        "data/starter_gaps.csv".to_owned(),
-        crate::hosted::gaps_csv(&catalog, &starters),
-    )]);
+    let committed = crate::full::table::read_committed(&catalog, root)?;
+    let full: BTreeMap<String, u64> = committed
+        .iter()
+        .map(|(task, c)| (task.clone(), c.record.trajectories))
+        .collect();
+    all.extend(crate::hosted::sections(&catalog, &starters, &full));
+    let (full_sections, full_gaps) = crate::full::table::sections(&catalog, root, &committed)?;
+    all.extend(full_sections);
+    let files = BTreeMap::from([
+        (
+            "data/starter_gaps.csv".to_owned(),
+            crate::hosted::gaps_csv(&catalog, &starters),
+        ),
+        ("data/full_build_gaps.csv".to_owned(), full_gaps),
+    ]);
     Ok((all, files))
 }
 

@@ -280,13 +280,14 @@ fn expert_minutes(p: &serde_json::Value) -> String {
     format!("{:.0} min", parts.iter().sum::<f64>() / 60.0)
 }
 
-/// The generated sections of data/README.md: the hosted table, the frontier, and the bar's summary.
-pub fn sections(catalog: &Catalog, starters: &[Starter]) -> BTreeMap<String, String> {
+/// The generated sections of data/README.md: the hosted table (with the task's committed full build beside its
+/// starter, `full`: task → trajectories), the frontier, and the bar's summary.
+pub fn sections(catalog: &Catalog, starters: &[Starter], full: &BTreeMap<String, u64>) -> BTreeMap<String, String> {
     let mut sections = BTreeMap::new();
     let mut table = String::from(
         "| task | trajectories / transitions | reward return (paper's range) | cost return (paper's range; cap) | \
          tempting corner | filters that apply | expert budget (of the paper's) | expert time | build trajectories | \
-         starter |\n|---|---|---|---|---|---|---|---|---|---|\n",
+         starter | full build (paper's) |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let mut front = String::from(
         "| task | best reward, cost 0–20% of the cap | 20–40% | 40–60% | 60–80% | 80–100% | safe end (≤ 10%) | \
@@ -335,7 +336,7 @@ pub fn sections(catalog: &Catalog, starters: &[Starter]) -> BTreeMap<String, Str
         let p = &s.provenance;
         let _ = writeln!(
             table,
-            "| {} | {n} / {transitions} | {} – {} ({} – {}) | {} – {} ({} – {}; {}) | {:.0}% | {} | {} | {} | {} | {:.1} MB{} |",
+            "| {} | {n} / {transitions} | {} – {} ({} – {}) | {} – {} ({} – {}; {}) | {:.0}% | {} | {} | {} | {} | {:.1} MB{} | {} ({}) |",
             task.id,
             short_number(f64::from(rmin)),
             short_number(f64::from(rmax)),
@@ -361,6 +362,8 @@ pub fn sections(catalog: &Catalog, starters: &[Starter]) -> BTreeMap<String, Str
             } else {
                 String::new()
             },
+            full.get(task.id.as_str()).map_or("–".to_owned(), u64::to_string),
+            task.paper_trajectories,
         );
         let f = frontier(task, e);
         let show = |x: Option<f32>| x.map_or("–".to_owned(), |x| short_number(f64::from(x)));

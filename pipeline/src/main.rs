@@ -129,6 +129,11 @@ struct BuildArgs {
     server: Option<String>,
     #[arg(long, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// Print where each task's build stands (finished, partial with its measured rate and the hours left, not
+    /// started) instead of building; with --record, write the unfinished ones' numbers beside the records
+    /// (`<task>.progress.json`).
+    #[arg(long)]
+    status: bool,
     /// Print the outcomes as JSON (and no progress bars).
     #[arg(long)]
     json: bool,
@@ -151,6 +156,40 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         token: args.token,
         progress: !args.json,
     };
+    if args.status {
+        let progress = dsrl_pipeline::full::status(&options)?;
+        if options.record {
+            for p in &progress {
+                let path = dsrl_pipeline::full::progress_path(&options.records, &p.task);
+                if p.state == "finished" {
+                    let _ = std::fs::remove_file(&path);
+                } else {
+                    std::fs::create_dir_all(&options.records)?;
+                    let mut bytes = serde_json::to_vec_pretty(p)?;
+                    bytes.push(b'\n');
+                    std::fs::write(&path, bytes)?;
+                }
+            }
+        }
+        if args.json {
+            println!("{}", serde_json::to_string_pretty(&progress)?);
+        } else {
+            for p in &progress {
+                println!(
+                    "{:42} {:11} {:>10} of {:>10} {}{}",
+                    p.task,
+                    p.state,
+                    p.done,
+                    p.planned,
+                    p.unit,
+                    p.remaining_hours
+                        .map(|h| format!(", {h} h left at {} {}/s", p.rate_per_second.unwrap_or(0.0), p.unit))
+                        .unwrap_or_default()
+                );
+            }
+        }
+        return Ok(());
+    }
     let outcomes = dsrl_pipeline::full::build(&options).await?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&outcomes)?);

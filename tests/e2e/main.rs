@@ -12,6 +12,7 @@ mod dsrl_download;
 mod expert;
 mod fetch;
 mod filters;
+mod full_builds;
 mod fuzz;
 mod hardening;
 mod hosted;

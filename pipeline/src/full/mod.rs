@@ -11,6 +11,7 @@
 pub mod compute;
 pub mod plan;
 pub mod record;
+pub mod table;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -213,7 +214,8 @@ pub fn describe(outcome: &Outcome) -> String {
 async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> anyhow::Result<()> {
     let log_path = options.root.join("logs").join(format!("{task}.log"));
     let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path)?;
-    let mut child = tokio::process::Command::new(std::env::current_exe()?)
+    let mut command = tokio::process::Command::new(std::env::current_exe()?);
+    command
         .arg("build-task")
         .arg("--task")
         .arg(task)
@@ -229,8 +231,19 @@ async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> any
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(log)
-        .kill_on_drop(true)
-        .spawn()?;
+        .kill_on_drop(true);
+    // The build dies with this process, however it ends (a SIGKILL runs no destructor): an orphan would go on
+    // writing the state folder that the next run resumes.
+    // SAFETY: prctl is async-signal-safe and touches nothing of the parent.
+    unsafe {
+        command.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let mut child = command.spawn()?;
     let stdout = child.stdout.take().expect("piped");
     let mut lines = tokio::io::BufReader::new(stdout).lines();
     while let Some(line) = lines.next_line().await? {
@@ -308,6 +321,105 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
     Ok(outcome)
 }
 
+/// Where a task's full build stands, from its state folder: finished, partial (with what it has done, at what
+/// measured rate, and what is left), or not started. `dsrl-admin build --status` prints these; with `--record` the
+/// unfinished ones are kept beside the records as `<task>.progress.json`, the measured numbers of a gap.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Progress {
+    pub task: String,
+    /// `finished`, `partial` or `not started`.
+    pub state: String,
+    /// Environment steps (expert recipes) or episodes (IDM sweeps) done, of those planned.
+    pub done: u64,
+    pub planned: u64,
+    pub unit: String,
+    /// Units per second of collection and updates, measured on this build (the expert's log: simulator, acting and
+    /// update seconds; a sweep: its compute's wall time), and the hours the rest would take at that rate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rate_per_second: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub remaining_hours: Option<f64>,
+    /// The compute counted so far, where the build was run by `dsrl-admin build`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub compute: Option<compute::Compute>,
+    /// The CPU the rate was measured on.
+    pub cpu: String,
+}
+
+/// Each task's state under `root`, in the plan's order.
+pub fn status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
+    let plan = Plan::load(&options.plan)?;
+    let mut out = Vec::new();
+    for task in plan.order(&options.tasks, &options.recipes)? {
+        let recipe = plan.recipe(&task, &options.recipes)?;
+        let state = options.root.join(&task);
+        let compute: Option<compute::Compute> = std::fs::read(state.join("compute.json"))
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok());
+        let finished = state_record(&state, &task)?.is_some();
+        let (done, planned, unit, rate) = match (&recipe.expert, &recipe.idm_sweep) {
+            (Some(expert), _) => {
+                let log = std::fs::read_to_string(state.join("expert/training.csv")).unwrap_or_default();
+                let (mut steps, mut seconds) = (0u64, 0.0f64);
+                for line in log.lines().skip(1) {
+                    let f: Vec<&str> = line.split(',').collect();
+                    steps = f.get(1).and_then(|v| v.parse().ok()).unwrap_or(steps);
+                    seconds += [8, 9, 10]
+                        .iter()
+                        .filter_map(|&i| f.get(i).and_then(|v| v.parse::<f64>().ok()))
+                        .sum::<f64>();
+                }
+                let rate = (seconds > 0.0).then(|| steps as f64 / seconds);
+                (steps, expert.budget_steps, "steps", rate)
+            }
+            (None, Some(sweep)) => {
+                let settings = std::fs::read_dir(state.join("settings"))
+                    .map(|d| {
+                        d.flatten()
+                            .filter(|e| e.path().extension().is_some_and(|x| x == "parquet"))
+                            .count()
+                    })
+                    .unwrap_or(0) as u64;
+                let episodes = settings * u64::from(sweep.episodes_per_setting);
+                let rate = compute
+                    .as_ref()
+                    .filter(|c| c.wall_seconds > 0.0)
+                    .map(|c| episodes as f64 / c.wall_seconds);
+                let planned = recipe.settings(None).len() as u64 * u64::from(sweep.episodes_per_setting);
+                (episodes, planned, "episodes", rate)
+            }
+            (None, None) => (0, 0, "steps", None),
+        };
+        let done = if finished { planned.max(done) } else { done };
+        out.push(Progress {
+            task,
+            state: if finished {
+                "finished"
+            } else if done > 0 {
+                "partial"
+            } else {
+                "not started"
+            }
+            .into(),
+            done,
+            planned,
+            unit: unit.into(),
+            rate_per_second: rate.map(|r| (r * 100.0).round() / 100.0),
+            remaining_hours: rate
+                .filter(|r| *r > 0.0 && !finished)
+                .map(|r| ((planned.saturating_sub(done)) as f64 / r / 3600.0 * 10.0).round() / 10.0),
+            compute,
+            cpu: compute::cpu_name(),
+        });
+    }
+    Ok(out)
+}
+
+/// `<records>/<task>.progress.json`: an unfinished build's measured numbers, committed as the record of its gap.
+pub fn progress_path(records: &Path, task: &str) -> PathBuf {
+    records.join(format!("{task}.progress.json"))
+}
+
 /// What `build-task` is given: one task's full build in its state folder.
 #[derive(Debug, Clone)]
 pub struct TaskBuild {
@@ -332,6 +444,7 @@ pub async fn build_task(args: &TaskBuild) -> anyhow::Result<()> {
         return Ok(());
     }
     std::fs::create_dir_all(&args.state)?;
+    let _lock = lock(&args.state)?;
     let meter = Arc::new(compute::Meter::start(&args.state, args.workers)?);
     let saving = meter.clone().keep_saving(Duration::from_secs(10));
     let bar = ProgressBar::hidden();
@@ -434,6 +547,27 @@ pub async fn build_task(args: &TaskBuild) -> anyhow::Result<()> {
         version: record.version,
     });
     Ok(())
+}
+
+/// Holds `<state>/lock` (an exclusive `flock`) for as long as the returned file lives: two builds writing one
+/// state folder would corrupt it, so the second is refused.
+fn lock(state: &Path) -> anyhow::Result<std::fs::File> {
+    use std::os::fd::AsRawFd;
+    let path = state.join("lock");
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)?;
+    // SAFETY: flock on a descriptor this function owns.
+    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+        anyhow::bail!(
+            "another build is working in {} (it holds {})",
+            state.display(),
+            path.display()
+        );
+    }
+    Ok(file)
 }
 
 /// Now in UTC, to the second.
