@@ -100,7 +100,7 @@ enum Command {
 
 #[derive(clap::Args, Debug)]
 struct BuildArgs {
-    /// Tasks to build (default: every task of the plan).
+    /// Tasks to build, in this order (default: every task of the plan, in its order).
     tasks: Vec<String>,
     /// The plan: per task, the recipe keys its full build replaces.
     #[arg(long, default_value = dsrl_pipeline::full::plan::PLAN_PATH)]

@@ -50,19 +50,24 @@ impl Plan {
             .ok_or_else(|| anyhow::anyhow!("{task} has no entry in {}", self.path.display()))
     }
 
-    /// The tasks to build, in build order: the plan's order, restricted to `wanted` (every task when empty), with
-    /// a warm start's source moved before the task that starts from it (and added if it was not asked for: its
-    /// state folder must hold a finished build first).
+    /// The tasks to build, in build order: `wanted` in the order given, or every task in the plan's order when
+    /// none is, with a warm start's source moved before the task that starts from it (and added if it was not
+    /// asked for: its state folder must hold a finished build first).
     pub fn order(&self, wanted: &[String], recipes: &Path) -> anyhow::Result<Vec<String>> {
         for task in wanted {
             self.entry(task)?;
         }
-        let mut chosen: Vec<String> = self
-            .entries
-            .iter()
-            .map(|e| e.task.clone())
-            .filter(|t| wanted.is_empty() || wanted.contains(t))
-            .collect();
+        let mut chosen: Vec<String> = if wanted.is_empty() {
+            self.entries.iter().map(|e| e.task.clone()).collect()
+        } else {
+            let mut unique = Vec::new();
+            for task in wanted {
+                if !unique.contains(task) {
+                    unique.push(task.clone());
+                }
+            }
+            unique
+        };
         let mut ordered: Vec<String> = Vec::new();
         while let Some(task) = chosen.first().cloned() {
             chosen.remove(0);
@@ -218,6 +223,21 @@ mod tests {
         assert_eq!(
             order,
             ["OfflinePointPush1Gymnasium-v0", "OfflinePointPush2Gymnasium-v0"]
+        );
+        let named = plan
+            .order(
+                &[
+                    "OfflineCarRun-v0".into(),
+                    "OfflineBallRun-v0".into(),
+                    "OfflineCarRun-v0".into(),
+                ],
+                &recipes(),
+            )
+            .unwrap();
+        assert_eq!(
+            named,
+            ["OfflineCarRun-v0", "OfflineBallRun-v0"],
+            "named tasks keep the order given"
         );
         let all = plan.order(&[], &recipes()).unwrap();
         assert_eq!(all.len(), 38);
