@@ -29,8 +29,8 @@ fn token_digest(token: &str) -> String {
 }
 
 /// Names a user or an entry may not take, nor anything that reads the same (`reads_as`): the board's own rows
-/// (`paper`), the reference account and its entries, and the service itself.
-pub const RESERVED_NAMES: &[&str] = &["paper", "dsrl", "dsrl-reference", "reference", "admin"];
+/// (`paper`), the reference account, and the service itself.
+pub const RESERVED_NAMES: &[&str] = &["paper", "dsrl", "dsrl-reference", "admin"];
 
 /// User and entry names: 1–64 letters, digits, `.`, `_`, `-`; not only dots (a browser resolves `/users/..` to
 /// `/`); not starting with `-` or `.`, so no spreadsheet reads an exported name as a formula (`-A1-B1`) and no

@@ -83,7 +83,12 @@ impl BcqActor {
             .forward(&Tensor::cat(&[obs, &proposal], 1)?)?
             .tanh()?
             .affine(self.phi * self.max_action, 0.0)?;
-        Ok(proposal.add(&nudge)?.clamp(-self.max_action, self.max_action)?)
+        // NaN kept: a network that overflowed inside must fail the evaluation, not play the bound.
+        Ok(crate::fused::clamp(
+            &proposal.add(&nudge)?,
+            -self.max_action,
+            self.max_action,
+        )?)
     }
 
     /// One latent row per generator: `latent_dim` standard normal draws, each clipped to ±0.5 (OSRL `decode`).
@@ -117,6 +122,44 @@ mod tests {
     use std::collections::HashMap;
 
     use super::*;
+
+    /// Finite weights whose products overflow: the perturbation's hidden units are all +∞ (ReLU keeps them), and its
+    /// output subtracts two of them, ∞ − ∞ = NaN. The clamp to the action bound must keep the NaN (PyTorch does), so
+    /// the evaluator refuses the action instead of playing the bound.
+    #[test]
+    fn a_nan_inside_the_network_reaches_the_action_through_the_clamp() {
+        let t = |v: Vec<f32>, shape: &[usize]| Tensor::from_vec(v, shape, &Device::Cpu).unwrap();
+        let mut tensors: HashMap<String, Tensor> = HashMap::new();
+        tensors.insert("actor.pi.0.weight".into(), t(vec![3e38; 4 * 5], &[4, 5]));
+        tensors.insert("actor.pi.0.bias".into(), t(vec![0.0; 4], &[4]));
+        let mut out = vec![0.0f32; 2 * 4];
+        out[0] = 1.0;
+        out[1] = -1.0;
+        tensors.insert("actor.pi.1.weight".into(), t(out, &[2, 4]));
+        tensors.insert("actor.pi.1.bias".into(), t(vec![0.0; 2], &[2]));
+        tensors.insert("vae.decoder.0.weight".into(), t(vec![0.01; 4 * 7], &[4, 7]));
+        tensors.insert("vae.decoder.0.bias".into(), t(vec![0.0; 4], &[4]));
+        tensors.insert("vae.decoder.1.weight".into(), t(vec![0.01; 2 * 4], &[2, 4]));
+        tensors.insert("vae.decoder.1.bias".into(), t(vec![0.0; 2], &[2]));
+        let shape = BcqShape {
+            input_dim: 3,
+            act_dim: 2,
+            latent_dim: 4,
+            hidden_sizes: &[4],
+            decoder_hidden_sizes: &[4],
+        };
+        let actor = BcqActor::from_weights(&shape, Activation::Relu, 0.05, 1.0, &mut Weights::new(&tensors)).unwrap();
+        let obs = t(vec![1.0, 1.0, 1.0], &[1, 3]);
+        let z = t(vec![0.0; 4], &[1, 4]);
+        let action = actor
+            .act(&obs, &z)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        assert!(action[0].is_nan(), "the NaN was clamped away: {action:?}");
+    }
 
     #[test]
     fn the_action_is_the_decoded_proposal_plus_a_bounded_perturbation() {

@@ -494,7 +494,8 @@ impl Cdt {
             &Tensor::from_vec(c, (n, t), cpu)?,
             &Tensor::from_vec(ts, (n, t), cpu)?,
         )?;
-        let means = means.clamp(-max_action, max_action)?.to_vec3::<f32>()?;
+        // NaN kept (see `fused::clamp`): the evaluator refuses a non-finite action.
+        let means = crate::fused::clamp(&means, -max_action, max_action)?.to_vec3::<f32>()?;
         let mut out = Vec::with_capacity(n * act_dim);
         for (ctx, ((_, len), rows)) in contexts.iter_mut().zip(windows.iter().zip(means)) {
             let action = &rows[len - 1];

@@ -152,6 +152,22 @@ pub fn relu(x: &Tensor) -> CResult<Tensor> {
     })
 }
 
+/// `x` clamped to `[low, high]`, with the gradient passed where `x` lies inside (candle's convention). NaN stays NaN,
+/// as in PyTorch's `clamp`: candle's clamp is `max(min(x, high), low)` in Rust's `f32::max`, which turns NaN into
+/// `low`, so a network that went NaN inside (an overflow of finite weights) played a bounded action instead of
+/// failing the evaluation.
+pub fn clamp(x: &Tensor, low: f64, high: f64) -> CResult<Tensor> {
+    if !x.device().is_cpu() {
+        return x.clamp(low, high);
+    }
+    let (lo, hi) = (low as f32, high as f32);
+    x.contiguous()?.apply_op1(Elementwise {
+        name: "clamp",
+        value: move |x: f32| if x.is_nan() { x } else { x.clamp(lo, hi) },
+        slope: move |x: f32| if (lo..=hi).contains(&x) { 1. } else { 0. },
+    })
+}
+
 /// A function applied to each element: `value(x)` forward, `g · slope(x)` backward. Generic over the two functions
 /// (not `fn` pointers) so each operation's loops are compiled with its functions inlined: called through a pointer,
 /// ReLU's forward was as costly as the matrix products around it in BEAR-Lag's step.
@@ -565,6 +581,21 @@ mod tests {
             |t| relu(&t[0]).unwrap(),
             |t| composed::relu(&t[0]).unwrap(),
             "relu",
+        );
+    }
+
+    #[test]
+    fn clamp_keeps_nan_as_pytorch_does_and_matches_candles_otherwise() {
+        let x = Tensor::new(&[f32::NAN, -3.0, 0.5, 2.0, f32::INFINITY], &Device::Cpu).unwrap();
+        let y = clamp(&x, -1.0, 1.0).unwrap().to_vec1::<f32>().unwrap();
+        assert!(y[0].is_nan(), "{y:?}");
+        assert_eq!(&y[1..], &[-1.0, 0.5, 1.0, 1.0]);
+        let x = random(&[4, 5], 21);
+        same_as_primitive(
+            &[x],
+            |t| clamp(&t[0], -0.3, 0.4).unwrap(),
+            |t| t[0].clamp(-0.3, 0.4).unwrap(),
+            "clamp",
         );
     }
 

@@ -78,6 +78,26 @@ impl Backend {
     }
 }
 
+/// When this process last saw the database fail for its storage (ms since the epoch; 0: never). See `connect`.
+static STORAGE_FAILURE_AT_MS: std::sync::atomic::AtomicI64 = std::sync::atomic::AtomicI64::new(0);
+
+/// Records a database error that says its storage failed (SQLite's READONLY, IOERR, FULL or CANTOPEN, or an I/O
+/// error), so that no connection opened before it is handed out again. Every error that reaches a request passes
+/// here (`From<sqlx::Error> for ApiError`), as do the health probe's.
+pub fn note_failure(e: &sqlx::Error) {
+    let storage = match e {
+        sqlx::Error::Io(_) => true,
+        sqlx::Error::Database(d) => d
+            .code()
+            .and_then(|c| c.parse::<i32>().ok())
+            .is_some_and(|code| matches!(code & 0xff, 8 | 10 | 13 | 14)),
+        _ => false,
+    };
+    if storage {
+        STORAGE_FAILURE_AT_MS.store(now_ms(), std::sync::atomic::Ordering::Release);
+    }
+}
+
 #[derive(Clone)]
 pub struct Db {
     pool: AnyPool,
@@ -109,6 +129,18 @@ impl Db {
                              PRAGMA busy_timeout = 10000;",
                         )
                         .await?;
+                        // SQLite opens a file it cannot open for writing (an unwritable or failing volume) read-only
+                        // instead, and such a connection answers "attempt to write a readonly database" for its
+                        // whole life. A write rolled back at once (nothing reaches the disk) tells: where it fails,
+                        // the failure is noted, so `before_acquire` never hands this connection out again once it
+                        // is back in the pool (it still serves the request at hand, which fails as it would).
+                        if let Err(e) = conn
+                            .execute("BEGIN; CREATE TABLE main.dsrl_write_check (x INTEGER); ROLLBACK;")
+                            .await
+                        {
+                            note_failure(&e);
+                            let _ = conn.execute("ROLLBACK").await;
+                        }
                     }
                     Ok(())
                 })
@@ -124,7 +156,16 @@ impl Db {
                     Ok(!sqlx::Connection::is_in_transaction(conn))
                 })
             })
-            .before_acquire(|conn, _| Box::pin(async move { Ok(!sqlx::Connection::is_in_transaction(conn)) }))
+            // And none opened before this process last saw a write fail for its storage: SQLite reopens a file it
+            // could not open read-write as read-only, and such a connection answered "attempt to write a readonly
+            // database" long after the files were writable again.
+            .before_acquire(|conn, meta| {
+                Box::pin(async move {
+                    let opened_ms = now_ms() - meta.age.as_millis() as i64;
+                    Ok(!sqlx::Connection::is_in_transaction(conn)
+                        && opened_ms > STORAGE_FAILURE_AT_MS.load(std::sync::atomic::Ordering::Acquire))
+                })
+            })
             .connect(url)
             .await?;
         migrator(backend).run(&pool).await?;
@@ -150,15 +191,22 @@ impl Db {
     /// Writes and commits one row: what `/healthz` asks of the database. A read (`ping`) succeeds on a database
     /// whose files cannot be written, where every submission and upload fails.
     pub async fn probe_write(&self) -> Result<(), sqlx::Error> {
-        let mut tx = self.begin().await?;
-        sqlx::query(
-            "INSERT INTO health_probe (id, probed_ms) VALUES (1, $1)
-             ON CONFLICT (id) DO UPDATE SET probed_ms = excluded.probed_ms",
-        )
-        .bind(now_ms())
-        .execute(&mut *tx)
-        .await?;
-        tx.commit().await
+        let result = async {
+            let mut tx = self.begin().await?;
+            sqlx::query(
+                "INSERT INTO health_probe (id, probed_ms) VALUES (1, $1)
+                 ON CONFLICT (id) DO UPDATE SET probed_ms = excluded.probed_ms",
+            )
+            .bind(now_ms())
+            .execute(&mut *tx)
+            .await?;
+            tx.commit().await
+        }
+        .await;
+        if let Err(e) = &result {
+            note_failure(e);
+        }
+        result
     }
 
     /// A write transaction. On SQLite it takes the write lock at its start (`BEGIN IMMEDIATE`): a deferred one that
@@ -419,6 +467,11 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
         "liveness",
         include_str!("../../migrations/sqlite/20261128000001_liveness.sql"),
     ),
+    (
+        20261128000002,
+        "uploads",
+        include_str!("../../migrations/sqlite/20261128000002_uploads.sql"),
+    ),
 ];
 
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -446,6 +499,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         20261128000001,
         "liveness",
         include_str!("../../migrations/postgres/20261128000001_liveness.sql"),
+    ),
+    (
+        20261128000002,
+        "uploads",
+        include_str!("../../migrations/postgres/20261128000002_uploads.sql"),
     ),
 ];
 

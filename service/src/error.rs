@@ -229,6 +229,7 @@ impl From<UnknownTask> for ApiError {
 
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
+        crate::db::note_failure(&e);
         ApiError::Internal(format!("database: {e}"))
     }
 }

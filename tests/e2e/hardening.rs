@@ -113,8 +113,12 @@ fn an_architecture_over_the_step_budget_is_refused_with_the_reason() {
 #[test]
 fn evaluations_are_bounded_in_memory_and_time() {
     let binary = dsrl_e2e::bin("dsrl-sim-worker").display().to_string();
-    let env = Env::with(
-        &[],
+    let dir = tempfile::tempdir().unwrap();
+    let flags = crate::leaderboard::hosting_the_starter(dir.path());
+    let flags: Vec<&str> = flags.iter().map(String::as_str).collect();
+    let env = Env::with_kept(
+        dir,
+        &flags,
         &[
             ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
             ("DSRL__SIMULATORS__WORKER_BINARY", &binary),

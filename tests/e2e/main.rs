@@ -29,6 +29,7 @@ mod s3;
 mod services;
 mod simulators;
 mod starter;
+mod writes;
 
 use std::path::{Path, PathBuf};
 
@@ -53,7 +54,11 @@ impl Env {
     }
 
     pub fn with(args: &[&str], envs: &[(&str, &str)]) -> Env {
-        let dir = tempfile::tempdir().expect("temp dir");
+        Env::with_kept(tempfile::tempdir().expect("temp dir"), args, envs)
+    }
+
+    /// A server in `dir`, which the test may have filled first (a starter folder the flags name, say).
+    pub fn with_kept(dir: tempfile::TempDir, args: &[&str], envs: &[(&str, &str)]) -> Env {
         let server = Server::start(&dir.path().join("server"), args, envs);
         let cli = server.cli(&dir.path().join("cache"));
         Env { dir, server, cli }

@@ -86,7 +86,7 @@ fn two_api_replicas_share_postgres_and_s3() {
     let starter_versions = get_json(&format!("{}/v1/datasets/OfflineBallRun-v0/versions", b.url));
     let listed = starter_versions["versions"].as_array().unwrap();
     assert_eq!(listed.len(), 1, "{starter_versions}");
-    assert_eq!(listed[0]["tags"], serde_json::json!(["latest"]));
+    assert_eq!(listed[0]["tags"], serde_json::json!(["latest", "starter"]));
     let cli_a = cli(&a, &dir.path().join("cache-a"));
     let cli_b = cli(&b, &dir.path().join("cache-b"));
 
@@ -350,7 +350,10 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
             ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
             ("DSRL__LEADERBOARD__SEED_SECRET", SECRET),
         ]);
-        let env = crate::Env::with(&[], &envs);
+        let home = tempfile::tempdir().unwrap();
+        let flags = crate::leaderboard::hosting_the_starter(home.path());
+        let flags: Vec<&str> = flags.iter().map(String::as_str).collect();
+        let env = crate::Env::with_kept(home, &flags, &envs);
         let user = crate::leaderboard::create_user(&env, "alice");
         let id = crate::leaderboard::submit(&env, &user, &policy, "BC-All").ok().json()["id"].clone();
         let done = crate::leaderboard::client(&env, &user, &["--json", "status", &id.to_string(), "--wait"])
@@ -364,8 +367,11 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
     let moto = Moto::start("dsrl-evaluators");
     let mut api_envs = scoring.to_vec();
     api_envs.push(("DSRL__LEADERBOARD__EVALUATORS", "0"));
-    let api = start(dir.path(), "api-a", &[], &shared_env(&pg, &moto, &api_envs));
-    let api_b = start(dir.path(), "api-b", &[], &shared_env(&pg, &moto, &api_envs));
+    // The API replicas host the starter the policy was trained on (a submission must name a hosted version).
+    let hosting = crate::leaderboard::hosting_the_starter(dir.path());
+    let hosting: Vec<&str> = hosting.iter().map(String::as_str).collect();
+    let api = start(dir.path(), "api-a", &hosting, &shared_env(&pg, &moto, &api_envs));
+    let api_b = start(dir.path(), "api-b", &hosting, &shared_env(&pg, &moto, &api_envs));
     let mut evaluator_envs = scoring.to_vec();
     evaluator_envs.push(("DSRL__SIMULATORS__LOCAL_WORKERS", "1"));
     let evaluator_envs = shared_env(&pg, &moto, &evaluator_envs);
