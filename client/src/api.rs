@@ -87,7 +87,7 @@ impl Client {
         let http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(10))
             // A stalled connection fails instead of hanging; a slow but moving download is fine.
-            .read_timeout(Duration::from_secs(120))
+            .read_timeout(read_timeout())
             .user_agent(concat!("dsrl-client/", env!("CARGO_PKG_VERSION")))
             .build()
             .map_err(|e| ClientError::Protocol(format!("building the HTTP client: {e}")))?;
@@ -112,11 +112,37 @@ impl Client {
     }
 
     async fn send(&self, request: reqwest::RequestBuilder) -> Result<Response, ClientError> {
-        let response = request.send().await.map_err(|source| ClientError::Unreachable {
-            url: self.base.clone(),
-            source,
-        })?;
+        let what = request
+            .try_clone()
+            .and_then(|r| r.build().ok())
+            .map(|r| format!("{} {}", r.method(), r.url().path()))
+            .unwrap_or_else(|| "the request".to_owned());
+        let response = request
+            .send()
+            .await
+            .map_err(|source| self.transport_error(source, &what))?;
         check(response).await
+    }
+
+    /// A transport failure, named for what it was: a timeout (the server was reached but did not answer in time)
+    /// is not "cannot reach".
+    fn transport_error(&self, source: reqwest::Error, what: &str) -> ClientError {
+        if source.is_builder() {
+            // Nothing was sent: the request itself could not be made (a header value that is not one, say).
+            return ClientError::Protocol(format!("{what} could not be sent: {source}"));
+        }
+        if source.is_timeout() {
+            ClientError::Timeout {
+                url: self.base.clone(),
+                seconds: read_timeout().as_secs(),
+                what: format!("{what} ({source})"),
+            }
+        } else {
+            ClientError::Unreachable {
+                url: self.base.clone(),
+                source,
+            }
+        }
     }
 
     async fn get_json<T: DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
@@ -252,11 +278,29 @@ impl Client {
                 limit: info.max_upload_bytes,
             });
         }
+        // An upload of these bytes the server is converting, or has converted, is followed rather than sent again:
+        // a retry after a timeout or a broken connection does not start the conversion over.
+        let sha256 = file_sha256(file).await?;
+        let earlier = self.uploads(task, &sha256).await?;
+        if let Some(converting) = earlier.iter().find(|u| u.state == "converting") {
+            match self.follow_upload(converting.clone()).await {
+                // Its server stopped converting it: this upload starts afresh.
+                Err(ClientError::Server { code, .. }) if code == INTERRUPTED => {}
+                Err(e) => return Err(e),
+                Ok(done) => return self.identical(task, done, options).await,
+            }
+        } else if let Some(done) = earlier.iter().find(|u| u.state == "done") {
+            let result: IngestResult = serde_json::from_value(done.result.clone().unwrap_or_default())
+                .map_err(|e| ClientError::Protocol(format!("upload result: {e}")))?;
+            return self.identical(task, result, options).await;
+        }
         let file_name = file
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
-        let mut query = vec![("filename", file_name)];
+        // The server answers once the bytes are received and converts in the background (a paper-size file takes
+        // minutes); the client follows the conversion while the server says it is at work.
+        let mut query = vec![("filename", file_name), ("background", "true".to_owned())];
         if !options.tags.is_empty() {
             query.push(("tags", options.tags.join(",")));
         }
@@ -299,10 +343,122 @@ impl Client {
             request = request.header("dsrl-provenance", p.as_str());
         }
         let response = self.send(self.admin(request)?).await?;
+        if response.status() == StatusCode::ACCEPTED {
+            let upload: Upload = response
+                .json()
+                .await
+                .map_err(|e| ClientError::Protocol(format!("ingest response: {e}")))?;
+            return self.follow_upload(upload).await;
+        }
+        // A server that converts in the foreground answers with the result itself.
         response
             .json()
             .await
             .map_err(|e| ClientError::Protocol(format!("ingest response: {e}")))
+    }
+
+    /// What uploading bytes the server has converted before answers, without sending them again: the version they
+    /// became, `created: false`, and this request's explicit tags pointed at it (as the server does for identical
+    /// data; `latest` moves only with a new version).
+    async fn identical(
+        &self,
+        task: &str,
+        earlier: IngestResult,
+        options: &IngestOptions,
+    ) -> Result<IngestResult, ClientError> {
+        let version = earlier.version.version.clone();
+        let mut moved = Vec::new();
+        for tag in &options.tags {
+            let before = self
+                .versions(task)
+                .await?
+                .into_iter()
+                .find(|v| v.tags.contains(tag))
+                .map(|v| v.version);
+            self.tag(task, tag, &version).await?;
+            if before.as_deref() != Some(version.as_str()) {
+                moved.push(tag.clone());
+            }
+        }
+        let record = self
+            .versions(task)
+            .await?
+            .into_iter()
+            .find(|v| v.version == version)
+            .ok_or_else(|| ClientError::Protocol(format!("version {version} of an earlier upload is gone")))?;
+        Ok(IngestResult {
+            created: false,
+            task: task.to_owned(),
+            version: record,
+            moved_tags: moved,
+            manifest_url: earlier.manifest_url,
+            download_url: earlier.download_url,
+        })
+    }
+
+    /// `GET /v1/uploads?task=&sha256=`: the server's uploads of these bytes for the task, newest first (none from
+    /// a server that does not convert in the background).
+    pub async fn uploads(&self, task: &str, sha256: &str) -> Result<Vec<Upload>, ClientError> {
+        let request = self
+            .http
+            .get(self.url("/v1/uploads"))
+            .query(&[("task", task), ("sha256", sha256)]);
+        match self.send(self.admin(request)?).await {
+            Ok(response) => Ok(response
+                .json::<UploadList>()
+                .await
+                .map_err(|e| ClientError::Protocol(format!("GET /v1/uploads: {e}")))?
+                .uploads),
+            Err(ClientError::Server { status: 404, .. }) => Ok(Vec::new()),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Waits for a background upload to end, for as long as the server heartbeats it: its result, or its error as
+    /// the server's. An upload whose server stopped converting (killed, restarted) is an error that says so.
+    pub async fn follow_upload(&self, mut upload: Upload) -> Result<IngestResult, ClientError> {
+        loop {
+            match upload.state.as_str() {
+                "done" => {
+                    let result = upload
+                        .result
+                        .ok_or_else(|| ClientError::Protocol("a finished upload without its result".into()))?;
+                    return serde_json::from_value(result)
+                        .map_err(|e| ClientError::Protocol(format!("upload result: {e}")));
+                }
+                "failed" => {
+                    let error = upload.error.unwrap_or_default();
+                    let code = error["code"].as_str().unwrap_or("internal").to_owned();
+                    return Err(ClientError::Server {
+                        status: status_of(&code),
+                        message: error["message"].as_str().unwrap_or("the upload failed").to_owned(),
+                        code,
+                        suggestions: Vec::new(),
+                    });
+                }
+                "interrupted" => {
+                    return Err(ClientError::Server {
+                        status: 503,
+                        code: INTERRUPTED.into(),
+                        message: format!(
+                            "the server stopped converting upload {} (it was restarted or killed; its last sign of \
+                             work was at {}): upload the file again",
+                            upload.id, upload.updated_at
+                        ),
+                        suggestions: Vec::new(),
+                    });
+                }
+                _ => {}
+            }
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let request = self.http.get(self.url(&format!("/v1/uploads/{}", seg(&upload.id))));
+            upload = self
+                .send(self.admin(request)?)
+                .await?
+                .json()
+                .await
+                .map_err(|e| ClientError::Protocol(format!("GET /v1/uploads/{}: {e}", upload.id)))?;
+        }
     }
 
     pub async fn tag(&self, task: &str, tag: &str, version: &str) -> Result<HostedVersion, ClientError> {
@@ -317,6 +473,66 @@ impl Client {
             .await
             .map_err(|e| ClientError::Protocol(format!("tag response: {e}")))
     }
+}
+
+/// The error code of an upload whose server stopped converting it.
+const INTERRUPTED: &str = "upload_interrupted";
+
+/// An upload the server converts in the background (`GET /v1/uploads/{upload}`).
+#[derive(Debug, Clone, Deserialize)]
+pub struct Upload {
+    pub id: String,
+    pub task: String,
+    pub upload_sha256: String,
+    /// `converting`, `done`, `failed` or `interrupted`.
+    pub state: String,
+    pub result: Option<serde_json::Value>,
+    pub error: Option<serde_json::Value>,
+    pub updated_at: String,
+}
+
+#[derive(Debug, Deserialize)]
+struct UploadList {
+    uploads: Vec<Upload>,
+}
+
+/// How long a request may wait for the server's next bytes: `DSRL_CLIENT_TIMEOUT` seconds, default 120.
+pub fn read_timeout() -> Duration {
+    std::env::var("DSRL_CLIENT_TIMEOUT")
+        .ok()
+        .and_then(|s| s.parse::<u64>().ok())
+        .filter(|&s| s > 0)
+        .map_or(Duration::from_secs(120), Duration::from_secs)
+}
+
+/// The HTTP status an error code of the server's table stands for (for an error read back from an upload).
+fn status_of(code: &str) -> u16 {
+    match code {
+        "not_found" => 404,
+        "invalid_argument" => 400,
+        "payload_too_large" => 413,
+        "unauthenticated" => 401,
+        "permission_denied" => 403,
+        "already_exists" => 409,
+        "resource_exhausted" => 429,
+        "unavailable" => 503,
+        "insufficient_storage" => 507,
+        _ => 500,
+    }
+}
+
+/// sha256 of a file, read in 1 MiB blocks off the async runtime.
+async fn file_sha256(path: &Path) -> Result<String, ClientError> {
+    let path = path.to_owned();
+    tokio::task::spawn_blocking(move || {
+        use sha2::Digest;
+        let mut file = std::fs::File::open(&path).map_err(ClientError::io(format!("opening {}", path.display())))?;
+        let mut hasher = sha2::Sha256::new();
+        std::io::copy(&mut file, &mut hasher).map_err(ClientError::io(format!("reading {}", path.display())))?;
+        Ok(hex::encode(hasher.finalize()))
+    })
+    .await
+    .map_err(|e| ClientError::Protocol(format!("hashing the file: {e}")))?
 }
 
 /// The checkpoint files of a submission folder, named as the server expects: `policy.json` and

@@ -30,6 +30,9 @@ pub enum ClientError {
     },
     #[error("cannot reach the dsrl server at {url}: {source}")]
     Unreachable { url: String, source: reqwest::Error },
+    /// The server was reached but did not answer in time (it may still be working).
+    #[error("the dsrl server at {url} did not answer within {seconds} s: {what}")]
+    Timeout { url: String, seconds: u64, what: String },
     #[error("integrity check failed: {0}")]
     Integrity(String),
     #[error("{context}: {source}")]
@@ -59,7 +62,7 @@ impl ClientError {
                 400..=499 => exit::REJECTED,
                 _ => exit::UNAVAILABLE,
             },
-            ClientError::Unreachable { .. } => exit::UNAVAILABLE,
+            ClientError::Unreachable { .. } | ClientError::Timeout { .. } => exit::UNAVAILABLE,
             ClientError::Integrity(_) => exit::INTEGRITY,
             ClientError::Usage(_) => exit::USAGE,
             ClientError::TooLarge { .. } => exit::REJECTED,
@@ -72,6 +75,7 @@ impl ClientError {
         let (code, suggestions) = match self {
             ClientError::Server { code, suggestions, .. } => (code.as_str(), suggestions.clone()),
             ClientError::Unreachable { .. } => ("unreachable", vec![]),
+            ClientError::Timeout { .. } => ("timeout", vec![]),
             ClientError::Integrity(_) => ("integrity", vec![]),
             ClientError::Io { .. } => ("io", vec![]),
             ClientError::Protocol(_) => ("protocol", vec![]),

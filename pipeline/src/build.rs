@@ -417,6 +417,7 @@ impl Run {
         let part = path.with_extension("parquet.part");
         let (after_buffer, episodes_kept) = (buffered.len(), kept.len());
         // Kept episodes are taken out of `buffered`, not copied.
+        let writing = Instant::now();
         let converted = {
             let (task, part) = (task.clone(), part.clone());
             tokio::task::spawn_blocking(move || {
@@ -467,6 +468,7 @@ impl Run {
             "transitions": converted.episode_index.iter().map(|e| u64::from(e.length)).sum::<u64>(),
             "workers": self.workers,
             "wall_seconds": started.elapsed().as_secs_f64().round(),
+            "write_seconds": (writing.elapsed().as_secs_f64() * 10.0).round() / 10.0,
         });
         if let (Some(details), serde_json::Value::Object(method)) = (details.as_object_mut(), method) {
             details.extend(method);

@@ -73,6 +73,13 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         metrics: metrics.clone(),
         limits: derived_limits(config),
     })?;
+    let interrupted = storage::uploads::recover(datasets.db()).await?;
+    if interrupted > 0 {
+        tracing::warn!(
+            interrupted,
+            "background uploads were being converted when the server stopped; marked failed"
+        );
+    }
     let auth = AdminAuth::load_or_create(config.auth.admin_token.as_deref(), &data_dir.join("admin-token"))?;
     if let Some(dir) = &config.datasets.starter_dir
         && dir.is_dir()

@@ -7,6 +7,7 @@
 pub mod catalog;
 pub mod collection;
 pub mod convert;
+pub mod croissant;
 pub mod episode;
 pub mod filters;
 pub mod hashing;

@@ -36,6 +36,8 @@ fn kubernetes_manifests_are_valid() {
         "cronjob/dsrl-gc",
         "job/dsrl-reference-sweep",
         "persistentvolumeclaim/dsrl-reference-results",
+        "job/dsrl-full-builds",
+        "persistentvolumeclaim/dsrl-full-builds",
     ] {
         assert!(
             report.contains(&format!("passed for resource {resource}")),

@@ -225,3 +225,54 @@ async fn grpc_streams_the_same_transitions_as_arrow_ipc() {
         made.episode_index.iter().map(|e| e.length as u64).sum::<u64>()
     );
 }
+
+/// Each hosted version is described in Croissant: MLCommons' `mlcroissant` finds no error in the document and reads
+/// its records from the Parquet file it names (over HTTP, checking the sha256), equal to the version's rows.
+#[test]
+fn a_version_is_described_in_croissant_that_mlcroissant_validates_and_reads() {
+    let env = Env::new();
+    let task = "OfflineCarRun-v0";
+    let version = env.ingest_synthetic(task, 3, 5);
+    let url = format!(
+        "{}/v1/datasets/{task}/versions/{version}/croissant.json",
+        env.server.url
+    );
+    let document = crate::get_json(&url);
+    assert_eq!(document["@type"], "sc:Dataset");
+    assert_eq!(document["distribution"][0]["sha256"], version.as_str());
+    let path = env.path("croissant.json");
+    std::fs::write(&path, serde_json::to_vec_pretty(&document).unwrap()).unwrap();
+    let out = dsrl_e2e::run_python("croissant_check.py", &[crate::s(&path), "3"]);
+    let report: serde_json::Value = serde_json::from_str(out.lines().last().unwrap()).unwrap();
+    assert_eq!(report["errors"], serde_json::json!([]), "{report:#}");
+    let records = report["records"].as_array().unwrap();
+    assert_eq!(records.len(), 3, "{report:#}");
+    // The first rows of the file, as pyarrow reads them: mlcroissant's records are the same.
+    let rows = dsrl_e2e::run_python(
+        "parquet_rows.py",
+        &[
+            crate::s(
+                &env.server
+                    .data_dir
+                    .join("objects/datasets")
+                    .join(task)
+                    .join(format!("{version}.parquet")),
+            ),
+            "3",
+        ],
+    );
+    let rows: serde_json::Value = serde_json::from_str(rows.lines().last().unwrap()).unwrap();
+    for (record, row) in records.iter().zip(rows.as_array().unwrap()) {
+        for key in [
+            "episode",
+            "step",
+            "rewards",
+            "costs",
+            "terminals",
+            "timeouts",
+            "actions",
+        ] {
+            assert_eq!(record[key], row[key], "{key}: {record} vs {row}");
+        }
+    }
+}

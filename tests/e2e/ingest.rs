@@ -509,3 +509,95 @@ fn a_converter_exits_when_its_parent_goes_away() {
     let _ = ingest.wait();
     env.restart();
 }
+
+/// A file whose conversion outlasts the client's timeout: the server answers once the bytes are received and
+/// converts in the background, the CLI follows the conversion and succeeds where a request waiting for the answer
+/// times out; uploading the same file again follows the finished upload instead of converting it again.
+#[test]
+fn an_upload_whose_conversion_outlasts_the_client_timeout_finishes_and_a_retry_converts_nothing() {
+    let env = Env::new();
+    let task = "OfflineMetadrive-hardmean-v0";
+    let file = env.path("big.parquet");
+    let made = dsrl_e2e::make_dataset(task, 60, 21, &file);
+    let bytes = std::fs::read(&file).unwrap();
+    let token = env.server.token();
+    // The same file sent by a request that waits for the answer, with a 1 s timeout: the conversion takes longer.
+    let started = std::time::Instant::now();
+    let (url, waited_token, body) = (env.server.url.clone(), token.clone(), bytes.clone());
+    let waited = crate::block_on(async move {
+        reqwest::Client::builder()
+            .timeout(Duration::from_secs(1))
+            .build()
+            .unwrap()
+            .post(format!("{url}/v1/datasets/{task}/versions?latest=false"))
+            .bearer_auth(waited_token)
+            .body(body)
+            .send()
+            .await
+    });
+    assert!(
+        waited.as_ref().is_err_and(|e| e.is_timeout()),
+        "the conversion answered within 1 s ({:?} after {:?}): the test needs a slower one",
+        waited.map(|r| r.status()),
+        started.elapsed()
+    );
+    let version = |v: &serde_json::Value| v["version"]["version"].as_str().unwrap_or_default().to_owned();
+    let mut cli = env
+        .cli
+        .command(&["--json", "admin", "ingest", "--task", task, s(&file)]);
+    cli.env("DSRL_CLIENT_TIMEOUT", "1");
+    let out = cli.output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let done: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(version(&done), made.version.as_str());
+
+    // The server's record of the upload (or uploads, the timed-out one's conversion having finished too): all
+    // done, each once; a second ingest of the same file follows one of them and sends nothing.
+    let sha = crate::sha256_file(&file);
+    let list = || {
+        crate::get_json_with_token(
+            &format!("{}/v1/uploads?task={task}&sha256={sha}", env.server.url),
+            &token,
+        )["uploads"]
+            .as_array()
+            .unwrap()
+            .clone()
+    };
+    let before = list();
+    assert!(!before.is_empty() && before.len() <= 2, "{before:?}");
+    let mut again = env
+        .cli
+        .command(&["--json", "admin", "ingest", "--task", task, s(&file)]);
+    again.env("DSRL_CLIENT_TIMEOUT", "1");
+    let out = again.output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(
+        version(&serde_json::from_slice(&out.stdout).unwrap()),
+        made.version.as_str()
+    );
+    assert_eq!(list().len(), before.len(), "the retry started another conversion");
+    assert!(list().iter().all(|u| u["state"] == "done"), "{:?}", list());
+}
+
+/// A server that accepts the connection but never answers: the client says it timed out, not that it cannot
+/// reach the server (exit code 5 either way).
+#[test]
+fn a_silent_server_is_a_timeout_not_unreachable() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let held = std::thread::spawn(move || {
+        let (stream, _) = listener.accept().unwrap();
+        std::thread::sleep(Duration::from_secs(5));
+        drop(stream);
+    });
+    let out = std::process::Command::new(dsrl_e2e::bin("dsrl-client"))
+        .args(["--server", &url, "list"])
+        .env("DSRL_CLIENT_TIMEOUT", "1")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(5), "{out:?}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("did not answer within 1 s"), "{stderr}");
+    assert!(!stderr.contains("cannot reach"), "{stderr}");
+    held.join().unwrap();
+}

@@ -302,7 +302,10 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
     }
     if let Some(client) = client {
         let file = state.join(&built.file_name);
-        let provenance = std::fs::read_to_string(format!("{}.provenance.json", file.display()))?;
+        // One line: it travels in a header.
+        let provenance: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(format!("{}.provenance.json", file.display()))?)?;
+        let provenance = serde_json::to_string(&provenance)?;
         let ingested = client
             .ingest(
                 task,
@@ -540,6 +543,16 @@ pub async fn build_task(args: &TaskBuild) -> anyhow::Result<()> {
             _ => String::new(),
         },
         compute,
+        time_split: match &built.provenance {
+            dsrl_suite::Provenance::Recipe { details, .. } => {
+                let keys = ["simulator_seconds", "acting_seconds", "update_seconds", "write_seconds"];
+                keys.iter()
+                    .filter_map(|k| details.get(*k).map(|v| (k.to_string(), v.clone())))
+                    .collect::<serde_json::Map<_, _>>()
+                    .into()
+            }
+            _ => serde_json::json!({}),
+        },
         finished_at: now_rfc3339(),
     };
     record::write(&args.state.join("record"), &record, &episodes)?;

@@ -37,6 +37,10 @@ pub struct BuildRecord {
     /// The build's code: `dsrl-pipeline <version> (git <commit>[-modified])`.
     pub code_version: String,
     pub compute: super::compute::Compute,
+    /// Where the build's time went, from its provenance (seconds): the simulators, the policy's forward passes
+    /// while acting, the learner's updates (expert recipes), and writing the dataset.
+    #[serde(default)]
+    pub time_split: serde_json::Value,
     /// When the build finished (RFC 3339, UTC).
     pub finished_at: String,
 }
@@ -175,6 +179,7 @@ mod tests {
             episodes_after_buffer: 3,
             code_version: "dsrl-pipeline 0.1.0 (git abc)".into(),
             compute: super::super::compute::Compute::default(),
+            time_split: serde_json::json!({}),
             finished_at: "2026-11-28T00:00:00Z".into(),
         }
     }

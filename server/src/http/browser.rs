@@ -282,7 +282,8 @@ pub async fn card(
     };
     let _ = write!(
         body,
-        "<h2>Download</h2>\n<p><a id=\"download-parquet\" href=\"{parquet}\">Parquet</a>{hdf5_link}</p>\n\
+        "<h2>Download</h2>\n<p><a id=\"download-parquet\" href=\"{parquet}\">Parquet</a>{hdf5_link} · <a \
+         id=\"croissant\" href=\"/v1/datasets/{id}/versions/{version}/croissant.json\">Croissant metadata</a></p>\n\
          <pre>dsrl-client fetch {id}                      # verified, resumable, into ~/.dsrl/datasets\n\
          dsrl-client fetch {id} --format hdf5        # DSRL's HDF5 layout\n\
          dsrl-client fetch {id} --filter noise=0.05  # a DSRL filter, computed by the server</pre>\n\

@@ -18,6 +18,7 @@ use crate::error::ApiError;
 use crate::metrics::OutcomeLabels;
 use crate::storage::datasets::{IngestRequest, LatestPolicy};
 use crate::storage::db::VersionRecord;
+use crate::storage::uploads::{self, UploadView};
 
 /// Header carrying the provenance of data built by a recipe (JSON, `{"kind": "recipe", ...}`).
 pub const PROVENANCE_HEADER: &str = "dsrl-provenance";
@@ -66,6 +67,10 @@ pub struct IngestParams {
     pub license: Option<String>,
     /// `false`: leave `latest` where it is (default `true`: a new version becomes `latest`).
     pub latest: Option<bool>,
+    /// `true`: answer 202 as soon as the upload is received and verified, and convert it in the background;
+    /// `GET /v1/uploads/{id}` follows it. An upload of bytes already being converted (or converted) for the task
+    /// follows that one instead of converting again. For files whose conversion outlasts a client's patience.
+    pub background: Option<bool>,
 }
 
 /// What a client needs to know before uploading.
@@ -189,6 +194,33 @@ pub async fn get_manifest(
         .into_response())
 }
 
+#[utoipa::path(get, path = "/v1/datasets/{task}/versions/{version}/croissant.json", tag = "datasets",
+    params(("task" = String, Path), ("version" = String, Path, description = "Version id (sha256) or tag")),
+    responses((status = 200, description = "The version described in Croissant 1.0 (JSON-LD): its Parquet file's \
+            URL and sha256, the columns as typed fields, the license, how it was built", content_type = "application/ld+json"),
+        (status = 400, description = "An invalid version reference"), (status = 404, description = "Unknown task or version")))]
+pub async fn get_croissant(
+    State(state): State<AppState>,
+    Path((task, reference)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let (task, record) = state.datasets.resolve(&task, &reference).await?;
+    let manifest = state.datasets.manifest(&record).await?;
+    // Absolute URLs as the client reached this server (behind a proxy, its Host header).
+    let host = headers
+        .get(header::HOST)
+        .and_then(|h| h.to_str().ok())
+        .filter(|h| h.bytes().all(|b| b.is_ascii_graphic()))
+        .unwrap_or("localhost");
+    let document = dsrl_suite::croissant::describe(&manifest, task, &format!("http://{host}"));
+    let body = serde_json::to_string_pretty(&document).map_err(ApiError::internal)?;
+    Ok((
+        [(header::CONTENT_TYPE, HeaderValue::from_static("application/ld+json"))],
+        body,
+    )
+        .into_response())
+}
+
 #[utoipa::path(get, path = "/v1/datasets/{task}/versions/{version}/plot.svg", tag = "datasets",
     params(("task" = String, Path), ("version" = String, Path), VersionQuery),
     responses((status = 200, description = "Cost-reward return scatter with the task's cost thresholds; with ?filter=, \
@@ -216,6 +248,8 @@ pub async fn get_plot(
     responses(
         (status = 201, description = "A new version was stored", body = IngestResponse),
         (status = 200, description = "Identical data was already hosted", body = IngestResponse),
+        (status = 202, description = "With background=true: received; converting in the background (Location: the \
+            upload to follow)", body = UploadView),
         (status = 400, description = "The file is not a valid dataset for the task; the message names the first problem (row, column)"),
         (status = 401, description = "No admin token"), (status = 403, description = "Not the admin token"),
         (status = 404, description = "Unknown task"), (status = 413, description = "Over the upload limit")))]
@@ -227,32 +261,147 @@ pub async fn ingest(
     body: Body,
 ) -> Result<Response, ApiError> {
     let mut stream = body.into_data_stream();
-    let result = match state.auth.check(&headers) {
+    let received = match state.auth.check(&headers) {
         Ok(()) => match params {
-            Ok(Query(params)) => ingest_checked(&state, task, params, &headers, &mut stream).await,
+            Ok(Query(params)) => receive(&state, task, params, &headers, &mut stream).await,
             Err(e) => Err(ApiError::InvalidArgument(e.body_text())),
         },
         Err(e) => Err(e),
     };
-    let outcome = match &result {
-        Ok(r) if r.created => "created",
-        Ok(_) => "unchanged",
-        Err(_) => "rejected",
+    let received = match received {
+        Ok(received) => received,
+        Err(e) => {
+            count_ingest(&state, &Err(()));
+            linger(&mut stream).await;
+            return Err(e);
+        }
     };
-    state.metrics.ingests.get_or_create(&OutcomeLabels { outcome }).inc();
-    if result.is_err() {
-        linger(&mut stream).await;
+    if received.background {
+        return in_background(state, received).await;
     }
+    let result = convert(&state, received).await;
+    count_ingest(&state, &result.as_ref().map(|r| r.created).map_err(|_| ()));
     let response = result?;
-    if response.created {
-        state.metrics.dataset_versions.inc();
-    }
     let status = if response.created {
         StatusCode::CREATED
     } else {
         StatusCode::OK
     };
     Ok((status, Json(response)).into_response())
+}
+
+fn count_ingest(state: &AppState, outcome: &Result<bool, ()>) {
+    let outcome = match outcome {
+        Ok(true) => "created",
+        Ok(false) => "unchanged",
+        Err(()) => "rejected",
+    };
+    state.metrics.ingests.get_or_create(&OutcomeLabels { outcome }).inc();
+    if outcome == "created" {
+        state.metrics.dataset_versions.inc();
+    }
+}
+
+/// Answers 202 for a received upload and converts it in a task of this process, which heartbeats the upload's row
+/// and records the answer or the error there; an upload of the same bytes already converting or done is followed
+/// instead.
+async fn in_background(state: AppState, received: Received) -> Result<Response, ApiError> {
+    let db = state.datasets.db().clone();
+    let view = match uploads::in_progress_or_done(&db, &received.task, &received.upload_sha256).await? {
+        Some(existing) => existing,
+        None => {
+            let id = uploads::start(
+                &db,
+                &received.task,
+                &received.upload_sha256,
+                &received.file_name,
+                received.byte_size,
+            )
+            .await?;
+            let (task_db, task_id) = (db.clone(), id.clone());
+            tokio::spawn(async move {
+                let beating = {
+                    let (db, id) = (task_db.clone(), task_id.clone());
+                    tokio::spawn(async move {
+                        loop {
+                            tokio::time::sleep(std::time::Duration::from_millis(uploads::HEARTBEAT_MS as u64)).await;
+                            if let Err(e) = uploads::heartbeat(&db, &id).await {
+                                tracing::warn!(upload = %id, error = %e, "upload heartbeat");
+                            }
+                        }
+                    })
+                };
+                let result = convert(&state, received).await;
+                beating.abort();
+                count_ingest(&state, &result.as_ref().map(|r| r.created).map_err(|_| ()));
+                let recorded = match &result {
+                    Ok(response) => match serde_json::to_value(response) {
+                        Ok(value) => uploads::finish(&task_db, &task_id, Ok(value)).await,
+                        Err(e) => uploads::finish(&task_db, &task_id, Err(&ApiError::internal(e))).await,
+                    },
+                    Err(e) => uploads::finish(&task_db, &task_id, Err(e)).await,
+                };
+                match (&result, recorded) {
+                    (_, Err(e)) => tracing::error!(upload = %task_id, error = %e, "recording how an upload ended"),
+                    (Err(e), Ok(())) => tracing::warn!(upload = %task_id, error = %e, "a background upload failed"),
+                    (Ok(r), Ok(())) => {
+                        tracing::info!(upload = %task_id, version = %r.version.version, "a background upload finished")
+                    }
+                }
+            });
+            uploads::get(&db, &id).await?
+        }
+    };
+    let location = HeaderValue::from_str(&view.url).map_err(ApiError::internal)?;
+    Ok((StatusCode::ACCEPTED, [(header::LOCATION, location)], Json(view)).into_response())
+}
+
+#[utoipa::path(get, path = "/v1/uploads/{upload}", tag = "datasets",
+    params(("upload" = String, Path, description = "The upload's id, from the 202 of a background upload")),
+    security(("admin_token" = [])),
+    responses((status = 200, body = UploadView, description = "The upload: converting, done (with the ingest's \
+            answer), failed (with the error) or interrupted"),
+        (status = 401, description = "No admin token"), (status = 403, description = "Not the admin token"),
+        (status = 404, description = "No such upload")))]
+pub async fn get_upload(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Json<UploadView>, ApiError> {
+    state.auth.check(&headers)?;
+    Ok(Json(uploads::get(state.datasets.db(), &id).await?))
+}
+
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct UploadQuery {
+    pub task: String,
+    /// sha256 of the uploaded bytes.
+    pub sha256: String,
+}
+
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct UploadList {
+    pub uploads: Vec<UploadView>,
+}
+
+#[utoipa::path(get, path = "/v1/uploads", tag = "datasets",
+    params(UploadQuery),
+    security(("admin_token" = [])),
+    responses((status = 200, body = UploadList, description = "The uploads of these bytes for the task, newest \
+            first: what a client resuming an upload looks for before sending the file again"),
+        (status = 400, description = "A missing or unknown query parameter"),
+        (status = 401, description = "No admin token"), (status = 403, description = "Not the admin token")))]
+pub async fn find_uploads(
+    State(state): State<AppState>,
+    query: Result<Query<UploadQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Json<UploadList>, ApiError> {
+    state.auth.check(&headers)?;
+    let Query(query) = query.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    Ok(Json(UploadList {
+        uploads: uploads::find(state.datasets.db(), &query.task, &query.sha256).await?,
+    }))
 }
 
 /// How long, and how many bytes, a rejected upload is still read (and discarded) before the error is sent.
@@ -275,13 +424,23 @@ pub(super) async fn linger(stream: &mut axum::body::BodyDataStream) {
     .await;
 }
 
-async fn ingest_checked(
+/// An upload received whole: spooled to a temporary file, hashed, its size checked, its parameters parsed.
+struct Received {
+    task: String,
+    request: IngestRequest,
+    upload_sha256: String,
+    file_name: String,
+    byte_size: u64,
+    background: bool,
+}
+
+async fn receive(
     state: &AppState,
     task: String,
     params: IngestParams,
     headers: &HeaderMap,
     stream: &mut axum::body::BodyDataStream,
-) -> Result<IngestResponse, ApiError> {
+) -> Result<Received, ApiError> {
     let task_id = state.datasets.task(&task)?.id.to_string();
     let limit = state.max_upload_bytes;
     let declared = headers
@@ -356,12 +515,17 @@ async fn ingest_checked(
             "received {received} bytes but Content-Length said {declared:?}"
         )));
     }
-    let outcome = state
-        .datasets
-        .ingest(IngestRequest {
-            task: task_id.clone(),
+    let upload_sha256 = hex::encode(hasher.finalize());
+    Ok(Received {
+        task: task_id.clone(),
+        upload_sha256: upload_sha256.clone(),
+        file_name: file_name.clone(),
+        byte_size: received,
+        background: params.background == Some(true),
+        request: IngestRequest {
+            task: task_id,
             upload,
-            upload_sha256: hex::encode(hasher.finalize()),
+            upload_sha256,
             file_name,
             observation_space,
             tags,
@@ -372,8 +536,14 @@ async fn ingest_checked(
             } else {
                 LatestPolicy::Move
             },
-        })
-        .await?;
+        },
+    })
+}
+
+/// Converts and stores a received upload: the ingest's answer.
+async fn convert(state: &AppState, received: Received) -> Result<IngestResponse, ApiError> {
+    let task_id = received.task;
+    let outcome = state.datasets.ingest(received.request).await?;
     let version = outcome.version.version.clone();
     Ok(IngestResponse {
         created: outcome.created,

@@ -45,7 +45,13 @@ pub fn router(state: AppState) -> Router {
             "/v1/datasets/{task}/versions/{version}/plot.svg",
             get(datasets::get_plot),
         )
+        .route(
+            "/v1/datasets/{task}/versions/{version}/croissant.json",
+            get(datasets::get_croissant),
+        )
         .route("/v1/datasets/{task}/tags/{tag}", put(datasets::put_tag))
+        .route("/v1/uploads", get(datasets::find_uploads))
+        .route("/v1/uploads/{upload}", get(datasets::get_upload))
         // DSRL's own download URLs (`http://data.offline-saferl.org/download/{file}` in dsrl 0.1.0).
         .route("/download/{file}", get(dsrl_download::dsrl_download))
         .route("/v1/users", post(leaderboard::create_user))

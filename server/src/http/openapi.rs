@@ -20,7 +20,10 @@ use super::{datasets, leaderboard, metrics, simulators};
         datasets::list_versions,
         datasets::get_manifest,
         datasets::get_plot,
+        datasets::get_croissant,
         datasets::ingest,
+        datasets::get_upload,
+        datasets::find_uploads,
         datasets::put_tag,
         simulators::list_simulators,
         download_doc,
@@ -86,12 +89,13 @@ impl Modify for AdminToken {
 struct Conventions;
 
 /// Path parameter name → the pattern of a value the server may accept, and an example.
-const PATH_PATTERNS: [(&str, &str, &str); 4] = [
+const PATH_PATTERNS: [(&str, &str, &str); 5] = [
     ("task", "^[A-Za-z0-9._-]{1,128}$", "OfflineBallRun-v0"),
     // A version id (sha256) or a tag.
     ("version", "^([0-9a-f]{64}|[a-z][a-z0-9._-]{0,63})$", "latest"),
     ("tag", "^[a-z][a-z0-9._-]{0,63}$", "stable"),
     ("id", "^[0-9]{1,18}$", "1"),
+    ("upload", "^[0-9a-f]{24}$", "0123456789abcdef01234567"),
 ];
 
 impl Modify for Conventions {

@@ -5,4 +5,5 @@
 
 pub mod converter;
 pub mod datasets;
+pub mod uploads;
 pub use dsrl_service::{db, objects};
