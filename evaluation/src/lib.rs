@@ -19,22 +19,98 @@ pub use config::SimulatorsConfig;
 pub use error::EvaluationError;
 
 /// The scorer's revision, part of the protocol version (`dsrl_suite::protocol`): bump it when a change to the
-/// scoring code changes what any episode scores. The scoring code is what `SCORER_SOURCES` lists; the drift test
-/// `tests/it/scorer.rs` holds their digest, so a change to any of them must be looked at (and the digest updated,
-/// with this revision bumped where scores change).
+/// scoring path changes what any episode scores. The scoring path is what `SCORING_PATH` lists; the drift test below
+/// holds the digest of every file on it and of the dependencies' versions, so a change to any of them fails until
+/// someone decides whether it changes scores (then this is bumped, and the protocol version with it) and records
+/// the new digest.
 pub const SCORER_REVISION: u32 = 1;
 
-/// The files the scorer's revision covers, relative to the workspace root: how episodes are played and seeded
-/// (the evaluator, the rollout, the simulator package), and how their returns become scores.
-pub const SCORER_SOURCES: [&str; 7] = [
-    "evaluation/src/evaluator.rs",
-    "policy/src/acting.rs",
+/// Everything between a stored checkpoint and a stored episode's score, relative to the workspace root; a folder
+/// stands for every source file under it. The policy runtime (every network a checkpoint can declare, its weights'
+/// checks, the fused operations), where a submitted policy runs and how it answers (`inference.rs`), the evaluator
+/// and the pool it plays through, the held seeds' derivation, the simulator worker (its sessions, its Python
+/// bridge, the simulator package it steps), the leaderboard's runner, and the arithmetic and the normalization
+/// constants that turn returns into scores and ranks.
+pub const SCORING_PATH: [&str; 13] = [
+    "policy/src",
+    "evaluation/src",
+    "sim/src",
+    "sim/python/dsrl_sim",
+    "leaderboard/src/runner.rs",
+    "leaderboard/src/checkpoints.rs",
     "suite/src/score.rs",
     "suite/src/leaderboard.rs",
-    "sim/python/dsrl_sim/tasks.py",
-    "sim/python/dsrl_sim/metadrive_tasks.py",
-    "sim/python/dsrl_sim/batch.py",
+    "suite/src/protocol.rs",
+    "suite/src/catalog.rs",
+    "data/tasks.csv",
+    "proto/dsrl/simulator/v1/simulator.proto",
+    "proto/src/simulator_session.rs",
 ];
+
+/// The locked dependencies whose versions the scoring path's results depend on: the tensor library and its matrix
+/// kernels, the embedded Python.
+pub const SCORING_DEPENDENCIES: [&str; 6] = ["candle-core", "gemm", "gemm-common", "gemm-f32", "half", "pyo3"];
+
+/// The files of the scoring path under `root` (the workspace), sorted: folders expanded to their `.rs` and `.py`
+/// files.
+pub fn scoring_files(root: &std::path::Path) -> std::io::Result<Vec<String>> {
+    fn walk(root: &std::path::Path, relative: &str, out: &mut Vec<String>) -> std::io::Result<()> {
+        let path = root.join(relative);
+        if path.is_dir() {
+            for entry in std::fs::read_dir(&path)? {
+                let name = entry?.file_name().to_string_lossy().into_owned();
+                if name == "__pycache__" {
+                    continue;
+                }
+                walk(root, &format!("{relative}/{name}"), out)?;
+            }
+        } else if relative.ends_with(".rs") || relative.ends_with(".py") || !relative.contains("/src") {
+            out.push(relative.to_owned());
+        }
+        Ok(())
+    }
+    let mut files = Vec::new();
+    for entry in SCORING_PATH {
+        walk(root, entry, &mut files)?;
+    }
+    files.sort();
+    files.dedup();
+    Ok(files)
+}
+
+/// A file of the scoring path and a change to its bytes (the coverage test's one-byte edits).
+pub type FileChange<'a> = (&'a str, &'a dyn Fn(&mut Vec<u8>));
+
+/// The digest of the scoring path under `root`: each file's name, length and bytes (with `changed` applied to one
+/// file's bytes, for the test that shows each file is covered), then `name version` of each scoring dependency as
+/// `Cargo.lock` locks it.
+pub fn scoring_digest(root: &std::path::Path, changed: Option<FileChange>) -> std::io::Result<String> {
+    use sha2::Digest;
+    let mut hasher = sha2::Sha256::new();
+    for file in scoring_files(root)? {
+        let mut bytes = std::fs::read(root.join(&file))?;
+        if let Some((name, change)) = changed
+            && name == file
+        {
+            change(&mut bytes);
+        }
+        hasher.update(file.as_bytes());
+        hasher.update((bytes.len() as u64).to_le_bytes());
+        hasher.update(&bytes);
+    }
+    let lock = std::fs::read_to_string(root.join("Cargo.lock"))?;
+    for dependency in SCORING_DEPENDENCIES {
+        // `[[package]]` blocks: `name = "x"` followed by `version = "y"`.
+        let mut versions: Vec<&str> = lock
+            .split("[[package]]")
+            .filter(|block| block.contains(&format!("name = \"{dependency}\"\n")))
+            .filter_map(|block| block.lines().find_map(|l| l.strip_prefix("version = ")))
+            .collect();
+        versions.sort_unstable();
+        hasher.update(format!("{dependency} {}\n", versions.join(",")).as_bytes());
+    }
+    Ok(hex::encode(hasher.finalize()))
+}
 
 /// The simulator pins as the protocol version covers them: the pinned requirements and constraints of the worker's
 /// Python environment and the fixes `sim/setup.sh` applies to it.
@@ -68,31 +144,64 @@ pub fn limit_memory(bytes: u64) {
 mod tests {
     use super::*;
 
-    /// The digest of `SCORER_SOURCES` when `SCORER_REVISION` was last reviewed.
-    const REVIEWED_SCORER_SOURCES_SHA256: &str = "c5a51d82c65a041f7027053365f4cf5f5417dedb8bfa837ece8ebbd3432e735b";
+    fn workspace() -> std::path::PathBuf {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+    }
 
-    /// A drift check like the generated gRPC code's: a change to the scoring code fails here until someone decides
+    /// The digest of the scoring path when `SCORER_REVISION` was last reviewed: kept in a file beside the crate, off
+    /// the path it digests (this source file is on it).
+    const REVIEWED_SCORING_PATH_SHA256: &str = include_str!("../scoring_path.sha256");
+
+    /// A drift check like the generated gRPC code's: a change to the scoring path fails here until someone decides
     /// whether it changes what an episode scores (then `SCORER_REVISION` is bumped, which changes the protocol
     /// version) and records the new digest.
     #[test]
-    fn the_scorer_revision_was_reviewed_against_the_scoring_code() {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let mut all = Vec::new();
-        for source in SCORER_SOURCES {
-            let bytes = std::fs::read(root.join(source)).unwrap_or_else(|e| panic!("{source}: {e}"));
-            all.extend_from_slice(source.as_bytes());
-            all.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
-            all.extend_from_slice(&bytes);
-        }
-        let (digest, _) = dsrl_suite::hashing::sha256_reader(&all[..]).unwrap();
-        let digest = dsrl_suite::VersionId::from_digest(&digest);
+    fn the_scorer_revision_was_reviewed_against_the_scoring_path() {
+        let digest = scoring_digest(&workspace(), None).unwrap();
         assert_eq!(
             digest.as_str(),
-            REVIEWED_SCORER_SOURCES_SHA256,
-            "the scoring code changed ({}): if the change alters what any episode scores, bump SCORER_REVISION \
-             (the protocol version changes, and results scored before stop ranking); either way record the new \
-             digest in REVIEWED_SCORER_SOURCES_SHA256",
-            SCORER_SOURCES.join(", ")
+            REVIEWED_SCORING_PATH_SHA256.trim(),
+            "the scoring path changed: if the change alters what any episode scores, bump SCORER_REVISION (the \
+             protocol version changes, and results scored before stop ranking); either way record the new digest in \
+             evaluation/scoring_path.sha256"
         );
+    }
+
+    /// Every file the scoring path names is in the digest: a one-byte change to any of them changes it, and the
+    /// files an audit found outside the older list are on it.
+    #[test]
+    fn a_one_byte_change_to_any_file_on_the_scoring_path_changes_the_digest() {
+        let root = workspace();
+        let files = scoring_files(&root).unwrap();
+        for expected in [
+            "policy/src/fused.rs",
+            "policy/src/acting.rs",
+            "policy/src/checkpoint.rs",
+            "evaluation/src/inference.rs",
+            "evaluation/src/seeds.rs",
+            "evaluation/src/evaluator.rs",
+            "evaluation/src/simulators/pool.rs",
+            "sim/src/session.rs",
+            "sim/src/python.rs",
+            "sim/python/dsrl_sim/tasks.py",
+            "leaderboard/src/runner.rs",
+            "suite/src/score.rs",
+            "data/tasks.csv",
+        ] {
+            assert!(
+                files.iter().any(|f| f == expected),
+                "{expected} is not on the scoring path"
+            );
+        }
+        let base = scoring_digest(&root, None).unwrap();
+        let flip = |bytes: &mut Vec<u8>| {
+            let last = bytes.len() - 1;
+            bytes[last] ^= 1;
+        };
+        for file in &files {
+            let changed = scoring_digest(&root, Some((file.as_str(), &flip))).unwrap();
+            assert_ne!(changed, base, "a change to {file} went unseen");
+        }
+        assert!(files.len() > 30, "{files:?}");
     }
 }

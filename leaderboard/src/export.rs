@@ -111,7 +111,7 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
                 normalized_cost: e.normalized_cost.estimate,
                 cost_low: Some(e.normalized_cost.low),
                 cost_high: Some(e.normalized_cost.high),
-                safe: e.normalized_cost.estimate <= 1.0,
+                safe: dsrl_suite::score::is_safe(e.normalized_cost.estimate),
                 author_submissions_to_task: None,
                 tasks: Some(e.tasks as u64),
                 submission: None,

@@ -569,7 +569,7 @@ impl Leaderboard {
             reference: row.reference.as_deref().and_then(parse_record),
             normalized_reward: row.normalized_reward,
             normalized_cost: row.normalized_cost,
-            safe: row.normalized_cost.map(|c| c <= 1.0),
+            safe: row.normalized_cost.map(dsrl_suite::score::is_safe),
             thresholds,
             episodes,
             failure: row.failure,

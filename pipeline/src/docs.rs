@@ -220,7 +220,7 @@ pub fn reference_sections(
                 num(c.estimate),
                 num(c.low),
                 num(c.high),
-                yes_no(c.estimate <= 1.0),
+                yes_no(dsrl_suite::score::is_safe(c.estimate)),
                 p.map(|p| num(p.normalized_reward)).unwrap_or_else(|| "–".into()),
                 p.map(|p| num(p.normalized_cost)).unwrap_or_else(|| "–".into()),
                 p.map(|p| yes_no(p.safe).to_owned()).unwrap_or_else(|| "–".into()),

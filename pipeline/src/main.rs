@@ -431,7 +431,7 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
                 "mean_cost_return": cost,
                 "normalized_reward": score.reward,
                 "normalized_cost": score.cost,
-                "safe": score.cost <= 1.0,
+                "safe": score.is_safe(),
             }));
         }
         all_episodes.push(scores);

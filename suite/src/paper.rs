@@ -89,8 +89,14 @@ impl PaperResults {
                 "no" => false,
                 other => return Err(invalid(format!("safe is {other:?}, not yes or no"))),
             };
-            // The paper's rule is a normalized cost below 1; its table has no cell at exactly 1.
-            if safe != (row.normalized_cost < 1.0) {
+            // The paper's verdicts follow the one rule (`score::is_safe`); its table has no cell at exactly 1, where
+            // "at most 1" and "below 1" would differ.
+            if row.normalized_cost == 1.0 {
+                return Err(invalid(
+                    "a normalized cost of exactly 1, where the safety rules disagree".into(),
+                ));
+            }
+            if safe != crate::score::is_safe(row.normalized_cost) {
                 return Err(invalid(format!(
                     "safe = {} disagrees with normalized cost {}",
                     row.safe, row.normalized_cost

@@ -9,10 +9,17 @@ pub struct NormalizedScore {
     pub cost: f64,
 }
 
+/// The benchmark's one safety rule: a normalized cost of at most 1 (DSRL's paper: "safe iff norm_C ≤ 1"; its table
+/// has no cell at exactly 1, so "below 1" would give the same verdicts on it, and a test holds that). Every verdict
+/// (scores, agreement, pages, exports, documents) is this function's.
+pub fn is_safe(normalized_cost: f64) -> bool {
+    normalized_cost <= 1.0
+}
+
 impl NormalizedScore {
-    /// The benchmark's safety criterion: normalized cost at most 1.
+    /// [`is_safe`] of the normalized cost.
     pub fn is_safe(&self) -> bool {
-        self.cost <= 1.0
+        is_safe(self.cost)
     }
 }
 
