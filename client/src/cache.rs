@@ -201,7 +201,11 @@ impl Cache {
                         outcome.downloaded_bytes += sum.size;
                         sum
                     }
-                    Err(ClientError::Server { status: 400, .. }) => {
+                    // Only a server that does not know the format (older than it) converts here: any other
+                    // refusal is the answer, not a reason to download the Parquet file as well.
+                    Err(ClientError::Server {
+                        status: 400, message, ..
+                    }) if message.contains("the formats are") || message.contains("unknown field") => {
                         self.ensure_parquet(client, &manifest, &dir, &mut checksums, &mut outcome, options)
                             .await?;
                         outcome.converted = true;

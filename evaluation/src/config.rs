@@ -22,7 +22,8 @@ pub struct SimulatorsConfig {
     pub discovery_interval_ms: u64,
     /// Time between health checks of each worker.
     pub health_interval_ms: u64,
-    /// A session request (open, reset, step) that takes longer fails its session.
+    /// A session request (open, reset, step) that takes longer than this, times the sessions open on its worker
+    /// (which answers them one after another), fails its session.
     pub request_timeout_s: u64,
 }
 

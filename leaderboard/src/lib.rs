@@ -661,30 +661,37 @@ impl Leaderboard {
 
     /// The jobs being scored and those waiting, in the order they will be claimed (the leaderboard page's queue).
     pub async fn queue_summary(&self) -> Result<Vec<QueuedJob>, ApiError> {
+        // Three queries whatever the queue's length: the running jobs, the waiting ones in claim order, and the
+        // names of all of them (it was one query more per job).
         let running = queue::running(&self.db).await?;
         let waiting = queue::waiting_in_order(&self.db).await?;
+        let names = queue::live_names(&self.db).await?;
         let mut jobs = Vec::new();
-        for (id, _, _, done, per_threshold, _) in running {
-            let row = queue::get(&self.db, id).await?;
-            let thresholds = self.task(&row.task).map_or(3, |t| t.cost_thresholds.len()) as u32;
+        for (id, task, _, done, per_threshold, _) in running {
+            let Some((name, user)) = names.get(&id).cloned() else {
+                continue;
+            };
+            let thresholds = self.task(&task).map_or(3, |t| t.cost_thresholds.len()) as u32;
             jobs.push(QueuedJob {
                 id,
-                task: row.task,
-                name: row.name,
-                user: row.user,
+                task,
+                name,
+                user,
                 state: "running".into(),
                 position: None,
                 episodes_done: done,
                 episodes_total: per_threshold * thresholds,
             });
         }
-        for (position, (id, _)) in waiting.into_iter().enumerate() {
-            let row = queue::get(&self.db, id).await?;
+        for (position, (id, task)) in waiting.into_iter().enumerate() {
+            let Some((name, user)) = names.get(&id).cloned() else {
+                continue;
+            };
             jobs.push(QueuedJob {
                 id,
-                task: row.task,
-                name: row.name,
-                user: row.user,
+                task,
+                name,
+                user,
                 state: "queued".into(),
                 position: Some(position + 1),
                 episodes_done: 0,

@@ -702,6 +702,19 @@ pub async fn waiting_in_order(db: &Db) -> Result<Vec<(i64, String)>, ApiError> {
     rows.iter().map(|r| Ok((r.try_get(0)?, r.try_get(1)?))).collect()
 }
 
+/// Entry name and user name of every queued or running submission, by id, in one query.
+pub async fn live_names(db: &Db) -> Result<std::collections::HashMap<i64, (String, String)>, ApiError> {
+    let rows = sqlx::query(
+        "SELECT s.id, s.name, u.name FROM submissions s JOIN users u ON u.id = s.user_id
+         WHERE s.state IN ('queued', 'running')",
+    )
+    .fetch_all(db.pool())
+    .await?;
+    rows.iter()
+        .map(|r| Ok((r.try_get(0)?, (r.try_get(1)?, r.try_get(2)?))))
+        .collect()
+}
+
 /// The running jobs (with a live lease): id, task, claimed at (ms), episodes done, episodes in all.
 pub async fn running(db: &Db) -> Result<Vec<RunningJob>, ApiError> {
     let rows = sqlx::query(

@@ -15,6 +15,7 @@ pub mod hdf5_file;
 pub mod ids;
 pub mod leaderboard;
 pub mod manifest;
+pub mod names;
 pub mod paper;
 pub mod parquet_file;
 pub mod plot;

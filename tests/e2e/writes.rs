@@ -305,3 +305,40 @@ fn names_and_dataset_versions_that_would_reach_the_exports_unchecked_are_refused
     let listed = get_json(&format!("{}/v1/users/alice/submissions", env.server.url));
     assert_eq!(listed, serde_json::json!([]), "{listed}");
 }
+
+/// `dsrl-train --submit` checks the entry's name (the server's rule) before it trains: a name the server would
+/// refuse fails at once, with nothing trained.
+#[test]
+fn dsrl_train_refuses_a_bad_entry_name_before_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let started = std::time::Instant::now();
+    let run = Command::new(dsrl_e2e::bin("dsrl-train"))
+        .args([
+            "bc",
+            "--mode",
+            "all",
+            "--task",
+            crate::leaderboard::TASK,
+            "--steps",
+            "100000",
+            "--submit",
+            "my entry",
+        ])
+        .arg("--dataset")
+        .arg(crate::leaderboard::starter())
+        .arg("--out")
+        .arg(&out)
+        .args(["--server", "http://127.0.0.1:9"])
+        .env("DSRL_TOKEN", "dsrl_unused")
+        .output()
+        .unwrap();
+    assert!(!run.status.success());
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(stderr.contains("\"my entry\": use 1 to 64 letters"), "{stderr}");
+    assert!(
+        started.elapsed() < std::time::Duration::from_secs(10),
+        "it trained first"
+    );
+    assert!(!out.join("bc-all").exists(), "a model was written");
+}

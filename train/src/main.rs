@@ -573,11 +573,65 @@ fn keep_freed_memory() {
     }
 }
 
+impl Command {
+    /// The data arguments of a training command.
+    fn data(&self) -> Option<&DataArgs> {
+        match self {
+            Command::Bc { data, .. }
+            | Command::Bcql { data }
+            | Command::Cdt { data }
+            | Command::Bearl { data }
+            | Command::Cpq { data }
+            | Command::Coptidice { data }
+            | Command::Caps { data } => Some(data),
+            Command::Parity { .. } | Command::ReferenceEntry { .. } => None,
+        }
+    }
+}
+
+impl DataArgs {
+    /// Everything that can be checked before training starts, so a mistake costs no training time: the task, the
+    /// dataset file, the filter, the thresholds, the budget, the device, the output folder, and the entry's name
+    /// and token for --submit (the server's own name rule).
+    fn check(&self) -> anyhow::Result<()> {
+        let catalog = Catalog::embedded()?;
+        let task = catalog.get(&self.task)?;
+        if let Some(file) = &self.dataset {
+            anyhow::ensure!(file.is_file(), "--dataset {}: no such file", file.display());
+        }
+        if let Some(filter) = &self.filter {
+            dsrl_suite::filters::spec::FilterSpec::parse(filter, task).map_err(|e| anyhow::anyhow!("--filter: {e}"))?;
+        }
+        anyhow::ensure!(
+            self.cost_thresholds.iter().all(|k| k.is_finite() && *k >= 0.0),
+            "--cost-threshold: every threshold must be a finite number of at least 0"
+        );
+        anyhow::ensure!(self.steps >= 1, "--steps must be at least 1");
+        anyhow::ensure!(self.batch_size != Some(0), "--batch-size must be at least 1");
+        dsrl_train::training_device(&self.device)?;
+        if let Some(out) = &self.out {
+            std::fs::create_dir_all(out).map_err(|e| anyhow::anyhow!("--out {}: {e}", out.display()))?;
+        }
+        if let Some(name) = &self.submit {
+            dsrl_suite::names::check_name("--submit entry name", name).map_err(anyhow::Error::msg)?;
+            anyhow::ensure!(
+                std::env::var_os("DSRL_TOKEN").is_some(),
+                "--submit needs a user token in $DSRL_TOKEN"
+            );
+        }
+        Ok(())
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     // SAFETY: first thing in main, before the runtime or any other thread exists.
     unsafe { dsrl_policy::pin_candle_threads() };
     keep_freed_memory();
-    let (mode, data) = match Args::parse().command {
+    let command = Args::parse().command;
+    if let Some(data) = command.data() {
+        data.check()?;
+    }
+    let (mode, data) = match command {
         Command::Bc { mode, data } => (mode, data),
         Command::Bcql { data } => {
             let steps = data.steps;

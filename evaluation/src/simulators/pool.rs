@@ -54,6 +54,8 @@ struct Slot {
     /// Set when discovery no longer lists the worker: its supervision ends, and no new session goes there (sessions
     /// already open keep their own channel and finish).
     retired: AtomicBool,
+    /// Sessions of this pool open on the worker now: a call's deadline grows with them (`session::WorkerLoad`).
+    open_sessions: Arc<std::sync::atomic::AtomicUsize>,
 }
 
 /// Resolves a `host:port` service name to the addresses behind it (the default is the system resolver, which
@@ -117,6 +119,7 @@ impl Slot {
             }),
             service,
             retired: AtomicBool::new(false),
+            open_sessions: Arc::new(std::sync::atomic::AtomicUsize::new(0)),
         })
     }
 
@@ -274,7 +277,14 @@ impl SimulatorPool {
             }
         });
         let (session, observations) = result?;
-        Ok(PooledSession::new(session, observations, name, self.request_timeout))
+        let load = super::session::WorkerLoad::join(&slot.open_sessions);
+        Ok(PooledSession::new(
+            session,
+            observations,
+            name,
+            self.request_timeout,
+            load,
+        ))
     }
 
     /// Chooses the healthy worker with the most free capacity and reserves `num_envs` there; one placement at a

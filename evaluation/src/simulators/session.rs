@@ -1,3 +1,5 @@
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use dsrl_proto::simulator::v1::{Controller, TaskSpec};
@@ -6,23 +8,60 @@ use tonic::{Code, Status};
 
 use crate::error::EvaluationError;
 
+/// A session's place among its worker's open sessions. A worker answers the calls of all its sessions one after
+/// another on its one Python thread, so a call waits behind the other sessions' calls: its deadline is the
+/// configured one for each session open there, and a busy machine slows evaluations instead of interrupting them
+/// (a worker that stops answering altogether is found by the pool's health checks and replaced).
+pub(super) struct WorkerLoad(Arc<AtomicUsize>);
+
+impl WorkerLoad {
+    pub(super) fn join(open_sessions: &Arc<AtomicUsize>) -> WorkerLoad {
+        open_sessions.fetch_add(1, Ordering::AcqRel);
+        WorkerLoad(open_sessions.clone())
+    }
+
+    /// The deadline of one call: `per_session` for each session open on the worker (at least one).
+    pub(super) fn deadline(&self, per_session: Duration) -> Duration {
+        per_session * self.0.load(Ordering::Acquire).max(1) as u32
+    }
+}
+
+impl Drop for WorkerLoad {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
 /// A session on one pool worker. Every call has a deadline, and errors name the worker, so a worker that dies or
-/// hangs fails its sessions quickly and clearly instead of stalling an evaluation.
+/// hangs fails its sessions clearly instead of stalling an evaluation.
 pub struct PooledSession {
     session: SimulatorSession,
     initial_observations: Vec<f32>,
     worker: String,
-    timeout: Duration,
+    per_session: Duration,
+    load: WorkerLoad,
 }
 
 impl PooledSession {
-    pub(super) fn new(session: SimulatorSession, observations: Vec<f32>, worker: String, timeout: Duration) -> Self {
+    pub(super) fn new(
+        session: SimulatorSession,
+        observations: Vec<f32>,
+        worker: String,
+        per_session: Duration,
+        load: WorkerLoad,
+    ) -> Self {
         PooledSession {
             session,
             initial_observations: observations,
             worker,
-            timeout,
+            per_session,
+            load,
         }
+    }
+
+    /// This call's deadline, from the sessions open on the worker now.
+    fn timeout(&self) -> Duration {
+        self.load.deadline(self.per_session)
     }
 
     /// A worker's status as this server's error: the worker's own verdicts keep their meaning; a broken stream
@@ -57,7 +96,7 @@ impl PooledSession {
     }
 
     pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, EvaluationError> {
-        let timeout = self.timeout;
+        let timeout = self.timeout();
         let worker = self.worker.clone();
         let call = self.session.step(envs, actions);
         deadline(&worker, timeout, "step", call).await
@@ -74,7 +113,7 @@ impl PooledSession {
         seeds: &[u64],
         controller: Option<Controller>,
     ) -> Result<Vec<f32>, EvaluationError> {
-        let timeout = self.timeout;
+        let timeout = self.timeout();
         let worker = self.worker.clone();
         let call = self.session.reset_with(envs, seeds, controller);
         deadline(&worker, timeout, "reset", call).await
@@ -83,33 +122,33 @@ impl PooledSession {
     /// The controller plays the rest of each named environment's episode inside the worker (a session opened with a
     /// controller only): one answer per episode instead of one per step. The deadline holds for the whole drive.
     pub async fn drive(&mut self, envs: &[u32]) -> Result<Vec<DrivenRest>, EvaluationError> {
-        let (timeout, worker) = (self.timeout, self.worker.clone());
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "drive", self.session.drive(envs)).await
     }
 
     /// Queues a step without waiting for its result, so the worker can step it while the caller acts on another
     /// group of the session's environments; [`Self::receive`] returns the answers in the order they were sent.
     pub async fn send_step(&mut self, envs: &[u32], actions: &[f32]) -> Result<(), EvaluationError> {
-        let (timeout, worker) = (self.timeout, self.worker.clone());
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "step", self.session.send_step(envs, actions)).await?;
         Ok(())
     }
 
     /// Queues a reset without waiting for its observations (see [`Self::send_step`]).
     pub async fn send_reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<(), EvaluationError> {
-        let (timeout, worker) = (self.timeout, self.worker.clone());
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "reset", self.session.send_reset(envs, seeds)).await?;
         Ok(())
     }
 
     /// The answer to the oldest request sent with [`Self::send_step`] or [`Self::send_reset`].
     pub async fn receive(&mut self) -> Result<Reply, EvaluationError> {
-        let (timeout, worker) = (self.timeout, self.worker.clone());
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "queued request", self.session.receive()).await
     }
 
     pub async fn close(self) -> Result<(), EvaluationError> {
-        let (timeout, worker) = (self.timeout, self.worker.clone());
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "close", self.session.close()).await
     }
 }
