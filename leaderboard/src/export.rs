@@ -38,6 +38,8 @@ pub struct BoardRow {
     pub tasks: Option<u64>,
     pub submission: Option<i64>,
     pub dataset_version: Option<String>,
+    /// The build that scored the entry (task rows), where recorded.
+    pub scored_by: Option<String>,
     pub finished_at: Option<String>,
 }
 
@@ -66,6 +68,7 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
                 tasks: None,
                 submission: Some(e.submission),
                 dataset_version: e.dataset_version.clone(),
+                scored_by: e.scored_by.clone(),
                 finished_at: e.finished_at.clone(),
             });
         }
@@ -90,6 +93,7 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
                 tasks: None,
                 submission: None,
                 dataset_version: None,
+                scored_by: None,
                 finished_at: None,
             });
         }
@@ -116,6 +120,7 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
                 tasks: Some(e.tasks as u64),
                 submission: None,
                 dataset_version: None,
+                scored_by: None,
                 finished_at: None,
             });
         }
@@ -144,6 +149,7 @@ pub const BOARD_COLUMNS: &[&str] = &[
     "tasks",
     "submission",
     "dataset_version",
+    "scored_by",
     "finished_at",
 ];
 
@@ -252,6 +258,7 @@ pub fn parquet(rows: &[BoardRow]) -> Result<Vec<u8>, ApiError> {
             true,
             text(|r| r.dataset_version.clone()),
         ),
+        ("scored_by", DataType::Utf8, true, text(|r| r.scored_by.clone())),
         ("finished_at", DataType::Utf8, true, text(|r| r.finished_at.clone())),
     ];
     let schema = Arc::new(Schema::new(
@@ -309,6 +316,7 @@ mod tests {
             tasks: None,
             submission: Some(7),
             dataset_version: dataset_version.map(str::to_owned),
+            scored_by: Some("dsrl-leaderboard 0.1.0 (git abc)".into()),
             finished_at: None,
         }
     }

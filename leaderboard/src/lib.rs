@@ -18,6 +18,16 @@ pub mod users;
 
 pub use dsrl_evaluation::{protocol, seeds};
 
+/// This build of the scorer, recorded with every result it scores: the crate's version and the git commit it was
+/// built from, `-modified` where the scoring path's sources differed from that commit (`build.rs`).
+pub const SCORER_BUILD: &str = concat!(
+    "dsrl-leaderboard ",
+    env!("CARGO_PKG_VERSION"),
+    " (git ",
+    env!("DSRL_BUILD_COMMIT"),
+    ")"
+);
+
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
@@ -107,6 +117,9 @@ pub struct SubmissionView {
     pub protocol_version: Option<String>,
     /// The dataset version its checkpoint says it was trained on.
     pub dataset_version: Option<String>,
+    /// The build that scored it (`SCORER_BUILD`: the scorer's version and commit, `-modified` where its scoring
+    /// path differed from the commit); absent for results scored before builds were recorded.
+    pub scored_by: Option<String>,
     /// Set for a reference entry: its method, training seed and budget, code commit, and scoring.
     pub reference: Option<ReferenceRecord>,
     /// Means over the thresholds (spec 4.1); safe iff the normalized cost is at most 1.
@@ -188,6 +201,8 @@ pub struct TaskEntry {
     pub protocol_version: String,
     /// The dataset version its checkpoint says it was trained on.
     pub dataset_version: Option<String>,
+    /// The build that scored it, where recorded.
+    pub scored_by: Option<String>,
     /// Set for a reference entry (its method, seed, budget).
     pub reference: Option<ReferenceRecord>,
 }
@@ -566,6 +581,7 @@ impl Leaderboard {
             episodes_per_threshold: row.episodes_per_threshold,
             protocol_version: row.protocol_version,
             dataset_version: row.dataset_version,
+            scored_by: row.scored_by,
             reference: row.reference.as_deref().and_then(parse_record),
             normalized_reward: row.normalized_reward,
             normalized_cost: row.normalized_cost,
@@ -789,6 +805,7 @@ impl Leaderboard {
                     finished_at: row.finished_at.clone(),
                     protocol_version: current.to_owned(),
                     dataset_version: row.dataset_version.clone(),
+                    scored_by: row.scored_by.clone(),
                     reference: row.reference.as_deref().and_then(parse_record),
                 });
             }
@@ -940,4 +957,27 @@ fn family_table(family: &'static str, tasks: &[TaskTable]) -> FamilyTable {
         })
         .collect();
     FamilyTable { family, entries }
+}
+
+#[cfg(test)]
+mod build_tests {
+    /// A scoring-path file outside what build.rs watches would let a changed scorer report a clean commit.
+    #[test]
+    fn the_scorer_build_watches_the_scoring_path() {
+        let build = include_str!("../build.rs");
+        for entry in dsrl_evaluation::SCORING_PATH {
+            let watched = match entry.strip_prefix("leaderboard/") {
+                Some(own) => build.contains("\"src\"") && own.starts_with("src/"),
+                None => build.contains(&format!("\"../{entry}\"")),
+            };
+            assert!(
+                watched,
+                "leaderboard/build.rs does not watch {entry}, which is on the scoring path"
+            );
+        }
+        assert!(
+            build.contains("\"../Cargo.lock\""),
+            "the scoring dependencies' versions are in Cargo.lock"
+        );
+    }
 }

@@ -349,7 +349,7 @@ pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Resul
     let done = sqlx::query(
         "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = $3, reason = NULL, failure = NULL,
              normalized_reward = $4, normalized_cost = $5, protocol_version = $6, scoring_ms = $7 - claimed_ms,
-             episodes_done = $8
+             episodes_done = $8, scored_by = $9
          WHERE id = $1 AND lease_owner = $2 AND state = 'running'",
     )
     .bind(id)
@@ -360,6 +360,7 @@ pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Resul
     .bind(result.protocol_version)
     .bind(now_ms())
     .bind(result.episodes.len() as i64)
+    .bind(crate::SCORER_BUILD)
     .execute(&mut *tx)
     .await?;
     if done.rows_affected() != 1 {
@@ -406,6 +407,8 @@ pub struct Imported<'a> {
     pub dataset_version: &'a str,
     /// The reference record (JSON).
     pub reference: &'a str,
+    /// The build that scored it, where the results file records it.
+    pub scored_by: Option<&'a str>,
     pub result: Scores<'a>,
 }
 
@@ -416,8 +419,8 @@ pub async fn insert_finished(db: &Db, new: &Imported<'_>) -> Result<bool, ApiErr
     let inserted = sqlx::query(
         "INSERT INTO submissions (user_id, task, name, checkpoint_sha256, checkpoints, state, created_at, created_ms,
                                   started_at, finished_at, episodes_per_threshold, normalized_reward, normalized_cost,
-                                  protocol_version, dataset_version, reference)
-         VALUES ($1, $2, $3, $4, '[]', 'finished', $5, $6, $5, $7, $8, $9, $10, $11, $12, $13)
+                                  protocol_version, dataset_version, reference, scored_by)
+         VALUES ($1, $2, $3, $4, '[]', 'finished', $5, $6, $5, $7, $8, $9, $10, $11, $12, $13, $14)
          RETURNING id",
     )
     .bind(new.user_id)
@@ -433,6 +436,7 @@ pub async fn insert_finished(db: &Db, new: &Imported<'_>) -> Result<bool, ApiErr
     .bind(new.result.protocol_version)
     .bind(new.dataset_version)
     .bind(new.reference)
+    .bind(new.scored_by)
     .fetch_one(&mut *tx)
     .await;
     let id: i64 = match inserted {
@@ -607,12 +611,14 @@ pub struct SubmissionRow {
     pub episodes_done: u32,
     pub failure: Option<String>,
     pub user_id: i64,
+    /// The build that scored it (`crate::SCORER_BUILD` of the evaluator), where recorded.
+    pub scored_by: Option<String>,
 }
 
 const SELECT_SUBMISSIONS: &str = "SELECT s.id, u.name AS submitter, s.task, s.name, s.checkpoint_sha256, s.checkpoints,
         s.state, s.reason, s.attempts, s.created_at, s.started_at, s.finished_at, s.episodes_per_threshold,
         s.normalized_reward, s.normalized_cost, s.protocol_version, s.dataset_version, s.reference, s.lease_owner,
-        s.claimed_ms, s.heartbeat_ms, s.episodes_done, s.failure, s.user_id
+        s.claimed_ms, s.heartbeat_ms, s.episodes_done, s.failure, s.user_id, s.scored_by
     FROM submissions s JOIN users u ON u.id = s.user_id";
 
 fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
@@ -642,6 +648,7 @@ fn submission_row(row: &sqlx::any::AnyRow) -> Result<SubmissionRow, ApiError> {
         episodes_done: row.try_get::<i64, _>("episodes_done")? as u32,
         failure: row.try_get("failure")?,
         user_id: row.try_get("user_id")?,
+        scored_by: row.try_get("scored_by")?,
     })
 }
 

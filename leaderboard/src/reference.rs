@@ -113,6 +113,7 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
                 episodes_per_threshold: (entry.episodes.len() / thresholds) as u32,
                 dataset_version: &entry.dataset_version,
                 reference: &record,
+                scored_by: entry.scoring.build.as_deref(),
                 result: Scores {
                     episodes: &entry.episodes,
                     normalized_reward: score.reward,

@@ -472,6 +472,11 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
         "uploads",
         include_str!("../../migrations/sqlite/20261128000002_uploads.sql"),
     ),
+    (
+        20261128000003,
+        "scored_by",
+        include_str!("../../migrations/sqlite/20261128000003_scored_by.sql"),
+    ),
 ];
 
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -504,6 +509,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         20261128000002,
         "uploads",
         include_str!("../../migrations/postgres/20261128000002_uploads.sql"),
+    ),
+    (
+        20261128000003,
+        "scored_by",
+        include_str!("../../migrations/postgres/20261128000003_scored_by.sql"),
     ),
 ];
 

@@ -92,6 +92,10 @@ pub struct ScoringRecord {
     pub finished_at: String,
     /// Wall-clock seconds from claim to result.
     pub seconds: f64,
+    /// The build that scored it (`dsrl-leaderboard <version> (git <commit>[-modified])`); absent for entries scored
+    /// before builds were recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub build: Option<String>,
 }
 
 /// One reference entry: one line of the results file.

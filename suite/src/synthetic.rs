@@ -153,6 +153,7 @@ pub fn reference_entry(task: &Task, method: &str, seed: u64, reward_return: f64,
             started_at: "a".into(),
             finished_at: "b".into(),
             seconds: 1.0,
+            build: None,
         },
         episodes,
     }

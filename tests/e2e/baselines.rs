@@ -258,6 +258,8 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
         let row = shown.iter().find(|r| r["submission"] == e.scoring.submission).unwrap();
         let score = e.score(catalog.get(TASK).unwrap()).unwrap();
         assert_eq!(row["normalized_reward"].as_f64().unwrap(), score.reward);
+        assert_eq!(row["normalized_cost"].as_f64().unwrap(), score.cost);
+        assert_eq!(row["safe"], score.is_safe());
         assert_eq!(row["dataset_version"], e.dataset_version.as_str());
     }
 
@@ -277,7 +279,7 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     // Trained again from scratch (--reproduce), every method's checkpoints come out with the digest their entry was
     // scored with: training is deterministic given its seed, and the entry keeps its scoring. A dsrl-train built
     // from uncommitted sources (a working tree, not CI's clone) may not put its name on an entry: then each
-    // reproduction is refused for that reason and the file is left alone.
+    // reproduction is refused for that reason, after its networks were checked, and the file is left alone.
     let reproduced = run(&["--reproduce"]);
     let stderr = String::from_utf8_lossy(&reproduced.stderr);
     assert!(!stderr.contains("submitted as"), "{stderr}");
@@ -285,8 +287,9 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     assert!(reproduced_bearl.join("threshold-40").is_dir());
     let after = dsrl_suite::reference::read_results(&std::fs::read_to_string(&results).unwrap(), &catalog).unwrap();
     if entries[0].code_commit.ends_with("-modified") {
+        // Refused for its uncommitted build only after the networks were found to be the scored ones.
         assert!(!reproduced.status.success(), "{stderr}");
-        assert_eq!(stderr.matches("uncommitted sources").count(), 8, "{stderr}");
+        assert_eq!(stderr.matches("reproduced the scored networks").count(), 8, "{stderr}");
         assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
     } else {
         assert!(

@@ -72,8 +72,20 @@ pub(crate) fn variant(from: &Path, to: &Path, edit: impl Fn(&mut serde_json::Val
     std::fs::write(to.join("policy.json"), serde_json::to_vec(&config).unwrap()).unwrap();
 }
 
-/// POSTs a multipart submission built by hand; returns the status and the error code.
-fn post_parts(url: &str, token: &str, parts: Vec<(&str, Vec<u8>)>) -> (u16, String) {
+/// Files under `dir` (recursively; none when it does not exist).
+fn walk_count(dir: &std::path::Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    entries
+        .flatten()
+        .map(|e| {
+            let path = e.path();
+            if path.is_dir() { walk_count(&path) } else { 1 }
+        })
+        .sum()
+}
+
+/// POSTs a multipart submission built by hand; returns the status, the error code and its message.
+fn post_parts(url: &str, token: &str, parts: Vec<(&str, Vec<u8>)>) -> (u16, String, String) {
     let (url, token) = (format!("{url}/v1/submissions"), token.to_owned());
     let parts: Vec<(String, Vec<u8>)> = parts.into_iter().map(|(n, b)| (n.to_owned(), b)).collect();
     block_on(async move {
@@ -93,7 +105,11 @@ fn post_parts(url: &str, token: &str, parts: Vec<(&str, Vec<u8>)>) -> (u16, Stri
             .unwrap();
         let status = response.status().as_u16();
         let body: serde_json::Value = response.json().await.unwrap_or_default();
-        (status, body["error"]["code"].as_str().unwrap_or_default().to_owned())
+        (
+            status,
+            body["error"]["code"].as_str().unwrap_or_default().to_owned(),
+            body["error"]["message"].as_str().unwrap_or_default().to_owned(),
+        )
     })
 }
 
@@ -197,14 +213,26 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     let mut huge_header = (1u64 << 40).to_le_bytes().to_vec();
     huge_header.extend_from_slice(b"{}");
     type Parts<'a> = Vec<(&'a str, Vec<u8>)>;
-    let cases: Vec<(&str, Parts, u16)> = vec![
-        ("no weights", vec![("policy.json", config.clone())], 400),
+    // Each case: what is wrong, the parts, and the status and words of the refusal.
+    let cases: Vec<(&str, Parts, u16, &str)> = vec![
+        (
+            "no weights",
+            vec![("policy.json", config.clone())],
+            400,
+            "policy.safetensors is missing",
+        ),
         (
             "a stray file",
             vec![("policy.json", config.clone()), ("model.pt", b"x".to_vec())],
             400,
+            "unexpected part \"model.pt\"",
         ),
-        ("path escape", vec![("../policy.json", config.clone())], 400),
+        (
+            "path escape",
+            vec![("../policy.json", config.clone())],
+            400,
+            "unexpected part \"../policy.json\"",
+        ),
         (
             "weights are not safetensors",
             vec![
@@ -212,11 +240,13 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
                 ("policy.safetensors", b"garbage".to_vec()),
             ],
             400,
+            "shorter than its 8-byte header length",
         ),
         (
             "a header length past the end",
             vec![("policy.json", config.clone()), ("policy.safetensors", huge_header)],
             400,
+            "its header declares 1099511627776 bytes, more than the 262144 allowed",
         ),
         (
             "truncated weights",
@@ -225,6 +255,7 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
                 ("policy.safetensors", weights[..weights.len() / 2].to_vec()),
             ],
             400,
+            "do not hold them inside the 136464 data bytes",
         ),
         (
             "declared for another task",
@@ -233,6 +264,7 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
                 ("policy.safetensors", weights.clone()),
             ],
             400,
+            "declared for OfflineCarRun-v0, not OfflineBallRun-v0",
         ),
         (
             "wrong dims",
@@ -241,17 +273,36 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
                 ("policy.safetensors", weights.clone()),
             ],
             400,
+            "has observation dim 7 and action dim 2; the policy declares 9 and 2",
         ),
         (
             "policy.json over its limit",
             vec![("policy.json", vec![b' '; 70_000])],
             413,
+            "the limit is 65536 bytes",
         ),
     ];
-    for (what, parts, status) in cases {
-        let (got, code) = post_parts(url, &alice, parts);
-        assert_eq!(got, status, "{what}: {code}");
+    let stored = |dir: &std::path::Path| walk_count(&dir.join("objects").join("submissions"));
+    let before = stored(&env.server.data_dir);
+    let listed_before = get_json(&format!("{url}/v1/users/alice/submissions"));
+    for (what, parts, status, says) in cases {
+        let (got, code, message) = post_parts(url, &alice, parts);
+        assert_eq!(got, status, "{what}: {code} {message}");
+        let expected_code = if status == 413 {
+            "payload_too_large"
+        } else {
+            "invalid_argument"
+        };
+        assert_eq!(code, expected_code, "{what}: {message}");
+        assert!(message.contains(says), "{what}: {message:?} does not say {says:?}");
     }
+    // Refused whole: no object stored, no submission recorded.
+    assert_eq!(
+        stored(&env.server.data_dir),
+        before,
+        "a refused upload left objects behind"
+    );
+    assert_eq!(get_json(&format!("{url}/v1/users/alice/submissions")), listed_before);
 
     // Per-threshold checkpoints must cover the task's thresholds (10, 20, 40).
     train_bc(&models, "safe", 0);

@@ -41,6 +41,9 @@ struct Submission {
     protocol_version: Option<String>,
     started_at: Option<String>,
     finished_at: Option<String>,
+    /// The build that scored it (a server older than this record leaves it out).
+    #[serde(default)]
+    scored_by: Option<String>,
     episodes: Vec<EpisodeResult>,
 }
 
@@ -261,6 +264,7 @@ pub fn record(model: &Path, submission: &Path, method: &str, results: &Path) -> 
             seconds: seconds_between(&started_at, &finished_at)?,
             started_at,
             finished_at,
+            build: view.scored_by,
         },
         episodes: view.episodes,
     };
@@ -292,13 +296,6 @@ pub fn reproduce(model: &Path, method: &str, results: &Path) -> anyhow::Result<R
             task.id
         )
     };
-    ensure!(
-        !read.code_commit.ends_with("-modified"),
-        "{} was trained by a dsrl-train built from uncommitted sources ({}): a reproduction names a commit anyone \
-         can build",
-        model.display(),
-        read.code_commit
-    );
     let training = read.budget(model, method, task)?;
     ensure!(
         (training.steps, training.batch_size, training.models)
@@ -328,6 +325,15 @@ pub fn reproduce(model: &Path, method: &str, results: &Path) -> anyhow::Result<R
         read.digest,
         old.code_commit,
         old.checkpoint_sha256
+    );
+    // Checked last, so a working tree's build still shows whether the networks came out the same.
+    ensure!(
+        !read.code_commit.ends_with("-modified"),
+        "{} reproduced the scored networks (digest {}), but it was trained by a dsrl-train built from uncommitted \
+         sources ({}): a reproduction names a commit anyone can build, so the entry is left as it is",
+        model.display(),
+        read.digest,
+        read.code_commit
     );
     let entry = ReferenceEntry {
         training,

@@ -115,6 +115,10 @@ pub struct Submission {
     /// Set for a reference entry.
     #[prost(message, optional, tag = "20")]
     pub reference: ::core::option::Option<ReferenceRecord>,
+    /// The build that scored it: the scorer's version and commit, marked `-modified` where its scoring path differed
+    /// from the commit (absent for results scored before builds were recorded).
+    #[prost(string, optional, tag = "21")]
+    pub scored_by: ::core::option::Option<::prost::alloc::string::String>,
 }
 /// A reference entry's record: the method, its training seed and budget, and the code that trained it.
 #[allow(clippy::all)]
@@ -177,6 +181,9 @@ pub struct TaskEntry {
     pub normalized_reward_interval: ::core::option::Option<Interval>,
     #[prost(message, optional, tag = "12")]
     pub normalized_cost_interval: ::core::option::Option<Interval>,
+    /// The build that scored the entry, where recorded.
+    #[prost(string, optional, tag = "13")]
+    pub scored_by: ::core::option::Option<::prost::alloc::string::String>,
 }
 /// One (task, method) cell of the paper's table: its self-reported numbers.
 #[allow(clippy::all)]

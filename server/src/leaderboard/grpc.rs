@@ -71,6 +71,7 @@ fn submission(view: SubmissionView, with_episodes: bool) -> pb::Submission {
         protocol_version: view.protocol_version,
         dataset_version: view.dataset_version,
         reference: view.reference.map(reference),
+        scored_by: view.scored_by,
     }
 }
 
@@ -125,6 +126,7 @@ fn board(board: Board) -> pb::Leaderboard {
                         reference: e.reference.map(reference),
                         normalized_reward_interval: Some(interval(e.normalized_reward_interval)),
                         normalized_cost_interval: Some(interval(e.normalized_cost_interval)),
+                        scored_by: e.scored_by,
                     })
                     .collect(),
                 earlier_protocol_entries: t.earlier_protocol_entries as u32,

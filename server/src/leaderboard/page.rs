@@ -378,11 +378,15 @@ pub fn render_submission(view: &SubmissionView) -> String {
     );
     let _ = writeln!(
         html,
-        "<p id=\"provenance\">Protocol {}; trained on dataset version {}.{}</p>",
+        "<p id=\"provenance\">Protocol {}, scored by {}; trained on dataset version {}.{}</p>",
         view.protocol_version
             .as_deref()
             .map(|v| format!("<code>{}</code>", escape(v)))
             .unwrap_or_else(|| "not recorded".into()),
+        view.scored_by
+            .as_deref()
+            .map(|v| format!("<code>{}</code>", escape(v)))
+            .unwrap_or_else(|| "a build not recorded (scored before builds were)".into()),
         view.dataset_version
             .as_deref()
             .map(|v| format!("<code>{}</code>", escape(v)))

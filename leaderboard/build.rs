@@ -1,0 +1,27 @@
+//! Records the git commit this crate (the scorer) is built from, so every result names the build that scored it
+//! (`SCORER_BUILD`), with `-modified` where the scoring path's sources differ from that commit.
+
+include!("../suite/build-support/commit.rs");
+
+/// `dsrl_evaluation::SCORING_PATH` and `SCORING_DEPENDENCIES` (through Cargo.lock), relative to this crate; the
+/// test `the_scorer_build_watches_the_scoring_path` holds the two lists together.
+const SCORING_SOURCES: [&str; 14] = [
+    "src",
+    "../policy/src",
+    "../evaluation/src",
+    "../sim/src",
+    "../sim/python/dsrl_sim",
+    "../suite/src/score.rs",
+    "../suite/src/leaderboard.rs",
+    "../suite/src/protocol.rs",
+    "../suite/src/catalog.rs",
+    "../data/tasks.csv",
+    "../proto/dsrl/simulator/v1/simulator.proto",
+    "../proto/src/simulator_session.rs",
+    "../sim/python/requirements.txt",
+    "../Cargo.lock",
+];
+
+fn main() {
+    record_build_commit(&SCORING_SOURCES);
+}
