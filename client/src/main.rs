@@ -675,11 +675,16 @@ fn print_board(board: &serde_json::Value) {
             "{} (interquartile mean across tasks, 95% bootstrap interval)",
             family["family"].as_str().unwrap_or_default()
         );
-        for e in family["entries"].as_array().into_iter().flatten() {
+        let ranked = family["entries"].as_array().into_iter().flatten();
+        let partial = family["partial"].as_array().into_iter().flatten();
+        for e in ranked.chain(partial) {
             let (r, c) = (&e["normalized_reward"], &e["normalized_cost"]);
+            let rank = e["rank"]
+                .as_u64()
+                .map_or_else(|| "  –".to_owned(), |r| format!("{r:>3}"));
             out!(
-                "  {:>3}. {} ({}): reward {} [{}, {}], cost {} [{}, {}], safe on {} of {} tasks",
-                e["rank"],
+                "  {}. {} ({}): reward {} [{}, {}], cost {} [{}, {}], safe on {} of {} tasks",
+                rank,
                 e["name"].as_str().unwrap_or_default(),
                 e["user"].as_str().unwrap_or_default(),
                 number(&r["estimate"]),

@@ -99,13 +99,14 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
         }
     }
     for f in &board.families {
-        for e in &f.entries {
+        // Partial entries (scored on some of the family's tasks) follow the ranked ones, without a rank.
+        for e in f.entries.iter().chain(&f.partial) {
             rows.push(BoardRow {
                 protocol_version: version.clone(),
                 scope: "family",
                 table: f.family.to_owned(),
-                kind: "entry",
-                rank: Some(e.rank as u64),
+                kind: if e.rank.is_some() { "entry" } else { "partial entry" },
+                rank: e.rank.map(|r| r as u64),
                 user: e.user.clone(),
                 name: e.name.clone(),
                 reference: e.reference,

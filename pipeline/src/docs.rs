@@ -23,7 +23,10 @@ use anyhow::{Context, bail};
 use dsrl_suite::Catalog;
 use dsrl_suite::leaderboard::entry_interval;
 use dsrl_suite::paper::PaperResults;
-use dsrl_suite::reference::{ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize};
+use dsrl_suite::reference::{
+    FIDELITY_GOAL, ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize,
+    summarize_by_method,
+};
 
 /// The documents that hold generated sections, relative to the repository root.
 pub const DOCUMENTS: [&str; 2] = ["data/README.md", "data/reference/README.md"];
@@ -114,7 +117,13 @@ pub fn reference_sections(
     paper: &PaperResults,
     entries: &[ReferenceEntry],
     protocol_version: &str,
+    identities: &crate::identities::Identities,
 ) -> BTreeMap<String, String> {
+    let dataset = |e: &ReferenceEntry| {
+        identities
+            .kind(&e.task, &e.dataset_version)
+            .map_or("uncommitted dataset", |k| k.label())
+    };
     let mut sections = BTreeMap::new();
     let current: Vec<&ReferenceEntry> = entries
         .iter()
@@ -167,26 +176,58 @@ pub fn reference_sections(
         })
         .collect();
     let _ = writeln!(s, "Trained by the `dsrl-train` of {}.\n", by_commit.join("; "));
+    // Which datasets: the agreement below is over entries of one kind of dataset only.
+    let mut kinds: BTreeMap<&str, usize> = BTreeMap::new();
+    for e in &current {
+        *kinds.entry(dataset(e)).or_default() += 1;
+    }
+    let by_kind: Vec<String> = kinds.iter().map(|(k, n)| format!("the {k}s: {}", entries_count(*n))).collect();
+    let _ = writeln!(s, "Trained on {}.\n", by_kind.join("; "));
+    let pct = |x: Option<f64>| x.map(|x| format!("{:.0}%", 100.0 * x)).unwrap_or_else(|| "–".into());
     s.push_str(
-        "| family | (task, method) cells | verdicts that agree | share | mean \\|Δ reward\\| | mean \\|Δ cost\\| |\n\
-         |---|---|---|---|---|---|\n",
+        "Beside each share, what trivial rules agree on over the same cells: chance (from how often each table calls \
+         a method safe), \"every method unsafe\", and \"BC-Safe safe, every other method unsafe\".\n\n\
+         | scope | (task, method) cells | verdicts that agree | share | chance | every method unsafe | BC-Safe safe, \
+         the rest unsafe | mean \\|Δ reward\\| | mean \\|Δ cost\\| |\n|---|---|---|---|---|---|---|---|---|\n",
     );
-    for summary in summarize(catalog, &cells) {
+    let summaries = summarize(catalog, &cells);
+    let by_method = summarize_by_method(&cells);
+    for summary in summaries.iter().chain(&by_method) {
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             summary.scope,
             summary.cells,
             summary.agreeing,
-            summary
-                .share
-                .map(|x| format!("{:.0}%", 100.0 * x))
-                .unwrap_or_else(|| "–".into()),
+            pct(summary.share),
+            pct(summary.chance_share),
+            pct(summary.all_unsafe_share),
+            pct(summary.bc_safe_rule_share),
             summary
                 .mean_abs_reward_difference
                 .map(num)
                 .unwrap_or_else(|| "–".into()),
             summary.mean_abs_cost_difference.map(num).unwrap_or_else(|| "–".into()),
+        );
+    }
+    // The fidelity goal: at least 80% of verdicts agreeing overall, above every trivial rule.
+    if let Some(all) = summaries.iter().find(|x| x.scope == "all") {
+        let best_rule = [all.chance_share, all.all_unsafe_share, all.bc_safe_rule_share]
+            .into_iter()
+            .flatten()
+            .fold(0.0f64, f64::max);
+        let share = all.share.unwrap_or(0.0);
+        let met = share >= FIDELITY_GOAL && share > best_rule;
+        let _ = writeln!(
+            s,
+            "\n**Fidelity goal**: at least {:.0}% of verdicts agreeing with the paper's, and more than any trivial rule. \
+             Now {} ({} of {}), against {} for the best trivial rule: the goal is {}.",
+            100.0 * FIDELITY_GOAL,
+            pct(all.share),
+            all.agreeing,
+            all.cells,
+            pct(Some(best_rule)),
+            if met { "met" } else { "not met" }
         );
     }
     sections.insert("reference-agreement".to_owned(), s);
@@ -261,7 +302,7 @@ pub fn reference_sections(
             score_total += e.scoring.seconds;
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.0} | `{}` | `{}` | {} |",
+                "| {} | {} | {} | {} | {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.0} | `{}` ({}) | `{}` | {} |",
                 short(&e.task),
                 e.method,
                 e.seed,
@@ -273,6 +314,7 @@ pub fn reference_sections(
                 t.seconds,
                 e.scoring.seconds,
                 &e.dataset_version[..12.min(e.dataset_version.len())],
+                dataset(e),
                 e.code_commit,
                 t.cpu.as_deref().unwrap_or("not recorded"),
             );
@@ -405,7 +447,8 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
         dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD,
         dsrl_evaluation::protocol::DEFAULT_ENVS_PER_SESSION,
     );
-    let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version);
+    let identities = crate::identities::Identities::read(&catalog, root)?;
+    let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version, &identities);
     let starters = crate::hosted::read_starters(&catalog, &root.join("data/starter"))?;
     let committed = crate::full::table::read_committed(&catalog, root)?;
     let full: BTreeMap<String, u64> = committed

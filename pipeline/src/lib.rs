@@ -13,6 +13,7 @@ pub mod docs;
 pub mod expert;
 pub mod full;
 pub mod hosted;
+pub mod identities;
 pub mod import_dsrl;
 pub mod recipe;
 

@@ -74,6 +74,42 @@ pub fn iqm_with_interval(values: &[f64], resamples: u32, confidence: f64, seed: 
     })
 }
 
+/// The interquartile mean over tasks of each task's mean over its training seeds (`per_task`, one value per seed),
+/// with a percentile-bootstrap interval: each draw takes as many tasks with replacement and, within each task drawn
+/// that has several seeds, as many seeds with replacement (CPython's `random` seeded with `seed`). With one seed
+/// per task it draws exactly as `iqm_with_interval` does. NaN estimate for no tasks.
+pub fn iqm_over_seeds_with_interval(per_task: &[Vec<f64>], resamples: u32, confidence: f64, seed: u64) -> Interval {
+    let mean = |xs: &[f64]| xs.iter().sum::<f64>() / xs.len() as f64;
+    let means: Vec<f64> = per_task.iter().map(|seeds| mean(seeds)).collect();
+    let estimate = interquartile_mean(&means).unwrap_or(f64::NAN);
+    let mut random = PyRandom::seed(seed);
+    let resamples = resamples.max(1);
+    let mut draws: Vec<f64> = (0..resamples)
+        .map(|_| {
+            let sample: Vec<f64> = (0..per_task.len())
+                .map(|_| {
+                    let task = &per_task[random.randbelow(per_task.len())];
+                    if task.len() == 1 {
+                        task[0]
+                    } else {
+                        (0..task.len()).map(|_| task[random.randbelow(task.len())]).sum::<f64>() / task.len() as f64
+                    }
+                })
+                .collect();
+            interquartile_mean(&sample).unwrap_or(f64::NAN)
+        })
+        .collect();
+    draws.sort_by(f64::total_cmp);
+    Interval {
+        estimate,
+        low: quantile(&draws, (1.0 - confidence) / 2.0),
+        high: quantile(&draws, (1.0 + confidence) / 2.0),
+        confidence,
+        resamples,
+        seed,
+    }
+}
+
 /// One threshold's episodes: their count, mean returns and normalized score.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ThresholdScore {
@@ -166,6 +202,77 @@ pub fn entry_interval(
         }
     };
     Some((interval(score.reward, rewards), interval(score.cost, costs)))
+}
+
+/// The mean over training seeds of one method's entries on one task (each seed's `entry_score`), with a
+/// percentile-bootstrap interval that includes seed variance: each of `resamples` draws takes as many seeds with
+/// replacement, then, within each seed drawn, every threshold's episodes with replacement (stratified, as rliable
+/// resamples runs and then tasks), and averages the seeds' scores. Returns the reward and the cost interval around
+/// the mean; `None` without seeds or with a seed that has no episodes.
+pub fn seeds_interval(
+    task: &Task,
+    seeds: &[Vec<EpisodeResult>],
+    resamples: u32,
+    confidence: f64,
+    seed: u64,
+) -> Option<(Interval, Interval)> {
+    let scores: Vec<NormalizedScore> = seeds.iter().map(|e| entry_score(task, e)).collect::<Option<_>>()?;
+    if scores.is_empty() {
+        return None;
+    }
+    let n = scores.len();
+    let mean = |xs: &mut dyn Iterator<Item = f64>| xs.sum::<f64>() / n as f64;
+    let (reward, cost) = (
+        mean(&mut scores.iter().map(|s| s.reward)),
+        mean(&mut scores.iter().map(|s| s.cost)),
+    );
+    // Each seed's episodes grouped by threshold, once.
+    let groups: Vec<Vec<Vec<&EpisodeResult>>> = seeds
+        .iter()
+        .map(|episodes| {
+            task.cost_thresholds
+                .iter()
+                .map(|&k| episodes.iter().filter(|e| e.cost_threshold == k).collect::<Vec<_>>())
+                .filter(|g| !g.is_empty())
+                .collect()
+        })
+        .collect();
+    let mut random = PyRandom::seed(seed);
+    let resamples = resamples.max(1);
+    let (mut rewards, mut costs) = (
+        Vec::with_capacity(resamples as usize),
+        Vec::with_capacity(resamples as usize),
+    );
+    let mut sample = Vec::new();
+    for _ in 0..resamples {
+        let (mut r, mut c) = (0.0, 0.0);
+        for _ in 0..n {
+            let drawn = &groups[random.randbelow(n)];
+            sample.clear();
+            for group in drawn {
+                for _ in 0..group.len() {
+                    sample.push(group[random.randbelow(group.len())].clone());
+                }
+            }
+            let s = entry_score(task, &sample).expect("each drawn seed has episodes");
+            r += s.reward;
+            c += s.cost;
+        }
+        rewards.push(r / n as f64);
+        costs.push(c / n as f64);
+    }
+    let interval = |estimate: f64, mut draws: Vec<f64>| {
+        draws.sort_by(f64::total_cmp);
+        Interval {
+            estimate,
+            low: quantile(&draws, (1.0 - confidence) / 2.0),
+            high: quantile(&draws, (1.0 + confidence) / 2.0),
+            confidence,
+            resamples,
+            seed,
+        }
+    };
+    Some((interval(reward, rewards), interval(cost, costs)))
 }
 
 /// The `q` quantile of sorted `draws` with linear interpolation (NumPy's default).
@@ -261,5 +368,64 @@ mod tests {
             (r.estimate, r.estimate, c.estimate, c.estimate)
         );
         assert!(entry_score(task, &[]).is_none());
+    }
+
+    /// Seeds whose means differ widely give an interval wider than any one seed's episode-only interval.
+    #[test]
+    fn an_interval_over_seeds_that_differ_is_wider_than_any_seeds() {
+        let catalog = crate::catalog::Catalog::embedded().unwrap();
+        let task = catalog.get("OfflineBallRun-v0").unwrap();
+        // Three seeds, 10 episodes per threshold, cost returns spread ±2 around 5, 30 and 60 (a CPQ-like spread).
+        let seed_episodes = |centre: f64| -> Vec<EpisodeResult> {
+            task.cost_thresholds
+                .iter()
+                .flat_map(|&k| {
+                    (0..10).map(move |i| EpisodeResult {
+                        cost_threshold: k,
+                        episode: i,
+                        reward_return: 400.0 + i as f64,
+                        cost_return: centre + (i as f64 - 4.5) * 0.4,
+                        length: 100,
+                    })
+                })
+                .collect()
+        };
+        let seeds = vec![seed_episodes(5.0), seed_episodes(30.0), seed_episodes(60.0)];
+        let (_, cost) = seeds_interval(task, &seeds, 1000, 0.95, 3).unwrap();
+        let means: Vec<f64> = seeds.iter().map(|e| entry_score(task, e).unwrap().cost).collect();
+        assert!((cost.estimate - means.iter().sum::<f64>() / 3.0).abs() < 1e-12);
+        for episodes in &seeds {
+            let (_, one) = entry_interval(task, episodes, 1000, 0.95, 3).unwrap();
+            assert!(
+                cost.high - cost.low > one.high - one.low,
+                "over seeds [{}, {}] is not wider than one seed's [{}, {}]",
+                cost.low,
+                cost.high,
+                one.low,
+                one.high
+            );
+        }
+        // Deterministic for a seed.
+        assert_eq!(seeds_interval(task, &seeds, 1000, 0.95, 3).unwrap().1, cost);
+        assert!(seeds_interval(task, &[], 10, 0.95, 3).is_none());
+    }
+
+    /// One seed per task draws as the plain IQM bootstrap; several seeds widen the interval.
+    #[test]
+    fn the_family_aggregate_over_seeds_reduces_to_the_iqm_with_one_seed() {
+        let values = [0.1, 0.5, 0.9, 0.3, 0.7, 0.2, 0.8, 0.4];
+        let one: Vec<Vec<f64>> = values.iter().map(|v| vec![*v]).collect();
+        assert_eq!(
+            iqm_over_seeds_with_interval(&one, 500, 0.95, 4),
+            iqm_with_interval(&values, 500, 0.95, 4).unwrap()
+        );
+        // The same task means, each from two seeds ±0.3 apart: same estimate, a wider interval.
+        let spread: Vec<Vec<f64>> = values.iter().map(|v| vec![v - 0.3, v + 0.3]).collect();
+        let (a, b) = (
+            iqm_over_seeds_with_interval(&one, 500, 0.95, 4),
+            iqm_over_seeds_with_interval(&spread, 500, 0.95, 4),
+        );
+        assert!((a.estimate - b.estimate).abs() < 1e-12);
+        assert!(b.high - b.low > a.high - a.low, "{b:?} is not wider than {a:?}");
     }
 }

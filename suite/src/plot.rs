@@ -102,23 +102,42 @@ pub struct EntryPoint {
     pub normalized_cost: f64,
     pub normalized_reward: f64,
     pub safe: bool,
+    /// The 95% intervals, drawn as whiskers; `None` for a point without one (the paper's rows).
+    pub reward_interval: Option<(f64, f64)>,
+    pub cost_interval: Option<(f64, f64)>,
+    /// One of the paper's rows: a hollow square, not a filled circle.
+    pub paper: bool,
 }
 
 /// The entries of a leaderboard table on the normalized cost–reward plane, safe ones in blue, unsafe in red, with
-/// the safety boundary (normalized cost 1) dashed.
+/// their intervals as whiskers, the paper's rows as hollow squares, and the safety boundary (normalized cost 1)
+/// dashed.
 pub fn entries_svg(title: &str, entries: &[EntryPoint]) -> Result<String, String> {
     let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
-    let xmax = entries.iter().map(|e| finite(e.normalized_cost)).fold(2.0f64, f64::max) * 1.1;
-    let ymin = entries
-        .iter()
-        .map(|e| finite(e.normalized_reward))
-        .fold(0.0f64, f64::min)
-        - 0.05;
-    let ymax = entries
-        .iter()
-        .map(|e| finite(e.normalized_reward))
-        .fold(1.0f64, f64::max)
-        + 0.05;
+    // Every value the picture shows, whiskers included, sets the axes.
+    let costs = entries.iter().flat_map(|e| {
+        [
+            Some(e.normalized_cost),
+            e.cost_interval.map(|i| i.0),
+            e.cost_interval.map(|i| i.1),
+        ]
+        .into_iter()
+        .flatten()
+    });
+    let rewards = || {
+        entries.iter().flat_map(|e| {
+            [
+                Some(e.normalized_reward),
+                e.reward_interval.map(|i| i.0),
+                e.reward_interval.map(|i| i.1),
+            ]
+            .into_iter()
+            .flatten()
+        })
+    };
+    let xmax = costs.map(finite).fold(2.0f64, f64::max) * 1.1;
+    let ymin = rewards().map(finite).fold(0.0f64, f64::min) - 0.05;
+    let ymax = rewards().map(finite).fold(1.0f64, f64::max) + 0.05;
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (560, 400)).into_drawing_area();
@@ -145,9 +164,35 @@ pub fn entries_svg(title: &str, entries: &[EntryPoint]) -> Result<String, String
                 RGBColor(220, 60, 40)
             };
             let xy = (finite(e.normalized_cost), finite(e.normalized_reward));
-            chart
-                .draw_series([Circle::new(xy, 5, color.filled())])
-                .map_err(|e| e.to_string())?;
+            if let Some((low, high)) = e.cost_interval {
+                chart
+                    .draw_series(LineSeries::new(
+                        [(finite(low), xy.1), (finite(high), xy.1)],
+                        color.stroke_width(1),
+                    ))
+                    .map_err(|e| e.to_string())?;
+            }
+            if let Some((low, high)) = e.reward_interval {
+                chart
+                    .draw_series(LineSeries::new(
+                        [(xy.0, finite(low)), (xy.0, finite(high))],
+                        color.stroke_width(1),
+                    ))
+                    .map_err(|e| e.to_string())?;
+            }
+            if e.paper {
+                let (dx, dy) = (xmax * 0.008, (ymax - ymin) * 0.011);
+                chart
+                    .draw_series([Rectangle::new(
+                        [(xy.0 - dx, xy.1 - dy), (xy.0 + dx, xy.1 + dy)],
+                        color.stroke_width(2),
+                    )])
+                    .map_err(|e| e.to_string())?;
+            } else {
+                chart
+                    .draw_series([Circle::new(xy, 5, color.filled())])
+                    .map_err(|e| e.to_string())?;
+            }
             chart
                 .draw_series([Text::new(
                     e.label.clone(),

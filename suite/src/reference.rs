@@ -262,6 +262,42 @@ pub struct AgreementSummary {
     /// Mean absolute differences in normalized reward and cost.
     pub mean_abs_reward_difference: Option<f64>,
     pub mean_abs_cost_difference: Option<f64>,
+    /// What trivial rules would agree on over the same cells, for scale: the share expected by chance from the two
+    /// tables' safe rates (ours `s`, the paper's `p`: `s·p + (1−s)(1−p)`), and the shares of "every method unsafe"
+    /// and "BC-Safe safe, every other method unsafe". `None` with no cells.
+    pub chance_share: Option<f64>,
+    pub all_unsafe_share: Option<f64>,
+    pub bc_safe_rule_share: Option<f64>,
+}
+
+/// The benchmark's fidelity goal: at least this share of (task, method) verdicts agreeing with the paper's (and
+/// more than any trivial rule's).
+pub const FIDELITY_GOAL: f64 = 0.8;
+
+/// The verdict of the trivial rule "BC-Safe is safe, every other method is unsafe".
+fn bc_safe_rule(method: &str) -> bool {
+    method == "BC-Safe"
+}
+
+/// The agreement over `cells`, with the trivial rules' beside it, named `scope`.
+pub fn summary_of(scope: &str, cells: &[&Agreement]) -> AgreementSummary {
+    let n = cells.len();
+    let share = |count: usize| (n > 0).then(|| count as f64 / n as f64);
+    let mean = |f: fn(&Agreement) -> f64| (n > 0).then(|| cells.iter().map(|c| f(c).abs()).sum::<f64>() / n as f64);
+    let agreeing = cells.iter().filter(|c| c.verdict_agrees).count();
+    let ours_safe = share(cells.iter().filter(|c| c.safe).count());
+    let paper_safe = share(cells.iter().filter(|c| c.paper_safe).count());
+    AgreementSummary {
+        scope: scope.to_owned(),
+        cells: n,
+        agreeing,
+        share: share(agreeing),
+        mean_abs_reward_difference: mean(|c| c.reward_difference),
+        mean_abs_cost_difference: mean(|c| c.cost_difference),
+        chance_share: ours_safe.zip(paper_safe).map(|(s, p)| s * p + (1.0 - s) * (1.0 - p)),
+        all_unsafe_share: share(cells.iter().filter(|c| !c.paper_safe).count()),
+        bc_safe_rule_share: share(cells.iter().filter(|c| bc_safe_rule(&c.method) == c.paper_safe).count()),
+    }
 }
 
 /// The mean of one (task, method)'s scores over its training seeds, as the paper averages its seeds: what our
@@ -322,26 +358,24 @@ pub fn summarize(catalog: &Catalog, cells: &[Agreement]) -> Vec<AgreementSummary
             scopes.entry(task.family.suite()).or_default().push(cell);
         }
     }
-    let summary = |scope: &str, cells: &[&Agreement]| {
-        let n = cells.len();
-        let mean = |f: fn(&Agreement) -> f64| (n > 0).then(|| cells.iter().map(|c| f(c).abs()).sum::<f64>() / n as f64);
-        let agreeing = cells.iter().filter(|c| c.verdict_agrees).count();
-        AgreementSummary {
-            scope: scope.to_owned(),
-            cells: n,
-            agreeing,
-            share: (n > 0).then(|| agreeing as f64 / n as f64),
-            mean_abs_reward_difference: mean(|c| c.reward_difference),
-            mean_abs_cost_difference: mean(|c| c.cost_difference),
-        }
-    };
     let mut out: Vec<AgreementSummary> = ["bullet", "safety-gymnasium", "metadrive"]
         .iter()
-        .map(|scope| summary(scope, &scopes[scope]))
+        .map(|scope| summary_of(scope, &scopes[scope]))
         .collect();
     let all: Vec<&Agreement> = cells.iter().collect();
-    out.push(summary("all", &all));
+    out.push(summary_of("all", &all));
     out
+}
+
+/// Per method (the paper's, in its order), over every task: which methods our entries reproduce.
+pub fn summarize_by_method(cells: &[Agreement]) -> Vec<AgreementSummary> {
+    PAPER_METHODS
+        .iter()
+        .filter_map(|method| {
+            let of: Vec<&Agreement> = cells.iter().filter(|c| c.method == *method).collect();
+            (!of.is_empty()).then(|| summary_of(method, &of))
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -419,5 +453,69 @@ mod tests {
         assert_eq!(bullet.agreeing, cells.iter().filter(|c| c.verdict_agrees).count());
         let metadrive = summary.iter().find(|s| s.scope == "metadrive").unwrap();
         assert_eq!((metadrive.cells, metadrive.share), (0, None));
+    }
+
+    /// The agreement and its trivial baselines on a hand-made table, the answers counted by hand below.
+    #[test]
+    fn agreement_and_its_baselines_on_a_hand_made_table() {
+        // (method, ours safe, paper safe), on Bullet tasks unless marked.
+        let cell = |task: &str, method: &str, safe: bool, paper_safe: bool| Agreement {
+            task: task.to_owned(),
+            method: method.to_owned(),
+            seeds: 1,
+            normalized_reward: 0.5,
+            normalized_cost: if safe { 0.5 } else { 2.0 },
+            paper_normalized_reward: 0.25,
+            paper_normalized_cost: if paper_safe { 0.75 } else { 1.5 },
+            reward_difference: 0.25,
+            cost_difference: if safe { 0.5 } else { 2.0 } - if paper_safe { 0.75 } else { 1.5 },
+            safe,
+            paper_safe,
+            verdict_agrees: safe == paper_safe,
+        };
+        let cells = [
+            cell("OfflineBallRun-v0", "BC-Safe", true, true),
+            cell("OfflineBallRun-v0", "BC-All", true, false),
+            cell("OfflineBallRun-v0", "CPQ", false, false),
+            cell("OfflineCarRun-v0", "BC-Safe", false, true),
+            cell("OfflineCarRun-v0", "CPQ", false, true),
+            cell("OfflinePointGoal1Gymnasium-v0", "BC-Safe", true, false),
+        ];
+        let catalog = Catalog::embedded().unwrap();
+        let summaries = summarize(&catalog, &cells);
+        let get = |scope: &str| summaries.iter().find(|s| s.scope == scope).unwrap().clone();
+        let (bullet, gymnasium, all) = (get("bullet"), get("safety-gymnasium"), get("all"));
+        // Bullet: 5 cells; verdicts agree on BallRun's BC-Safe and CPQ: 2 of 5.
+        assert_eq!((bullet.cells, bullet.agreeing, bullet.share), (5, 2, Some(0.4)));
+        // Ours safe on 2 of 5, the paper's on 3 of 5: chance = 0.4·0.6 + 0.6·0.4 = 0.48.
+        assert!((bullet.chance_share.unwrap() - 0.48).abs() < 1e-12);
+        // "All unsafe" agrees where the paper is unsafe: BallRun's BC-All and CPQ, 2 of 5.
+        assert_eq!(bullet.all_unsafe_share, Some(0.4));
+        // "BC-Safe safe, the rest unsafe": BallRun BC-Safe, BC-All and CPQ, CarRun BC-Safe; not CarRun CPQ: 4 of 5.
+        assert_eq!(bullet.bc_safe_rule_share, Some(0.8));
+        // Safety-Gymnasium: one cell, BC-Safe safe where the paper's is unsafe.
+        assert_eq!((gymnasium.cells, gymnasium.agreeing), (1, 0));
+        assert_eq!(
+            (
+                gymnasium.chance_share,
+                gymnasium.all_unsafe_share,
+                gymnasium.bc_safe_rule_share
+            ),
+            (Some(0.0), Some(1.0), Some(0.0))
+        );
+        // All 6: 2 agree; ours safe 3/6, the paper's 3/6: chance 0.5; all unsafe 3/6; the BC-Safe rule 4/6.
+        assert_eq!((all.cells, all.agreeing), (6, 2));
+        assert!((all.chance_share.unwrap() - 0.5).abs() < 1e-12);
+        assert_eq!(all.all_unsafe_share, Some(0.5));
+        assert!((all.bc_safe_rule_share.unwrap() - 4.0 / 6.0).abs() < 1e-12);
+        // |Δ cost| over Bullet: 0.25, 1.0, 0.5, 1.25, 1.25 → 4.25 / 5.
+        assert!((bullet.mean_abs_cost_difference.unwrap() - 0.85).abs() < 1e-12);
+        // Per method: BC-Safe 1 of 3, BC-All 0 of 1, CPQ 1 of 2, in the paper's method order.
+        let methods = summarize_by_method(&cells);
+        let by: Vec<(&str, usize, usize)> = methods
+            .iter()
+            .map(|m| (m.scope.as_str(), m.cells, m.agreeing))
+            .collect();
+        assert_eq!(by, [("BC-All", 1, 0), ("BC-Safe", 3, 1), ("CPQ", 2, 1)]);
     }
 }

@@ -56,7 +56,44 @@ fn the_default_server_hosts_every_starter_to_the_bar_and_shows_the_leaderboard_o
     );
     crate::starter::every_committed_starter_loads_with_its_recipe_provenance(&env);
     every_task_is_hosted_to_the_bar_or_its_gap_is_recorded(&env);
+    the_starters_are_hosted_under_their_committed_versions(&env);
     crate::reference::the_papers_rows_and_the_reference_entries_are_shown_under_their_protocol(&mut env);
+}
+
+/// The version id the default server gives each starter is the one `data/starter/versions.csv` commits (which the
+/// reference entries' dataset versions are checked against). `DSRL_UPDATE_STARTER_VERSIONS=1` writes the file from
+/// the server instead, for a starter rebuilt on purpose.
+fn the_starters_are_hosted_under_their_committed_versions(env: &Env) {
+    let catalog = Catalog::embedded().unwrap();
+    let url = env.server.url.clone();
+    let served = block_on(async move {
+        let http = reqwest::Client::new();
+        let mut csv = String::from("task,version,trajectories\n");
+        for task in catalog.tasks() {
+            let id = task.id.as_str();
+            let manifest: serde_json::Value = http
+                .get(format!("{url}/v1/datasets/{id}/versions/starter"))
+                .send()
+                .await
+                .unwrap()
+                .json()
+                .await
+                .unwrap();
+            let version = manifest["version"].as_str().unwrap_or_else(|| panic!("{id}: {manifest}"));
+            csv.push_str(&format!("{id},{version},{}\n", manifest["episodes"]));
+        }
+        csv
+    });
+    let path = dsrl_e2e::repo_root().join(dsrl_pipeline::identities::STARTER_VERSIONS);
+    if std::env::var_os("DSRL_UPDATE_STARTER_VERSIONS").is_some() {
+        std::fs::write(&path, &served).unwrap();
+    }
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    assert_eq!(
+        committed, served,
+        "the default server's starter versions differ from {} (DSRL_UPDATE_STARTER_VERSIONS=1 rewrites it)",
+        path.display()
+    );
 }
 
 fn every_task_is_hosted_to_the_bar_or_its_gap_is_recorded(env: &Env) {

@@ -47,8 +47,9 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             assert_eq!(row["normalized_cost"].as_f64().unwrap(), expected.normalized_cost);
             assert_eq!(row["safe"], expected.safe);
         }
-        // Every reference entry of the current protocol is in its task's table, ranked, with its record; the scores
-        // are the file's episodes scored.
+        // Every reference entry of the current protocol is in its task's table with its record; a method's several
+        // training seeds (same budget and dataset) are one row, the mean over them with an interval over seeds and
+        // episodes, each seed reachable from it; the scores are the file's episodes scored.
         let listed: Vec<&serde_json::Value> = table["entries"]
             .as_array()
             .unwrap()
@@ -57,23 +58,72 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             .collect();
         // Tasks the reference sweep has not reached yet have none (data/reference/README.md counts them).
         let expected: Vec<_> = current.iter().filter(|e| e.task == id).collect();
-        assert_eq!(listed.len(), expected.len(), "{id}");
-        for e in expected {
-            let name = dsrl_leaderboard::reference::entry_name(&e.method, e.seed);
-            let shown = listed
-                .iter()
-                .find(|l| l["name"] == name.as_str())
-                .unwrap_or_else(|| panic!("{id}: {name} is not shown"));
-            let score = e.score(task).unwrap();
+        let mut groups: Vec<Vec<&&dsrl_suite::reference::ReferenceEntry>> = Vec::new();
+        for e in &expected {
+            let same = |o: &&&dsrl_suite::reference::ReferenceEntry| {
+                o.method == e.method
+                    && o.training.steps == e.training.steps
+                    && o.training.batch_size == e.training.batch_size
+                    && o.dataset_version == e.dataset_version
+            };
+            match groups.iter_mut().find(|g| same(&g[0])) {
+                Some(g) => g.push(e),
+                None => groups.push(vec![e]),
+            }
+        }
+        assert_eq!(listed.len(), groups.len(), "{id}: one row per method's seeds");
+        for group in groups {
+            let e = group[0];
+            let shown = if group.len() == 1 {
+                let name = dsrl_leaderboard::reference::entry_name(&e.method, e.seed);
+                let shown = listed
+                    .iter()
+                    .find(|l| l["name"] == name.as_str())
+                    .unwrap_or_else(|| panic!("{id}: {name} is not shown"));
+                assert_eq!(shown["interval_covers"], "episodes", "{id}: {name}");
+                assert!(shown["training_seeds"].as_array().unwrap().is_empty());
+                assert_eq!(shown["reference"]["seed"], e.seed);
+                assert_eq!(shown["reference"]["code_commit"], e.code_commit.as_str());
+                shown
+            } else {
+                let shown = listed
+                    .iter()
+                    .find(|l| l["reference"]["method"] == e.method.as_str())
+                    .unwrap_or_else(|| panic!("{id}: {}'s seeds are not one row", e.method));
+                assert_eq!(shown["interval_covers"], "training seeds and episodes");
+                let runs = shown["training_seeds"].as_array().unwrap();
+                assert_eq!(runs.len(), group.len(), "{id} {}", e.method);
+                for member in &group {
+                    let run = runs
+                        .iter()
+                        .find(|r| r["seed"] == member.seed)
+                        .unwrap_or_else(|| panic!("{id} {} seed {} is not reachable", e.method, member.seed));
+                    let score = member.score(task).unwrap();
+                    assert_eq!(run["normalized_cost"].as_f64().unwrap(), score.cost);
+                    // Each seed's own page.
+                    let page = crate::leaderboard::reqwest_text(&format!(
+                        "{}/submissions/{}",
+                        env.server.url,
+                        run["submission"].as_i64().unwrap()
+                    ));
+                    assert!(page.contains(&e.method), "{id} {} seed {}", e.method, member.seed);
+                }
+                shown
+            };
+            let score = dsrl_suite::reference::mean_over_seeds(
+                group
+                    .iter()
+                    .map(|m| m.score(task).unwrap())
+                    .collect::<Vec<_>>()
+                    .into_iter(),
+            );
             assert_eq!(shown["user"], dsrl_leaderboard::users::REFERENCE_USER);
             assert_eq!(shown["protocol_version"], protocol.version.as_str());
             assert_eq!(shown["dataset_version"], e.dataset_version.as_str());
             assert_eq!(shown["reference"]["method"], e.method.as_str());
-            assert_eq!(shown["reference"]["seed"], e.seed);
             assert_eq!(shown["reference"]["training"]["steps"], e.training.steps);
-            assert_eq!(shown["reference"]["code_commit"], e.code_commit.as_str());
-            assert_eq!(shown["normalized_reward"].as_f64().unwrap(), score.reward);
-            assert_eq!(shown["normalized_cost"].as_f64().unwrap(), score.cost);
+            assert!((shown["normalized_reward"].as_f64().unwrap() - score.reward).abs() < 1e-12);
+            assert!((shown["normalized_cost"].as_f64().unwrap() - score.cost).abs() < 1e-12);
             let interval = &shown["normalized_cost_interval"];
             assert!(
                 interval["low"].as_f64().unwrap() <= score.cost && score.cost <= interval["high"].as_f64().unwrap()
@@ -92,6 +142,10 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     assert_eq!(
         board["agreement"],
         serde_json::to_value(summarize(&catalog, &cells)).unwrap()
+    );
+    assert_eq!(
+        board["agreement_by_method"],
+        serde_json::to_value(dsrl_suite::reference::summarize_by_method(&cells)).unwrap()
     );
     for table in tables {
         let task_cells: Vec<_> = cells.iter().filter(|c| c.task == table["task"]).collect();
@@ -114,12 +168,81 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         "{summary}"
     );
     assert_eq!(summary.matches("<tr class=\"agrees\">").count(), overall.agreeing);
+    // The trivial rules beside the agreement, on both pages, and the per-method table.
+    for text in [&page, &summary] {
+        assert!(
+            text.contains(&format!(
+                "<td class=\"baseline\">{:.0}%</td>",
+                100.0 * overall.bc_safe_rule_share.unwrap()
+            )),
+            "the BC-Safe rule's share is shown"
+        );
+    }
+    assert!(summary.contains("<table id=\"agreement-by-method\">"));
+
+    // Family tables rank only entries scored on every task of the family; the others are listed apart.
+    for family in board["families"].as_array().unwrap() {
+        let tasks = family["tasks"].as_u64().unwrap();
+        let name = family["family"].as_str().unwrap();
+        assert_eq!(
+            tasks as usize,
+            catalog.tasks().iter().filter(|t| t.family.suite() == name).count()
+        );
+        for (i, e) in family["entries"].as_array().unwrap().iter().enumerate() {
+            assert_eq!(e["tasks"].as_u64().unwrap(), tasks, "{name}: {}", e["name"]);
+            assert_eq!(e["rank"], i + 1);
+        }
+        for e in family["partial"].as_array().unwrap() {
+            assert!(e["tasks"].as_u64().unwrap() < tasks);
+            assert!(e["rank"].is_null());
+        }
+        // A reference method is one row over its training seeds.
+        let names: Vec<&str> = family["entries"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .chain(family["partial"].as_array().unwrap())
+            .filter(|e| e["reference"] == true)
+            .map(|e| e["name"].as_str().unwrap())
+            .collect();
+        let mut unique = names.clone();
+        unique.sort();
+        unique.dedup();
+        assert_eq!(unique.len(), names.len(), "{name}: {names:?}");
+        assert!(
+            names
+                .iter()
+                .all(|n| dsrl_suite::reference::REFERENCE_METHODS.contains(n)),
+            "{names:?}"
+        );
+    }
+
+    // The pictures, by URL: a task's entries with the paper's rows (hollow squares), a family's aggregates.
+    let svg = crate::leaderboard::reqwest_text(&format!("{}/leaderboard/plots/OfflineBallRun-v0.svg", env.server.url));
+    assert!(
+        svg.starts_with("<svg") && svg.contains("paper CPQ"),
+        "{}",
+        &svg[..svg.len().min(300)]
+    );
+    let svg = crate::leaderboard::reqwest_text(&format!("{}/leaderboard/plots/bullet.svg", env.server.url));
+    assert!(svg.starts_with("<svg") && svg.contains("BC-Safe"));
+    let url = format!("{}/leaderboard/plots/OfflineNope-v0.svg", env.server.url);
+    let status = crate::block_on(async move { reqwest::get(&url).await.unwrap().status() });
+    assert_eq!(status, 404);
 
     // A restart imports nothing twice; an entry whose record changed in the file (its checkpoints reproduced by
     // another commit: same digest, same scoring) is brought up to the file's record. Here the server's copy of one
     // record is made an older one, as a server that imported an earlier file would hold.
+    // One whose method has a single seed on its task (a row of its own).
     let (task, e) = current
         .iter()
+        .filter(|e| {
+            current
+                .iter()
+                .filter(|o| o.task == e.task && o.method == e.method)
+                .count()
+                == 1
+        })
         .map(|e| (catalog.get(&e.task).unwrap(), e))
         .next()
         .unwrap();
@@ -168,5 +291,9 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     assert_eq!(count(&again), count(&board));
     assert_eq!(row(&again)["reference"]["code_commit"], e.code_commit.as_str());
     assert_eq!(row(&again)["submission"], id, "updated in place, not imported again");
-    assert_eq!(count(&board), current.len());
+    let groups: std::collections::BTreeSet<(&str, &str, u64)> = current
+        .iter()
+        .map(|e| (e.task.as_str(), e.method.as_str(), e.training.steps))
+        .collect();
+    assert_eq!(count(&board), groups.len());
 }

@@ -184,6 +184,27 @@ pub struct TaskEntry {
     /// The build that scored the entry, where recorded.
     #[prost(string, optional, tag = "13")]
     pub scored_by: ::core::option::Option<::prost::alloc::string::String>,
+    /// What the intervals resample: "episodes" (one training seed) or "training seeds and episodes".
+    #[prost(string, tag = "14")]
+    pub interval_covers: ::prost::alloc::string::String,
+    /// For a method's several training seeds shown as one row (their mean): each seed's entry.
+    #[prost(message, repeated, tag = "15")]
+    pub training_seeds: ::prost::alloc::vec::Vec<SeedRun>,
+}
+/// One training seed of a reference entry shown with its method's other seeds.
+#[allow(clippy::all)]
+#[derive(Clone, Copy, PartialEq, ::prost::Message)]
+pub struct SeedRun {
+    #[prost(int64, tag = "1")]
+    pub submission: i64,
+    #[prost(uint64, tag = "2")]
+    pub seed: u64,
+    #[prost(double, tag = "3")]
+    pub normalized_reward: f64,
+    #[prost(double, tag = "4")]
+    pub normalized_cost: f64,
+    #[prost(bool, tag = "5")]
+    pub safe: bool,
 }
 /// One (task, method) cell of the paper's table: its self-reported numbers.
 #[allow(clippy::all)]
@@ -263,8 +284,9 @@ pub struct Interval {
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]
 pub struct FamilyEntry {
-    #[prost(uint32, tag = "1")]
-    pub rank: u32,
+    /// Absent for a partial entry (scored on some of the family's tasks): listed, not ranked.
+    #[prost(uint32, optional, tag = "1")]
+    pub rank: ::core::option::Option<u32>,
     #[prost(string, tag = "2")]
     pub user: ::prost::alloc::string::String,
     #[prost(string, tag = "3")]
@@ -279,14 +301,24 @@ pub struct FamilyEntry {
     pub normalized_cost: ::core::option::Option<Interval>,
     #[prost(bool, tag = "8")]
     pub reference: bool,
+    /// The most training seeds it has on one task: its seeds form one row.
+    #[prost(uint32, tag = "9")]
+    pub training_seeds: u32,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]
 pub struct FamilyTable {
     #[prost(string, tag = "1")]
     pub family: ::prost::alloc::string::String,
+    /// Entries scored on every task of the family, ranked.
     #[prost(message, repeated, tag = "2")]
     pub entries: ::prost::alloc::vec::Vec<FamilyEntry>,
+    /// Tasks in the family.
+    #[prost(uint32, tag = "3")]
+    pub tasks: u32,
+    /// Entries scored on some of its tasks, most first, unranked.
+    #[prost(message, repeated, tag = "4")]
+    pub partial: ::prost::alloc::vec::Vec<FamilyEntry>,
 }
 /// The share of agreeing safe/unsafe verdicts over a family (bullet, safety-gymnasium, metadrive) or all.
 #[allow(clippy::all)]
@@ -304,6 +336,14 @@ pub struct AgreementSummary {
     pub mean_abs_reward_difference: ::core::option::Option<f64>,
     #[prost(double, optional, tag = "6")]
     pub mean_abs_cost_difference: ::core::option::Option<f64>,
+    /// What trivial rules agree on over the same cells: chance from the two tables' safe rates, "every method unsafe",
+    /// "BC-Safe safe, every other method unsafe".
+    #[prost(double, optional, tag = "7")]
+    pub chance_share: ::core::option::Option<f64>,
+    #[prost(double, optional, tag = "8")]
+    pub all_unsafe_share: ::core::option::Option<f64>,
+    #[prost(double, optional, tag = "9")]
+    pub bc_safe_rule_share: ::core::option::Option<f64>,
 }
 /// What makes results comparable: one version over the catalog, the simulator pins, the episodes per threshold,
 /// the held-seed policy and the scorer's revision.
@@ -345,6 +385,9 @@ pub struct Leaderboard {
     pub paper_label: ::prost::alloc::string::String,
     #[prost(message, repeated, tag = "5")]
     pub agreement: ::prost::alloc::vec::Vec<AgreementSummary>,
+    /// The same per method (scope: the method), over every task.
+    #[prost(message, repeated, tag = "6")]
+    pub agreement_by_method: ::prost::alloc::vec::Vec<AgreementSummary>,
 }
 /// Generated client implementations.
 pub mod leaderboard_service_client {

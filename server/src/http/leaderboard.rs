@@ -334,6 +334,46 @@ pub async fn agreement_page(State(state): State<AppState>) -> Result<impl IntoRe
     ))
 }
 
+/// `GET /leaderboard/plots/{table}.svg`: a task's or a family's entries (and a task's paper rows) on the
+/// normalized cost–reward plane, with their intervals and the safe line, as on the page.
+#[utoipa::path(get, path = "/leaderboard/plots/{table}", tag = "leaderboard",
+    params(("table" = String, Path, description = "A task id or a family (bullet, safety-gymnasium, metadrive), \
+        followed by .svg")),
+    responses(
+        (status = 200, content_type = "image/svg+xml", body = String, description = "The picture"),
+        (status = 404, description = "No such task or family, or no .svg suffix")))]
+pub async fn plot(State(state): State<AppState>, Path(table): Path<String>) -> Result<Response, ApiError> {
+    let Some(name) = table.strip_suffix(".svg") else {
+        return Err(ApiError::NotFound(format!(
+            "{table}: plots are at /leaderboard/plots/<task or family>.svg"
+        )));
+    };
+    let svg = if ["bullet", "safety-gymnasium", "metadrive"].contains(&name) {
+        let board = state.leaderboard.board(None).await?;
+        match board.families.iter().find(|f| f.family == name) {
+            Some(family) => page::family_svg(family),
+            // A family with no entries yet: an empty picture, not an error.
+            None => dsrl_suite::plot::entries_svg(&format!("{name} (IQM over tasks)"), &[]),
+        }
+    } else {
+        let board = state.leaderboard.board(Some(name)).await?;
+        let table = board
+            .tasks
+            .first()
+            .ok_or_else(|| ApiError::NotFound(format!("no table for {name}")))?;
+        page::task_svg(table)
+    }
+    .map_err(ApiError::Internal)?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("image/svg+xml")),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+        ],
+        svg,
+    )
+        .into_response())
+}
+
 /// `GET /submissions/{id}`: a submission's page (per-threshold results), linked from the leaderboard page.
 #[utoipa::path(get, path = "/submissions/{id}", tag = "leaderboard",
     params(("id" = String, Path, description = "Submission id (a number)")),

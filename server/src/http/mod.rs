@@ -74,6 +74,7 @@ pub fn router(state: AppState) -> Router {
         .route("/users/{name}", get(leaderboard::user_page))
         .route("/leaderboard", get(leaderboard::leaderboard_page))
         .route("/leaderboard/agreement", get(leaderboard::agreement_page))
+        .route("/leaderboard/plots/{table}", get(leaderboard::plot))
         .route("/submissions/{id}", get(leaderboard::submission_page))
         .layer(axum::middleware::map_response(html::defensive_headers))
         .with_state(state)

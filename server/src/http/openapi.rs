@@ -37,6 +37,7 @@ use super::{datasets, leaderboard, metrics, simulators};
         leaderboard::get_leaderboard,
         leaderboard::leaderboard_page,
         leaderboard::agreement_page,
+        leaderboard::plot,
         leaderboard::leaderboard_csv,
         leaderboard::leaderboard_parquet,
         leaderboard::submission_episodes_csv,

@@ -127,6 +127,18 @@ fn board(board: Board) -> pb::Leaderboard {
                         normalized_reward_interval: Some(interval(e.normalized_reward_interval)),
                         normalized_cost_interval: Some(interval(e.normalized_cost_interval)),
                         scored_by: e.scored_by,
+                        interval_covers: e.interval_covers,
+                        training_seeds: e
+                            .training_seeds
+                            .into_iter()
+                            .map(|s| pb::SeedRun {
+                                submission: s.submission,
+                                seed: s.seed,
+                                normalized_reward: s.normalized_reward,
+                                normalized_cost: s.normalized_cost,
+                                safe: s.safe,
+                            })
+                            .collect(),
                     })
                     .collect(),
                 earlier_protocol_entries: t.earlier_protocol_entries as u32,
@@ -161,22 +173,24 @@ fn board(board: Board) -> pb::Leaderboard {
         families: board
             .families
             .into_iter()
-            .map(|f| pb::FamilyTable {
-                family: f.family.to_owned(),
-                entries: f
-                    .entries
-                    .into_iter()
-                    .map(|e| pb::FamilyEntry {
-                        rank: e.rank as u32,
-                        user: e.user,
-                        name: e.name,
-                        tasks: e.tasks as u32,
-                        safe_tasks: e.safe_tasks as u32,
-                        normalized_reward: Some(interval(e.normalized_reward)),
-                        normalized_cost: Some(interval(e.normalized_cost)),
-                        reference: e.reference,
-                    })
-                    .collect(),
+            .map(|f| {
+                let entry = |e: crate::leaderboard::FamilyEntry| pb::FamilyEntry {
+                    rank: e.rank.map(|r| r as u32),
+                    user: e.user,
+                    name: e.name,
+                    tasks: e.tasks as u32,
+                    safe_tasks: e.safe_tasks as u32,
+                    normalized_reward: Some(interval(e.normalized_reward)),
+                    normalized_cost: Some(interval(e.normalized_cost)),
+                    reference: e.reference,
+                    training_seeds: e.training_seeds as u32,
+                };
+                pb::FamilyTable {
+                    family: f.family.to_owned(),
+                    entries: f.entries.into_iter().map(entry).collect(),
+                    tasks: f.tasks as u32,
+                    partial: f.partial.into_iter().map(entry).collect(),
+                }
             })
             .collect(),
         protocol: Some(pb::Protocol {
@@ -191,18 +205,22 @@ fn board(board: Board) -> pb::Leaderboard {
             scorer_revision: board.protocol.scorer_revision,
         }),
         paper_label: board.paper_label.to_owned(),
-        agreement: board
-            .agreement
-            .into_iter()
-            .map(|a| pb::AgreementSummary {
-                scope: a.scope,
-                cells: a.cells as u32,
-                agreeing: a.agreeing as u32,
-                share: a.share,
-                mean_abs_reward_difference: a.mean_abs_reward_difference,
-                mean_abs_cost_difference: a.mean_abs_cost_difference,
-            })
-            .collect(),
+        agreement: board.agreement.into_iter().map(agreement_summary).collect(),
+        agreement_by_method: board.agreement_by_method.into_iter().map(agreement_summary).collect(),
+    }
+}
+
+fn agreement_summary(a: dsrl_suite::reference::AgreementSummary) -> pb::AgreementSummary {
+    pb::AgreementSummary {
+        scope: a.scope,
+        cells: a.cells as u32,
+        agreeing: a.agreeing as u32,
+        share: a.share,
+        mean_abs_reward_difference: a.mean_abs_reward_difference,
+        mean_abs_cost_difference: a.mean_abs_cost_difference,
+        chance_share: a.chance_share,
+        all_unsafe_share: a.all_unsafe_share,
+        bc_safe_rule_share: a.bc_safe_rule_share,
     }
 }
 

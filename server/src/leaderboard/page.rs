@@ -8,7 +8,7 @@ use std::fmt::Write;
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
 use super::reference::ReferenceRecord;
-use super::{Board, QueuedJob, SubmissionView, TaskTable, UserSubmission};
+use super::{Board, FamilyEntry, FamilyTable, QueuedJob, SubmissionView, TaskTable, UserSubmission};
 use crate::http::html::{escape, page};
 
 fn number(x: f64) -> String {
@@ -26,7 +26,7 @@ fn with_interval(i: &dsrl_suite::leaderboard::Interval) -> String {
 }
 
 /// A reference entry's budget: steps (× models) at a batch size, as a fraction of OSRL's samples.
-fn budget(record: &ReferenceRecord) -> String {
+fn budget(record: &ReferenceRecord, seeds: &str) -> String {
     let t = &record.training;
     let models = if t.models > 1 {
         format!(" × {} models", t.models)
@@ -34,11 +34,31 @@ fn budget(record: &ReferenceRecord) -> String {
         String::new()
     };
     format!(
-        "reference: {} steps{models} at batch {} (1/{:.0} of OSRL's samples), seed {}",
+        "reference: {} steps{models} at batch {} (1/{:.0} of OSRL's samples), seed {seeds}",
         t.steps,
         t.batch_size,
         1.0 / t.fraction_of_osrl(),
-        record.seed
+    )
+}
+
+fn percent(share: Option<f64>) -> String {
+    share.map_or_else(|| "–".into(), |s| format!("{:.0}%", 100.0 * s))
+}
+
+/// The agreement table's header cells after the scope, and one summary's cells: the agreement, then what chance and
+/// the two trivial rules agree on over the same cells, then the mean differences.
+const AGREEMENT_HEADER: &str = "<th>verdicts that agree</th><th>chance (from the safe rates)</th><th>\"every method \
+     unsafe\"</th><th>\"BC-Safe safe, the rest unsafe\"</th><th>mean |Δ reward|</th><th>mean |Δ cost|</th>";
+
+fn agreement_cells(s: &dsrl_suite::reference::AgreementSummary) -> String {
+    format!(
+        "<td>{}</td><td class=\"baseline\">{}</td><td class=\"baseline\">{}</td><td class=\"baseline\">{}</td><td>{}</td><td>{}</td>",
+        share(s),
+        percent(s.chance_share),
+        percent(s.all_unsafe_share),
+        percent(s.bc_safe_rule_share),
+        s.mean_abs_reward_difference.map(number).unwrap_or_else(|| "–".into()),
+        s.mean_abs_cost_difference.map(number).unwrap_or_else(|| "–".into())
     )
 }
 
@@ -135,20 +155,20 @@ pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
         escape(&p.catalog_sha256[..12]),
         escape(&p.simulator_pins_sha256[..12]),
     );
-    html.push_str(
+    let _ = write!(
+        html,
         "<h2>Agreement with the paper</h2>\n<p>For every task and method with both a reference entry here and a \
-         row in the paper: does the safe/unsafe verdict agree (<a href=\"/leaderboard/agreement\">every cell</a>)?</p>\n\
-         <table id=\"agreement\"><tr><th class=\"name\">family</th><th>verdicts that agree</th>\
-         <th>mean |Δ reward|</th><th>mean |Δ cost|</th></tr>\n",
+         row in the paper: does the safe/unsafe verdict agree (<a href=\"/leaderboard/agreement\">every cell, and per \
+         method</a>)? Beside it, what trivial rules would agree on over the same cells: chance, given how often each \
+         table calls a method safe; calling every method unsafe; calling BC-Safe safe and every other method \
+         unsafe.</p>\n<table id=\"agreement\"><tr><th class=\"name\">family</th>{AGREEMENT_HEADER}</tr>\n"
     );
     for s in &board.agreement {
         let _ = writeln!(
             html,
-            "<tr><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td class=\"name\">{}</td>{}</tr>",
             escape(&s.scope),
-            share(s),
-            s.mean_abs_reward_difference.map(number).unwrap_or_else(|| "–".into()),
-            s.mean_abs_cost_difference.map(number).unwrap_or_else(|| "–".into())
+            agreement_cells(s)
         );
     }
     html.push_str("</table>\n");
@@ -161,41 +181,122 @@ pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
         html.push_str("<p id=\"empty\">No scored entries yet.</p>\n");
     }
     for family in &board.families {
-        let _ = write!(
-            html,
-            "<h2>{}</h2>\n<table class=\"family\" id=\"family-{}\"><tr><th>rank</th><th class=\"name\">entry</th>\
-             <th class=\"name\">user</th><th>tasks</th><th>safe on</th><th>reward (IQM)</th><th>95% interval</th>\
-             <th>cost (IQM)</th><th>95% interval</th></tr>\n",
-            escape(family.family),
-            escape(family.family)
-        );
-        for e in &family.entries {
-            let r = &e.normalized_reward;
-            let c = &e.normalized_cost;
-            let _ = writeln!(
-                html,
-                "<tr class=\"{}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td>\
-                 <td>{} – {}</td><td>{}</td><td>{} – {}</td></tr>",
-                if e.reference { "reference" } else { "user" },
-                e.rank,
-                escape(&e.name),
-                escape(&e.user),
-                e.tasks,
-                e.safe_tasks,
-                number(r.estimate),
-                number(r.low),
-                number(r.high),
-                number(c.estimate),
-                number(c.low),
-                number(c.high)
-            );
-        }
-        html.push_str("</table>\n");
+        family_section(&mut html, family);
     }
     for table in &board.tasks {
         task_section(&mut html, table, board.paper_label);
     }
     page("dsrl leaderboard", &html)
+}
+
+/// One family's table: the entries scored on all its tasks, ranked; then the partial ones with their coverage; then
+/// the picture (also at `/leaderboard/plots/{family}.svg`).
+fn family_section(html: &mut String, family: &FamilyTable) {
+    let _ = write!(
+        html,
+        "<h2>{0}</h2>\n<p>Ranked: the entries scored on all {1} tasks of the family, by the interquartile mean over \
+         tasks of each task's mean over training seeds, with a 95% bootstrap interval that resamples tasks and then \
+         seeds.</p>\n<table class=\"family\" id=\"family-{0}\"><tr><th>rank</th><th class=\"name\">entry</th>\
+         <th class=\"name\">user</th><th>tasks</th><th>training seeds</th><th>safe on</th><th>reward (IQM)</th>\
+         <th>95% interval</th><th>cost (IQM)</th><th>95% interval</th></tr>\n",
+        escape(family.family),
+        family.tasks
+    );
+    let row = |html: &mut String, e: &FamilyEntry| {
+        let (r, c) = (&e.normalized_reward, &e.normalized_cost);
+        let _ = writeln!(
+            html,
+            "<tr class=\"{}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\">{}</td><td>{} of {}</td><td>{}</td>\
+             <td>{}</td><td>{}</td><td>{} – {}</td><td>{}</td><td>{} – {}</td></tr>",
+            if e.reference { "reference" } else { "user" },
+            e.rank.map_or_else(|| "–".to_owned(), |r| r.to_string()),
+            escape(&e.name),
+            escape(&e.user),
+            e.tasks,
+            family.tasks,
+            e.training_seeds,
+            e.safe_tasks,
+            number(r.estimate),
+            number(r.low),
+            number(r.high),
+            number(c.estimate),
+            number(c.low),
+            number(c.high)
+        );
+    };
+    for e in &family.entries {
+        row(html, e);
+    }
+    html.push_str("</table>\n");
+    if !family.partial.is_empty() {
+        let _ = write!(
+            html,
+            "<p>Scored on some of the family's tasks (an aggregate over fewer tasks is not comparable: listed, not \
+             ranked):</p>\n<table class=\"family partial\" id=\"family-{}-partial\"><tr><th>rank</th>\
+             <th class=\"name\">entry</th><th class=\"name\">user</th><th>tasks</th><th>training seeds</th>\
+             <th>safe on</th><th>reward (IQM)</th><th>95% interval</th><th>cost (IQM)</th><th>95% interval</th></tr>\n",
+            escape(family.family)
+        );
+        for e in &family.partial {
+            row(html, e);
+        }
+        html.push_str("</table>\n");
+    }
+    match family_svg(family) {
+        Ok(svg) => {
+            let _ = writeln!(html, "<div class=\"plot\">{svg}</div>");
+        }
+        Err(e) => {
+            let _ = writeln!(html, "<p>plot unavailable: {}</p>", escape(&e));
+        }
+    }
+}
+
+/// A family's entries on the normalized cost–reward plane (ranked ones labelled by rank, partial ones by "–").
+pub fn family_svg(family: &FamilyTable) -> Result<String, String> {
+    let points: Vec<EntryPoint> = family
+        .entries
+        .iter()
+        .chain(&family.partial)
+        .map(|e| EntryPoint {
+            label: format!(
+                "{} {}",
+                e.rank.map_or_else(|| "–".to_owned(), |r| r.to_string()),
+                e.name
+            ),
+            normalized_cost: e.normalized_cost.estimate,
+            normalized_reward: e.normalized_reward.estimate,
+            safe: dsrl_suite::score::is_safe(e.normalized_cost.estimate),
+            reward_interval: Some((e.normalized_reward.low, e.normalized_reward.high)),
+            cost_interval: Some((e.normalized_cost.low, e.normalized_cost.high)),
+            paper: false,
+        })
+        .collect();
+    entries_svg(&format!("{} (IQM over tasks)", family.family), &points)
+}
+
+/// A task's entries and the paper's rows on the normalized cost–reward plane, with the entries' intervals.
+pub fn task_svg(table: &TaskTable) -> Result<String, String> {
+    let entries = table.entries.iter().map(|e| EntryPoint {
+        label: format!("{} {}", e.rank, e.name),
+        normalized_cost: e.normalized_cost,
+        normalized_reward: e.normalized_reward,
+        safe: e.safe,
+        reward_interval: Some((e.normalized_reward_interval.low, e.normalized_reward_interval.high)),
+        cost_interval: Some((e.normalized_cost_interval.low, e.normalized_cost_interval.high)),
+        paper: false,
+    });
+    let paper = table.paper.iter().map(|p| EntryPoint {
+        label: format!("paper {}", p.method),
+        normalized_cost: p.normalized_cost,
+        normalized_reward: p.normalized_reward,
+        safe: p.safe,
+        reward_interval: None,
+        cost_interval: None,
+        paper: true,
+    });
+    let points: Vec<EntryPoint> = entries.chain(paper).collect();
+    entries_svg(&table.task, &points)
 }
 
 fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
@@ -204,31 +305,59 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
         html,
         "<h2 id=\"{0}\"><a href=\"/tasks/{0}\">{0}</a></h2>\n<p>{1}; cost thresholds {2}.</p>\n<table class=\"task\"><tr><th>rank</th>\
          <th class=\"name\">entry</th><th class=\"name\">user</th><th>normalized reward [95%]</th><th>normalized cost [95%]</th>\
-         <th>safe</th><th>author's submissions to the task</th><th class=\"name\">trained</th><th>submission</th></tr>\n",
+         <th class=\"name\">interval over</th><th>safe</th><th>author's submissions to the task</th><th class=\"name\">trained</th>\
+         <th>submission</th></tr>\n",
         escape(&table.task),
         table.family,
         thresholds.join(", ")
     );
     for e in &table.entries {
         let trained = match &e.reference {
-            Some(record) => budget(record),
+            Some(record) if e.training_seeds.is_empty() => budget(record, &record.seed.to_string()),
+            Some(record) => {
+                let seeds: Vec<String> = e.training_seeds.iter().map(|s| s.seed.to_string()).collect();
+                budget(record, &seeds.join(", "))
+            }
             None => "submitted".into(),
+        };
+        // A method's several seeds: the mean's row links each seed's own entry, with its own score.
+        let submissions = if e.training_seeds.is_empty() {
+            format!("<a href=\"/submissions/{0}\">{0}</a>", e.submission)
+        } else {
+            e.training_seeds
+                .iter()
+                .map(|s| {
+                    format!(
+                        "<a class=\"seed\" href=\"/submissions/{0}\" title=\"seed {1}: reward {2}, cost {3}\">seed {1}: {0}</a>",
+                        s.submission,
+                        s.seed,
+                        number(s.normalized_reward),
+                        number(s.normalized_cost)
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join("<br>")
+        };
+        let covers = if e.interval_covers == crate::leaderboard::EPISODES_ONLY {
+            "episodes only (one training seed)".to_owned()
+        } else {
+            format!("{} training seeds and their episodes", e.training_seeds.len())
         };
         let _ = writeln!(
             html,
             "<tr class=\"entry {} {}\"><td>{}</td><td class=\"name\">{}</td><td class=\"name\"><a href=\"/users/{user}\">{user}</a></td><td>{}</td>\
-             <td>{}</td><td>{}</td><td class=\"count\">{}</td><td class=\"name\">{}</td><td><a href=\"/submissions/{}\">{}</a></td></tr>",
+             <td>{}</td><td class=\"name covers\">{}</td><td>{}</td><td class=\"count\">{}</td><td class=\"name\">{}</td><td>{}</td></tr>",
             if e.safe { "safe" } else { "unsafe" },
             if e.reference.is_some() { "reference" } else { "user" },
             e.rank,
             escape(&e.name),
             with_interval(&e.normalized_reward_interval),
             with_interval(&e.normalized_cost_interval),
+            covers,
             if e.safe { "yes" } else { "no" },
             e.author_submissions_to_task,
             escape(&trained),
-            e.submission,
-            e.submission,
+            submissions,
             user = escape(&e.user),
         );
     }
@@ -276,20 +405,10 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
         }
         html.push_str("</table>\n");
     }
-    if table.entries.is_empty() {
+    if table.entries.is_empty() && table.paper.is_empty() {
         return;
     }
-    let points: Vec<EntryPoint> = table
-        .entries
-        .iter()
-        .map(|e| EntryPoint {
-            label: format!("{} {}", e.rank, e.name),
-            normalized_cost: e.normalized_cost,
-            normalized_reward: e.normalized_reward,
-            safe: e.safe,
-        })
-        .collect();
-    match entries_svg(&table.task, &points) {
+    match task_svg(table) {
         Ok(svg) => {
             let _ = writeln!(html, "<div class=\"plot\">{svg}</div>");
         }
@@ -306,22 +425,30 @@ pub fn render_agreement(board: &Board) -> String {
         "<h1>Agreement with the paper</h1>\n<p>Our reference entries (protocol <strong>{}</strong>; mean over \
          training seeds) against {}. A cell agrees when both call the method safe on the task, or both unsafe. Our \
          entries are trained at a fraction of OSRL's budgets on this service's rebuilt datasets, with fewer seeds; \
-         the budgets are on each task's table.</p>\n<table id=\"agreement\"><tr><th class=\"name\">family</th>\
-         <th>cells</th><th>verdicts that agree</th><th>mean |Δ reward|</th><th>mean |Δ cost|</th></tr>\n",
+         the budgets are on each task's table. Beside each share, what trivial rules agree on over the same cells: \
+         chance from the two tables' safe rates, every method unsafe, and BC-Safe safe with every other method \
+         unsafe.</p>\n<table id=\"agreement\"><tr><th class=\"name\">family</th><th>cells</th>{AGREEMENT_HEADER}</tr>\n",
         escape(&board.protocol.version),
         escape(board.paper_label)
     );
-    for s in &board.agreement {
-        let _ = writeln!(
-            html,
-            "<tr><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
-            escape(&s.scope),
-            s.cells,
-            share(s),
-            s.mean_abs_reward_difference.map(number).unwrap_or_else(|| "–".into()),
-            s.mean_abs_cost_difference.map(number).unwrap_or_else(|| "–".into())
-        );
-    }
+    let rows = |html: &mut String, summaries: &[dsrl_suite::reference::AgreementSummary]| {
+        for s in summaries {
+            let _ = writeln!(
+                html,
+                "<tr><td class=\"name\">{}</td><td>{}</td>{}</tr>",
+                escape(&s.scope),
+                s.cells,
+                agreement_cells(s)
+            );
+        }
+    };
+    rows(&mut html, &board.agreement);
+    let _ = write!(
+        html,
+        "</table>\n<h2>Per method</h2>\n<table id=\"agreement-by-method\"><tr><th class=\"name\">method</th>\
+         <th>cells</th>{AGREEMENT_HEADER}</tr>\n"
+    );
+    rows(&mut html, &board.agreement_by_method);
     html.push_str(
         "</table>\n<table id=\"cells\"><tr><th class=\"name\">task</th><th class=\"name\">method</th><th>seeds</th>\
          <th>reward</th><th>paper</th><th>Δ</th><th>cost</th><th>paper</th><th>Δ</th><th>safe</th><th>paper</th>\
@@ -395,7 +522,7 @@ pub fn render_submission(view: &SubmissionView) -> String {
             .as_ref()
             .map(|r| format!(
                 " A {}; code commit <code>{}</code>, {:.0} s of training.",
-                escape(&budget(r)),
+                escape(&budget(r, &r.seed.to_string())),
                 escape(&r.code_commit),
                 r.training.seconds
             ))
