@@ -37,16 +37,22 @@
 #                    new training record (the commit of this dsrl-train, its seconds), keeping its scoring; one that
 #                    does not is left as it is and reported, and the script fails at the end. Give the budgets the
 #                    entries were trained with.
+#   --full-builds D  train on each task's full build instead of its starter: the private server hosts the finished
+#                    build of every named task from D (dsrl-admin build's --root, e.g. ~/.dsrl/full) as the task's
+#                    `latest`, uploaded and checked against its committed identity by `dsrl-admin build --server`
+#                    (a task without a finished build stops the script before anything trains); use it with
+#                    --results data/reference/full_builds.jsonl so starter-trained entries stay apart; its state
+#                    defaults to ~/.dsrl/reference-full (a model's marker names its budget, not its dataset)
 #   --gpus G         train on G GPUs (cuda:0 .. cuda:G-1, models dealt in turn; --jobs at a time in all) with a
 #                    dsrl-train built by scripts/build-cuda.sh; every method
 #   e.g. data/reference_entries.sh --steps 10000 --methods "bc-all bc-safe" OfflineBallRun-v0 OfflineCarRun-v0
-# Binaries: dsrl-train, dsrl-client, dsrl-server from PATH (scripts/serve.sh links them), or $DSRL_TRAIN,
-# $DSRL_CLIENT, $DSRL_SERVER_BIN.
+# Binaries: dsrl-train, dsrl-client, dsrl-server (and dsrl-admin for --full-builds) from PATH (scripts/serve.sh links
+# them), or $DSRL_TRAIN, $DSRL_CLIENT, $DSRL_SERVER_BIN, $DSRL_ADMIN.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
 steps=100000 cdt_steps= caps_steps= bearl_steps= batch_size= seeds="0" jobs=1 evaluators=1 train_only=no reproduce=no gpus=0
-methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=() overrides=()
-state=${DSRL_REFERENCE_STATE:-$HOME/.dsrl/reference}
+methods="bc-all bc-safe cdt bcql bearl cpq coptidice" tasks=() overrides=() full_builds=
+state=
 results=$repo/data/reference/results.jsonl
 while [ $# -gt 0 ]; do
   case $1 in
@@ -65,17 +71,29 @@ while [ $# -gt 0 ]; do
     --train-only) train_only=yes; shift ;;
     --reproduce) reproduce=yes; shift ;;
     --gpus) gpus=$2; shift 2 ;;
-    -h|--help) sed -n '2,43p' "$0"; exit 0 ;;
+    --full-builds) full_builds=$2; shift 2 ;;
+    -h|--help) sed -n '2,48p' "$0"; exit 0 ;;
     *) tasks+=("$1"); shift ;;
   esac
 done
 [ ${#tasks[@]} -gt 0 ] || { echo "name at least one task" >&2; exit 2; }
+if [ -z "$state" ]; then
+  if [ -n "$full_builds" ]; then state=$HOME/.dsrl/reference-full; else state=${DSRL_REFERENCE_STATE:-$HOME/.dsrl/reference}; fi
+fi
 [[ $jobs =~ ^[1-9][0-9]*$ ]] || { echo "--jobs takes a positive count, not '$jobs'" >&2; exit 2; }
 [[ $gpus =~ ^[0-9]+$ ]] || { echo "--gpus takes a count, not '$gpus'" >&2; exit 2; }
 train=${DSRL_TRAIN:-dsrl-train}
 client=${DSRL_CLIENT:-dsrl-client}
 server_bin=${DSRL_SERVER_BIN:-dsrl-server}
+admin=${DSRL_ADMIN:-dsrl-admin}
 catalog=$repo/data/tasks.csv
+if [ -n "$full_builds" ]; then
+  [ -z "${DSRL_SERVER:-}" ] || { echo "--full-builds uploads to the private server: unset DSRL_SERVER" >&2; exit 2; }
+  for task in "${tasks[@]}"; do
+    compgen -G "$full_builds/$task/*.parquet" > /dev/null \
+      || { echo "$task has no finished full build under $full_builds (dsrl-admin build $task)" >&2; exit 2; }
+  done
+fi
 out=$state/policies
 [ "$reproduce" = no ] || out=$state/reproduced/policies
 mkdir -p "$state" "$out" "$state/submissions"
@@ -148,6 +166,11 @@ if [ -z "${DSRL_SERVER:-}" ]; then
     mv "$state/user-token.tmp" "$state/user-token"
   fi
   export DSRL_TOKEN=$(cat "$state/user-token")
+  if [ -n "$full_builds" ]; then
+    echo "hosting the full builds of ${tasks[*]} from $full_builds as their latest versions" >&2
+    DSRL_ADMIN_TOKEN=$(cat "$state/server/admin-token") "$admin" build --root "$full_builds" --server "$DSRL_SERVER" \
+      "${tasks[@]}" >&2
+  fi
 fi
 : "${DSRL_TOKEN:?set DSRL_TOKEN to a user token of $DSRL_SERVER}"
 

@@ -29,7 +29,7 @@ use dsrl_suite::reference::{
 };
 
 /// The documents that hold generated sections, relative to the repository root.
-pub const DOCUMENTS: [&str; 2] = ["data/README.md", "data/reference/README.md"];
+pub const DOCUMENTS: [&str; 3] = ["data/README.md", "data/reference/README.md", "BENCHMARKS.md"];
 
 /// Files generated whole.
 pub const GENERATED_FILES: [&str; 2] = ["data/starter_gaps.csv", "data/full_build_gaps.csv"];
@@ -181,7 +181,10 @@ pub fn reference_sections(
     for e in &current {
         *kinds.entry(dataset(e)).or_default() += 1;
     }
-    let by_kind: Vec<String> = kinds.iter().map(|(k, n)| format!("the {k}s: {}", entries_count(*n))).collect();
+    let by_kind: Vec<String> = kinds
+        .iter()
+        .map(|(k, n)| format!("the {k}s: {}", entries_count(*n)))
+        .collect();
     let _ = writeln!(s, "Trained on {}.\n", by_kind.join("; "));
     let pct = |x: Option<f64>| x.map(|x| format!("{:.0}%", 100.0 * x)).unwrap_or_else(|| "–".into());
     s.push_str(
@@ -336,6 +339,112 @@ pub fn reference_sections(
     sections
 }
 
+/// The committed results of reference entries trained on full builds: the same format as `results.jsonl`, kept
+/// apart so the starter-trained entries stay as they were scored and the two are never mixed in one agreement.
+pub const FULL_BUILD_RESULTS: &str = "data/reference/full_builds.jsonl";
+
+/// What the data changed: for each (task, method, budget, seed) trained both on the starter and on the full build,
+/// both scores against the paper's row; per family and overall, each side's agreement and the mean absolute change in
+/// normalized reward and cost between them.
+pub fn data_attribution_section(
+    catalog: &Catalog,
+    paper: &PaperResults,
+    starter: &[ReferenceEntry],
+    full: &[ReferenceEntry],
+    identities: &crate::identities::Identities,
+    protocol_version: &str,
+) -> String {
+    use crate::identities::DatasetKind;
+    struct Pair {
+        family: &'static str,
+        row: String,
+        starter_agrees: bool,
+        full_agrees: bool,
+        reward_change: f64,
+        cost_change: f64,
+    }
+    let mut pairs = Vec::new();
+    for f in full.iter().filter(|e| e.protocol_version == protocol_version) {
+        let Ok(task) = catalog.get(&f.task) else { continue };
+        if identities.kind(&f.task, &f.dataset_version) != Some(DatasetKind::FullBuild) {
+            continue;
+        }
+        let Some(s) = starter.iter().find(|s| {
+            s.protocol_version == protocol_version
+                && s.task == f.task
+                && s.method == f.method
+                && s.seed == f.seed
+                && s.training.steps == f.training.steps
+                && s.training.batch_size == f.training.batch_size
+                && identities.kind(&s.task, &s.dataset_version) == Some(DatasetKind::Starter)
+        }) else {
+            continue;
+        };
+        let (Some(ss), Some(fs)) = (s.score(task), f.score(task)) else {
+            continue;
+        };
+        let Some(p) = paper.get(&f.task, &f.method) else {
+            continue;
+        };
+        pairs.push(Pair {
+            family: task.family.suite(),
+            row: format!(
+                "| {} | {} | {} | {} | {} / {} ({}) | {} / {} ({}) | {} |",
+                short(&f.task),
+                f.method,
+                f.seed,
+                f.training.steps,
+                num(ss.reward),
+                num(ss.cost),
+                if ss.is_safe() { "safe" } else { "unsafe" },
+                num(fs.reward),
+                num(fs.cost),
+                if fs.is_safe() { "safe" } else { "unsafe" },
+                if p.safe { "safe" } else { "unsafe" },
+            ),
+            starter_agrees: ss.is_safe() == p.safe,
+            full_agrees: fs.is_safe() == p.safe,
+            reward_change: (fs.reward - ss.reward).abs(),
+            cost_change: (fs.cost - ss.cost).abs(),
+        });
+    }
+    if pairs.is_empty() {
+        return format!(
+            "No entry of protocol `{protocol_version}` has been trained on both a starter and a full build yet \
+             (`{FULL_BUILD_RESULTS}`).\n"
+        );
+    }
+    let mut out = String::from(
+        "| scope | pairs | agree with the paper: starter | full build | mean \\|Δ reward\\| | mean \\|Δ cost\\| |\n\
+         |---|---|---|---|---|---|\n",
+    );
+    for scope in ["bullet", "safety-gymnasium", "metadrive", "all"] {
+        let of: Vec<&Pair> = pairs.iter().filter(|p| scope == "all" || p.family == scope).collect();
+        if of.is_empty() {
+            continue;
+        }
+        let n = of.len() as f64;
+        let _ = writeln!(
+            out,
+            "| {scope} | {} | {} | {} | {} | {} |",
+            of.len(),
+            of.iter().filter(|p| p.starter_agrees).count(),
+            of.iter().filter(|p| p.full_agrees).count(),
+            num(of.iter().map(|p| p.reward_change).sum::<f64>() / n),
+            num(of.iter().map(|p| p.cost_change).sum::<f64>() / n),
+        );
+    }
+    out.push_str(
+        "\n| task | method | seed | steps | starter: reward / cost | full build: reward / cost | paper |\n\
+         |---|---|---|---|---|---|---|\n",
+    );
+    for p in &pairs {
+        out.push_str(&p.row);
+        out.push('\n');
+    }
+    out
+}
+
 /// The (task, method) cells with more than one training seed: each seed's scores and verdict, their spread, and how
 /// often one seed alone would have given another verdict than the mean over seeds. This measures how much the single
 /// seed of most cells limits the agreement figure.
@@ -449,6 +558,23 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
     );
     let identities = crate::identities::Identities::read(&catalog, root)?;
     let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version, &identities);
+    let full_path = root.join(FULL_BUILD_RESULTS);
+    let full_entries = match std::fs::read_to_string(&full_path) {
+        Ok(text) => read_results(&text, &catalog).with_context(|| full_path.display().to_string())?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(anyhow::anyhow!("{}: {e}", full_path.display())),
+    };
+    all.insert(
+        "reference-data-attribution".to_owned(),
+        data_attribution_section(
+            &catalog,
+            &paper,
+            &entries,
+            &full_entries,
+            &identities,
+            &protocol.version,
+        ),
+    );
     let starters = crate::hosted::read_starters(&catalog, &root.join("data/starter"))?;
     let committed = crate::full::table::read_committed(&catalog, root)?;
     let full: BTreeMap<String, u64> = committed

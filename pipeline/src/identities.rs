@@ -84,7 +84,11 @@ mod tests {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
         let catalog = Catalog::embedded().unwrap();
         let identities = Identities::read(&catalog, root).unwrap();
-        assert_eq!(identities.starters().len(), catalog.tasks().len(), "a starter version per task");
+        assert_eq!(
+            identities.starters().len(),
+            catalog.tasks().len(),
+            "a starter version per task"
+        );
         let text = std::fs::read_to_string(root.join("data/reference/results.jsonl")).unwrap();
         let entries = dsrl_suite::reference::read_results(&text, &catalog).unwrap();
         let unknown: Vec<String> = entries
@@ -92,6 +96,10 @@ mod tests {
             .filter(|e| identities.kind(&e.task, &e.dataset_version).is_none())
             .map(|e| format!("{} {} seed {}: {}", e.task, e.method, e.seed, e.dataset_version))
             .collect();
-        assert!(unknown.is_empty(), "trained on no committed dataset:\n{}", unknown.join("\n"));
+        assert!(
+            unknown.is_empty(),
+            "trained on no committed dataset:\n{}",
+            unknown.join("\n")
+        );
     }
 }

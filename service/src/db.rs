@@ -158,12 +158,34 @@ impl Db {
             })
             // And none opened before this process last saw a write fail for its storage: SQLite reopens a file it
             // could not open read-write as read-only, and such a connection answered "attempt to write a readonly
-            // database" long after the files were writable again.
-            .before_acquire(|conn, meta| {
+            // database" long after the files were writable again. The opening time read back from the age can be
+            // up to a millisecond late, so a connection opened in the millisecond of a failure counts as before it;
+            // and for a minute after a failure a SQLite connection shows it can write (a write rolled back at once)
+            // before it is handed out, which no clock race can fool.
+            .before_acquire(move |conn, meta| {
                 Box::pin(async move {
+                    if sqlx::Connection::is_in_transaction(conn) {
+                        return Ok(false);
+                    }
+                    let failed_ms = STORAGE_FAILURE_AT_MS.load(std::sync::atomic::Ordering::Acquire);
+                    if failed_ms == 0 {
+                        return Ok(true);
+                    }
                     let opened_ms = now_ms() - meta.age.as_millis() as i64;
-                    Ok(!sqlx::Connection::is_in_transaction(conn)
-                        && opened_ms > STORAGE_FAILURE_AT_MS.load(std::sync::atomic::Ordering::Acquire))
+                    if opened_ms <= failed_ms + 1 {
+                        return Ok(false);
+                    }
+                    if backend == Backend::Sqlite
+                        && now_ms() - failed_ms < 60_000
+                        && let Err(e) = conn
+                            .execute("BEGIN; CREATE TABLE main.dsrl_write_check (x INTEGER); ROLLBACK;")
+                            .await
+                    {
+                        note_failure(&e);
+                        let _ = conn.execute("ROLLBACK").await;
+                        return Ok(false);
+                    }
+                    Ok(true)
                 })
             })
             .connect(url)

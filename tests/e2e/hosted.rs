@@ -79,7 +79,9 @@ fn the_starters_are_hosted_under_their_committed_versions(env: &Env) {
                 .json()
                 .await
                 .unwrap();
-            let version = manifest["version"].as_str().unwrap_or_else(|| panic!("{id}: {manifest}"));
+            let version = manifest["version"]
+                .as_str()
+                .unwrap_or_else(|| panic!("{id}: {manifest}"));
             csv.push_str(&format!("{id},{version},{}\n", manifest["episodes"]));
         }
         csv
@@ -90,7 +92,8 @@ fn the_starters_are_hosted_under_their_committed_versions(env: &Env) {
     }
     let committed = std::fs::read_to_string(&path).unwrap_or_default();
     assert_eq!(
-        committed, served,
+        committed,
+        served,
         "the default server's starter versions differ from {} (DSRL_UPDATE_STARTER_VERSIONS=1 rewrites it)",
         path.display()
     );

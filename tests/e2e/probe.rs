@@ -450,10 +450,19 @@ fn derived_work_past_its_limit_waits_or_is_answered_503_and_memory_stays_bounded
     let transitions: u64 = made.episode_index.iter().map(|e| u64::from(e.length)).sum();
     let row_bytes = 4 * (2 * u64::from(t.obs_dim) + u64::from(t.act_dim) + 2) + 2 + 8;
     let dataset_bytes = transitions * row_bytes;
+    // Beside the rows, a fixed allowance for what any burst of requests costs whatever the data (the allocator's
+    // per-thread arenas and the blocking threads' stacks: measured up to ~70 MB when the machine is busy with other
+    // tests): holding the six filtered outputs (about six times the rows) still fails.
+    const FIXED_ALLOWANCE: u64 = 64 << 20;
     let grew = peak_resident_bytes(env.server.pid()).saturating_sub(before);
     assert!(
-        grew < dataset_bytes,
-        "the server's peak resident memory grew by {grew} bytes, more than the dataset's rows ({dataset_bytes})"
+        grew < dataset_bytes + FIXED_ALLOWANCE,
+        "the server's peak resident memory grew by {grew} bytes, more than the dataset's rows ({dataset_bytes}) and \
+         {FIXED_ALLOWANCE} bytes"
+    );
+    assert!(
+        6 * dataset_bytes > dataset_bytes + FIXED_ALLOWANCE,
+        "the dataset is too small for the bound to mean much"
     );
 }
 

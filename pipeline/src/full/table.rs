@@ -68,7 +68,49 @@ fn hours(seconds: f64) -> String {
     format!("{:.1} h", seconds / 3600.0)
 }
 
-/// The sections (`full-summary`, `full-builds`, `full-gaps`) and the text of `data/full_build_gaps.csv`.
+/// Where each committed build's time went (the build records' `time_split`, seconds summed over the build's runs):
+/// the simulators stepping, the policy choosing actions, the expert's updates, writing the dataset; and what one
+/// million environment steps cost in wall and CPU time, per build, on the CPU it ran on. Builds recorded before the
+/// split was measured are listed without it.
+fn time_split(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> String {
+    let mut out = String::from(
+        "| task | family | budget | wall | CPU | wall per 1M steps | simulators | acting | updates | writing | machine |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for task in catalog.tasks() {
+        let Some(c) = committed.get(task.id.as_str()) else {
+            continue;
+        };
+        let r = &c.record;
+        let steps = r.budget.get("budget_steps").and_then(|s| s.as_f64());
+        let part = |key: &str| r.time_split.get(key).and_then(|v| v.as_f64());
+        let parts = ["simulator_seconds", "acting_seconds", "update_seconds", "write_seconds"].map(part);
+        let measured: f64 = parts.iter().flatten().sum();
+        let cell = |x: Option<f64>| match x {
+            Some(x) if measured > 0.0 => format!("{x:.0} s ({:.0}%)", 100.0 * x / measured),
+            _ => "not recorded".to_owned(),
+        };
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            task.id,
+            task.family.suite(),
+            steps.map_or("–".to_owned(), |s| format!("{:.1}M steps", s / 1e6)),
+            hours(r.compute.wall_seconds),
+            hours(r.compute.cpu_seconds),
+            steps.map_or("–".to_owned(), |s| hours(r.compute.wall_seconds / (s / 1e6))),
+            cell(parts[0]),
+            cell(parts[1]),
+            cell(parts[2]),
+            cell(parts[3]),
+            r.compute.cpu,
+        );
+    }
+    out
+}
+
+/// The sections (`full-summary`, `full-builds`, `full-gaps`, `full-time-split`) and the text of
+/// `data/full_build_gaps.csv`.
 pub fn sections(
     catalog: &Catalog,
     root: &Path,
@@ -188,6 +230,7 @@ pub fn sections(
         ("full-summary".to_owned(), summary),
         ("full-builds".to_owned(), builds),
         ("full-gaps".to_owned(), gaps),
+        ("full-time-split".to_owned(), time_split(catalog, committed)),
     ]);
     Ok((sections, csv))
 }
