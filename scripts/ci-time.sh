@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # How long CI takes, measured as CI runs it: `.ci/run` on a fresh clone of HEAD with a cold target folder, every
 # line of its output stamped with the seconds since start. Writes tests/CI_TIME.md: the total, the phases (system
-# packages and Python environments, clippy, the test build, the tests outside the end-to-end binary, the end-to-end
+# packages and Python environments, the test build with clippy's lints, the tests outside the end-to-end binary, the end-to-end
 # binary) and the end-to-end tests that finished latest after the one before (with two test threads, an
 # approximation of each test's time), with the commit, machine and date. Crates and pip packages already downloaded
 # on this machine are not downloaded again, so a new machine takes a few minutes more.
@@ -29,9 +29,9 @@ lines = [(int(t), rest) for t, *r in lines for rest in (r or [""])]
 def first(pattern, after=0):
     return next((t for t, l in lines if t >= after and re.search(pattern, l)), None)
 finished = [t for t, l in lines if re.search(r"Finished `\w+` profile", l)]
-clippy_start = first(r"Checking|Compiling")
-clippy_end = finished[0] if finished else None
-build_end = finished[1] if len(finished) > 1 else None
+# One build before the tests: the test build, clippy's lints inside it (scripts/test.sh).
+build_start = first(r"Checking|Compiling")
+build_end = finished[0] if finished else None
 # By line, not by second: the binaries before the end-to-end one report in the same second it starts.
 e2e_line = next((i for i, (t, l) in enumerate(lines) if re.search(r"Running e2e/main\.rs", l)), None)
 e2e_start = None if e2e_line is None else lines[e2e_line][0]
@@ -49,9 +49,8 @@ print(f"Commit {commit}, {date}, {nproc} cores, {cpu}; exit status {status}. **T
 if failed:
     print("Failed: " + ", ".join(failed) + " (cargo stops after the first failing test binary).\n")
 print("| phase | minutes |\n|---|---|")
-print(f"| system packages, fmt, until the first crate compiles | {m(clippy_start)} |")
-print(f"| clippy (the Python environments install beside it) | {m(None if clippy_end is None or clippy_start is None else clippy_end - clippy_start)} |")
-print(f"| the test build | {m(None if build_end is None or clippy_end is None else build_end - clippy_end)} |")
+print(f"| system packages, fmt, until the first crate compiles | {m(build_start)} |")
+print(f"| the test build with clippy's lints (the Python environments install beside it) | {m(None if build_end is None or build_start is None else build_end - build_start)} |")
 last_result = max((t for t, l in lines if l.startswith("test result")), default=None)
 outside = None
 if None not in (last_result, build_end, e2e_start, e2e_end):
