@@ -16,6 +16,8 @@ pub mod hosted;
 pub mod identities;
 pub mod import_dsrl;
 pub mod recipe;
+#[cfg(test)]
+mod typed_numbers;
 
 use std::path::Path;
 
