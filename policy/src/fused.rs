@@ -429,11 +429,27 @@ impl CustomOp1 for CausalSoftmax {
 ///   evaluator, which acts on the CPU, still refuses non-finite actions);
 /// - dropout: a product with the mask, scaled, uploaded as a tensor;
 /// - layer norm: mean, centred variance, `sqrt(var + eps)`, then weight and bias;
-/// - causal softmax: a `−∞` mask above the diagonal added, then [`crate::layers::softmax`].
+/// - causal softmax: a `−∞` mask above the diagonal added, then [`composed::softmax`].
 pub mod composed {
     use candle_core::Tensor;
 
     use super::{CResult, msg};
+
+    /// Softmax along `dim`, written with primitive operations so that candle's autograd differentiates it (candle-nn's
+    /// fused `softmax_last_dim` has no backward pass). The maximum is subtracted for range and detached: softmax does
+    /// not change when a constant is subtracted, so neither does its gradient.
+    pub fn softmax(x: &Tensor, dim: usize) -> CResult<Tensor> {
+        let shifted = x.broadcast_sub(&x.max_keepdim(dim)?.detach())?;
+        let exp = shifted.exp()?;
+        exp.broadcast_div(&exp.sum_keepdim(dim)?)
+    }
+
+    /// `log(softmax(x))` along `dim`, as `x − max − log Σ exp(x − max)` (finite where softmax underflows).
+    pub fn log_softmax(x: &Tensor, dim: usize) -> CResult<Tensor> {
+        let shifted = x.broadcast_sub(&x.max_keepdim(dim)?.detach())?;
+        let log_sum = shifted.exp()?.sum_keepdim(dim)?.log()?;
+        shifted.broadcast_sub(&log_sum)
+    }
 
     pub fn bias_add(y: &Tensor, bias: &Tensor) -> CResult<Tensor> {
         super::columns(y.shape(), "bias-add", bias.elem_count())?;
@@ -476,8 +492,7 @@ pub mod composed {
             .flat_map(|i| (0..l).map(move |j| if j <= i { 0.0 } else { f32::NEG_INFINITY }))
             .collect();
         let mask = Tensor::from_vec(mask, (l, l), scores.device())?;
-        crate::layers::softmax(&scores.broadcast_add(&mask)?, dims.len() - 1)
-            .map_err(|e| msg(format!("causal-softmax: {e}")))
+        softmax(&scores.broadcast_add(&mask)?, dims.len() - 1).map_err(|e| msg(format!("causal-softmax: {e}")))
     }
 }
 

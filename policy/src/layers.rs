@@ -10,21 +10,9 @@ use crate::mlp::Mlp;
 use crate::noise::Noise;
 use crate::{PolicyError, Result};
 
-/// Softmax along `dim`, written with primitive operations so that candle's autograd differentiates it (candle-nn's
-/// fused `softmax_last_dim` has no backward pass). The maximum is subtracted for range and detached: softmax does
-/// not change when a constant is subtracted, so neither does its gradient.
-pub fn softmax(x: &Tensor, dim: usize) -> Result<Tensor> {
-    let shifted = x.broadcast_sub(&x.max_keepdim(dim)?.detach())?;
-    let exp = shifted.exp()?;
-    Ok(exp.broadcast_div(&exp.sum_keepdim(dim)?)?)
-}
-
-/// `log(softmax(x))` along `dim`, as `x − max − log Σ exp(x − max)` (finite where softmax underflows).
-pub fn log_softmax(x: &Tensor, dim: usize) -> Result<Tensor> {
-    let shifted = x.broadcast_sub(&x.max_keepdim(dim)?.detach())?;
-    let log_sum = shifted.exp()?.sum_keepdim(dim)?.log()?;
-    Ok(shifted.broadcast_sub(&log_sum)?)
-}
+// Softmax and its log live with the composed operations (`fused::composed`), which need them and which this
+// module's layers call: one direction between the two modules.
+pub use crate::fused::composed::{log_softmax, softmax};
 
 /// `nn.Linear`: `x · Wᵀ + b` over the last dimension of `x` (any leading dimensions).
 pub struct Linear {
