@@ -2,7 +2,7 @@
 //! `bench/` scripts), where a script or a test holds them to their data; a number typed into the prose drifts from
 //! them unseen. This finds every number with a unit (a share, a duration, a size, a ratio, a rate) outside the
 //! generated blocks, per document section, and `docs/typed-numbers.csv` lists each section that has any, with how
-//! many and why they are typed (a limit the code sets, a past run under History, a figure still to be generated): a
+//! many and why they are typed (a limit the code sets, a figure still to be generated): a
 //! section whose count changes fails the test until its line is reviewed. Code spans and blocks are left out.
 
 use std::collections::BTreeMap;
