@@ -55,7 +55,7 @@ pub struct Interval {
 pub fn iqm_with_interval(values: &[f64], resamples: u32, confidence: f64, seed: u64) -> Option<Interval> {
     let estimate = interquartile_mean(values)?;
     let mut random = PyRandom::seed(seed);
-    let mut draws: Vec<f64> = (0..resamples.max(1))
+    let draws: Vec<f64> = (0..resamples.max(1))
         .map(|_| {
             let sample: Vec<f64> = (0..values.len())
                 .map(|_| values[random.randbelow(values.len())])
@@ -63,15 +63,7 @@ pub fn iqm_with_interval(values: &[f64], resamples: u32, confidence: f64, seed: 
             interquartile_mean(&sample).expect("non-empty")
         })
         .collect();
-    draws.sort_by(f64::total_cmp);
-    Some(Interval {
-        estimate,
-        low: quantile(&draws, (1.0 - confidence) / 2.0),
-        high: quantile(&draws, (1.0 + confidence) / 2.0),
-        confidence,
-        resamples: resamples.max(1),
-        seed,
-    })
+    Some(percentile_interval(estimate, draws, confidence, resamples.max(1), seed))
 }
 
 /// The interquartile mean over tasks of each task's mean over its training seeds (`per_task`, one value per seed),
@@ -84,7 +76,7 @@ pub fn iqm_over_seeds_with_interval(per_task: &[Vec<f64>], resamples: u32, confi
     let estimate = interquartile_mean(&means).unwrap_or(f64::NAN);
     let mut random = PyRandom::seed(seed);
     let resamples = resamples.max(1);
-    let mut draws: Vec<f64> = (0..resamples)
+    let draws: Vec<f64> = (0..resamples)
         .map(|_| {
             let sample: Vec<f64> = (0..per_task.len())
                 .map(|_| {
@@ -99,15 +91,7 @@ pub fn iqm_over_seeds_with_interval(per_task: &[Vec<f64>], resamples: u32, confi
             interquartile_mean(&sample).unwrap_or(f64::NAN)
         })
         .collect();
-    draws.sort_by(f64::total_cmp);
-    Interval {
-        estimate,
-        low: quantile(&draws, (1.0 - confidence) / 2.0),
-        high: quantile(&draws, (1.0 + confidence) / 2.0),
-        confidence,
-        resamples,
-        seed,
-    }
+    percentile_interval(estimate, draws, confidence, resamples, seed)
 }
 
 /// One threshold's episodes: their count, mean returns and normalized score.
@@ -190,17 +174,7 @@ pub fn entry_interval(
         rewards.push(s.reward);
         costs.push(s.cost);
     }
-    let interval = |estimate: f64, mut draws: Vec<f64>| {
-        draws.sort_by(f64::total_cmp);
-        Interval {
-            estimate,
-            low: quantile(&draws, (1.0 - confidence) / 2.0),
-            high: quantile(&draws, (1.0 + confidence) / 2.0),
-            confidence,
-            resamples,
-            seed,
-        }
-    };
+    let interval = |estimate, draws| percentile_interval(estimate, draws, confidence, resamples, seed);
     Some((interval(score.reward, rewards), interval(score.cost, costs)))
 }
 
@@ -261,18 +235,22 @@ pub fn seeds_interval(
         rewards.push(r / n as f64);
         costs.push(c / n as f64);
     }
-    let interval = |estimate: f64, mut draws: Vec<f64>| {
-        draws.sort_by(f64::total_cmp);
-        Interval {
-            estimate,
-            low: quantile(&draws, (1.0 - confidence) / 2.0),
-            high: quantile(&draws, (1.0 + confidence) / 2.0),
-            confidence,
-            resamples,
-            seed,
-        }
-    };
+    let interval = |estimate, draws| percentile_interval(estimate, draws, confidence, resamples, seed);
     Some((interval(reward, rewards), interval(cost, costs)))
+}
+
+/// The interval around `estimate` that `draws` (the bootstrap's statistics) give: their `(1 ± confidence)/2`
+/// quantiles, with how they were drawn.
+fn percentile_interval(estimate: f64, mut draws: Vec<f64>, confidence: f64, resamples: u32, seed: u64) -> Interval {
+    draws.sort_by(f64::total_cmp);
+    Interval {
+        estimate,
+        low: quantile(&draws, (1.0 - confidence) / 2.0),
+        high: quantile(&draws, (1.0 + confidence) / 2.0),
+        confidence,
+        resamples,
+        seed,
+    }
 }
 
 /// The `q` quantile of sorted `draws` with linear interpolation (NumPy's default).

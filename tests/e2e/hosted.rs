@@ -65,27 +65,15 @@ fn the_default_server_hosts_every_starter_to_the_bar_and_shows_the_leaderboard_o
 /// the server instead, for a starter rebuilt on purpose.
 fn the_starters_are_hosted_under_their_committed_versions(env: &Env) {
     let catalog = Catalog::embedded().unwrap();
-    let url = env.server.url.clone();
-    let served = block_on(async move {
-        let http = reqwest::Client::new();
-        let mut csv = String::from("task,version,trajectories\n");
-        for task in catalog.tasks() {
-            let id = task.id.as_str();
-            let manifest: serde_json::Value = http
-                .get(format!("{url}/v1/datasets/{id}/versions/starter"))
-                .send()
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
-            let version = manifest["version"]
-                .as_str()
-                .unwrap_or_else(|| panic!("{id}: {manifest}"));
-            csv.push_str(&format!("{id},{version},{}\n", manifest["episodes"]));
-        }
-        csv
-    });
+    let mut served = String::from("task,version,trajectories\n");
+    for task in catalog.tasks() {
+        let id = task.id.as_str();
+        let manifest = crate::get_json(&format!("{}/v1/datasets/{id}/versions/starter", env.server.url));
+        let version = manifest["version"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{id}: {manifest}"));
+        served.push_str(&format!("{id},{version},{}\n", manifest["episodes"]));
+    }
     let path = dsrl_e2e::repo_root().join(dsrl_pipeline::identities::STARTER_VERSIONS);
     if std::env::var_os("DSRL_UPDATE_STARTER_VERSIONS").is_some() {
         std::fs::write(&path, &served).unwrap();
