@@ -642,11 +642,9 @@ impl Leaderboard {
         })
     }
 
-    /// Whether a running job's last heartbeat is older than two heartbeat intervals (a third of the lease each):
-    /// its evaluator has probably died, and the job will go back to the queue when the lease lapses.
+    /// Whether a running job's evaluator went silent (`heartbeat_stale`, now).
     fn heartbeat_stale(&self, heartbeat_ms: Option<i64>) -> bool {
-        let interval_ms = (self.config.lease_seconds.max(1) * 1000 / 3) as i64;
-        heartbeat_ms.is_none_or(|beat| queue::now_ms() - beat > 2 * interval_ms)
+        heartbeat_stale(self.config.lease_seconds, heartbeat_ms, queue::now_ms())
     }
 
     /// Where a queued job stands: its position in the claim order, the jobs ahead, and when it should start and
@@ -1012,6 +1010,14 @@ fn parse_record(json: &str) -> Option<ReferenceRecord> {
         .ok()
 }
 
+/// Whether a running job's last heartbeat (ms since the epoch) is older, at `now_ms`, than two heartbeat intervals
+/// (a third of the lease each): its evaluator has probably died, and the job goes back to the queue when the lease
+/// lapses. A job with no heartbeat yet is stale too: an evaluator beats as soon as it claims.
+fn heartbeat_stale(lease_seconds: u64, heartbeat_ms: Option<i64>, now_ms: i64) -> bool {
+    let interval_ms = (lease_seconds.max(1) * 1000 / 3) as i64;
+    heartbeat_ms.is_none_or(|beat| now_ms - beat > 2 * interval_ms)
+}
+
 /// A submission on a task's table with its parsed reference record.
 type Member<'a> = (&'a queue::SubmissionRow, Option<ReferenceRecord>);
 
@@ -1141,6 +1147,22 @@ fn family_table(family: &'static str, tasks: &[TaskTable]) -> FamilyTable {
         tasks: family_tasks,
         entries,
         partial,
+    }
+}
+
+#[cfg(test)]
+mod heartbeat_tests {
+    /// With a 60 s lease an evaluator beats every 20 s: one missed beat is not yet stale, two are.
+    #[test]
+    fn a_heartbeat_is_stale_after_two_missed_intervals() {
+        let now = 1_000_000;
+        assert!(!super::heartbeat_stale(60, Some(now - 20_000), now));
+        assert!(!super::heartbeat_stale(60, Some(now - 40_000), now));
+        assert!(super::heartbeat_stale(60, Some(now - 40_001), now));
+        assert!(super::heartbeat_stale(60, None, now));
+        // A lease of 0 s is read as 1 s: beats every 333 ms, stale after 666 ms.
+        assert!(!super::heartbeat_stale(0, Some(now - 666), now));
+        assert!(super::heartbeat_stale(0, Some(now - 667), now));
     }
 }
 
