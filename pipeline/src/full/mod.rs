@@ -210,11 +210,23 @@ pub fn describe(outcome: &Outcome) -> String {
     line
 }
 
+/// The binary this process runs, for its children: on Linux `/proc/self/exe`, which still names it after a rebuild
+/// replaced the file (the path `current_exe` gives then names nothing, and every later task failed to start with
+/// "No such file or directory"); a child so started runs the parent's own code.
+fn own_binary() -> std::io::Result<std::path::PathBuf> {
+    let running = std::path::Path::new("/proc/self/exe");
+    if running.exists() {
+        Ok(running.to_path_buf())
+    } else {
+        std::env::current_exe()
+    }
+}
+
 /// Runs `dsrl-admin build-task` for `task` and follows its reports on `bar`; its log goes to `<root>/logs/`.
 async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> anyhow::Result<()> {
     let log_path = options.root.join("logs").join(format!("{task}.log"));
     let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path)?;
-    let mut command = tokio::process::Command::new(std::env::current_exe()?);
+    let mut command = tokio::process::Command::new(own_binary()?);
     command
         .arg("build-task")
         .arg("--task")
