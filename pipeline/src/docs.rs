@@ -556,7 +556,8 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
         dsrl_evaluation::protocol::DEFAULT_EPISODES_PER_THRESHOLD,
         dsrl_evaluation::protocol::DEFAULT_ENVS_PER_SESSION,
     );
-    let identities = crate::identities::Identities::read(&catalog, root)?;
+    let committed = crate::full::table::read_committed(&catalog, root)?;
+    let identities = crate::identities::Identities::with_full_builds(&catalog, root, &committed)?;
     let mut all = reference_sections(&catalog, &paper, &entries, &protocol.version, &identities);
     let full_path = root.join(FULL_BUILD_RESULTS);
     let full_entries = match std::fs::read_to_string(&full_path) {
@@ -576,7 +577,6 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
         ),
     );
     let starters = crate::hosted::read_starters(&catalog, &root.join("data/starter"))?;
-    let committed = crate::full::table::read_committed(&catalog, root)?;
     let full: BTreeMap<String, u64> = committed
         .iter()
         .map(|(task, c)| (task.clone(), c.record.trajectories))

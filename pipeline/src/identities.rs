@@ -36,6 +36,15 @@ pub struct Identities {
 impl Identities {
     /// Reads `data/starter/versions.csv` (`task,version,trajectories`) and the full builds' records under `root`.
     pub fn read(catalog: &Catalog, root: &Path) -> anyhow::Result<Identities> {
+        Identities::with_full_builds(catalog, root, &crate::full::table::read_committed(catalog, root)?)
+    }
+
+    /// The same, with the full builds' records already read (`full::table::read_committed`).
+    pub fn with_full_builds(
+        catalog: &Catalog,
+        root: &Path,
+        committed: &std::collections::BTreeMap<String, crate::full::table::Committed>,
+    ) -> anyhow::Result<Identities> {
         let mut identities = Identities::default();
         let path = root.join(STARTER_VERSIONS);
         let text = std::fs::read_to_string(&path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
@@ -50,8 +59,8 @@ impl Identities {
             catalog.get(fields[0])?;
             identities.starters.insert(fields[0].to_owned(), fields[1].to_owned());
         }
-        for (task, committed) in crate::full::table::read_committed(catalog, root)? {
-            identities.full.insert(task, committed.record.version.clone());
+        for (task, build) in committed {
+            identities.full.insert(task.clone(), build.record.version.clone());
         }
         Ok(identities)
     }
