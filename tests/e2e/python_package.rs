@@ -122,6 +122,11 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
         versions.insert(name.into(), serde_json::json!({"task": task, "version": version}));
     }
     let versions = serde_json::Value::Object(versions).to_string();
+    // A file for the upload test, not ingested here: 60 MetaDrive episodes take the server over a second to convert.
+    let upload_task = "OfflineMetadrive-hardmean-v0";
+    let upload_file = env.path("upload.parquet");
+    let made = dsrl_e2e::make_dataset(upload_task, 60, 21, &upload_file);
+    let upload = serde_json::json!({"task": upload_task, "path": upload_file, "version": made.version.as_str()}).to_string();
     let root = dsrl_e2e::repo_root();
     let golden = root.join("suite/tests/it/golden/filters.json");
     let pytest = |python: &Path, cache: &str, select: Option<&str>| {
@@ -141,6 +146,8 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
             .env("DSRL_DATASET_DIR", env.path(cache))
             .env("DSRL_TEST_VERSIONS", &versions)
             .env("DSRL_GOLDEN", &golden)
+            .env("DSRL_ADMIN_TOKEN", env.server.token())
+            .env("DSRL_TEST_UPLOAD", &upload)
             .current_dir(&root);
         run(&mut command, &format!("pytest with {}", python.display()))
     };
@@ -150,7 +157,7 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
         .as_array()
         .unwrap()
         .len();
-    assert_eq!(passed(&out), 7 + golden_cases, "{out}");
+    assert_eq!(passed(&out), 8 + golden_cases, "{out}");
     assert!(!out.contains("skipped"), "{out}");
 
     let numpy2 = root.join(".venv-numpy2/bin/python");

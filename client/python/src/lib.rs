@@ -6,10 +6,11 @@
 
 use std::path::{Path, PathBuf};
 
-use dsrl_client::api::DEFAULT_SERVER;
+use dsrl_client::api::{DEFAULT_SERVER, IngestOptions};
 use dsrl_client::{Cache, Client, ClientError, FetchOptions};
 use dsrl_suite::catalog::Catalog;
 use dsrl_suite::parquet_file::ParquetTransitions;
+use indicatif::{ProgressBar, ProgressStyle};
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
@@ -226,6 +227,51 @@ fn submit(
     block_on(py, async { client.submit(&folder, task, name).await }).map(|v| v.to_string())
 }
 
+/// Uploads a dataset file (Parquet, or DSRL's HDF5) for `task` with the admin token; returns the server's answer
+/// as JSON (`created`, `version`, `moved_tags`, ...). Waits for as long as the server is converting (a paper-size
+/// file takes minutes); an upload of bytes the server already converted, or is converting, is followed, not sent
+/// again. `progress` draws the CLI's bar on stderr.
+#[pyfunction]
+#[pyo3(signature = (task, path, token, server = None, tags = Vec::new(), observation_space = None, license = None,
+    keep_latest = false, progress = true))]
+#[allow(clippy::too_many_arguments)]
+fn ingest(
+    py: Python<'_>,
+    task: &str,
+    path: PathBuf,
+    token: String,
+    server: Option<&str>,
+    tags: Vec<String>,
+    observation_space: Option<String>,
+    license: Option<String>,
+    keep_latest: bool,
+    progress: bool,
+) -> PyResult<String> {
+    let client = client(py, server, Some(token))?;
+    let options = IngestOptions {
+        tags,
+        observation_space,
+        license,
+        provenance_json: None,
+        keep_latest,
+    };
+    let size = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+    let bar = if progress {
+        ProgressBar::new(size)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template("uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let b = bar.clone();
+    let result = block_on(py, async move { client.ingest(task, &path, &options, move |n| b.set_position(n)).await });
+    bar.finish_and_clear();
+    serde_json::to_string(&result?).map_err(|e| PyException::new_err(e.to_string()))
+}
+
 /// A submission's state and scores, as JSON.
 #[pyfunction]
 #[pyo3(signature = (id, server = None))]
@@ -244,6 +290,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(density_presets_json, m)?)?;
     m.add_function(wrap_pyfunction!(fetch, m)?)?;
     m.add_function(wrap_pyfunction!(read_dataset, m)?)?;
+    m.add_function(wrap_pyfunction!(ingest, m)?)?;
     m.add_function(wrap_pyfunction!(submit, m)?)?;
     m.add_function(wrap_pyfunction!(submission, m)?)?;
     Ok(())

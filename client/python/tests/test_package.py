@@ -5,6 +5,8 @@ it in the environment):
     DSRL_DATASET_DIR     an empty cache for this run
     DSRL_TEST_VERSIONS   JSON {golden dataset name: {"task", "version"}}
     DSRL_GOLDEN          suite/tests/it/golden/filters.json: DSRL's own pre_process_data outputs (sha256 per array)
+    DSRL_ADMIN_TOKEN     the server's admin token
+    DSRL_TEST_UPLOAD     JSON {"task", "path", "version"}: a file not yet on the server, whose conversion takes > 1 s
 """
 import hashlib
 import json
@@ -78,6 +80,26 @@ def test_a_bad_filter_raises_with_the_servers_code_and_message():
     with pytest.raises(DsrlError) as e:
         dsrl_client.load_dataset("OfflineNoSuchTask-v0", progress=False)
     assert e.value.status == 404 and e.value.exit_code == 4
+
+
+def test_upload_waits_out_a_conversion_longer_than_the_timeout_and_a_retry_sends_nothing(monkeypatch):
+    upload = json.loads(os.environ["DSRL_TEST_UPLOAD"])
+    with pytest.raises(DsrlError) as e:
+        dsrl_client.upload(upload["path"], task=upload["task"], token="not-the-admin-token", progress=False)
+    assert e.value.status in (401, 403) and e.value.code in ("unauthenticated", "permission_denied"), e.value.code
+    with pytest.raises(ValueError):
+        monkeypatch.delenv("DSRL_ADMIN_TOKEN")
+        dsrl_client.upload(upload["path"], task=upload["task"], progress=False)
+    monkeypatch.undo()
+    # One second for the server's next bytes: the conversion takes longer, and the upload still finishes.
+    monkeypatch.setenv("DSRL_CLIENT_TIMEOUT", "1")
+    done = dsrl_client.upload(upload["path"], task=upload["task"], tags=["full"], keep_latest=True, progress=False)
+    assert done["created"] is True and done["version"]["version"] == upload["version"], done
+    assert "full" in done["version"]["tags"] and "latest" not in done["version"]["tags"], done
+    again = dsrl_client.upload(upload["path"], task=upload["task"], progress=False)
+    assert again["created"] is False and again["version"]["version"] == upload["version"], again
+    data = dsrl_client.load_dataset(upload["task"], "full", progress=False)
+    assert len(data["rewards"]) == again["version"]["transitions"]
 
 
 def test_gym_make_gives_dsrls_env_interface():

@@ -18,9 +18,11 @@ from .export import export_policy
 from .leaderboard import submit
 from .offline_env import OfflineEnv, OfflineEnvWrapper, register_all, wrap_env
 from .simulators import SimulatorMissing
+from .uploads import upload
 
 __all__ = ["DsrlError", "Dataset", "OfflineEnv", "OfflineEnvWrapper", "SimulatorMissing", "StarterDataset",
            "default_cache_dir", "default_server", "export_policy", "fetch", "load_dataset", "read_parquet", "submit",
+           "upload",
            "task", "tasks", "wrap_env"]
 
 register_all()
