@@ -46,7 +46,7 @@ use serde::Serialize;
 
 use self::checkpoints::CheckpointRecord;
 use self::queue::{EpisodeRow, Quotas};
-use self::reference::ReferenceRecord;
+use self::reference::{ReferenceRecord, TrainingData};
 use self::seeds::HeldSeeds;
 use self::users::User;
 use dsrl_evaluation::simulators::SimulatorPool;
@@ -244,8 +244,10 @@ pub struct TaskTable {
     pub earlier_protocol_entries: usize,
     /// The paper's rows for the task (its self-reported numbers; see `Board::paper_label`).
     pub paper: Vec<PaperRow>,
-    /// Our reference entries against the paper's rows, per method.
+    /// Our starter-trained reference entries against the paper's rows, per method.
     pub agreement: Vec<Agreement>,
+    /// The same for our entries trained on the task's full build.
+    pub full_build_agreement: Vec<Agreement>,
 }
 
 /// One entry across the tasks of a family: a user's name for a method, or a reference method with its training
@@ -289,11 +291,15 @@ pub struct Board {
     pub paper_label: &'static str,
     pub tasks: Vec<TaskTable>,
     pub families: Vec<FamilyTable>,
-    /// The share of our reference entries' safe/unsafe verdicts that agree with the paper's, per family and
-    /// overall (every task, whatever the request's task filter), each with what trivial rules would agree on.
+    /// The share of our starter-trained reference entries' safe/unsafe verdicts that agree with the paper's, per
+    /// family and overall (every task, whatever the request's task filter), each with what trivial rules would agree on.
     pub agreement: Vec<AgreementSummary>,
     /// The same per method (`scope` is the method), over every task.
     pub agreement_by_method: Vec<AgreementSummary>,
+    /// `agreement` for the reference entries trained on the full builds, over the cells they cover: never mixed
+    /// with the starter-trained entries' (which `agreement` counts alone).
+    pub full_build_agreement: Vec<AgreementSummary>,
+    pub full_build_agreement_by_method: Vec<AgreementSummary>,
 }
 
 /// A job in the queue as the leaderboard page lists it.
@@ -376,13 +382,20 @@ impl Leaderboard {
         })
     }
 
-    /// Imports the committed reference results (compiled in) when `leaderboard.import_reference_results` is on.
+    /// Imports the committed reference results (compiled in: the starter-trained entries and those trained on the
+    /// full builds) when `leaderboard.import_reference_results` is on.
     pub async fn import_reference_results(&self) -> Result<(), ApiError> {
         if !self.config.import_reference_results {
             return Ok(());
         }
-        let entries = dsrl_suite::reference::read_results(reference::EMBEDDED_RESULTS, &self.catalog)
-            .map_err(ApiError::internal)?;
+        let mut entries = Vec::new();
+        for (dataset, text) in [
+            (TrainingData::Starter, reference::EMBEDDED_RESULTS),
+            (TrainingData::FullBuild, reference::EMBEDDED_FULL_BUILD_RESULTS),
+        ] {
+            let read = dsrl_suite::reference::read_results(text, &self.catalog).map_err(ApiError::internal)?;
+            entries.extend(read.into_iter().map(|e| (dataset, e)));
+        }
         let report = reference::import(self, &entries).await?;
         tracing::info!(
             imported = report.imported,
@@ -796,21 +809,27 @@ impl Leaderboard {
             .iter()
             .partition(|r| r.protocol_version.as_deref() == Some(current));
         // Our reference entries of the current protocol, by method, for the agreement with the paper.
-        let ours: Vec<ScoredEntry> = ranked
-            .iter()
-            .filter_map(|r| {
-                let record = parse_record(r.reference.as_deref()?)?;
-                Some(ScoredEntry {
-                    task: r.task.clone(),
-                    method: record.method,
-                    score: NormalizedScore {
-                        reward: r.normalized_reward?,
-                        cost: r.normalized_cost?,
-                    },
+        // Entries trained on the starters and on the full builds are measured apart: the data differ, and mixing
+        // them would credit one with the other's verdicts.
+        let ours = |dataset: TrainingData| -> Vec<ScoredEntry> {
+            ranked
+                .iter()
+                .filter_map(|r| {
+                    let record = parse_record(r.reference.as_deref()?)?;
+                    (record.dataset == dataset).then_some(())?;
+                    Some(ScoredEntry {
+                        task: r.task.clone(),
+                        method: record.method,
+                        score: NormalizedScore {
+                            reward: r.normalized_reward?,
+                            cost: r.normalized_cost?,
+                        },
+                    })
                 })
-            })
-            .collect();
-        let cells = agreement(&self.catalog, &self.paper, &ours);
+                .collect()
+        };
+        let cells = agreement(&self.catalog, &self.paper, &ours(TrainingData::Starter));
+        let full_build_cells = agreement(&self.catalog, &self.paper, &ours(TrainingData::FullBuild));
         let counts = queue::submission_counts(&self.db).await?;
         let mut tasks: Vec<TaskTable> = Vec::new();
         for t in self.catalog.tasks() {
@@ -861,7 +880,7 @@ impl Leaderboard {
                         })
                         .collect();
                     (
-                        format!("{} (seeds {})", record.method, seeds.join(", ")),
+                        format!("{} (seeds {})", record.label(), seeds.join(", ")),
                         self.seed_intervals(t, ids).await?,
                         SEEDS_AND_EPISODES,
                         runs,
@@ -895,6 +914,11 @@ impl Leaderboard {
                 earlier_protocol_entries: earlier.iter().filter(|r| r.task == t.id.as_str()).count(),
                 paper: self.paper.for_task(t.id.as_str()).into_iter().cloned().collect(),
                 agreement: cells.iter().filter(|c| c.task == t.id.as_str()).cloned().collect(),
+                full_build_agreement: full_build_cells
+                    .iter()
+                    .filter(|c| c.task == t.id.as_str())
+                    .cloned()
+                    .collect(),
             });
         }
         let families = ["bullet", "safety-gymnasium", "metadrive"]
@@ -909,6 +933,8 @@ impl Leaderboard {
             families,
             agreement: summarize(&self.catalog, &cells),
             agreement_by_method: summarize_by_method(&cells),
+            full_build_agreement: summarize(&self.catalog, &full_build_cells),
+            full_build_agreement_by_method: summarize_by_method(&full_build_cells),
         })
     }
 
@@ -1066,7 +1092,7 @@ fn family_table(family: &'static str, tasks: &[TaskTable]) -> FamilyTable {
     for table in tasks.iter().filter(|t| t.family == family) {
         for e in &table.entries {
             let name = match &e.reference {
-                Some(record) => record.method.clone(),
+                Some(record) => record.label(),
                 None => e.name.clone(),
             };
             let key = (e.user.clone(), name);

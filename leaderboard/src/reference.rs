@@ -1,4 +1,5 @@
-//! The reference entries on every server: the committed results file (`data/reference/results.jsonl`, compiled in)
+//! The reference entries on every server: the committed results files (`data/reference/results.jsonl`, the entries
+//! trained on the starters, and `data/reference/full_builds.jsonl`, those trained on the full builds; compiled in)
 //! imported at start-up as finished submissions of the reference account, each with its record (method, seed,
 //! training budget, dataset version, code commit, how it was scored) and every episode. Importing, not re-scoring:
 //! a fresh server shows them at once, the larger checkpoints need not be in the repository, and each entry keeps
@@ -20,6 +21,31 @@ use super::users;
 /// leaderboard and what links it): what a fresh server imports.
 pub const EMBEDDED_RESULTS: &str = include_str!("../../data/reference/results.jsonl");
 
+/// `data/reference/full_builds.jsonl`, compiled in: the entries trained on the tasks' full builds. They are shown
+/// beside the starter-trained ones, never mixed with them: apart in the tables, and in an agreement of their own.
+pub const EMBEDDED_FULL_BUILD_RESULTS: &str = include_str!("../../data/reference/full_builds.jsonl");
+
+/// Which kind of hosted dataset a reference entry was trained on (its `dataset_version` names the exact bytes).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainingData {
+    /// The committed starter (`data/starters/`): a cut of the full build, what a default server hosts. Records
+    /// written before the full builds existed carry no kind, and were all trained on starters.
+    #[default]
+    Starter,
+    /// The task's paper-size full build (`data/full/`).
+    FullBuild,
+}
+
+impl TrainingData {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TrainingData::Starter => "starter",
+            TrainingData::FullBuild => "full build",
+        }
+    }
+}
+
 /// What a reference entry's row records beside the scores (the `reference` column, JSON), as the tables show it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ReferenceRecord {
@@ -28,11 +54,30 @@ pub struct ReferenceRecord {
     pub training: TrainingBudget,
     pub code_commit: String,
     pub scoring: ScoringRecord,
+    /// The kind of dataset it was trained on.
+    #[serde(default)]
+    pub dataset: TrainingData,
 }
 
-/// An entry's name on the tables: the method and its training seed.
-pub fn entry_name(method: &str, seed: u64) -> String {
-    format!("{method} (seed {seed})")
+impl ReferenceRecord {
+    /// The entry's method as the tables name it: the method alone for a starter-trained entry, marked for one
+    /// trained on a full build, so that the two never share a row or an aggregate.
+    pub fn label(&self) -> String {
+        method_label(&self.method, self.dataset)
+    }
+}
+
+/// A method's name on the tables for entries trained on `dataset`.
+pub fn method_label(method: &str, dataset: TrainingData) -> String {
+    match dataset {
+        TrainingData::Starter => method.to_owned(),
+        TrainingData::FullBuild => format!("{method} [full build]"),
+    }
+}
+
+/// An entry's name on the tables: the method (marked when trained on a full build) and its training seed.
+pub fn entry_name(method: &str, seed: u64, dataset: TrainingData) -> String {
+    format!("{} (seed {seed})", method_label(method, dataset))
 }
 
 /// What an import did.
@@ -47,12 +92,16 @@ pub struct ImportReport {
     pub withdrawn: u64,
 }
 
-/// Imports `entries` (checked against the catalog by `read_results`).
-pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Result<ImportReport, ApiError> {
+/// Imports `entries`, each with the kind of dataset it was trained on (checked against the catalog by
+/// `read_results`); the reference account's entries not among them are withdrawn.
+pub async fn import(
+    leaderboard: &Leaderboard,
+    entries: &[(TrainingData, ReferenceEntry)],
+) -> Result<ImportReport, ApiError> {
     let db = &leaderboard.db;
     let user = users::reference_user(db).await?;
     let mut report = ImportReport::default();
-    for entry in entries {
+    for (dataset, entry) in entries {
         let task = leaderboard.task(&entry.task)?;
         let Some(score) = entry.score(task) else { continue };
         let existing = sqlx::query(sqlx::AssertSqlSafe(format!(
@@ -70,6 +119,7 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
             training: entry.training.clone(),
             code_commit: entry.code_commit.clone(),
             scoring: entry.scoring.clone(),
+            dataset: *dataset,
         };
         let record = serde_json::to_string(&record).map_err(ApiError::internal)?;
         if let Some(row) = existing {
@@ -106,7 +156,7 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
             &Imported {
                 user_id: user,
                 task: &entry.task,
-                name: &entry_name(&entry.method, entry.seed),
+                name: &entry_name(&entry.method, entry.seed, *dataset),
                 checkpoint_sha256: &entry.checkpoint_sha256,
                 started_at: &entry.scoring.started_at,
                 finished_at: &entry.scoring.finished_at,
@@ -131,7 +181,7 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
     }
     let keep: Vec<(String, String)> = entries
         .iter()
-        .map(|e| (e.task.clone(), e.checkpoint_sha256.clone()))
+        .map(|(_, e)| (e.task.clone(), e.checkpoint_sha256.clone()))
         .collect();
     report.withdrawn = queue::withdraw_except(
         db,
@@ -141,4 +191,32 @@ pub async fn import(leaderboard: &Leaderboard, entries: &[ReferenceEntry]) -> Re
     )
     .await?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_record_without_a_dataset_kind_is_a_starters_and_the_kinds_never_share_a_name() {
+        // A record as servers stored it before the kinds existed: the committed file's first entry, no `dataset`.
+        let entry: serde_json::Value = serde_json::from_str(EMBEDDED_RESULTS.lines().next().unwrap()).unwrap();
+        let record = serde_json::json!({
+            "method": "BC-Safe",
+            "seed": 1,
+            "training": entry["training"],
+            "code_commit": entry["code_commit"],
+            "scoring": entry["scoring"],
+        });
+        let mut parsed: ReferenceRecord = serde_json::from_value(record).unwrap();
+        assert_eq!(parsed.dataset, TrainingData::Starter);
+        assert_eq!(parsed.label(), "BC-Safe");
+        parsed.dataset = TrainingData::FullBuild;
+        assert_eq!(parsed.label(), "BC-Safe [full build]");
+        assert_eq!(serde_json::to_value(&parsed).unwrap()["dataset"], "full_build");
+        assert_ne!(
+            entry_name("BC-Safe", 1, TrainingData::Starter),
+            entry_name("BC-Safe", 1, TrainingData::FullBuild)
+        );
+    }
 }

@@ -2,9 +2,10 @@
 //! imported as ranked reference entries that carry the protocol version they were scored under, and the agreement
 //! with the paper equal to what the results file gives.
 
+use dsrl_leaderboard::reference::{TrainingData, entry_name, method_label};
 use dsrl_suite::Catalog;
 use dsrl_suite::paper::{PAPER_METHODS, PaperResults};
-use dsrl_suite::reference::{agreement, read_results, scored_entries, summarize};
+use dsrl_suite::reference::{ReferenceEntry, agreement, read_results, scored_entries, summarize};
 
 use crate::{Env, get_json};
 
@@ -16,13 +17,28 @@ use crate::{Env, get_json};
 pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_protocol(env: &mut Env) {
     let catalog = Catalog::embedded().unwrap();
     let paper = PaperResults::embedded(&catalog).unwrap();
-    let file = dsrl_e2e::repo_root().join("data/reference/results.jsonl");
-    let entries = read_results(&std::fs::read_to_string(&file).unwrap(), &catalog).unwrap();
-    let protocol = dsrl_evaluation::protocol::current(&catalog, 20, 5);
-    let current: Vec<_> = entries
+    let read = |path: &str| {
+        let file = dsrl_e2e::repo_root().join(path);
+        read_results(&std::fs::read_to_string(&file).unwrap(), &catalog).unwrap()
+    };
+    // The starter-trained entries and those trained on the full builds, each with its kind.
+    let starter_entries = read("data/reference/results.jsonl");
+    let full_build_entries = read("data/reference/full_builds.jsonl");
+    let entries: Vec<(TrainingData, &ReferenceEntry)> = starter_entries
         .iter()
-        .filter(|e| e.protocol_version == protocol.version)
+        .map(|e| (TrainingData::Starter, e))
+        .chain(full_build_entries.iter().map(|e| (TrainingData::FullBuild, e)))
         .collect();
+    let protocol = dsrl_evaluation::protocol::current(&catalog, 20, 5);
+    let current: Vec<(TrainingData, &ReferenceEntry)> = entries
+        .iter()
+        .copied()
+        .filter(|(_, e)| e.protocol_version == protocol.version)
+        .collect();
+    assert!(
+        current.iter().any(|(kind, _)| *kind == TrainingData::FullBuild),
+        "a fresh server shows entries trained on the full builds"
+    );
     assert!(
         !current.is_empty(),
         "a fresh server shows reference entries of protocol {}",
@@ -57,25 +73,27 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             .filter(|e| !e["reference"].is_null())
             .collect();
         // Tasks the reference sweep has not reached yet have none (data/reference/README.md counts them).
-        let expected: Vec<_> = current.iter().filter(|e| e.task == id).collect();
-        let mut groups: Vec<Vec<&&dsrl_suite::reference::ReferenceEntry>> = Vec::new();
-        for e in &expected {
-            let same = |o: &&&dsrl_suite::reference::ReferenceEntry| {
+        // Starter-trained and full-build entries of a method are apart: their datasets differ.
+        let expected: Vec<_> = current.iter().filter(|(_, e)| e.task == id).collect();
+        let mut groups: Vec<(TrainingData, Vec<&ReferenceEntry>)> = Vec::new();
+        for (kind, e) in expected {
+            let same = |o: &ReferenceEntry| {
                 o.method == e.method
                     && o.training.steps == e.training.steps
                     && o.training.batch_size == e.training.batch_size
                     && o.dataset_version == e.dataset_version
             };
-            match groups.iter_mut().find(|g| same(&g[0])) {
-                Some(g) => g.push(e),
-                None => groups.push(vec![e]),
+            match groups.iter_mut().find(|(k, g)| k == kind && same(g[0])) {
+                Some((_, g)) => g.push(e),
+                None => groups.push((*kind, vec![e])),
             }
         }
         assert_eq!(listed.len(), groups.len(), "{id}: one row per method's seeds");
-        for group in groups {
+        for (kind, group) in groups {
             let e = group[0];
+            let dataset = serde_json::to_value(kind).unwrap();
             let shown = if group.len() == 1 {
-                let name = dsrl_leaderboard::reference::entry_name(&e.method, e.seed);
+                let name = entry_name(&e.method, e.seed, kind);
                 let shown = listed
                     .iter()
                     .find(|l| l["name"] == name.as_str())
@@ -88,8 +106,16 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             } else {
                 let shown = listed
                     .iter()
-                    .find(|l| l["reference"]["method"] == e.method.as_str())
-                    .unwrap_or_else(|| panic!("{id}: {}'s seeds are not one row", e.method));
+                    .find(|l| l["reference"]["method"] == e.method.as_str() && l["reference"]["dataset"] == dataset)
+                    .unwrap_or_else(|| panic!("{id}: {}'s seeds ({}) are not one row", e.method, kind.as_str()));
+                assert!(
+                    shown["name"]
+                        .as_str()
+                        .unwrap()
+                        .starts_with(&method_label(&e.method, kind)),
+                    "{id}: {}",
+                    shown["name"]
+                );
                 assert_eq!(shown["interval_covers"], "training seeds and episodes");
                 let runs = shown["training_seeds"].as_array().unwrap();
                 assert_eq!(runs.len(), group.len(), "{id} {}", e.method);
@@ -121,6 +147,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             assert_eq!(shown["protocol_version"], protocol.version.as_str());
             assert_eq!(shown["dataset_version"], e.dataset_version.as_str());
             assert_eq!(shown["reference"]["method"], e.method.as_str());
+            assert_eq!(shown["reference"]["dataset"], dataset);
             assert_eq!(shown["reference"]["training"]["steps"], e.training.steps);
             assert!((shown["normalized_reward"].as_f64().unwrap() - score.reward).abs() < 1e-12);
             assert!((shown["normalized_cost"].as_f64().unwrap() - score.cost).abs() < 1e-12);
@@ -131,25 +158,33 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         }
         let earlier = entries
             .iter()
-            .filter(|e| e.task == id && e.protocol_version != protocol.version)
+            .filter(|(_, e)| e.task == id && e.protocol_version != protocol.version)
             .count();
         assert_eq!(table["earlier_protocol_entries"], earlier, "{id}");
     }
 
-    // The agreement figures are what the results file gives.
-    let cells = agreement(&catalog, &paper, &scored_entries(&entries, &catalog, &protocol.version));
-    assert!(!cells.is_empty());
-    assert_eq!(
-        board["agreement"],
-        serde_json::to_value(summarize(&catalog, &cells)).unwrap()
+    // The agreement figures are what the results files give, each file's entries apart from the other's.
+    let cells = agreement(
+        &catalog,
+        &paper,
+        &scored_entries(&starter_entries, &catalog, &protocol.version),
     );
-    assert_eq!(
-        board["agreement_by_method"],
-        serde_json::to_value(dsrl_suite::reference::summarize_by_method(&cells)).unwrap()
+    let full_build_cells = agreement(
+        &catalog,
+        &paper,
+        &scored_entries(&full_build_entries, &catalog, &protocol.version),
     );
-    for table in tables {
-        let task_cells: Vec<_> = cells.iter().filter(|c| c.task == table["task"]).collect();
-        assert_eq!(table["agreement"], serde_json::to_value(&task_cells).unwrap());
+    assert!(!cells.is_empty() && !full_build_cells.is_empty());
+    for (key, cells) in [("agreement", &cells), ("full_build_agreement", &full_build_cells)] {
+        assert_eq!(board[key], serde_json::to_value(summarize(&catalog, cells)).unwrap());
+        assert_eq!(
+            board[format!("{key}_by_method")],
+            serde_json::to_value(dsrl_suite::reference::summarize_by_method(cells)).unwrap()
+        );
+        for table in tables {
+            let task_cells: Vec<_> = cells.iter().filter(|c| c.task == table["task"]).collect();
+            assert_eq!(table[key], serde_json::to_value(&task_cells).unwrap());
+        }
     }
 
     // The pages: every task's paper rows, and the summary.
@@ -167,7 +202,6 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         )),
         "{summary}"
     );
-    assert_eq!(summary.matches("<tr class=\"agrees\">").count(), overall.agreeing);
     // The trivial rules beside the agreement, on both pages, and the per-method table.
     for text in [&page, &summary] {
         assert!(
@@ -179,6 +213,21 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         );
     }
     assert!(summary.contains("<table id=\"agreement-by-method\">"));
+    // The full-build entries' agreement, apart, on both pages.
+    let full = summarize(&catalog, &full_build_cells).pop().unwrap();
+    for text in [&page, &summary] {
+        assert!(text.contains("<table id=\"full-build-agreement\">"));
+        assert!(text.contains(&format!(
+            "<td>{} of {} ({:.0}%)</td>",
+            full.agreeing,
+            full.cells,
+            100.0 * full.share.unwrap()
+        )));
+    }
+    assert_eq!(
+        summary.matches("<tr class=\"agrees\">").count(),
+        overall.agreeing + full.agreeing
+    );
 
     // Family tables rank only entries scored on every task of the family; the others are listed apart.
     for family in board["families"].as_array().unwrap() {
@@ -209,12 +258,11 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         unique.sort();
         unique.dedup();
         assert_eq!(unique.len(), names.len(), "{name}: {names:?}");
-        assert!(
-            names
-                .iter()
-                .all(|n| dsrl_suite::reference::REFERENCE_METHODS.contains(n)),
-            "{names:?}"
-        );
+        let methods: Vec<String> = dsrl_suite::reference::REFERENCE_METHODS
+            .iter()
+            .flat_map(|m| [TrainingData::Starter, TrainingData::FullBuild].map(|kind| method_label(m, kind)))
+            .collect();
+        assert!(names.iter().all(|n| methods.iter().any(|m| m == n)), "{names:?}");
     }
 
     // The pictures, by URL: a task's entries with the paper's rows (hollow squares), a family's aggregates.
@@ -234,16 +282,16 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     // another commit: same digest, same scoring) is brought up to the file's record. Here the server's copy of one
     // record is made an older one, as a server that imported an earlier file would hold.
     // One whose method has a single seed on its task (a row of its own).
-    let (task, e) = current
+    let (task, kind, e) = current
         .iter()
-        .filter(|e| {
+        .filter(|(kind, e)| {
             current
                 .iter()
-                .filter(|o| o.task == e.task && o.method == e.method)
+                .filter(|(k, o)| k == kind && o.task == e.task && o.method == e.method)
                 .count()
                 == 1
         })
-        .map(|e| (catalog.get(&e.task).unwrap(), e))
+        .map(|(kind, e)| (catalog.get(&e.task).unwrap(), *kind, *e))
         .next()
         .unwrap();
     let row = |board: &serde_json::Value| {
@@ -253,7 +301,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             .iter()
             .find(|t| t["task"] == task.id.as_str())
             .unwrap();
-        let name = dsrl_leaderboard::reference::entry_name(&e.method, e.seed);
+        let name = entry_name(&e.method, e.seed, kind);
         table["entries"]
             .as_array()
             .unwrap()
@@ -269,6 +317,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         training: e.training.clone(),
         code_commit: "000000000000-modified".into(),
         scoring: e.scoring.clone(),
+        dataset: kind,
     };
     let db_file = env.server.data_dir.join("dsrl.sqlite3");
     crate::block_on(async move {
@@ -291,9 +340,9 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     assert_eq!(count(&again), count(&board));
     assert_eq!(row(&again)["reference"]["code_commit"], e.code_commit.as_str());
     assert_eq!(row(&again)["submission"], id, "updated in place, not imported again");
-    let groups: std::collections::BTreeSet<(&str, &str, u64)> = current
+    let groups: std::collections::BTreeSet<(&str, &str, u64, &str)> = current
         .iter()
-        .map(|e| (e.task.as_str(), e.method.as_str(), e.training.steps))
+        .map(|(kind, e)| (e.task.as_str(), e.method.as_str(), e.training.steps, kind.as_str()))
         .collect();
     assert_eq!(count(&board), groups.len());
 }

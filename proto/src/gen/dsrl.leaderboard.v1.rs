@@ -146,6 +146,9 @@ pub struct ReferenceRecord {
     pub osrl_batch_size: u32,
     #[prost(string, tag = "10")]
     pub code_commit: ::prost::alloc::string::String,
+    /// The kind of dataset it was trained on: "starter" or "full_build" (its dataset_version names the bytes).
+    #[prost(string, tag = "11")]
+    pub dataset: ::prost::alloc::string::String,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]

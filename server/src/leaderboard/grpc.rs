@@ -5,6 +5,7 @@ use dsrl_proto::leaderboard::v1 as pb;
 use dsrl_proto::leaderboard::v1::leaderboard_service_server::LeaderboardService;
 use tonic::{Request, Response, Status};
 
+use super::reference::{ReferenceRecord, TrainingData};
 use super::{Board, SubmissionView, checkpoints, users};
 use crate::AppState;
 use crate::error::ApiError;
@@ -75,7 +76,7 @@ fn submission(view: SubmissionView, with_episodes: bool) -> pb::Submission {
     }
 }
 
-fn reference(r: crate::leaderboard::reference::ReferenceRecord) -> pb::ReferenceRecord {
+fn reference(r: ReferenceRecord) -> pb::ReferenceRecord {
     pb::ReferenceRecord {
         method: r.method,
         seed: r.seed,
@@ -87,6 +88,11 @@ fn reference(r: crate::leaderboard::reference::ReferenceRecord) -> pb::Reference
         osrl_steps: r.training.osrl_steps,
         osrl_batch_size: r.training.osrl_batch_size as u32,
         code_commit: r.code_commit,
+        dataset: match r.dataset {
+            TrainingData::Starter => "starter",
+            TrainingData::FullBuild => "full_build",
+        }
+        .to_owned(),
     }
 }
 

@@ -7,7 +7,7 @@ use std::fmt::Write;
 
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
-use super::reference::ReferenceRecord;
+use super::reference::{ReferenceRecord, TrainingData, method_label};
 use super::{Board, FamilyEntry, FamilyTable, QueuedJob, SubmissionView, TaskTable, UserSubmission};
 use crate::http::html::{escape, page};
 
@@ -34,10 +34,11 @@ fn budget(record: &ReferenceRecord, seeds: &str) -> String {
         String::new()
     };
     format!(
-        "reference: {} steps{models} at batch {} (1/{:.0} of OSRL's samples), seed {seeds}",
+        "reference: {} steps{models} at batch {} (1/{:.0} of OSRL's samples), seed {seeds}, trained on the {}",
         t.steps,
         t.batch_size,
         1.0 / t.fraction_of_osrl(),
+        record.dataset.as_str(),
     )
 }
 
@@ -172,6 +173,7 @@ pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
         );
     }
     html.push_str("</table>\n");
+    full_build_agreement(&mut html, board);
     html.push_str(
         "<p>The board as data: <a href=\"/v1/leaderboard.csv\">CSV</a>, <a href=\"/v1/leaderboard.parquet\">Parquet\
          </a>, <a href=\"/v1/leaderboard\">JSON</a>.</p>\n",
@@ -418,6 +420,31 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
     }
 }
 
+/// The agreement of the entries trained on the full builds, apart from the starter-trained entries' (the figure
+/// above it): over the cells they cover, with the same trivial rules beside it.
+fn full_build_agreement(html: &mut String, board: &Board) {
+    let Some(overall) = board.full_build_agreement.last().filter(|s| s.cells > 0) else {
+        return;
+    };
+    let _ = write!(
+        html,
+        "<h3>Entries trained on the full builds</h3>\n<p>The same figure for the reference entries trained on the \
+         tasks' paper-size full builds (named \"[full build]\" in the tables), over the {} cells they cover; never \
+         mixed with the starter-trained entries above.</p>\n<table id=\"full-build-agreement\"><tr><th \
+         class=\"name\">family</th>{AGREEMENT_HEADER}</tr>\n",
+        overall.cells
+    );
+    for s in board.full_build_agreement.iter().filter(|s| s.cells > 0) {
+        let _ = writeln!(
+            html,
+            "<tr><td class=\"name\">{}</td>{}</tr>",
+            escape(&s.scope),
+            agreement_cells(s)
+        );
+    }
+    html.push_str("</table>\n");
+}
+
 /// `/leaderboard/agreement`: the fidelity figure. Per family and overall, the share of (task, method) cells whose
 /// safe/unsafe verdict agrees with the paper's, then every cell.
 pub fn render_agreement(board: &Board) -> String {
@@ -449,20 +476,23 @@ pub fn render_agreement(board: &Board) -> String {
          <th>cells</th>{AGREEMENT_HEADER}</tr>\n"
     );
     rows(&mut html, &board.agreement_by_method);
+    html.push_str("</table>\n");
+    full_build_agreement(&mut html, board);
     html.push_str(
-        "</table>\n<table id=\"cells\"><tr><th class=\"name\">task</th><th class=\"name\">method</th><th>seeds</th>\
+        "<table id=\"cells\"><tr><th class=\"name\">task</th><th class=\"name\">method</th><th>seeds</th>\
          <th>reward</th><th>paper</th><th>Δ</th><th>cost</th><th>paper</th><th>Δ</th><th>safe</th><th>paper</th>\
          <th>agrees</th></tr>\n",
     );
     for t in &board.tasks {
-        for a in &t.agreement {
+        let starter = t.agreement.iter().map(|a| (a, TrainingData::Starter));
+        for (a, dataset) in starter.chain(t.full_build_agreement.iter().map(|a| (a, TrainingData::FullBuild))) {
             let _ = writeln!(
                 html,
                 "<tr class=\"{}\"><td class=\"name\"><a href=\"/leaderboard#{task}\">{task}</a></td><td class=\"name\">{}</td>\
                  <td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>\
                  <td>{}</td></tr>",
                 if a.verdict_agrees { "agrees" } else { "differs" },
-                escape(&a.method),
+                escape(&method_label(&a.method, dataset)),
                 a.seeds,
                 number(a.normalized_reward),
                 number(a.paper_normalized_reward),
