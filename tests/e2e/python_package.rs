@@ -126,7 +126,8 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
     let upload_task = "OfflineMetadrive-hardmean-v0";
     let upload_file = env.path("upload.parquet");
     let made = dsrl_e2e::make_dataset(upload_task, 60, 21, &upload_file);
-    let upload = serde_json::json!({"task": upload_task, "path": upload_file, "version": made.version.as_str()}).to_string();
+    let upload =
+        serde_json::json!({"task": upload_task, "path": upload_file, "version": made.version.as_str()}).to_string();
     let root = dsrl_e2e::repo_root();
     let golden = root.join("suite/tests/it/golden/filters.json");
     let pytest = |python: &Path, cache: &str, select: Option<&str>| {

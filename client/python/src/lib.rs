@@ -267,7 +267,9 @@ fn ingest(
             .progress_chars("=> "),
     );
     let b = bar.clone();
-    let result = block_on(py, async move { client.ingest(task, &path, &options, move |n| b.set_position(n)).await });
+    let result = block_on(py, async move {
+        client.ingest(task, &path, &options, move |n| b.set_position(n)).await
+    });
     bar.finish_and_clear();
     serde_json::to_string(&result?).map_err(|e| PyException::new_err(e.to_string()))
 }
