@@ -135,14 +135,18 @@ pub async fn play_episodes_counted(
     Ok(results.into_iter().flatten().collect())
 }
 
-/// One session of up to `envs` environments playing `seeds` in order: environment `i` starts with seed `i`, and
-/// each finished environment takes the next unplayed seed. The policy's rollout is told of every episode start
-/// (its seed seeds the policy's own draws) and of every step's reward and cost.
+/// Up to `envs` environments playing `seeds` in order: environment `i` starts with seed `i`, and each finished
+/// environment takes the next unplayed seed. The policy's rollout is told of every episode start (its seed seeds
+/// the policy's own draws) and of every step's reward and cost.
 ///
-/// The environments form two groups (the first half and the second) whose steps are pipelined: while the worker
-/// steps one group, this side scores the other's last step and computes its next actions, so the simulator does
-/// not wait for the round trip or the policy (BENCHMARKS.md, fixed-policy acting). The answers are handled in the
-/// order the requests were sent, which makes the episodes a function of the seeds and `envs` alone.
+/// The environments form two groups (the first half and the second) whose steps are pipelined: while one group
+/// steps, this side scores the other's last step and computes its next actions, so the simulators do not wait for
+/// the round trip or the policy (BENCHMARKS.md, fixed-policy acting). Each group is a session of its own, so the
+/// pool can place the two halves on different workers: a leaderboard job's three thresholds make six half-sessions,
+/// which two workers share evenly, where three whole sessions left one worker with two of them. Each environment
+/// is its simulator's own (MetaDrive's in a process of its own), so where a group runs does not change its
+/// episodes. The answers are handled in the order the requests were sent (each group has one request in flight
+/// at a time), which makes the episodes a function of the seeds and `envs` alone.
 async fn play_group(
     pool: &SimulatorPool,
     task: &Task,
@@ -157,17 +161,24 @@ async fn play_group(
     for (env, &seed) in seeds[..k].iter().enumerate() {
         rollout.start_episode(env, seed).await?;
     }
-    let mut session = pool
-        .open(Open {
+    // Each group's environments (global numbers 0..k) and, in its session, environment `i` is `i - first[g]`.
+    let groups = split_in_two(k);
+    let first: Vec<u32> = groups.iter().map(|g| g[0]).collect();
+    let opens = groups.iter().map(|g| {
+        pool.open(Open {
             task: task.id.to_string(),
-            num_envs: k as u32,
-            seeds: seeds[..k].to_vec(),
+            num_envs: g.len() as u32,
+            seeds: g.iter().map(|&i| seeds[i as usize]).collect(),
             auto_reset: AutoReset::None as i32,
             controller: None,
         })
-        .await?;
-    let obs_dim = session.spec().obs_dim as usize;
-    let mut obs = session.initial_observations().to_vec();
+    });
+    let mut sessions = futures::future::try_join_all(opens).await?;
+    let obs_dim = sessions[0].spec().obs_dim as usize;
+    let mut obs: Vec<f32> = sessions
+        .iter()
+        .flat_map(|s| s.initial_observations().iter().copied())
+        .collect();
     let mut scores: Vec<EpisodeScore> = seeds
         .iter()
         .map(|&seed| EpisodeScore {
@@ -181,16 +192,17 @@ async fn play_group(
     let mut playing: Vec<usize> = (0..k).collect();
     let mut next = k;
     // Each group's environments still playing, and those it is resetting.
-    let mut active: Vec<Vec<u32>> = split_in_two(k);
+    let mut active: Vec<Vec<u32>> = groups;
     let mut resetting: Vec<Vec<u32>> = vec![Vec::new(); active.len()];
+    let local = |g: usize, slots: &[u32]| -> Vec<u32> { slots.iter().map(|&i| i - first[g]).collect() };
     // The requests in flight, oldest first: (group, is a reset).
     let mut in_flight = std::collections::VecDeque::new();
     for (g, slots) in active.iter().enumerate() {
-        send_actions(&mut session, &mut rollout, slots, &obs, obs_dim).await?;
+        send_actions(&mut sessions[g], &mut rollout, slots, &local(g, slots), &obs, obs_dim).await?;
         in_flight.push_back((g, false));
     }
     while let Some((g, is_reset)) = in_flight.pop_front() {
-        match (session.receive().await?, is_reset) {
+        match (sessions[g].receive().await?, is_reset) {
             (Reply::Step(step), false) => {
                 let mut still = Vec::with_capacity(active[g].len());
                 let mut reset_seeds = Vec::new();
@@ -219,11 +231,12 @@ async fn play_group(
                 }
                 active[g] = still;
                 if !resetting[g].is_empty() {
-                    // The group's next step waits for these observations; the other group keeps the worker busy.
-                    session.send_reset(&resetting[g], &reset_seeds).await?;
+                    // The group's next step waits for these observations; the other group keeps the workers busy.
+                    sessions[g].send_reset(&local(g, &resetting[g]), &reset_seeds).await?;
                     in_flight.push_back((g, true));
                 } else if !active[g].is_empty() {
-                    send_actions(&mut session, &mut rollout, &active[g], &obs, obs_dim).await?;
+                    let slots = local(g, &active[g]);
+                    send_actions(&mut sessions[g], &mut rollout, &active[g], &slots, &obs, obs_dim).await?;
                     in_flight.push_back((g, false));
                 }
             }
@@ -235,26 +248,31 @@ async fn play_group(
                 }
                 active[g].extend(reset);
                 active[g].sort_unstable();
-                send_actions(&mut session, &mut rollout, &active[g], &obs, obs_dim).await?;
+                let slots = local(g, &active[g]);
+                send_actions(&mut sessions[g], &mut rollout, &active[g], &slots, &obs, obs_dim).await?;
                 in_flight.push_back((g, false));
             }
             _ => {
                 return Err(EvaluationError::Internal(format!(
                     "simulator worker {} answered out of order",
-                    session.worker()
+                    sessions[g].worker()
                 )));
             }
         }
     }
-    session.close().await?;
+    for session in sessions {
+        session.close().await?;
+    }
     Ok(scores)
 }
 
-/// The policy's actions for `slots` (from their rows of `obs`), sent as the group's next step.
+/// The policy's actions for environments `slots` (from their rows of `obs`), sent as their group's next step to
+/// its session, where they are `local`.
 async fn send_actions(
     session: &mut PooledSession,
     rollout: &mut Player<'_>,
     slots: &[u32],
+    local: &[u32],
     obs: &[f32],
     obs_dim: usize,
 ) -> Result<(), EvaluationError> {
@@ -263,5 +281,5 @@ async fn send_actions(
         .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
         .collect();
     let actions = rollout.act(slots, &batch).await?;
-    session.send_step(slots, &actions).await
+    session.send_step(local, &actions).await
 }
