@@ -108,7 +108,7 @@ rounded() { printf '%.2f ' "$@"; }
   echo "| sequential in-process Python loop (OSRL-style, 1 env) | $steps_py | $(median "${python_s[@]}") | $(rounded "${python_s[@]}")|"
   echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | $(rounded "${dsrl_s[@]}")|"
   echo
-  python3 -c "p, d = $(median "${python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring faster than the sequential loop): %s, %.2fx the loop\'s speed (median).' % ('met' if d < p else '**not met**', p / d))"
+  python3 -c "p, d = $(median "${python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring at 1.8x the sequential loop or faster): %s, %.2fx the loop\'s speed (median).' % ('met' if p / d >= 1.8 else '**not met**', p / d))"
   echo
   echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loop's with its start and imports;"
   echo "the evaluator's seconds from its log, from claiming the job to storing its episodes):"
