@@ -43,6 +43,9 @@ for _ in $(seq 600); do
   [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(json.load(sys.stdin)["healthy_workers"])')" = 2 ] && break
   sleep 0.2
 done
+# The checkpoint names the dataset version it was trained on, which the server must host: the committed starter.
+DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin ingest --task $task \
+  "$(ls data/starter/$task/*.parquet)" >&2
 export DSRL_TOKEN=$(DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin create-user bench)
 
 # Where the time goes, per round: CPU seconds of each simulator worker, of the server itself and of the policy
