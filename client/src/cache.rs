@@ -23,7 +23,6 @@ use std::time::{Duration, Instant};
 
 use dsrl_suite::Manifest;
 use dsrl_suite::hashing::sha256_reader;
-use dsrl_suite::parquet_file::ParquetTransitions;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -684,12 +683,14 @@ async fn download_hdf5(
 }
 
 /// Writes DSRL's HDF5 layout next to the Parquet file (via `.part` + rename); returns its checksum.
+#[cfg(feature = "hdf5")]
 async fn export_hdf5(parquet: &Path, h5: &Path) -> Result<FileSum, ClientError> {
     let (parquet, h5) = (parquet.to_owned(), h5.to_owned());
     tokio::task::spawn_blocking(move || {
         let part = PathBuf::from(format!("{}.part", h5.display()));
         let file = File::open(&parquet).map_err(ClientError::io(format!("opening {}", parquet.display())))?;
-        let reader = ParquetTransitions::open(file).map_err(|e| ClientError::Conversion(e.to_string()))?;
+        let reader = dsrl_suite::parquet_file::ParquetTransitions::open(file)
+            .map_err(|e| ClientError::Conversion(e.to_string()))?;
         dsrl_suite::hdf5_file::write_dsrl_hdf5(reader, &part).map_err(|e| ClientError::Conversion(e.to_string()))?;
         let (digest, size) = sha256_reader(File::open(&part).map_err(ClientError::io("reading the HDF5 file"))?)
             .map_err(ClientError::io("hashing the HDF5 file"))?;
@@ -704,4 +705,14 @@ async fn export_hdf5(parquet: &Path, h5: &Path) -> Result<FileSum, ClientError> 
     })
     .await
     .map_err(|e| ClientError::Protocol(format!("conversion task: {e}")))?
+}
+
+/// A build without HDF5 (the Python package's wheel) cannot convert: the server must export.
+#[cfg(not(feature = "hdf5"))]
+async fn export_hdf5(_parquet: &Path, _h5: &Path) -> Result<FileSum, ClientError> {
+    Err(ClientError::Conversion(
+        "the server has no HDF5 export (it is older than the `format` option) and this client was built without \
+         HDF5: fetch the Parquet file, or use a dsrl-client CLI built with HDF5"
+            .into(),
+    ))
 }

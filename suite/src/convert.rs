@@ -9,6 +9,7 @@ use std::path::Path;
 use crate::catalog::{ObservationSpace, Task};
 use crate::episode::EpisodeSummary;
 use crate::hashing::HashingWriter;
+#[cfg(feature = "hdf5")]
 use crate::hdf5_file::{Hdf5Error, Hdf5Transitions};
 use crate::ids::VersionId;
 use crate::parquet_file::{DatasetWriter, ParquetTransitions, ReadError, RelabelSource, row_group_rows, target_rows};
@@ -77,6 +78,7 @@ impl ImportError {
             },
         }
     }
+    #[cfg(feature = "hdf5")]
     fn from_hdf5(e: Hdf5Error) -> Self {
         match e {
             Hdf5Error::Value(v) => ImportError::Invalid(v),
@@ -119,6 +121,14 @@ pub fn import_file(
                 out,
             )?
         }
+        #[cfg(not(feature = "hdf5"))]
+        SourceFormat::Hdf5 => {
+            return Err(ImportError::Malformed {
+                format: "HDF5",
+                message: "this build reads no HDF5 (dsrl-suite without its `hdf5` feature)".into(),
+            });
+        }
+        #[cfg(feature = "hdf5")]
         SourceFormat::Hdf5 => {
             let reader = Hdf5Transitions::open(source).map_err(ImportError::from_hdf5)?;
             let dropped = reader.ignored_keys().to_vec();

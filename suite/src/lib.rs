@@ -11,6 +11,7 @@ pub mod croissant;
 pub mod episode;
 pub mod filters;
 pub mod hashing;
+#[cfg(feature = "hdf5")]
 pub mod hdf5_file;
 pub mod ids;
 pub mod leaderboard;

@@ -24,19 +24,36 @@ const GOLDEN_DATASETS: [(&str, &str, usize, u64); 5] = [
     ("drive", "OfflineMetadrive-easydense-v0", 20, 15),
 ];
 
-/// The wheel, built once per test process and unpacked into a scratch `site` folder both tests put on PYTHONPATH.
+/// The wheel, built once per test process and unpacked into a scratch `site` folder the tests put on PYTHONPATH.
 fn installed_wheel() -> &'static Path {
-    static SITE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
-    let (_, site) = SITE.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
-        let site = install_wheel(dir.path());
-        (dir, site)
-    });
-    site
+    &built_wheel().1
 }
 
-/// Builds the wheel in the test's own profile (sharing the workspace's target folder) and unpacks it into `site`.
-fn install_wheel(dir: &Path) -> PathBuf {
+/// The wheel file and the `site` folder it was unpacked into, built once per test process.
+fn built_wheel() -> &'static (PathBuf, PathBuf) {
+    static WHEEL: OnceLock<(tempfile::TempDir, (PathBuf, PathBuf))> = OnceLock::new();
+    let (_, built) = WHEEL.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let built = install_wheel(dir.path());
+        (dir, built)
+    });
+    built
+}
+
+/// The libraries a manylinux wheel's extension may link (the policy's system libraries it needs).
+const SYSTEM_LIBRARIES: [&str; 7] = [
+    "linux-vdso.so.1",
+    "libc.so.6",
+    "libm.so.6",
+    "libgcc_s.so.1",
+    "libpthread.so.0",
+    "libdl.so.2",
+    "ld-linux-x86-64.so.2",
+];
+
+/// Builds the wheel in the test's own profile (sharing the workspace's target folder) and unpacks it into `site`;
+/// returns the wheel file and `site`.
+fn install_wheel(dir: &Path) -> (PathBuf, PathBuf) {
     let root = dsrl_e2e::repo_root();
     let maturin = root.join(".venv/bin/maturin");
     assert!(
@@ -67,10 +84,11 @@ fn install_wheel(dir: &Path) -> PathBuf {
         .map(|e| e.unwrap().path())
         .find(|p| p.extension().is_some_and(|e| e == "whl"))
         .expect("a wheel");
+    let name = wheel.file_name().unwrap().to_str().unwrap().to_owned();
+    assert!(name.contains("-abi3-"), "the wheel targets the stable ABI: {name}");
     assert!(
-        wheel.to_str().unwrap().contains("abi3"),
-        "the wheel targets the stable ABI: {}",
-        wheel.display()
+        name.contains("-manylinux_2_34_"),
+        "maturin checked the symbol versions and tagged the wheel manylinux: {name}"
     );
     let site = dir.join("site");
     let mut install = Command::new(dsrl_e2e::python());
@@ -87,7 +105,22 @@ fn install_wheel(dir: &Path) -> PathBuf {
         .arg(&site)
         .arg(&wheel);
     run(&mut install, "pip install");
-    site
+    // No libhdf5, no libpython, nothing outside the manylinux policy's system libraries.
+    let extension = std::fs::read_dir(site.join("dsrl_client"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_str().unwrap().ends_with(".abi3.so"))
+        .expect("the extension module");
+    let linked = run(Command::new("ldd").arg(&extension), "ldd");
+    for line in linked.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let library = line.split_whitespace().next().unwrap();
+        let library = library.rsplit('/').next().unwrap();
+        assert!(
+            SYSTEM_LIBRARIES.contains(&library),
+            "the extension links {library}, outside the manylinux policy:\n{linked}"
+        );
+    }
+    (wheel, site)
 }
 
 /// The `N passed` count of pytest's summary line.
@@ -205,4 +238,64 @@ fn gym_make_steps_the_same_simulator_the_workers_host() {
     assert_eq!(report["steps"], 25, "{report}");
     assert_eq!(report["same_as_worker_adapter"], true, "{report}");
     assert_eq!(report["truncated_at"], report["horizon"], "{report}");
+}
+
+/// The wheel installs into a fresh virtual environment where no Rust toolchain is on PATH (pip compiles nothing:
+/// the wheel is the package), and the README's drop-in example runs there against a real server. The example's
+/// dependencies (NumPy, gymnasium), which pip would fetch from PyPI, come from the repository's `.venv`.
+#[test]
+fn the_wheel_installs_without_rust_and_runs_the_drop_in_example() {
+    let (wheel, _) = built_wheel();
+    let env = Env::new();
+    let task = "OfflineCarCircle-v0";
+    let file = env.path("car.parquet");
+    let made = dsrl_e2e::make_dataset(task, 30, 5, &file);
+    let version = made.version.to_string();
+    env.cli
+        .run(&["admin", "ingest", "--task", task, file.to_str().unwrap()])
+        .ok();
+    let transitions: u64 = made.episode_index.iter().map(|e| u64::from(e.length)).sum();
+    let fresh = env.path("fresh");
+    run(
+        Command::new(dsrl_e2e::python()).args(["-m", "venv"]).arg(&fresh),
+        "python -m venv",
+    );
+    // Only the interpreter's and the system's folders: cargo and rustc live in ~/.cargo/bin.
+    let path = format!("{}:/usr/bin:/bin", fresh.join("bin").display());
+    let install = run(
+        Command::new(fresh.join("bin/pip"))
+            .args(["install", "--no-index", "--no-deps", "--disable-pip-version-check"])
+            .arg(wheel)
+            .env("PATH", &path),
+        "pip install the wheel",
+    );
+    assert!(!install.contains("Building wheel"), "{install}");
+    let deps = Command::new(dsrl_e2e::python())
+        .args([
+            "-c",
+            "import numpy, os; print(os.path.dirname(os.path.dirname(numpy.__file__)))",
+        ])
+        .output()
+        .unwrap();
+    let deps = String::from_utf8(deps.stdout).unwrap().trim().to_owned();
+    let example = format!(
+        "import shutil, gymnasium as gym\n\
+         assert shutil.which('cargo') is None and shutil.which('rustc') is None\n\
+         import dsrl_client as dsrl\n\
+         env = gym.make('{task}', version='{version}', progress=False)\n\
+         data = env.get_dataset()\n\
+         assert sorted(data) == sorted(['observations', 'next_observations', 'actions', 'rewards', 'costs', \
+         'terminals', 'timeouts']), sorted(data)\n\
+         print(len(data['rewards']))\n"
+    );
+    let out = run(
+        Command::new(fresh.join("bin/python"))
+            .args(["-c", &example])
+            .env("PATH", &path)
+            .env("PYTHONPATH", &deps)
+            .env("DSRL_SERVER", &env.server.url)
+            .env("DSRL_DATASET_DIR", env.path("cache")),
+        "the drop-in example",
+    );
+    assert_eq!(out.trim().parse::<u64>().unwrap(), transitions, "{out}");
 }
