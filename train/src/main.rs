@@ -433,6 +433,71 @@ fn submit(server: &str, dir: &std::path::Path, task: &str, name: &str) -> anyhow
 type MakeLearner =
     dyn Fn(&Demonstrations, f64, usize, u64, Option<usize>, &Device) -> anyhow::Result<Box<dyn ThresholdLearner>>;
 
+/// A per-threshold method's settings as a run sets them: OSRL's defaults (`Default`) with the run's seed, its batch
+/// size when one was given, and its steps where the method's schedule depends on them.
+trait RunSettings: Default {
+    fn for_run(self, seed: u64, batch_size: Option<usize>, steps: u64) -> Self;
+}
+
+impl RunSettings for BcqlSettings {
+    fn for_run(self, seed: u64, batch_size: Option<usize>, steps: u64) -> Self {
+        let batch_size = batch_size.unwrap_or(self.batch_size);
+        BcqlSettings {
+            seed,
+            batch_size,
+            steps,
+            ..self
+        }
+    }
+}
+
+impl RunSettings for BearlSettings {
+    fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
+        let batch_size = batch_size.unwrap_or(self.batch_size);
+        BearlSettings {
+            seed,
+            batch_size,
+            ..self
+        }
+    }
+}
+
+impl RunSettings for CpqSettings {
+    fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
+        let batch_size = batch_size.unwrap_or(self.batch_size);
+        CpqSettings {
+            seed,
+            batch_size,
+            ..self
+        }
+    }
+}
+
+impl RunSettings for CoptidiceSettings {
+    fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
+        let batch_size = batch_size.unwrap_or(self.batch_size);
+        CoptidiceSettings {
+            seed,
+            batch_size,
+            ..self
+        }
+    }
+}
+
+/// The command of a per-threshold method: its learner built by `on_device` from the run's settings, one per
+/// threshold.
+fn per_threshold<S: RunSettings + 'static, L: ThresholdLearner + 'static>(
+    algorithm: &str,
+    data: DataArgs,
+    on_device: fn(S, &Demonstrations, f64, usize, &Device) -> anyhow::Result<L>,
+) -> anyhow::Result<()> {
+    let steps = data.steps;
+    train_per_threshold(algorithm, data, &move |d, kappa, len, seed, batch, device| {
+        let settings = S::default().for_run(seed, batch, steps);
+        Ok(Box::new(on_device(settings, d, kappa, len, device)?))
+    })
+}
+
 /// Trains one model per threshold with `make`, writes `<out>/<algorithm>/threshold-<K>` and optionally submits.
 fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> anyhow::Result<()> {
     let Prepared {
@@ -633,19 +698,7 @@ fn main() -> anyhow::Result<()> {
     }
     let (mode, data) = match command {
         Command::Bc { mode, data } => (mode, data),
-        Command::Bcql { data } => {
-            let steps = data.steps;
-            return train_per_threshold("bcql", data, &move |d, kappa, len, seed, batch, device| {
-                let default = BcqlSettings::default();
-                let settings = BcqlSettings {
-                    steps,
-                    seed,
-                    batch_size: batch.unwrap_or(default.batch_size),
-                    ..default
-                };
-                Ok(Box::new(BcqlLearner::on_device(settings, d, kappa, len, device)?))
-            });
-        }
+        Command::Bcql { data } => return per_threshold("bcql", data, BcqlLearner::on_device),
         Command::Cdt { data } => return train_cdt(data),
         Command::Caps { data } => return train_caps(data),
         Command::Parity { dir } => return dsrl_train::parity::run(&dir),
@@ -676,39 +729,9 @@ fn main() -> anyhow::Result<()> {
             );
             return Ok(());
         }
-        Command::Bearl { data } => {
-            return train_per_threshold("bearl", data, &|d, kappa, len, seed, batch, device| {
-                let default = BearlSettings::default();
-                let settings = BearlSettings {
-                    seed,
-                    batch_size: batch.unwrap_or(default.batch_size),
-                    ..default
-                };
-                Ok(Box::new(BearlLearner::on_device(settings, d, kappa, len, device)?))
-            });
-        }
-        Command::Cpq { data } => {
-            return train_per_threshold("cpq", data, &|d, kappa, len, seed, batch, device| {
-                let default = CpqSettings::default();
-                let settings = CpqSettings {
-                    seed,
-                    batch_size: batch.unwrap_or(default.batch_size),
-                    ..default
-                };
-                Ok(Box::new(CpqLearner::on_device(settings, d, kappa, len, device)?))
-            });
-        }
-        Command::Coptidice { data } => {
-            return train_per_threshold("coptidice", data, &|d, kappa, len, seed, batch, device| {
-                let default = CoptidiceSettings::default();
-                let settings = CoptidiceSettings {
-                    seed,
-                    batch_size: batch.unwrap_or(default.batch_size),
-                    ..default
-                };
-                Ok(Box::new(CoptidiceLearner::on_device(settings, d, kappa, len, device)?))
-            });
-        }
+        Command::Bearl { data } => return per_threshold("bearl", data, BearlLearner::on_device),
+        Command::Cpq { data } => return per_threshold("cpq", data, CpqLearner::on_device),
+        Command::Coptidice { data } => return per_threshold("coptidice", data, CoptidiceLearner::on_device),
     };
     let DataArgs {
         task,
