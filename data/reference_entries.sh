@@ -18,8 +18,8 @@
 # Scoring server: $DSRL_SERVER with a user token in $DSRL_TOKEN (its daily quota must allow the entries), or, when
 # DSRL_SERVER is unset, a private dsrl-server this script starts on the embedded defaults and the committed
 # starters, with its state under <state>/server (its own held-seed secret, kept between runs), reference import
-# off, quotas lifted, --evaluators evaluators, simulator requests allowed $DSRL_REFERENCE_REQUEST_TIMEOUT_S seconds
-# (900) and a job claimed up to 10 times; it is stopped at the end.
+# off, quotas and the evaluation deadline lifted, --evaluators evaluators, simulator requests allowed
+# $DSRL_REFERENCE_REQUEST_TIMEOUT_S seconds (900) and a job claimed up to 10 times; it is stopped at the end.
 #
 # Usage: data/reference_entries.sh [--steps N] [--cdt-steps N] [--caps-steps N] [--bearl-steps N] [--steps-for M=N]...
 #                                  [--batch-size B] [--seeds "0 1 2"] [--jobs J] [--evaluators E] [--methods "..."]
@@ -148,7 +148,10 @@ if [ -z "${DSRL_SERVER:-}" ]; then
   port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
   mkdir -p "$state/server"
   echo "starting a private scoring server on 127.0.0.1:$port (state in $state/server, log $state/server.log)" >&2
+  # No evaluation deadline to speak of (a day): the private server scores our own checkpoints at the lowest
+  # priority, beside other work that can starve it for minutes, and a slow machine is not the checkpoint's fault.
   DSRL__SERVER__DATA_DIR=$state/server DSRL__SERVER__LISTEN=127.0.0.1:$port \
+    DSRL__LEADERBOARD__DEADLINE_FACTOR=1000 DSRL__LEADERBOARD__MAX_EVALUATION_SECONDS=86400 \
     DSRL__LEADERBOARD__IMPORT_REFERENCE_RESULTS=false DSRL__LEADERBOARD__EVALUATORS=$evaluators \
     DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000000 DSRL__LEADERBOARD__CONCURRENT_SUBMISSIONS=1000000 \
     DSRL__LEADERBOARD__MAX_ATTEMPTS=$max_attempts DSRL__SIMULATORS__REQUEST_TIMEOUT_S=$request_timeout \
