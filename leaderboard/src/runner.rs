@@ -28,6 +28,11 @@ enum Outcome {
     Scored(Vec<EpisodeRow>),
     /// The checkpoint cannot be evaluated (it would fail again).
     Failed(String),
+    /// The job ran past its deadline. Not the checkpoint's fault as far as anyone can tell: each of its policy's
+    /// answers came within the per-request limit (or it would have failed for that), so the time went to a
+    /// machine busier than the task's recent scorings. The job fails, and the same checkpoint may be submitted
+    /// again (the submitter's quotas bound how often).
+    PastDeadline(String),
     /// Something outside the checkpoint failed (a simulator worker died, a policy process was killed from
     /// outside): the job goes back to the queue.
     Interrupted(String),
@@ -122,10 +127,10 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, index: usize, owner: String) {
         let outcome = tokio::select! {
             outcome = tokio::time::timeout(deadline, evaluate(&leaderboard, &job, &progress)) => {
                 Some(outcome.unwrap_or_else(|_| {
-                    Outcome::Failed(format!(
+                    Outcome::PastDeadline(format!(
                         "the evaluation ran past its deadline of {} s ({} episodes of {} done; the deadline is \
                          leaderboard.deadline_factor times the task's recent scoring time, at most \
-                         leaderboard.max_evaluation_seconds)",
+                         leaderboard.max_evaluation_seconds); the same checkpoint may be submitted again",
                         deadline.as_secs(),
                         progress.load(Ordering::Relaxed),
                         job.episodes_per_threshold as usize * leaderboard.task(&job.task).map_or(3, |t| t.cost_thresholds.len())
@@ -150,6 +155,10 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, index: usize, owner: String) {
             Some(Outcome::Failed(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation failed");
                 queue::fail(&leaderboard.db, job.id, &owner, &reason, Failure::Checkpoint).await
+            }
+            Some(Outcome::PastDeadline(reason)) => {
+                tracing::warn!(id = job.id, %reason, "evaluation past its deadline");
+                queue::fail(&leaderboard.db, job.id, &owner, &reason, Failure::Infrastructure).await
             }
             Some(Outcome::Interrupted(reason)) => {
                 tracing::warn!(id = job.id, %reason, "evaluation interrupted; the job goes back to the queue");

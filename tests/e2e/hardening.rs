@@ -157,21 +157,28 @@ fn evaluations_are_bounded_in_memory_and_time() {
     let alice = create_user(&env, "alice");
     let task = "OfflinePointGoal1Gymnasium-v0";
     let policy = crate::make_policy(&env.path("mlp"), task, "target-cost-mlp", 1);
-    let run = dsrl_e2e::Run::from(
-        env.cli
-            .command(&["--json", "submit", crate::s(&policy), "--task", task, "--name", "slow"])
-            .env("DSRL_TOKEN", &alice)
-            .output()
-            .unwrap(),
-    )
-    .ok()
-    .json();
+    let submit = || {
+        dsrl_e2e::Run::from(
+            env.cli
+                .command(&["--json", "submit", crate::s(&policy), "--task", task, "--name", "slow"])
+                .env("DSRL_TOKEN", &alice)
+                .output()
+                .unwrap(),
+        )
+        .ok()
+        .json()
+    };
+    let run = submit();
     let done = client(&env, &alice, &["--json", "status", &run["id"].to_string(), "--wait"]).json();
     assert_eq!(done["state"], "failed", "{done}");
     assert!(
         done["reason"].as_str().unwrap().contains("past its deadline of 1 s"),
         "{done}"
     );
+    // A deadline is the machine's time, not the checkpoint's fault: the same checkpoint may be submitted again.
+    assert_eq!(done["failure"], "infrastructure", "{done}");
+    let again = submit();
+    assert_ne!(again["id"], run["id"], "{again}");
 }
 
 /// Sends raw HTTP/1.1 and returns what came back until the answer's body ends with `until` (or the connection

@@ -451,38 +451,18 @@ impl RunSettings for BcqlSettings {
     }
 }
 
-impl RunSettings for BearlSettings {
-    fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
-        let batch_size = batch_size.unwrap_or(self.batch_size);
-        BearlSettings {
-            seed,
-            batch_size,
-            ..self
+/// The methods whose settings a run sets only by seed and batch size.
+macro_rules! seed_and_batch_size {
+    ($($settings:ident),*) => {$(
+        impl RunSettings for $settings {
+            fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
+                let batch_size = batch_size.unwrap_or(self.batch_size);
+                $settings { seed, batch_size, ..self }
+            }
         }
-    }
+    )*};
 }
-
-impl RunSettings for CpqSettings {
-    fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
-        let batch_size = batch_size.unwrap_or(self.batch_size);
-        CpqSettings {
-            seed,
-            batch_size,
-            ..self
-        }
-    }
-}
-
-impl RunSettings for CoptidiceSettings {
-    fn for_run(self, seed: u64, batch_size: Option<usize>, _steps: u64) -> Self {
-        let batch_size = batch_size.unwrap_or(self.batch_size);
-        CoptidiceSettings {
-            seed,
-            batch_size,
-            ..self
-        }
-    }
-}
+seed_and_batch_size!(BearlSettings, CpqSettings, CoptidiceSettings);
 
 /// The command of a per-threshold method: its learner built by `on_device` from the run's settings, one per
 /// threshold.

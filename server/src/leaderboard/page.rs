@@ -164,15 +164,7 @@ pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
          table calls a method safe; calling every method unsafe; calling BC-Safe safe and every other method \
          unsafe.</p>\n<table id=\"agreement\"><tr><th class=\"name\">family</th>{AGREEMENT_HEADER}</tr>\n"
     );
-    for s in &board.agreement {
-        let _ = writeln!(
-            html,
-            "<tr><td class=\"name\">{}</td>{}</tr>",
-            escape(&s.scope),
-            agreement_cells(s)
-        );
-    }
-    html.push_str("</table>\n");
+    scope_rows(&mut html, &board.agreement);
     full_build_agreement(&mut html, board);
     html.push_str(
         "<p>The board as data: <a href=\"/v1/leaderboard.csv\">CSV</a>, <a href=\"/v1/leaderboard.parquet\">Parquet\
@@ -434,7 +426,18 @@ fn full_build_agreement(html: &mut String, board: &Board) {
          class=\"name\">family</th>{AGREEMENT_HEADER}</tr>\n",
         overall.cells
     );
-    for s in board.full_build_agreement.iter().filter(|s| s.cells > 0) {
+    let covered: Vec<_> = board
+        .full_build_agreement
+        .iter()
+        .filter(|s| s.cells > 0)
+        .cloned()
+        .collect();
+    scope_rows(html, &covered);
+}
+
+/// An agreement table's rows, one per scope (family or overall), and its end.
+fn scope_rows(html: &mut String, summaries: &[dsrl_suite::reference::AgreementSummary]) {
+    for s in summaries {
         let _ = writeln!(
             html,
             "<tr><td class=\"name\">{}</td>{}</tr>",
