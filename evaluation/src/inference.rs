@@ -134,7 +134,7 @@ pub struct ChildPlayer {
 impl ChildPlayer {
     async fn spawn(policy: &IsolatedPolicy, cost_threshold: f64, slots: usize) -> Result<ChildPlayer, EvaluationError> {
         let mut child = tokio::process::Command::new(&policy.program)
-            .arg("play-policy")
+            .arg(CHILD_COMMAND)
             .args(["--memory-limit", &policy.memory_limit_bytes.to_string()])
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
@@ -256,6 +256,37 @@ impl ChildPlayer {
             _ => Err(String::from_utf8_lossy(&body).into_owned()),
         })
     }
+}
+
+/// The hidden command a policy child is started with: `<program> play-policy --memory-limit BYTES`.
+const CHILD_COMMAND: &str = "play-policy";
+
+/// Serves as a policy child when this process was started as one (the command line `ChildPlayer::spawn` writes);
+/// otherwise returns `None` and the binary goes on with its own command line. Every binary that scores submissions
+/// (`dsrl-server`, `dsrl-evaluator`) calls it first thing in `main`, so the parent's and the child's sides of the
+/// command line are written here only.
+///
+/// # Safety
+/// As [`serve_child`]: first thing in `main`, before any other thread exists.
+pub unsafe fn serve_child_if_started_as_one() -> Option<std::process::ExitCode> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if args.first().map(String::as_str) != Some(CHILD_COMMAND) {
+        return None;
+    }
+    let memory_limit = match args.as_slice() {
+        [_, flag, bytes] if flag == "--memory-limit" => bytes.parse::<u64>().ok(),
+        _ => None,
+    };
+    Some(match memory_limit {
+        // SAFETY: the caller's contract.
+        Some(bytes) => unsafe { serve_child(bytes) },
+        None => {
+            eprintln!(
+                "usage: {CHILD_COMMAND} --memory-limit BYTES (an evaluator starts it; it is not for use by hand)"
+            );
+            std::process::ExitCode::from(2)
+        }
+    })
 }
 
 /// The child's side (`play-policy`): pins candle to one thread, lowers its priority, caps its memory, dies with

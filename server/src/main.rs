@@ -56,20 +56,15 @@ enum Internal {
         source: PathBuf,
         out: PathBuf,
     },
-    /// Play one submitted policy for the leaderboard in this (child) process (see `inference`).
-    #[command(hide = true)]
-    PlayPolicy {
-        #[arg(long)]
-        memory_limit: u64,
-    },
 }
 
 fn main() -> std::process::ExitCode {
-    let args = Args::parse();
-    if let Some(Internal::PlayPolicy { memory_limit }) = &args.command {
-        // SAFETY: first thing in this process, before any other thread exists.
-        return unsafe { dsrl_evaluation::inference::serve_child(*memory_limit) };
+    // A submitted policy's child process (`play-policy`, started by this server's evaluators).
+    // SAFETY: first thing in this process, before any other thread exists.
+    if let Some(code) = unsafe { dsrl_evaluation::inference::serve_child_if_started_as_one() } {
+        return code;
     }
+    let args = Args::parse();
     if let Some(Internal::Convert {
         task,
         observation_space,

@@ -1,6 +1,6 @@
 //! `dsrl-evaluator`: the leaderboard's evaluator process (see `dsrl_leaderboard::evaluator`).
 
-use clap::{Parser, Subcommand};
+use clap::Parser;
 use dsrl_service::ProcessArgs;
 
 /// Score leaderboard submissions: claim jobs from the shared database (database.url) and play them on this
@@ -18,26 +18,15 @@ use dsrl_service::ProcessArgs;
 struct Args {
     #[command(flatten)]
     process: ProcessArgs,
-    #[command(subcommand)]
-    command: Option<Internal>,
-}
-
-#[derive(Debug, Subcommand)]
-enum Internal {
-    /// Play one submitted policy in this (child) process (see `dsrl_evaluation::inference`).
-    #[command(hide = true)]
-    PlayPolicy {
-        #[arg(long)]
-        memory_limit: u64,
-    },
 }
 
 fn main() -> std::process::ExitCode {
-    let args = Args::parse();
-    if let Some(Internal::PlayPolicy { memory_limit }) = &args.command {
-        // SAFETY: first thing in this process, before any other thread exists.
-        return unsafe { dsrl_evaluation::inference::serve_child(*memory_limit) };
+    // A submitted policy's child process (`play-policy`, started by this evaluator).
+    // SAFETY: first thing in this process, before any other thread exists.
+    if let Some(code) = unsafe { dsrl_evaluation::inference::serve_child_if_started_as_one() } {
+        return code;
     }
+    let args = Args::parse();
     dsrl_service::init_logging(args.process.log_json);
     let runtime = tokio::runtime::Runtime::new().expect("starting the async runtime");
     match runtime.block_on(evaluate(args)) {
