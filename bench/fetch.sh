@@ -20,11 +20,7 @@ cleanup() { [ -n "$server_pid" ] && kill "$server_pid" 2>/dev/null; rm -rf "$wor
 trap cleanup EXIT
 
 "$bin/dsrl-make-dataset" --task "$task" --episodes "$episodes" --seed 7 "$work/data.parquet" >&2
-"$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
-  > "$work/server.out" 2> "$work/server.log" &
-server_pid=$!
-for _ in $(seq 100); do grep -q listening "$work/server.out" 2>/dev/null && break; sleep 0.1; done
-url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
+start_server "$work" "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none"
 export DSRL_SERVER=$url DSRL_ADMIN_TOKEN
 DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token")
 version=$("$bin/dsrl-client" --json admin ingest --task "$task" "$work/data.parquet" \

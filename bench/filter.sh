@@ -20,13 +20,10 @@ trap cleanup EXIT
 
 reference=$(.venv-golden/bin/python bench/filter_reference.py "$work/data.parquet" "$rounds" 2>/dev/null)
 
-start_server() {
+fresh_server() {
   rm -rf "$work/server"
-  "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
-    > "$work/server.out" 2> "$work/server.log" &
-  server_pid=$!
-  for _ in $(seq 100); do grep -q listening "$work/server.out" 2>/dev/null && break; sleep 0.1; done
-  url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
+  start_server "$work" "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" \
+    --starter-datasets "$work/none"
   DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") DSRL_SERVER=$url \
     "$bin/dsrl-client" admin ingest --task "$task" "$work/data.parquet" > /dev/null
 }
@@ -37,7 +34,7 @@ median() { tr ' ' '\n' | grep -v '^$' | sort -g | awk '{a[NR]=$1} END {print (NR
 filters=("density=0.5" "noise=0.05" "obs_noise=0.1" "discard=tempting" "epsilon=100")
 declare -A uncached cached
 for round in $(seq "$rounds"); do
-  start_server   # a fresh server: nothing cached
+  fresh_server   # a fresh server: nothing cached
   for f in "${filters[@]}"; do
     q=$(python3 -c 'import sys, urllib.parse; print(urllib.parse.quote(sys.argv[1]))' "$f")
     download="$url/v1/datasets/$task/versions/latest/download?filter=$q"

@@ -23,11 +23,7 @@ echo "writing $file" >&2
 .venv-golden/bin/python bench/make_dsrl_scale.py "$file" "$episodes"
 size=$(stat -c %s "$file")
 
-"$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
-  > "$work/server.out" 2> "$work/server.log" &
-server_pid=$!
-for _ in $(seq 100); do grep -q listening "$work/server.out" 2>/dev/null && break; sleep 0.1; done
-url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
+start_server "$work" "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none"
 export DSRL_SERVER=$url DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") DSRL_DATASET_DIR="$work/cache"
 
 # Runs "$@" while sampling the server's resident memory; prints "seconds peak_bytes". The disk is flushed first

@@ -32,12 +32,8 @@ task=OfflineBallCircle-v0
   --out "$work/policy" >&2
 
 # The server on a free loopback port, with its own data folder and two workers.
-DSRL__SIMULATORS__LOCAL_WORKERS=2 DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000 \
-  "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none" \
-  > "$work/server.out" 2> "$work/server.log" &
-server_pid=$!
-for _ in $(seq 100); do grep -q 'listening on' "$work/server.out" 2>/dev/null && break; sleep 0.1; done
-url=$(sed -n 's/^dsrl-server listening on //p' "$work/server.out")
+start_server "$work" env DSRL__SIMULATORS__LOCAL_WORKERS=2 DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000 \
+  "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none"
 export DSRL_SERVER=$url
 for _ in $(seq 600); do
   [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(json.load(sys.stdin)["healthy_workers"])')" = 2 ] && break
