@@ -259,41 +259,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
             if cli.json {
                 print_json(&tasks);
             } else {
-                out!(
-                    "{:<40} {:<13} {:>5} {:>4} {:>3} {:>21} {:>10} {:<9} latest",
-                    "TASK",
-                    "FAMILY",
-                    "STEPS",
-                    "OBS",
-                    "ACT",
-                    "REWARD RANGE",
-                    "COST MAX",
-                    "THRESH."
-                );
-                for t in &tasks {
-                    let k = &t.task;
-                    let thresholds: Vec<String> = k.cost_thresholds.iter().map(|c| format!("{c}")).collect();
-                    let latest = t
-                        .versions
-                        .iter()
-                        .find(|v| v.tags.iter().any(|tag| tag == "latest"))
-                        .map(|v| format!("{} ({} episodes)", &v.version[..12], v.episodes))
-                        .unwrap_or_else(|| "-".into());
-                    out!(
-                        "{:<40} {:<13} {:>5} {:>4} {:>3} {:>10.2}..{:<9.2} {:>10.2} {:<9} {latest}",
-                        k.id.as_str(),
-                        k.family.as_str(),
-                        k.max_episode_steps,
-                        k.obs_dim,
-                        k.act_dim,
-                        k.min_episode_reward,
-                        k.max_episode_reward,
-                        k.max_episode_cost,
-                        thresholds.join("/")
-                    );
-                }
-                let hosted = tasks.iter().filter(|t| !t.versions.is_empty()).count();
-                out!("{} tasks, {hosted} with hosted versions", tasks.len());
+                print_tasks(&tasks);
             }
         }
         Command::Show {
@@ -317,61 +283,7 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 out!("{raw}");
                 return Ok(exit::OK);
             }
-            let m = &manifest;
-            out!("task              {}", m.task);
-            out!("version           {}", m.version);
-            out!(
-                "file              {} ({} bytes, {})",
-                m.file_name,
-                m.byte_size,
-                m.format
-            );
-            out!("episodes          {}", m.episodes);
-            out!("transitions       {}", m.transitions);
-            out!(
-                "observations      {} features ({} space)",
-                m.observation_space.dim,
-                m.observation_space.kind.as_str()
-            );
-            out!("actions           {} features", m.action_space.dim);
-            out!("reward return     {} .. {}", m.reward_return.min, m.reward_return.max);
-            out!("cost return       {} .. {}", m.cost_return.min, m.cost_return.max);
-            out!("license           {}", m.license);
-            out!("created           {}", m.created_at);
-            out!(
-                "provenance        {}",
-                serde_json::to_string(&m.provenance).expect("serializable")
-            );
-            if let Some(h) = &m.hosting {
-                out!(
-                    "hosted as         {} ({} of the paper's {} trajectories)",
-                    h.kind,
-                    h.trajectories,
-                    h.paper_trajectories
-                );
-                if let Some(notice) = &h.notice {
-                    out!("notice            {notice}");
-                }
-            }
-            if episodes {
-                out!(
-                    "\n{:>8} {:>10} {:>7} {:>14} {:>12}",
-                    "EPISODE",
-                    "START",
-                    "LENGTH",
-                    "REWARD RETURN",
-                    "COST RETURN"
-                );
-                for (i, e) in m.episode_index.iter().enumerate() {
-                    out!(
-                        "{i:>8} {:>10} {:>7} {:>14} {:>12}",
-                        e.start,
-                        e.length,
-                        e.reward_return,
-                        e.cost_return
-                    );
-                }
-            }
+            print_manifest(&manifest, episodes);
         }
         Command::Fetch {
             task,
@@ -476,84 +388,183 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 print_board(&board);
             }
         }
-        Command::Admin(admin) => {
-            let token = admin.token.or_else(|| local_admin_token(&cli.server));
-            let client = client.with_token(token);
-            match admin.command {
-                AdminCommand::Ingest {
-                    task,
-                    file,
-                    tags,
-                    observation_space,
-                    license,
-                    provenance,
-                    keep_latest,
-                } => {
-                    let provenance_json = match provenance {
-                        Some(p) => Some(
-                            std::fs::read_to_string(&p).map_err(ClientError::io(format!("reading {}", p.display())))?,
-                        ),
-                        None => None,
-                    };
-                    let size = std::fs::metadata(&file).map(|m| m.len()).unwrap_or(0);
-                    let bar = if cli.json {
-                        ProgressBar::hidden()
-                    } else {
-                        ProgressBar::new(size)
-                    };
-                    bar.set_style(
-                        ProgressStyle::with_template(
-                            "uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}",
-                        )
-                        .expect("valid template")
-                        .progress_chars("=> "),
-                    );
-                    let b = bar.clone();
-                    let options = IngestOptions {
-                        tags,
-                        observation_space,
-                        license,
-                        provenance_json: provenance_json.map(|p| p.trim().replace('\n', " ")),
-                        keep_latest,
-                    };
-                    let result = client.ingest(&task, &file, &options, move |n| b.set_position(n)).await;
-                    bar.finish_and_clear();
-                    let result = result?;
-                    if cli.json {
-                        print_json(&result);
-                    } else {
-                        let what = if result.created {
-                            "created"
-                        } else {
-                            "unchanged (identical data already hosted)"
-                        };
-                        out!(
-                            "{} {} {what}: {} episodes, {} transitions, tags [{}]",
-                            result.task,
-                            result.version.version,
-                            result.version.episodes,
-                            result.version.transitions,
-                            result.version.tags.join(", ")
-                        );
-                    }
+        Command::Admin(admin) => return run_admin(client, &cli.server, cli.json, admin).await,
+    }
+    Ok(exit::OK)
+}
+
+/// `list`'s table: one line per task with its constants and its `latest` version.
+fn print_tasks(tasks: &[dsrl_client::api::TaskEntry]) {
+    out!(
+        "{:<40} {:<13} {:>5} {:>4} {:>3} {:>21} {:>10} {:<9} latest",
+        "TASK",
+        "FAMILY",
+        "STEPS",
+        "OBS",
+        "ACT",
+        "REWARD RANGE",
+        "COST MAX",
+        "THRESH."
+    );
+    for t in tasks {
+        let k = &t.task;
+        let thresholds: Vec<String> = k.cost_thresholds.iter().map(|c| format!("{c}")).collect();
+        let latest = t
+            .versions
+            .iter()
+            .find(|v| v.tags.iter().any(|tag| tag == "latest"))
+            .map(|v| format!("{} ({} episodes)", &v.version[..12], v.episodes))
+            .unwrap_or_else(|| "-".into());
+        out!(
+            "{:<40} {:<13} {:>5} {:>4} {:>3} {:>10.2}..{:<9.2} {:>10.2} {:<9} {latest}",
+            k.id.as_str(),
+            k.family.as_str(),
+            k.max_episode_steps,
+            k.obs_dim,
+            k.act_dim,
+            k.min_episode_reward,
+            k.max_episode_reward,
+            k.max_episode_cost,
+            thresholds.join("/")
+        );
+    }
+    let hosted = tasks.iter().filter(|t| !t.versions.is_empty()).count();
+    out!("{} tasks, {hosted} with hosted versions", tasks.len());
+}
+
+/// `show`'s text: the manifest's fields, how the version is hosted, and with `episodes` its episode index.
+fn print_manifest(m: &dsrl_suite::manifest::Manifest, episodes: bool) {
+    out!("task              {}", m.task);
+    out!("version           {}", m.version);
+    out!(
+        "file              {} ({} bytes, {})",
+        m.file_name,
+        m.byte_size,
+        m.format
+    );
+    out!("episodes          {}", m.episodes);
+    out!("transitions       {}", m.transitions);
+    out!(
+        "observations      {} features ({} space)",
+        m.observation_space.dim,
+        m.observation_space.kind.as_str()
+    );
+    out!("actions           {} features", m.action_space.dim);
+    out!("reward return     {} .. {}", m.reward_return.min, m.reward_return.max);
+    out!("cost return       {} .. {}", m.cost_return.min, m.cost_return.max);
+    out!("license           {}", m.license);
+    out!("created           {}", m.created_at);
+    out!(
+        "provenance        {}",
+        serde_json::to_string(&m.provenance).expect("serializable")
+    );
+    if let Some(h) = &m.hosting {
+        out!(
+            "hosted as         {} ({} of the paper's {} trajectories)",
+            h.kind,
+            h.trajectories,
+            h.paper_trajectories
+        );
+        if let Some(notice) = &h.notice {
+            out!("notice            {notice}");
+        }
+    }
+    if episodes {
+        out!(
+            "\n{:>8} {:>10} {:>7} {:>14} {:>12}",
+            "EPISODE",
+            "START",
+            "LENGTH",
+            "REWARD RETURN",
+            "COST RETURN"
+        );
+        for (i, e) in m.episode_index.iter().enumerate() {
+            out!(
+                "{i:>8} {:>10} {:>7} {:>14} {:>12}",
+                e.start,
+                e.length,
+                e.reward_return,
+                e.cost_return
+            );
+        }
+    }
+}
+
+/// `admin ...`: the commands that need the server's admin token.
+async fn run_admin(client: Client, server: &str, json: bool, admin: AdminArgs) -> Result<u8, ClientError> {
+    let token = admin.token.or_else(|| local_admin_token(server));
+    let client = client.with_token(token);
+    match admin.command {
+        AdminCommand::Ingest {
+            task,
+            file,
+            tags,
+            observation_space,
+            license,
+            provenance,
+            keep_latest,
+        } => {
+            let provenance_json = match provenance {
+                Some(p) => {
+                    Some(std::fs::read_to_string(&p).map_err(ClientError::io(format!("reading {}", p.display())))?)
                 }
-                AdminCommand::CreateUser { name } => {
-                    let user = client.create_user(&name).await?;
-                    if cli.json {
-                        print_json(&user);
-                    } else {
-                        eprintln!("created user {name}; its token (shown only now):");
-                        out!("{}", user["token"].as_str().unwrap_or_default());
-                    }
-                }
-                AdminCommand::Tag { task, version, tag } => {
-                    let v = client.tag(&task, &tag, &version).await?;
-                    if cli.json {
-                        print_json(&v);
-                    } else {
-                        out!("{task} {tag} -> {} (tags [{}])", v.version, v.tags.join(", "));
-                    }
-                }
+                None => None,
+            };
+            let size = std::fs::metadata(&file).map(|m| m.len()).unwrap_or(0);
+            let bar = if json {
+                ProgressBar::hidden()
+            } else {
+                ProgressBar::new(size)
+            };
+            bar.set_style(
+                ProgressStyle::with_template("uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            let b = bar.clone();
+            let options = IngestOptions {
+                tags,
+                observation_space,
+                license,
+                provenance_json: provenance_json.map(|p| p.trim().replace('\n', " ")),
+                keep_latest,
+            };
+            let result = client.ingest(&task, &file, &options, move |n| b.set_position(n)).await;
+            bar.finish_and_clear();
+            let result = result?;
+            if json {
+                print_json(&result);
+            } else {
+                let what = if result.created {
+                    "created"
+                } else {
+                    "unchanged (identical data already hosted)"
+                };
+                out!(
+                    "{} {} {what}: {} episodes, {} transitions, tags [{}]",
+                    result.task,
+                    result.version.version,
+                    result.version.episodes,
+                    result.version.transitions,
+                    result.version.tags.join(", ")
+                );
+            }
+        }
+        AdminCommand::CreateUser { name } => {
+            let user = client.create_user(&name).await?;
+            if json {
+                print_json(&user);
+            } else {
+                eprintln!("created user {name}; its token (shown only now):");
+                out!("{}", user["token"].as_str().unwrap_or_default());
+            }
+        }
+        AdminCommand::Tag { task, version, tag } => {
+            let v = client.tag(&task, &tag, &version).await?;
+            if json {
+                print_json(&v);
+            } else {
+                out!("{task} {tag} -> {} (tags [{}])", v.version, v.tags.join(", "));
             }
         }
     }
