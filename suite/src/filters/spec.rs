@@ -164,103 +164,76 @@ fn integer(key: &str, value: &str) -> Result<u64, FilterError> {
         .map_err(|_| err(format!("{key}={value:?} is not a non-negative integer")))
 }
 
-impl FilterSpec {
-    /// Parses `key=value` pairs separated by commas (several `--filter` flags are joined with commas).
-    pub fn parse(text: &str, task: &Task) -> Result<Option<FilterSpec>, FilterError> {
-        let mut pairs: BTreeMap<String, String> = BTreeMap::new();
-        for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-            let (key, value) = item
-                .split_once('=')
-                .ok_or_else(|| err(format!("{item:?} is not key=value")))?;
-            let key = match key.trim() {
-                "noise" | "outliers" | "outliers_percent" => "outliers_percent",
-                "obs_noise" | "noise_scale" => "noise_scale",
-                "inpaint" | "inpaint_ranges" => "inpaint",
-                k @ ("discard" | "epsilon" | "density" | "cbins" | "rbins" | "max_npb" | "min_npb" | "target_cost"
-                | "seed") => k,
-                other => return Err(err(format!("unknown key {other:?}"))),
-            };
-            if pairs.insert(key.to_owned(), value.trim().to_owned()).is_some() {
-                return Err(err(format!("{key} is given twice (counting its aliases)")));
-            }
+/// The `key=value` pairs of a filter text, keys under their canonical names (aliases folded), each key once.
+fn key_values(text: &str) -> Result<BTreeMap<String, String>, FilterError> {
+    let mut pairs: BTreeMap<String, String> = BTreeMap::new();
+    for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let (key, value) = item
+            .split_once('=')
+            .ok_or_else(|| err(format!("{item:?} is not key=value")))?;
+        let key = match key.trim() {
+            "noise" | "outliers" | "outliers_percent" => "outliers_percent",
+            "obs_noise" | "noise_scale" => "noise_scale",
+            "inpaint" | "inpaint_ranges" => "inpaint",
+            k @ ("discard" | "epsilon" | "density" | "cbins" | "rbins" | "max_npb" | "min_npb" | "target_cost"
+            | "seed") => k,
+            other => return Err(err(format!("unknown key {other:?}"))),
+        };
+        if pairs.insert(key.to_owned(), value.trim().to_owned()).is_some() {
+            return Err(err(format!("{key} is given twice (counting its aliases)")));
         }
-        if pairs.is_empty() {
-            return Ok(None);
-        }
-        let get = |k: &str| pairs.get(k).map(String::as_str);
+    }
+    Ok(pairs)
+}
 
-        let outliers_percent = match get("outliers_percent") {
-            None => None,
-            Some(v) => match number("outliers_percent", v)? {
-                p if p > 0.0 && p <= 1.0 => Some(p),
-                p => return Err(err(format!("outliers_percent={p} is outside (0, 1]"))),
-            },
-        };
-        let noise_scale = match get("noise_scale") {
-            None => None,
-            Some(v) => match number("noise_scale", v)? {
-                s if s > 0.0 && s <= 100.0 => Some(s),
-                s => return Err(err(format!("noise_scale={s} is outside (0, 100]"))),
-            },
-        };
-        let epsilon = match get("epsilon") {
-            None => None,
-            Some(v) => match number("epsilon", v)? {
-                // The reference crashes on epsilon = 0 (its plot references an undefined variable).
-                0.0 => {
-                    return Err(err("epsilon=0 removes nothing and crashes DSRL's reference; omit it"));
-                }
-                e if e.abs() > MAX_EPSILON => {
-                    return Err(err(format!("epsilon={v} is outside [-1e9, 1e9]")));
-                }
-                e => Some(e),
-            },
-        };
-        let inpaint = match (get("inpaint"), get("discard")) {
-            (Some(_), Some(_)) => return Err(err("give either inpaint or discard, not both")),
-            (None, None) => None,
-            (None, Some(name)) => Some(
-                discard_preset(name)
-                    .ok_or_else(|| err(format!("discard={name:?} is not a preset (tempting, low-reward)")))?,
-            ),
-            (Some(v), None) => {
-                if v.contains(';') {
-                    return Err(err(
-                        "several inpaint ranges are not supported: DSRL stacks their results into one NumPy \
-                         array, which fails (NumPy >= 1.24) or misbehaves when the ranges remove different numbers \
-                         of trajectories",
-                    ));
-                }
-                let parts: Vec<&str> = v.split(':').collect();
-                if parts.len() != 4 {
-                    return Err(err(format!("inpaint={v:?} needs four numbers pcmin:pcmax:prmin:prmax")));
-                }
-                let n = parts
-                    .iter()
-                    .map(|p| number("inpaint", p))
-                    .collect::<Result<Vec<_>, _>>()?;
-                let r = InpaintRange {
-                    pcmin: n[0],
-                    pcmax: n[1],
-                    prmin: n[2],
-                    prmax: n[3],
-                };
-                if n.iter().any(|x| !(0.0..=1.0).contains(x)) || r.pcmin > r.pcmax || r.prmin > r.prmax {
-                    return Err(err(format!(
-                        "inpaint={v:?}: each value in [0, 1] with pcmin <= pcmax, prmin <= prmax"
-                    )));
-                }
-                Some(r)
+/// The range `inpaint` or `discard` (a preset) names; both at once is an error.
+fn inpaint_range(inpaint: Option<&str>, discard: Option<&str>) -> Result<Option<InpaintRange>, FilterError> {
+    Ok(match (inpaint, discard) {
+        (Some(_), Some(_)) => return Err(err("give either inpaint or discard, not both")),
+        (None, None) => None,
+        (None, Some(name)) => Some(
+            discard_preset(name)
+                .ok_or_else(|| err(format!("discard={name:?} is not a preset (tempting, low-reward)")))?,
+        ),
+        (Some(v), None) => {
+            if v.contains(';') {
+                return Err(err(
+                    "several inpaint ranges are not supported: DSRL stacks their results into one NumPy \
+                     array, which fails (NumPy >= 1.24) or misbehaves when the ranges remove different numbers \
+                     of trajectories",
+                ));
             }
-        };
-        if inpaint.is_some() && epsilon.is_some() {
-            return Err(err(
-                "epsilon with inpaint is not supported: DSRL indexes the inpainted trajectory list with positions \
-                 from the full list, so the combination removes the wrong trajectories",
-            ));
+            let parts: Vec<&str> = v.split(':').collect();
+            if parts.len() != 4 {
+                return Err(err(format!("inpaint={v:?} needs four numbers pcmin:pcmax:prmin:prmax")));
+            }
+            let n = parts
+                .iter()
+                .map(|p| number("inpaint", p))
+                .collect::<Result<Vec<_>, _>>()?;
+            let r = InpaintRange {
+                pcmin: n[0],
+                pcmax: n[1],
+                prmin: n[2],
+                prmax: n[3],
+            };
+            if n.iter().any(|x| !(0.0..=1.0).contains(x)) || r.pcmin > r.pcmax || r.prmin > r.prmax {
+                return Err(err(format!(
+                    "inpaint={v:?}: each value in [0, 1] with pcmin <= pcmax, prmin <= prmax"
+                )));
+            }
+            Some(r)
         }
-        let grid_keys = ["cbins", "rbins", "max_npb", "min_npb"];
-        let grid = if get("density").is_some() || grid_keys.iter().any(|k| get(k).is_some()) {
+    })
+}
+
+/// The density filter's grid: the task's preset for `density`, each of `cbins`, `rbins`, `max_npb` and `min_npb`
+/// given over it; `None` when none of them is given.
+fn density_grid(pairs: &BTreeMap<String, String>, task: &Task) -> Result<Option<Grid>, FilterError> {
+    let get = |k: &str| pairs.get(k).map(String::as_str);
+    let grid_keys = ["cbins", "rbins", "max_npb", "min_npb"];
+    Ok(
+        if get("density").is_some() || grid_keys.iter().any(|k| get(k).is_some()) {
             let preset = match get("density") {
                 Some(v) => {
                     let d = number("density", v)?;
@@ -312,7 +285,54 @@ impl FilterSpec {
             })
         } else {
             None
+        },
+    )
+}
+
+impl FilterSpec {
+    /// Parses `key=value` pairs separated by commas (several `--filter` flags are joined with commas).
+    pub fn parse(text: &str, task: &Task) -> Result<Option<FilterSpec>, FilterError> {
+        let pairs = key_values(text)?;
+        if pairs.is_empty() {
+            return Ok(None);
+        }
+        let get = |k: &str| pairs.get(k).map(String::as_str);
+
+        let outliers_percent = match get("outliers_percent") {
+            None => None,
+            Some(v) => match number("outliers_percent", v)? {
+                p if p > 0.0 && p <= 1.0 => Some(p),
+                p => return Err(err(format!("outliers_percent={p} is outside (0, 1]"))),
+            },
         };
+        let noise_scale = match get("noise_scale") {
+            None => None,
+            Some(v) => match number("noise_scale", v)? {
+                s if s > 0.0 && s <= 100.0 => Some(s),
+                s => return Err(err(format!("noise_scale={s} is outside (0, 100]"))),
+            },
+        };
+        let epsilon = match get("epsilon") {
+            None => None,
+            Some(v) => match number("epsilon", v)? {
+                // The reference crashes on epsilon = 0 (its plot references an undefined variable).
+                0.0 => {
+                    return Err(err("epsilon=0 removes nothing and crashes DSRL's reference; omit it"));
+                }
+                e if e.abs() > MAX_EPSILON => {
+                    return Err(err(format!("epsilon={v} is outside [-1e9, 1e9]")));
+                }
+                e => Some(e),
+            },
+        };
+        let inpaint = inpaint_range(get("inpaint"), get("discard"))?;
+        if inpaint.is_some() && epsilon.is_some() {
+            return Err(err(
+                "epsilon with inpaint is not supported: DSRL indexes the inpainted trajectory list with positions \
+                 from the full list, so the combination removes the wrong trajectories",
+            ));
+        }
+        let grid = density_grid(&pairs, task)?;
         let target_cost = match get("target_cost") {
             Some(v) => number("target_cost", v)?,
             None => task.lowest_cost_threshold(),
