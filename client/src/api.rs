@@ -245,6 +245,24 @@ impl Client {
             .await
     }
 
+    /// The bar the callers of `ingest` draw (the CLI, the Python package): bytes sent of `size`, hidden unless
+    /// `visible`.
+    pub fn upload_bar(size: u64, visible: bool) -> indicatif::ProgressBar {
+        let bar = if visible {
+            indicatif::ProgressBar::new(size)
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        bar
+    }
+
     /// Uploads a Parquet or DSRL HDF5 file; `progress` is told how many bytes went out. Token, task and size
     /// are checked first with cheap requests, so a doomed upload is refused before a byte of it is sent.
     pub async fn ingest(

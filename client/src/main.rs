@@ -7,7 +7,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use dsrl_client::api::{DEFAULT_SERVER, IngestOptions};
 use dsrl_client::error::exit;
 use dsrl_client::{Cache, Client, ClientError, FetchOptions};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 /// `println!` that ends the process quietly (exit 141, as a shell reports SIGPIPE) when stdout is a closed pipe,
 /// e.g. `dsrl-client list | head`.
@@ -511,16 +511,7 @@ async fn run_admin(client: Client, server: &str, json: bool, admin: AdminArgs) -
                 None => None,
             };
             let size = std::fs::metadata(&file).map(|m| m.len()).unwrap_or(0);
-            let bar = if json {
-                ProgressBar::hidden()
-            } else {
-                ProgressBar::new(size)
-            };
-            bar.set_style(
-                ProgressStyle::with_template("uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}")
-                    .expect("valid template")
-                    .progress_chars("=> "),
-            );
+            let bar = Client::upload_bar(size, !json);
             let b = bar.clone();
             let options = IngestOptions {
                 tags,

@@ -811,25 +811,26 @@ impl Leaderboard {
         // Our reference entries of the current protocol, by method, for the agreement with the paper.
         // Entries trained on the starters and on the full builds are measured apart: the data differ, and mixing
         // them would credit one with the other's verdicts.
-        let ours = |dataset: TrainingData| -> Vec<ScoredEntry> {
-            ranked
-                .iter()
-                .filter_map(|r| {
-                    let record = parse_record(r.reference.as_deref()?)?;
-                    (record.dataset == dataset).then_some(())?;
-                    Some(ScoredEntry {
-                        task: r.task.clone(),
-                        method: record.method,
-                        score: NormalizedScore {
-                            reward: r.normalized_reward?,
-                            cost: r.normalized_cost?,
-                        },
-                    })
-                })
-                .collect()
-        };
-        let cells = agreement(&self.catalog, &self.paper, &ours(TrainingData::Starter));
-        let full_build_cells = agreement(&self.catalog, &self.paper, &ours(TrainingData::FullBuild));
+        let (mut starter, mut full_build) = (Vec::new(), Vec::new());
+        for r in &ranked {
+            let Some(record) = r.reference.as_deref().and_then(parse_record) else {
+                continue;
+            };
+            let (Some(reward), Some(cost)) = (r.normalized_reward, r.normalized_cost) else {
+                continue;
+            };
+            let ours = match record.dataset {
+                TrainingData::Starter => &mut starter,
+                TrainingData::FullBuild => &mut full_build,
+            };
+            ours.push(ScoredEntry {
+                task: r.task.clone(),
+                method: record.method,
+                score: NormalizedScore { reward, cost },
+            });
+        }
+        let cells = agreement(&self.catalog, &self.paper, &starter);
+        let full_build_cells = agreement(&self.catalog, &self.paper, &full_build);
         let counts = queue::submission_counts(&self.db).await?;
         let mut tasks: Vec<TaskTable> = Vec::new();
         for t in self.catalog.tasks() {

@@ -10,7 +10,6 @@ use dsrl_client::api::{DEFAULT_SERVER, IngestOptions};
 use dsrl_client::{Cache, Client, ClientError, FetchOptions};
 use dsrl_suite::catalog::Catalog;
 use dsrl_suite::parquet_file::ParquetTransitions;
-use indicatif::{ProgressBar, ProgressStyle};
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
@@ -256,16 +255,7 @@ fn ingest(
         keep_latest,
     };
     let size = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
-    let bar = if progress {
-        ProgressBar::new(size)
-    } else {
-        ProgressBar::hidden()
-    };
-    bar.set_style(
-        ProgressStyle::with_template("uploading [{bar:30}] {bytes}/{total_bytes} {binary_bytes_per_sec}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
+    let bar = Client::upload_bar(size, progress);
     let b = bar.clone();
     let result = block_on(py, async move {
         client.ingest(task, &path, &options, move |n| b.set_position(n)).await

@@ -426,17 +426,11 @@ fn full_build_agreement(html: &mut String, board: &Board) {
          class=\"name\">family</th>{AGREEMENT_HEADER}</tr>\n",
         overall.cells
     );
-    let covered: Vec<_> = board
-        .full_build_agreement
-        .iter()
-        .filter(|s| s.cells > 0)
-        .cloned()
-        .collect();
-    scope_rows(html, &covered);
+    scope_rows(html, board.full_build_agreement.iter().filter(|s| s.cells > 0));
 }
 
 /// An agreement table's rows, one per scope (family or overall), and its end.
-fn scope_rows(html: &mut String, summaries: &[dsrl_suite::reference::AgreementSummary]) {
+fn scope_rows<'a>(html: &mut String, summaries: impl IntoIterator<Item = &'a dsrl_suite::reference::AgreementSummary>) {
     for s in summaries {
         let _ = writeln!(
             html,
