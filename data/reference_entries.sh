@@ -5,9 +5,11 @@
 # seed, budget, dataset version, code commit, checkpoint digest, protocol version and every episode. Every reference
 # table in the documents is generated from that file (scripts/reference_tables.py), and every server imports it.
 #   Methods: BC-All, BC-Safe (spec 5.5), CDT (5.4), BCQ-Lag (5.6), BEAR-Lag (5.7), CPQ and COptiDICE (5.8) with OSRL's
-#   networks and hyperparameters, and CAPS (AAAI 2025, beyond the paper; not in the default --methods).
+#   networks and hyperparameters, and beyond the paper (not in the default --methods) CAPS (AAAI 2025), FISOR
+#   (ICLR 2024) and LSPC (ICLR 2025) with their own code's.
 #   Per-threshold methods train one model per benchmark threshold, CDT one model conditioned on OSRL's return
-#   targets (data/cdt_targets.csv), CAPS one model given each threshold as its episode's cost budget.
+#   targets (data/cdt_targets.csv), CAPS one model given each threshold as its episode's cost budget, FISOR and LSPC
+#   one model for every threshold (neither reads it).
 #
 # Resumable: all state lives in --state (default ~/.dsrl/reference), outside the clone. A model whose training
 # finished is not trained again (a marker names its budget); a submission already made is waited for, not made
@@ -30,7 +32,7 @@
 #   --batch-size B   instead of OSRL's (512; CDT 2048), recorded with each model
 #   --seeds "S..."   training seeds (default 0)
 #   --jobs J         models trained at once (default 1); one core each
-#   --methods "..."  of bc-all bc-safe cdt bcql bearl cpq coptidice caps (default: the first seven)
+#   --methods "..."  of bc-all bc-safe cdt bcql bearl cpq coptidice caps fisor lspc (default: the first seven)
 #   --train-only     train, submit nothing
 #   --reproduce      train the entries already in the results file again from scratch (into <state>/reproduced) and
 #                    submit nothing: an entry whose checkpoints come out with the digest it was scored with takes the
@@ -103,6 +105,7 @@ method_name() {
   case $1 in
     bc-all) echo BC-All ;; bc-safe) echo BC-Safe ;; cdt) echo CDT ;; bcql) echo BCQ-Lag ;;
     bearl) echo BEAR-Lag ;; cpq) echo CPQ ;; coptidice) echo COptiDICE ;; caps) echo CAPS ;;
+    fisor) echo FISOR ;; lspc) echo LSPC ;;
     *) echo "unknown method $1" >&2; exit 2 ;;
   esac
 }
@@ -324,7 +327,7 @@ EOF
 }
 
 # The models of method $2 on task $1: "-" for the methods trained once, else the task's thresholds.
-models_of() { case $2 in bc-all | cdt | caps) echo - ;; *) thresholds "$1" ;; esac; }
+models_of() { case $2 in bc-all | cdt | caps | fisor | lspc) echo - ;; *) thresholds "$1" ;; esac; }
 # Whether every model of task $1, seed $2, method $3 has finished training.
 trained() {
   local kappa

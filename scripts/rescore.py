@@ -34,7 +34,8 @@ import urllib.request
 
 # The reference results' method names and the sweep's folder names for them (data/reference_entries.sh).
 FOLDERS = {"BC-All": "bc-all", "BC-Safe": "bc-safe", "CDT": "cdt", "BCQ-Lag": "bcql", "BEAR-Lag": "bearl",
-           "CPQ": "cpq", "COptiDICE": "coptidice", "CAPS": "caps"}
+           "CPQ": "cpq", "COptiDICE": "coptidice", "CAPS": "caps",
+           "FISOR": "fisor", "LSPC": "lspc"}
 FIELDS = ("cost_threshold", "episode", "reward_return", "cost_return", "length")
 
 

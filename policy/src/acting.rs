@@ -14,8 +14,12 @@ use candle_core::{Device, Tensor};
 use crate::bcq::{self, BcqActor, BcqShape};
 use crate::caps::{CapsNetworks, CapsShape, per_step_limit};
 use crate::cdt::{self, Cdt, CdtContext, CdtShape};
-use crate::checkpoint::{Architecture, CONFIG_FILE, Conditioning, PolicyConfig};
+use crate::checkpoint::{
+    Architecture, CONFIG_FILE, Conditioning, DiffusionSampler, MAX_SAMPLER_CANDIDATES, MAX_SAMPLER_STEPS, PolicyConfig,
+};
+use crate::diffusion::{DiffusionPolicy, DiffusionShape, NoiseNet, Sampler, Schedule};
 use crate::gaussian::GaussianActor;
+use crate::latent::{LatentPolicy, LatentShape, LatentSource};
 use crate::layers::Weights;
 use crate::mlp::{Activation, Mlp, layer_sizes};
 use crate::noise::Noise;
@@ -50,6 +54,8 @@ pub enum Network {
         episode_len: usize,
         cost_scale: f64,
     },
+    Diffusion(DiffusionPolicy),
+    Latent(LatentPolicy),
 }
 
 fn format_error(message: impl Into<String>) -> PolicyError {
@@ -196,6 +202,105 @@ impl Network {
                 // The value networks only train the critics.
                 (network, &["reward_v.", "cost_v."])
             }
+            Architecture::Diffusion {
+                time_dim,
+                cond_sizes,
+                hidden_dim,
+                num_blocks,
+                layer_norm,
+                critic_hidden_sizes,
+                critic_members,
+                max_action,
+                sampler:
+                    DiffusionSampler::Ddpm {
+                        steps,
+                        beta_min,
+                        beta_max,
+                        clip,
+                        temperature,
+                        candidates,
+                        choice,
+                    },
+            } => {
+                let constants_ok = (1..=MAX_SAMPLER_STEPS).contains(steps)
+                    && (1..=MAX_SAMPLER_CANDIDATES).contains(candidates)
+                    && (1..=16).contains(critic_members)
+                    && beta_min.is_finite()
+                    && beta_max.is_finite()
+                    && *beta_min >= 0.0
+                    && beta_max >= beta_min
+                    && temperature.is_finite()
+                    && *temperature >= 0.0
+                    && max_action.is_finite();
+                if !constants_ok {
+                    return Err(format_error(format!(
+                        "diffusion: steps must be in 1..={MAX_SAMPLER_STEPS}, candidates in \
+                         1..={MAX_SAMPLER_CANDIDATES}, critic_members in 1..=16, 0 <= beta_min <= beta_max, \
+                         temperature >= 0 and every constant finite"
+                    )));
+                }
+                let shape = DiffusionShape {
+                    obs_dim: input_dim,
+                    act_dim,
+                    time_dim: *time_dim,
+                    cond_sizes: cond_sizes.clone(),
+                    hidden_dim: *hidden_dim,
+                    num_blocks: *num_blocks,
+                    layer_norm: *layer_norm,
+                };
+                let net = NoiseNet::from_weights(shape, "actor", &mut w)?;
+                let critic = DiffusionPolicy::critic_from_weights(
+                    *choice,
+                    *critic_members,
+                    input_dim + act_dim,
+                    critic_hidden_sizes,
+                    &mut w,
+                )?;
+                let policy = DiffusionPolicy {
+                    net,
+                    sampler: Sampler {
+                        schedule: Schedule::vp(*steps, *beta_min, *beta_max),
+                        candidates: *candidates,
+                        clip: *clip,
+                        temperature: *temperature,
+                    },
+                    critic,
+                    choice: *choice,
+                    max_action: *max_action,
+                };
+                // The other critics and the value networks only train.
+                (
+                    Network::Diffusion(policy),
+                    &["reward_q.", "cost_q.", "reward_v.", "cost_v."],
+                )
+            }
+            Architecture::LatentPolicy {
+                hidden_sizes,
+                decoder_hidden_sizes,
+                latent_dim,
+                max_latent,
+                latent,
+                max_action,
+            } => {
+                if *latent_dim == 0 || *latent_dim > 1 << 16 || !(max_latent.is_finite() && *max_latent > 0.0) {
+                    return Err(format_error(
+                        "latent_policy: latent_dim must be in 1..=65536 and max_latent positive and finite",
+                    ));
+                }
+                let shape = LatentShape {
+                    obs_dim: input_dim,
+                    act_dim,
+                    latent_dim: *latent_dim,
+                    hidden_sizes: hidden_sizes.clone(),
+                    decoder_hidden_sizes: decoder_hidden_sizes.clone(),
+                };
+                let policy = LatentPolicy::from_weights(shape, *latent, *max_latent, *max_action, &mut w)?;
+                let training_only: &[&str] = match latent {
+                    LatentSource::SafetyEncoder => &crate::latent::TRAINING_ONLY,
+                    LatentSource::Prior => &crate::latent::TRAINING_ONLY_PRIOR,
+                };
+                (Network::Latent(policy), training_only)
+            }
         };
         w.finish(training_only)?;
         Ok(network)
@@ -216,7 +321,11 @@ impl Network {
                 let h = activation.apply(&trunk.forward(obs)?)?;
                 mu.forward(&h)?.tanh()?.affine(*max_action, 0.0)?
             }
-            Network::Bcq(_) | Network::Cdt { .. } | Network::Caps { .. } => return Ok(None),
+            Network::Bcq(_)
+            | Network::Cdt { .. }
+            | Network::Caps { .. }
+            | Network::Diffusion(_)
+            | Network::Latent(_) => return Ok(None),
         };
         Ok(Some(out.flatten_all()?.to_vec1::<f32>()?))
     }
@@ -385,7 +494,7 @@ impl Policy {
 
 /// What the policy keeps for the episode an environment slot is playing.
 struct EpisodeState {
-    /// The BCQ actor's latent draws.
+    /// The policy's own random draws: the BCQ actor's and a latent policy's latents, a diffusion sampler's noise.
     latents: Noise,
     /// The CDT's inputs so far.
     context: CdtContext,
@@ -466,6 +575,18 @@ impl Rollout<'_> {
                 let z = actor.latents(&mut generators)?;
                 let obs = Tensor::from_vec(input, (n, input_dim), &Device::Cpu)?;
                 actor.act(&obs, &z)?.flatten_all()?.to_vec1::<f32>()?
+            }
+            Network::Diffusion(diffusion) => {
+                let mut slots = self.slots(envs)?;
+                let mut generators: Vec<&mut Noise> = slots.iter_mut().map(|s| &mut s.latents).collect();
+                let obs = Tensor::from_vec(input, (n, input_dim), &Device::Cpu)?;
+                diffusion.act(&obs, &mut generators)?
+            }
+            Network::Latent(latent) => {
+                let mut slots = self.slots(envs)?;
+                let mut generators: Vec<&mut Noise> = slots.iter_mut().map(|s| &mut s.latents).collect();
+                let obs = Tensor::from_vec(input, (n, input_dim), &Device::Cpu)?;
+                latent.act(&obs, &mut generators)?
             }
             Network::Cdt { model, max_action, .. } => {
                 let mut slots = self.slots(envs)?;

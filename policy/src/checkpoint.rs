@@ -171,7 +171,55 @@ pub enum Architecture {
         episode_len: usize,
         cost_scale: f64,
     },
+    /// A diffusion policy ([`crate::diffusion`], FISOR's actor): the noise-prediction network `actor.*` (learnable
+    /// Fourier features of the step index, a conditioning MLP with mish, `num_blocks` residual blocks of width
+    /// `hidden_dim`), run by the declared `sampler` over `candidates` actions per state; the critic ensemble of the
+    /// sampler's `choice` (`cost_q.<j>.<i>` or `reward_q.<j>.<i>`, ReLU MLPs on `[obs, act]`) picks the one played.
+    Diffusion {
+        time_dim: usize,
+        cond_sizes: Vec<usize>,
+        hidden_dim: usize,
+        num_blocks: usize,
+        layer_norm: bool,
+        critic_hidden_sizes: Vec<usize>,
+        critic_members: usize,
+        max_action: f64,
+        sampler: DiffusionSampler,
+    },
+    /// A latent-variable policy ([`crate::latent`], LSPC): the VAE decoder `vae.decoder.<i>` turns `[obs, z]` into
+    /// `max_action · tanh(·)`; `z` from the safety encoder `safety.*` (`latent: safety_encoder`, LSPC-O) or the
+    /// clamped prior (`latent: prior`, LSPC-S), drawn from a generator seeded with the episode's seed.
+    LatentPolicy {
+        hidden_sizes: Vec<usize>,
+        decoder_hidden_sizes: Vec<usize>,
+        latent_dim: usize,
+        max_latent: f64,
+        latent: crate::latent::LatentSource,
+        max_action: f64,
+    },
 }
+
+/// How a diffusion policy samples: DDPM over the discrete VP schedule (`steps`, `beta_min`, `beta_max`), clipping
+/// each step to [−1, 1] when `clip`, with `temperature` times the step noise; `candidates` actions per state, of
+/// which `choice` picks one.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum DiffusionSampler {
+    Ddpm {
+        steps: usize,
+        beta_min: f64,
+        beta_max: f64,
+        clip: bool,
+        temperature: f64,
+        candidates: usize,
+        choice: crate::diffusion::CandidateChoice,
+    },
+}
+
+/// The most denoising steps and candidates a sampler may declare (FISOR: 5 and 16); the step cost bounds their
+/// product with the network's size.
+pub const MAX_SAMPLER_STEPS: usize = 1000;
+pub const MAX_SAMPLER_CANDIDATES: usize = 1024;
 
 impl Architecture {
     /// The `name` in `policy.json`.
@@ -183,6 +231,8 @@ impl Architecture {
             Architecture::BcqActor { .. } => "bcq_actor",
             Architecture::Cdt { .. } => "cdt",
             Architecture::Caps { .. } => "caps",
+            Architecture::Diffusion { .. } => "diffusion",
+            Architecture::LatentPolicy { .. } => "latent_policy",
         }
     }
 }
@@ -261,6 +311,59 @@ impl Architecture {
                 let heads = f(*num_heads) * hidden_sizes.last().map_or(0.0, |&h| f(h) * f(act_dim));
                 let (critic, p2) = chain(input_dim + act_dim, hidden_sizes, 1);
                 (trunk + heads + 4.0 * f(*num_heads) * critic, p1.max(p2) * f(*num_heads))
+            }
+            Architecture::Diffusion {
+                time_dim,
+                cond_sizes,
+                hidden_dim,
+                num_blocks,
+                critic_hidden_sizes,
+                critic_members,
+                sampler: DiffusionSampler::Ddpm { steps, candidates, .. },
+                ..
+            } => {
+                // Every candidate through every denoising step, then through every ranking critic.
+                let shape = crate::diffusion::DiffusionShape {
+                    obs_dim: input_dim,
+                    act_dim,
+                    time_dim: *time_dim,
+                    cond_sizes: cond_sizes.clone(),
+                    hidden_dim: *hidden_dim,
+                    num_blocks: *num_blocks,
+                    layer_norm: true,
+                };
+                let net = crate::diffusion::NoiseNet::multiply_adds(&shape);
+                let (critic, p) = chain(input_dim.saturating_add(act_dim), critic_hidden_sizes, 1);
+                let n = f(*candidates);
+                (
+                    n * (f(*steps) * net + f(*critic_members) * critic),
+                    n * (4.0 * f(*hidden_dim) * 4.0).max(p),
+                )
+            }
+            Architecture::LatentPolicy {
+                hidden_sizes,
+                decoder_hidden_sizes,
+                latent_dim,
+                latent,
+                ..
+            } => {
+                let shape = crate::latent::LatentShape {
+                    obs_dim: input_dim,
+                    act_dim,
+                    latent_dim: *latent_dim,
+                    hidden_sizes: hidden_sizes.clone(),
+                    decoder_hidden_sizes: decoder_hidden_sizes.clone(),
+                };
+                let widest = hidden_sizes
+                    .iter()
+                    .chain(decoder_hidden_sizes)
+                    .copied()
+                    .max()
+                    .unwrap_or(0);
+                (
+                    crate::latent::LatentPolicy::multiply_adds(&shape, *latent),
+                    f(widest) * 4.0,
+                )
             }
         };
         StepCost {

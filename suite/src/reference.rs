@@ -18,8 +18,8 @@ use crate::leaderboard::entry_score;
 use crate::paper::{PAPER_METHODS, PaperResults};
 use crate::score::{EpisodeResult, NormalizedScore};
 
-/// The methods reference entries are trained with: OSRL's seven, then CAPS (beyond the paper).
-pub const REFERENCE_METHODS: [&str; 8] = [
+/// The methods reference entries are trained with: OSRL's seven, then CAPS, FISOR and LSPC (beyond the paper).
+pub const REFERENCE_METHODS: [&str; 10] = [
     "BC-All",
     "BC-Safe",
     "CDT",
@@ -28,11 +28,14 @@ pub const REFERENCE_METHODS: [&str; 8] = [
     "CPQ",
     "COptiDICE",
     "CAPS",
+    "FISOR",
+    "LSPC",
 ];
 
 /// OSRL's training budget for `method` on `task`: gradient steps per model and batch size (spec 5.4–5.8: 100,000
 /// steps, MetaDrive 200,000, BEAR-Lag 300,000 outside MetaDrive; batch 512, CDT 2048). CAPS: its own paper's 100,000
-/// steps at batch 512.
+/// steps at batch 512; FISOR and LSPC: their code's 1,000,000 steps, at batch 2048 (FISOR's actor: two halves of
+/// 1024) and 1024.
 pub fn osrl_budget(method: &str, task: &Task) -> Option<(u64, usize)> {
     let metadrive = task.family == Family::MetaDrive;
     let base = if metadrive { 200_000 } else { 100_000 };
@@ -41,6 +44,8 @@ pub fn osrl_budget(method: &str, task: &Task) -> Option<(u64, usize)> {
         "BEAR-Lag" => (if metadrive { 200_000 } else { 300_000 }, 512),
         "CDT" => (base, 2048),
         "CAPS" => (100_000, 512),
+        "FISOR" => (1_000_000, 2048),
+        "LSPC" => (1_000_000, 1024),
         _ => return None,
     })
 }

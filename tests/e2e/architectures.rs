@@ -1,5 +1,6 @@
-//! The architectures with state or conditioning (the BCQ actor, the CDT, an MLP conditioned on the target cost,
-//! CAPS switching on its remaining budget), as seeded, freshly initialised checkpoints from `dsrl-make-policy`: each plays on the real simulator
+//! The architectures with state, conditioning or several passes per action (the BCQ actor, the CDT, an MLP
+//! conditioned on the target cost, CAPS switching on its remaining budget, a diffusion sampler over candidate
+//! actions, a latent policy), as seeded, freshly initialised checkpoints from `dsrl-make-policy`: each plays on the real simulator
 //! through `dsrl-admin evaluate` and agrees episode by episode with `tests/parity/evaluate_in_python.py`, which
 //! implements every architecture again in NumPy (the CDT unbatched and unpadded, as OSRL's rollout feeds it; the
 //! BCQ latents from its own SplitMix64).
@@ -40,9 +41,16 @@ fn python_reference(dir: &Path, cost_threshold: &str) -> serde_json::Value {
 }
 
 #[test]
-fn bcq_cdt_target_cost_and_caps_policies_play_as_the_python_reference_does() {
+fn stateful_conditioned_and_multi_pass_policies_play_as_the_python_reference_does() {
     let dir = tempfile::tempdir().unwrap();
-    for arch in ["bcq-actor", "cdt", "target-cost-mlp", "caps"] {
+    for arch in [
+        "bcq-actor",
+        "cdt",
+        "target-cost-mlp",
+        "caps",
+        "diffusion",
+        "latent-policy",
+    ] {
         let policy = dir.path().join(arch);
         crate::make_policy(&policy, TASK, arch, 5);
         let ours = evaluate(&policy, &["--episodes", "3", "--cost-threshold", "20"]);

@@ -8,7 +8,8 @@ the workers apply). Prints one JSON object with every episode's returns, like `d
 Every architecture of the format is written out here independently of the Rust code: the MLP actors, the BCQ
 actor (VAE decoder + perturbation; its latents drawn from SplitMix64 + Box-Muller seeded with the episode seed, as
 the evaluator does) and the CDT (OSRL's rollout: one episode, the last seq_len timesteps unpadded, reward- and
-cost-to-go kept in float32). Conditioned policies play at --cost-threshold.
+cost-to-go kept in float32), CAPS's switch, the diffusion sampler (DDPM over the candidates, every draw from the
+episode's SplitMix64 in the evaluator's order) and the latent policy. Conditioned policies play at --cost-threshold.
 
 Usage: .venv-sim/bin/python tests/parity/evaluate_in_python.py POLICY_DIR --sim-id SafetyBallRun-v0 \
            [--episodes 20] [--seed 1000000] [--cost-threshold 10]
@@ -167,6 +168,70 @@ def policy_fn(policy_dir, cost_threshold):
         )
         return np.clip(proposal + nudge, -scale, scale)[0]
 
+    def mish(v):
+        # softplus as the evaluator writes it: max(v, 0) + log(1 + exp(-|v|)).
+        softplus = np.maximum(v, np.float32(0)) + np.log(np.float32(1) + np.exp(-np.abs(v)))
+        return v * np.tanh(softplus)
+
+    def noise_net(x, a, t):
+        """FISOR's noise prediction for rows of observations x, noised actions a, step index t."""
+        f = (np.float32(t) * w["actor.time.kernel"][:, 0])[None, :] * np.float32(2 * math.pi)
+        cond = np.concatenate([np.cos(f), np.sin(f)], 1).repeat(len(x), 0)
+        n = len(arch["cond_sizes"])
+        for i in range(n):
+            cond = linear(w, f"actor.cond.{i}", cond)
+            if i + 1 < n:
+                cond = mish(cond)
+        h = linear(w, "actor.input", np.concatenate([a, x, cond], 1))
+        for k in range(arch["num_blocks"]):
+            y = layer_norm(w, f"actor.blocks.{k}.norm", h) if arch["layer_norm"] else h
+            h = h + linear(w, f"actor.blocks.{k}.project", mish(linear(w, f"actor.blocks.{k}.expand", y)))
+        return linear(w, "actor.output", mish(h))
+
+    def diffusion(x, state):
+        sampler = arch["sampler"]
+        steps, n, act_dim = sampler["steps"], sampler["candidates"], config["act_dim"]
+        t_max = float(steps)
+        alphas = [
+            math.exp(-sampler["beta_min"] / t_max - 0.5 * (sampler["beta_max"] - sampler["beta_min"]) * (2 * t - 1) / t_max**2)
+            for t in range(1, steps + 1)
+        ]
+        hats = np.cumprod(alphas)
+
+        def draws():
+            return np.array([state["noise"].normal() for _ in range(n * act_dim)], np.float32).reshape(n, act_dim)
+
+        xs = x.repeat(n, 0)
+        a = draws()
+        for t in reversed(range(steps)):
+            eps = noise_net(xs, a, t)
+            a = (a - eps * np.float32((1 - alphas[t]) / math.sqrt(1 - hats[t]))) * np.float32(1 / math.sqrt(alphas[t]))
+            if t > 0:
+                a = a + draws() * np.float32(math.sqrt(1 - alphas[t]) * sampler["temperature"])
+            if sampler["clip"]:
+                a = np.clip(a, -1, 1)
+        a = np.clip(a, -1, 1)
+        xa = np.concatenate([xs, a], 1)
+        members = range(arch["critic_members"])
+        if sampler["choice"] == "min_cost_q":
+            score = np.max([mlp(w, f"cost_q.{j}", xa, "relu")[:, 0] for j in members], 0)
+            best = int(np.argmin(score))
+        else:
+            score = np.min([mlp(w, f"reward_q.{j}", xa, "relu")[:, 0] for j in members], 0)
+            best = int(np.argmax(score))
+        return a[best] * scale
+
+    def latent_policy(x, state):
+        eps = np.array([[state["noise"].normal() for _ in range(arch["latent_dim"])]], np.float32)
+        bound = np.float32(arch["max_latent"])
+        if arch["latent"] == "safety_encoder":
+            h = mlp(w, "safety.trunk", x, "relu", activate_last=True)
+            log_std = np.clip(mlp(w, "safety.log_std", h, "relu"), np.float32(-10), np.float32(2))
+            z = np.tanh(mlp(w, "safety.mu", h, "relu") + np.exp(log_std) * eps) * bound
+        else:
+            z = np.clip(eps, -bound, bound)
+        return (np.tanh(mlp(w, "vae.decoder", np.concatenate([x, z], 1), "relu")) * scale)[0]
+
     def cdt(x, state):
         state["states"].append(x[0])
         state["actions"].append(np.zeros(config["act_dim"], np.float32))
@@ -218,7 +283,9 @@ def policy_fn(policy_dir, cost_threshold):
         state = {"noise": SplitMix64(seed), "states": [], "actions": [], "spent": 0.0, "steps": 0}
         if arch["name"] == "cdt":
             state["rtg"], state["ctg"] = [start[0]], [start[1]]
-        step = {"bcq_actor": bcq, "cdt": cdt, "caps": caps}.get(arch["name"], memoryless)
+        step = {"bcq_actor": bcq, "cdt": cdt, "caps": caps, "diffusion": diffusion, "latent_policy": latent_policy}.get(
+            arch["name"], memoryless
+        )
 
         def act(obs):
             return step(prepare(obs), state)

@@ -22,15 +22,15 @@
 
 use std::path::Path;
 
+use dsrl_policy::Tensor;
 use dsrl_policy::adam::Adam;
 use dsrl_policy::caps::{CapsNetworks, CapsShape};
 use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig};
 use dsrl_policy::mlp::{Activation, Mlp};
 use dsrl_policy::noise::Noise;
 use dsrl_policy::offline::{Ensemble, concat, soft_update};
-use dsrl_policy::{DType, Tensor};
 
-use crate::offline::{Batch, Figures, Transitions};
+use crate::offline::{Batch, Figures, Transitions, expectile_loss};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// Clamp on the exponentiated advantages (CAPS's `EXP_ADV_MAX`, `EXP_ADVC_MAX`).
@@ -99,13 +99,6 @@ pub struct CapsLearner {
     data: Transitions,
     episode_len: usize,
     steps: u64,
-}
-
-/// `mean(|τ − 1[u < 0]|·u²)`, IQL's expectile loss.
-fn expectile_loss(u: &Tensor, tau: f64) -> anyhow::Result<Tensor> {
-    let below = u.lt(0.0)?.to_dtype(DType::F32)?;
-    let weight = below.affine(-1.0, tau)?.abs()?;
-    Ok(weight.mul(&u.sqr()?)?.mean_all()?)
 }
 
 /// CAPS's critic loss: the mean over the pair of each network's mean squared error.
@@ -277,6 +270,16 @@ impl CapsLearner {
         };
         checkpoint::write(dir, &config, &dsrl_policy::tensors_of(self.nets.named_vars()))?;
         Ok(())
+    }
+}
+
+impl crate::offline::EveryThresholdLearner for CapsLearner {
+    fn step(&mut self) -> anyhow::Result<Figures> {
+        CapsLearner::step(self)
+    }
+
+    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
+        CapsLearner::write(self, dir, task, training)
     }
 }
 

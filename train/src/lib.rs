@@ -15,6 +15,8 @@ pub mod cdt;
 pub mod cdt_augment;
 pub mod coptidice;
 pub mod cpq;
+pub mod fisor;
+pub mod lspc;
 pub mod offline;
 pub mod parity;
 pub mod reference;

@@ -15,7 +15,9 @@ use dsrl_train::caps::{CapsLearner, CapsSettings};
 use dsrl_train::cdt::{CdtLearner, CdtSettings, return_targets, task_augmentation};
 use dsrl_train::coptidice::{CoptidiceLearner, CoptidiceSettings};
 use dsrl_train::cpq::{CpqLearner, CpqSettings};
-use dsrl_train::offline::ThresholdLearner;
+use dsrl_train::fisor::{FisorLearner, FisorSettings};
+use dsrl_train::lspc::{LspcLearner, LspcSettings};
+use dsrl_train::offline::{EveryThresholdLearner, ThresholdLearner};
 use dsrl_train::{BcLearner, BcSettings, Demonstrations};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -149,6 +151,27 @@ enum Command {
     /// at each step it plays the head with the highest predicted reward among those whose predicted cost fits what
     /// is left of the budget. CAPS trains 100000 steps.
     Caps {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// FISOR (Zheng et al., ICLR 2024): beyond the paper's baselines. A hard constraint as a feasibility value
+    /// (reachability critics on costs recoded +25/−1, a reversed expectile), and a diffusion actor (5 denoising
+    /// steps, residual noise network 3×256 with LayerNorm and dropout 0.1) trained by noise regression weighted
+    /// towards feasibility where the state is infeasible and towards reward advantage where it is feasible; batch
+    /// 2×1024 for the actor, 256 for the critics, lrs 3e-4 (the actor's on a cosine over 3M actor updates), EMA
+    /// actor τ 0.001. Trained once; <out>/fisor is scored at every threshold: 16 candidate actions per step, the one
+    /// with the lowest feasibility value played. FISOR trains 1000000 steps.
+    Fisor {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// LSPC (Koirala & Fleming, ICLR 2025): beyond the paper's baselines. A conditional VAE (latent 32) learns the
+    /// data's actions weighted towards safe ones (by a cost advantage from IQL-style cost critics), and a safety
+    /// encoder learns by advantage-weighted regression which latent the decoder should play for reward (β 2,
+    /// expectile 0.7, hidden 256, lr 3e-4, batch 1024; the latent bounded at 0.6 on Bullet tasks but AntRun, 0.25
+    /// elsewhere). Trained once; <out>/lspc is scored at every threshold, the encoder's latent drawn per step from
+    /// the episode's seed (LSPC-O). LSPC trains 1000000 steps.
+    Lspc {
         #[command(flatten)]
         data: DataArgs,
     },
@@ -511,46 +534,107 @@ fn train_per_threshold(algorithm: &str, data: DataArgs, make: &MakeLearner) -> a
     Ok(())
 }
 
-/// CAPS: one model for every threshold, given as the episode's cost budget.
-fn train_caps(data: DataArgs) -> anyhow::Result<()> {
+/// What a method trained once and scored at every threshold (CAPS, FISOR, LSPC) hands [`train_one_model`].
+struct OneModel<'a> {
+    /// The model's folder name under the output folder, and the progress label.
+    name: &'a str,
+    batch_size: usize,
+    settings: String,
+    departures: &'a str,
+}
+
+/// Trains a model that serves every threshold, writes `<out>/<name>`, reports, and submits when asked.
+fn train_one_model(
+    model: OneModel,
+    data: &DataArgs,
+    prepared: Prepared,
+    learner: &mut dyn EveryThresholdLearner,
+) -> anyhow::Result<()> {
+    let Prepared { task, source, out, .. } = prepared;
+    let trained = train_loop(data.steps, model.name, 10, 5, || learner.step())?;
+    let extra = serde_json::json!({"settings": model.settings, "departures": model.departures});
+    let training = source.training_record(model.name, data, model.batch_size, &trained, extra);
+    let dir = out.join(model.name);
+    learner
+        .write(&dir, task.id.as_str(), training)
+        .with_context(|| format!("writing {}", dir.display()))?;
+    trained.report(model.name, data.steps, &dir);
+    if let (Some(name), Some(server)) = (&data.submit, &data.server) {
+        submit(server, &dir, task.id.as_str(), name)?;
+    }
+    Ok(())
+}
+
+/// The check of a method that is trained once for every threshold.
+fn no_thresholds(data: &DataArgs, method: &str, how: &str) -> anyhow::Result<()> {
     anyhow::ensure!(
         data.cost_thresholds.is_empty(),
-        "CAPS is trained once and scored at every benchmark threshold as a cost budget; drop --cost-threshold"
+        "{method} is trained once and scored at every benchmark threshold{how}; drop --cost-threshold"
     );
-    let Prepared {
-        task,
-        source,
-        demonstrations,
-        out,
-        device,
-    } = prepare(&data)?;
+    Ok(())
+}
+
+fn train_caps(data: DataArgs) -> anyhow::Result<()> {
+    no_thresholds(&data, "CAPS", " as a cost budget")?;
+    let prepared = prepare(&data)?;
     let default = CapsSettings::default();
     let settings = CapsSettings {
         seed: data.seed,
         batch_size: data.batch_size.unwrap_or(default.batch_size),
         ..default
     };
-    let mut learner = CapsLearner::on_device(
-        settings.clone(),
-        &demonstrations,
-        task.max_episode_steps as usize,
-        &device,
-    )?;
-    let trained = train_loop(data.steps, "caps", 100, 5, || learner.step())?;
-    let extra = serde_json::json!({
-        "settings": format!("{settings:?}"),
-        "departures": "batches drawn by the seeded generator; every other choice as CAPS's capsiql.py",
-    });
-    let training = source.training_record("caps", &data, settings.batch_size, &trained, extra);
-    let dir = out.join("caps");
-    learner
-        .write(&dir, task.id.as_str(), training)
-        .with_context(|| format!("writing {}", dir.display()))?;
-    trained.report("caps", data.steps, &dir);
-    if let (Some(name), Some(server)) = (&data.submit, &data.server) {
-        submit(server, &dir, task.id.as_str(), name)?;
-    }
-    Ok(())
+    let horizon = prepared.task.max_episode_steps as usize;
+    let mut learner = CapsLearner::on_device(settings.clone(), &prepared.demonstrations, horizon, &prepared.device)?;
+    let model = OneModel {
+        name: "caps",
+        batch_size: settings.batch_size,
+        settings: format!("{settings:?}"),
+        departures: "batches drawn by the seeded generator; every other choice as CAPS's capsiql.py",
+    };
+    train_one_model(model, &data, prepared, &mut learner)
+}
+
+fn train_fisor(data: DataArgs) -> anyhow::Result<()> {
+    no_thresholds(&data, "FISOR", "")?;
+    let prepared = prepare(&data)?;
+    let default = FisorSettings::default();
+    let settings = FisorSettings {
+        seed: data.seed,
+        // --batch-size sets the actor's half-batch; the critics keep a quarter of it, as FISOR's 1024 and 256.
+        actor_batch: data.batch_size.unwrap_or(default.actor_batch),
+        critic_batch: data.batch_size.map_or(default.critic_batch, |b| (b / 4).max(1)),
+        reward_scale: FisorSettings::reward_scale_for(&prepared.task),
+        ..default
+    };
+    let mut learner = FisorLearner::on_device(settings.clone(), &prepared.demonstrations, &prepared.device)?;
+    let model = OneModel {
+        name: "fisor",
+        batch_size: 2 * settings.actor_batch,
+        settings: format!("{settings:?}"),
+        departures: "batches, step indices, noise and dropout drawn by the seeded generator (JAX's cannot be matched); \
+                     critics start from PyTorch's default initialisation, not xavier-uniform",
+    };
+    train_one_model(model, &data, prepared, &mut learner)
+}
+
+fn train_lspc(data: DataArgs) -> anyhow::Result<()> {
+    no_thresholds(&data, "LSPC", "")?;
+    let prepared = prepare(&data)?;
+    let default = LspcSettings::for_task(&prepared.task);
+    let settings = LspcSettings {
+        seed: data.seed,
+        batch_size: data.batch_size.unwrap_or(default.batch_size),
+        ..default
+    };
+    let mut learner = LspcLearner::on_device(settings.clone(), &prepared.demonstrations, &prepared.device)?;
+    let model = OneModel {
+        name: "lspc",
+        batch_size: settings.batch_size,
+        settings: format!("{settings:?}"),
+        departures: "batches and latent draws from the seeded generator; at evaluation the encoder's latent is drawn \
+                     from the episode's seed",
+    };
+    train_one_model(model, &data, prepared, &mut learner)
 }
 
 /// CDT: one model for every threshold.
@@ -628,7 +712,9 @@ impl Command {
             | Command::Bearl { data }
             | Command::Cpq { data }
             | Command::Coptidice { data }
-            | Command::Caps { data } => Some(data),
+            | Command::Caps { data }
+            | Command::Fisor { data }
+            | Command::Lspc { data } => Some(data),
             Command::Parity { .. } | Command::ReferenceEntry { .. } => None,
         }
     }
@@ -681,6 +767,8 @@ fn main() -> anyhow::Result<()> {
         Command::Bcql { data } => return per_threshold("bcql", data, BcqlLearner::on_device),
         Command::Cdt { data } => return train_cdt(data),
         Command::Caps { data } => return train_caps(data),
+        Command::Fisor { data } => return train_fisor(data),
+        Command::Lspc { data } => return train_lspc(data),
         Command::Parity { dir } => return dsrl_train::parity::run(&dir),
         Command::ReferenceEntry {
             model,

@@ -44,6 +44,22 @@ pub trait ThresholdLearner {
     fn write(&self, dir: &Path, task: &str, kappa: f64, training: serde_json::Value) -> anyhow::Result<()>;
 }
 
+/// `mean(|τ − 1[u < 0]|·u²)`, IQL's expectile loss (CAPS, FISOR, LSPC): `τ > ½` an upper expectile of what
+/// `u` measures the value against, `τ < ½` a lower one.
+pub fn expectile_loss(u: &Tensor, tau: f64) -> anyhow::Result<Tensor> {
+    let below = u.lt(0.0)?.to_dtype(dsrl_policy::DType::F32)?;
+    let weight = below.affine(-1.0, tau)?.abs()?;
+    Ok(weight.mul(&u.sqr()?)?.mean_all()?)
+}
+
+/// A learner trained once whose model is scored at every threshold (CAPS, FISOR, LSPC), stepped by the CLI.
+pub trait EveryThresholdLearner {
+    /// One training step on a freshly drawn batch; named figures for the progress line and the record.
+    fn step(&mut self) -> anyhow::Result<Figures>;
+    /// Writes the evaluator's checkpoint with `training` recorded.
+    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()>;
+}
+
 /// The dataset's transitions as tensors (OSRL's `TransitionDataset`), sampled uniformly with replacement.
 pub struct Transitions {
     obs: Tensor,

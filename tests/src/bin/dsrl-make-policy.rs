@@ -7,9 +7,12 @@ use std::path::PathBuf;
 use clap::{Parser, ValueEnum};
 use dsrl_policy::caps::{CapsNetworks, CapsShape};
 use dsrl_policy::cdt::{Cdt, CdtShape};
-use dsrl_policy::checkpoint::{self, Architecture, Conditioning, PolicyConfig, ReturnTarget};
+use dsrl_policy::checkpoint::{self, Architecture, Conditioning, DiffusionSampler, PolicyConfig, ReturnTarget};
+use dsrl_policy::diffusion::{CandidateChoice, DiffusionShape, NoiseNet};
+use dsrl_policy::latent::LatentSource;
 use dsrl_policy::mlp::{Activation, Mlp};
 use dsrl_policy::noise::Noise;
+use dsrl_policy::offline::Ensemble;
 use dsrl_suite::catalog::Catalog;
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -23,6 +26,11 @@ enum Arch {
     /// CAPS: 3 heads on a [64, 64] trunk, critic pairs [64, 64]; cost_scale 0.01 and a shifted cost critic put the
     /// budget at the size of the critic's predictions, so the switch takes both of its branches.
     Caps,
+    /// A diffusion policy (FISOR's form): time features 8, conditioning [16, 16], 2 residual blocks of 16 with
+    /// LayerNorm; 3 DDPM steps over 4 candidates, the lowest of a [32, 32] feasibility critic pair played.
+    Diffusion,
+    /// A latent policy (LSPC's form): safety encoder [32, 32] over a latent of 4 bounded at 0.6, decoder [32, 32].
+    LatentPolicy,
 }
 
 #[derive(Debug, Parser)]
@@ -149,6 +157,60 @@ fn main() -> anyhow::Result<()> {
                 cost_scale: 0.01,
             };
             (architecture, Conditioning::CostBudget, nets.named_vars())
+        }
+        Arch::Diffusion => {
+            let shape = DiffusionShape {
+                obs_dim,
+                act_dim,
+                time_dim: 8,
+                cond_sizes: vec![16, 16],
+                hidden_dim: 16,
+                num_blocks: 2,
+                layer_norm: true,
+            };
+            let net = NoiseNet::new(shape, &mut noise)?;
+            let critic = Ensemble::new("cost_q", obs_dim + act_dim, &[32, 32], 2, &mut noise)?;
+            let architecture = Architecture::Diffusion {
+                time_dim: 8,
+                cond_sizes: vec![16, 16],
+                hidden_dim: 16,
+                num_blocks: 2,
+                layer_norm: true,
+                critic_hidden_sizes: vec![32, 32],
+                critic_members: 2,
+                max_action: 1.0,
+                sampler: DiffusionSampler::Ddpm {
+                    steps: 3,
+                    beta_min: 0.1,
+                    beta_max: 10.0,
+                    clip: true,
+                    temperature: 1.0,
+                    candidates: 4,
+                    choice: CandidateChoice::MinCostQ,
+                },
+            };
+            let vars = net.named_vars("actor").into_iter().chain(critic.named_vars()).collect();
+            (architecture, Conditioning::Unconditioned, vars)
+        }
+        Arch::LatentPolicy => {
+            let latent_dim = 4;
+            let mlp = |prefix: &str, sizes: &[usize], noise: &mut Noise| {
+                Mlp::pytorch_default(prefix, sizes, Activation::Relu, noise)
+            };
+            let trunk = mlp("safety.trunk", &[obs_dim, 32, 32], &mut noise)?;
+            let mu = mlp("safety.mu", &[32, latent_dim], &mut noise)?;
+            let log_std = mlp("safety.log_std", &[32, latent_dim], &mut noise)?;
+            let decoder = mlp("vae.decoder", &[obs_dim + latent_dim, 32, 32, act_dim], &mut noise)?;
+            let architecture = Architecture::LatentPolicy {
+                hidden_sizes: vec![32, 32],
+                decoder_hidden_sizes: vec![32, 32],
+                latent_dim,
+                max_latent: 0.6,
+                latent: LatentSource::SafetyEncoder,
+                max_action: 1.0,
+            };
+            let vars = [trunk, mu, log_std, decoder].iter().flat_map(Mlp::named_vars).collect();
+            (architecture, Conditioning::Unconditioned, vars)
         }
     };
     let config = PolicyConfig {
