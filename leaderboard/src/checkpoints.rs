@@ -274,6 +274,64 @@ impl CheckedCheckpoint {
 mod tests {
     use super::*;
 
+    /// FISOR's published configuration (`dsrl-train fisor`'s defaults) as a checkpoint declares it.
+    fn fisor() -> checkpoint::Architecture {
+        checkpoint::Architecture::Diffusion {
+            time_dim: 64,
+            cond_sizes: vec![128, 128],
+            hidden_dim: 256,
+            num_blocks: 3,
+            layer_norm: true,
+            critic_hidden_sizes: vec![256, 256],
+            critic_members: 2,
+            max_action: 1.0,
+            sampler: checkpoint::DiffusionSampler::Ddpm {
+                steps: 5,
+                beta_min: 0.1,
+                beta_max: 10.0,
+                clip: true,
+                temperature: 1.0,
+                candidates: 16,
+                choice: dsrl_policy::diffusion::CandidateChoice::MinCostQ,
+            },
+        }
+    }
+
+    #[test]
+    fn the_default_budget_admits_fisor_at_its_published_settings_on_every_task() {
+        let defaults = dsrl_service::config::LeaderboardConfig::default();
+        let budget = JobBudget {
+            episodes_per_threshold: defaults.episodes_per_threshold,
+            max_multiply_adds: defaults.max_job_multiply_adds,
+        };
+        let catalog = dsrl_suite::Catalog::embedded().unwrap();
+        let mut largest = 0;
+        for task in catalog.tasks() {
+            let config = PolicyConfig {
+                format: checkpoint::FORMAT.into(),
+                task: task.id.to_string(),
+                obs_dim: task.obs_dim as usize,
+                act_dim: task.act_dim as usize,
+                architecture: fisor(),
+                observation_normalization: None,
+                conditioning: Conditioning::Unconditioned,
+                training: None,
+            };
+            config
+                .architecture
+                .check_step_cost(config.obs_dim, config.act_dim)
+                .unwrap();
+            budget.check(task, &config, task.cost_thresholds.len()).unwrap();
+            let per_action = config
+                .architecture
+                .step_cost(config.obs_dim, config.act_dim)
+                .multiply_adds;
+            largest = largest.max(per_action * u64::from(task.max_episode_steps) * 60);
+        }
+        // The comment on the default names this figure.
+        assert!((8_000_000_000_000..8_500_000_000_000).contains(&largest), "{largest}");
+    }
+
     #[test]
     fn file_names_are_a_checkpoint_at_the_top_or_in_safe_folders() {
         assert_eq!(split_name("policy.json"), Some(("", "policy.json")));

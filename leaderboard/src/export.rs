@@ -20,7 +20,8 @@ pub struct BoardRow {
     pub scope: &'static str,
     /// The task id, or the family.
     pub table: String,
-    /// `entry` (ranked, scored here), or `paper` (the paper's self-reported row, unranked).
+    /// `entry` (ranked, scored here), `paper` (the paper's self-reported row, unranked), or `published` (a row a
+    /// method beyond the paper publishes, unranked).
     pub kind: &'static str,
     pub rank: Option<u64>,
     pub user: String,
@@ -72,23 +73,32 @@ pub fn rows(board: &Board) -> Vec<BoardRow> {
                 finished_at: e.finished_at.clone(),
             });
         }
-        for p in &t.paper {
+        // The self-reported rows: the paper's, then those of methods beyond it (each unranked, without intervals).
+        let paper = t
+            .paper
+            .iter()
+            .map(|p| ("paper", &p.method, p.normalized_reward, p.normalized_cost, p.safe));
+        let published = t
+            .published
+            .iter()
+            .map(|p| ("published", &p.method, p.normalized_reward, p.normalized_cost, p.safe));
+        for (kind, method, normalized_reward, normalized_cost, safe) in paper.chain(published) {
             rows.push(BoardRow {
                 protocol_version: version.clone(),
                 scope: "task",
                 table: t.task.clone(),
-                kind: "paper",
+                kind,
                 rank: None,
-                user: "paper".into(),
-                name: p.method.clone(),
+                user: kind.into(),
+                name: method.clone(),
                 reference: false,
-                normalized_reward: p.normalized_reward,
+                normalized_reward,
                 reward_low: None,
                 reward_high: None,
-                normalized_cost: p.normalized_cost,
+                normalized_cost,
                 cost_low: None,
                 cost_high: None,
-                safe: p.safe,
+                safe,
                 author_submissions_to_task: None,
                 tasks: None,
                 submission: None,

@@ -38,6 +38,7 @@ use dsrl_suite::leaderboard::{
 };
 use dsrl_suite::paper::{PAPER_LABEL, PaperResults, PaperRow};
 use dsrl_suite::protocol::Protocol;
+use dsrl_suite::published::{PublishedResults, PublishedRow};
 use dsrl_suite::reference::{Agreement, AgreementSummary, ScoredEntry, agreement, summarize, summarize_by_method};
 use dsrl_suite::score::NormalizedScore;
 use object_store::path::Path as ObjectPath;
@@ -70,6 +71,8 @@ pub struct Leaderboard {
     pub protocol: Protocol,
     /// The paper's table, shown beside the entries.
     pub paper: PaperResults,
+    /// What methods beyond the paper publish for the tasks (FISOR's table), shown beside their reference entries.
+    pub published: PublishedResults,
     /// Each finished submission's per-task bootstrap intervals (its episodes never change once finished).
     intervals: Mutex<HashMap<i64, (Interval, Interval)>>,
     /// The same over a method's training seeds, by the seeds' submission ids (`seeds_interval`).
@@ -244,6 +247,9 @@ pub struct TaskTable {
     pub earlier_protocol_entries: usize,
     /// The paper's rows for the task (its self-reported numbers; see `Board::paper_label`).
     pub paper: Vec<PaperRow>,
+    /// Rows methods beyond the paper publish for the task, each with its citation and protocol: self-reported,
+    /// not comparable cell for cell (FISOR's use one cost limit), and never part of the agreement.
+    pub published: Vec<PublishedRow>,
     /// Our starter-trained reference entries against the paper's rows, per method.
     pub agreement: Vec<Agreement>,
     /// The same for our entries trained on the task's full build.
@@ -361,12 +367,13 @@ impl Leaderboard {
     ) -> Result<Leaderboard, ApiError> {
         // The paper's table is checked against the embedded catalog (all 38 tasks); a server with another catalog
         // shows the rows of the tasks it has.
-        let paper = Catalog::embedded()
-            .map_err(ApiError::internal)
-            .and_then(|embedded| PaperResults::embedded(&embedded).map_err(ApiError::internal))?;
+        let embedded = Catalog::embedded().map_err(ApiError::internal)?;
+        let paper = PaperResults::embedded(&embedded).map_err(ApiError::internal)?;
+        let published = PublishedResults::embedded(&embedded).map_err(ApiError::internal)?;
         Ok(Leaderboard {
             protocol: protocol::current(&catalog, config.episodes_per_threshold, config.envs_per_session),
             paper,
+            published,
             intervals: Mutex::new(HashMap::new()),
             seed_intervals: Mutex::new(HashMap::new()),
             evaluators: supervision::Evaluators::default(),
@@ -914,6 +921,7 @@ impl Leaderboard {
                 entries,
                 earlier_protocol_entries: earlier.iter().filter(|r| r.task == t.id.as_str()).count(),
                 paper: self.paper.for_task(t.id.as_str()).into_iter().cloned().collect(),
+                published: self.published.for_task(t.id.as_str()).into_iter().cloned().collect(),
                 agreement: cells.iter().filter(|c| c.task == t.id.as_str()).cloned().collect(),
                 full_build_agreement: full_build_cells
                     .iter()

@@ -21,6 +21,7 @@ pub mod paper;
 pub mod parquet_file;
 pub mod plot;
 pub mod protocol;
+pub mod published;
 pub mod reference;
 pub mod score;
 pub mod synthetic;

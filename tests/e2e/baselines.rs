@@ -2,7 +2,8 @@
 //! BallRun starter (real checkpoints, not good ones: the scores are not the point) and write one model per benchmark
 //! threshold with the training recorded; `dsrl-train cdt` trains one model (at a small batch: OSRL's 2048 takes tens
 //! of seconds a step) with OSRL's return targets; `dsrl-train caps` one model that takes each threshold as its
-//! episode's cost budget. `data/reference_entries.sh` trains all eight, has the leaderboard score each on real
+//! episode's cost budget; `dsrl-train fisor` and `dsrl-train lspc` one model each that takes several network passes
+//! per action. `data/reference_entries.sh` trains all ten, has the leaderboard score each on real
 //! simulator workers with the paper's protocol (3 thresholds × 20 episodes), records each in the results file and
 //! resumes without redoing anything.
 
@@ -146,9 +147,68 @@ fn each_baseline_records_its_training_and_the_same_seed_trains_the_same_weights(
     assert_eq!(config["training"]["algorithm"], "caps", "{config}");
     assert_eq!(config["training"]["device"], "cpu", "{config}");
 
+    // FISOR and LSPC: one model each for every threshold, their samplers and latents declared in the checkpoint.
+    let stdout = train("fisor", models.path(), 2, &["--batch-size", "32"]);
+    assert!(stdout.contains("fisor: 2 steps"), "{stdout}");
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(models.path().join("fisor/policy.json")).unwrap()).unwrap();
+    let architecture = &config["architecture"];
+    assert_eq!(architecture["name"], "diffusion", "{config}");
+    assert_eq!(architecture["sampler"]["steps"], 5, "{config}");
+    assert_eq!(architecture["sampler"]["candidates"], 16, "{config}");
+    assert_eq!(architecture["sampler"]["choice"], "min_cost_q", "{config}");
+    assert_eq!(config["conditioning"]["kind"], "unconditioned", "{config}");
+    // A step draws the batch: the actor trains on its two halves, the critics on an eighth.
+    let settings = config["training"]["settings"].as_str().unwrap();
+    assert!(
+        settings.contains("actor_batch: 16") && settings.contains("critic_batch: 4"),
+        "{settings}"
+    );
+    assert_eq!(config["training"]["batch_size"], 32, "{config}");
+    let stdout = train("lspc", models.path(), 2, &["--batch-size", "32"]);
+    assert!(stdout.contains("lspc: 2 steps"), "{stdout}");
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(models.path().join("lspc/policy.json")).unwrap()).unwrap();
+    assert_eq!(config["architecture"]["name"], "latent_policy", "{config}");
+    assert_eq!(config["architecture"]["latent"], "safety_encoder", "{config}");
+    // BallRun is one of the Bullet tasks LSPC bounds its latent at 0.6 on.
+    assert_eq!(config["architecture"]["max_latent"], 0.6, "{config}");
+    for method in ["FISOR", "LSPC"] {
+        let output = Command::new(dsrl_e2e::bin("dsrl-train"))
+            .args([
+                &method.to_lowercase(),
+                "--task",
+                TASK,
+                "--steps",
+                "1",
+                "--cost-threshold",
+                "10",
+            ])
+            .arg("--dataset")
+            .arg(starter())
+            .env_remove("DSRL_SERVER")
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(
+            !output.status.success() && stderr.contains(&format!("{method} is trained once")),
+            "{stderr}"
+        );
+    }
+
     // Every method takes --device; this build (CI's, without the `cuda` feature) says how to get a GPU build
     // instead of training anywhere else.
-    for algorithm in ["bc", "bcql", "bearl", "cpq", "coptidice", "cdt", "caps"] {
+    for algorithm in [
+        "bc",
+        "bcql",
+        "bearl",
+        "cpq",
+        "coptidice",
+        "cdt",
+        "caps",
+        "fisor",
+        "lspc",
+    ] {
         let mode: &[&str] = if algorithm == "bc" { &["--mode", "all"] } else { &[] };
         let output = Command::new(dsrl_e2e::bin("dsrl-train"))
             .args([algorithm, "--task", TASK, "--steps", "1", "--device", "cuda"])
@@ -200,13 +260,16 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
             "--jobs",
             "2",
         ];
-        let methods = ["--methods", "bc-all bc-safe cdt bcql bearl cpq coptidice caps"];
+        let methods = [
+            "--methods",
+            "bc-all bc-safe cdt bcql bearl cpq coptidice caps fisor lspc",
+        ];
         reference_entries(&env, &token, &[extra, &budgets, &methods].concat())
     };
     let output = run(&[]);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "reference_entries.sh failed: {stderr}");
-    assert!(stderr.contains("training 18 models (2 at a time)"), "{stderr}");
+    assert!(stderr.contains("training 20 models (2 at a time)"), "{stderr}");
     // BEAR-Lag trains three times --steps, as OSRL's 300,000 against 100,000.
     let policies = state.join("policies").join(TASK).join("seed-0");
     let bearl: serde_json::Value =
@@ -231,7 +294,9 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
             "CAPS",
             "CDT",
             "COptiDICE",
-            "CPQ"
+            "CPQ",
+            "FISOR",
+            "LSPC"
         ]
     );
     let shown = board["tasks"][0]["entries"].as_array().unwrap();
@@ -240,7 +305,7 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
         assert_eq!(e.episodes.len(), 6, "{}", e.method);
         assert_eq!(
             e.training.models,
-            if ["BC-All", "CDT", "CAPS"].contains(&e.method.as_str()) {
+            if ["BC-All", "CDT", "CAPS", "FISOR", "LSPC"].contains(&e.method.as_str()) {
                 1
             } else {
                 3
@@ -271,10 +336,10 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     assert!(again.status.success(), "{stderr}");
     assert!(!stderr.contains("submitted as"), "{stderr}");
     assert!(!stderr.contains("training "), "{stderr}");
-    assert_eq!(stderr.matches("not trained again").count(), 8, "{stderr}");
+    assert_eq!(stderr.matches("not trained again").count(), 10, "{stderr}");
     assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
     let board = crate::get_json(&format!("{}/v1/leaderboard?task={TASK}", env.server.url));
-    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 8);
+    assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 10);
 
     // Trained again from scratch (--reproduce), every method's checkpoints come out with the digest their entry was
     // scored with: training is deterministic given its seed, and the entry keeps its scoring. A dsrl-train built
@@ -289,7 +354,7 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     if entries[0].code_commit.ends_with("-modified") {
         // Refused for its uncommitted build only after the networks were found to be the scored ones.
         assert!(!reproduced.status.success(), "{stderr}");
-        assert_eq!(stderr.matches("reproduced the scored networks").count(), 8, "{stderr}");
+        assert_eq!(stderr.matches("reproduced the scored networks").count(), 10, "{stderr}");
         assert_eq!(std::fs::read_to_string(&results).unwrap(), text);
     } else {
         assert!(

@@ -294,6 +294,7 @@ fn the_queue_is_fair_shows_positions_and_counts_and_the_board_downloads_as_data(
         .collect();
     assert_eq!(entries.len(), 4);
     assert_eq!(csv_rows.iter().filter(|r| r["kind"] == "paper").count(), 38 * 7);
+    assert_eq!(csv_rows.iter().filter(|r| r["kind"] == "published").count(), 26);
     // Each entry row is the board's entry: its rank, scores, interval, verdict, dataset and the build that scored it.
     let board_entries = board["tasks"][0]["entries"].as_array().unwrap();
     for row in &entries {

@@ -182,6 +182,7 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
             .env("DSRL_GOLDEN", &golden)
             .env("DSRL_ADMIN_TOKEN", env.server.token())
             .env("DSRL_TEST_UPLOAD", &upload)
+            .env("DSRL_TEST_EXPORT", env.path(&format!("export-{cache}")))
             .current_dir(&root);
         run(&mut command, &format!("pytest with {}", python.display()))
     };
@@ -191,8 +192,23 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
         .as_array()
         .unwrap()
         .len();
-    assert_eq!(passed(&out), 8 + golden_cases, "{out}");
+    assert_eq!(passed(&out), 9 + golden_cases, "{out}");
     assert!(!out.contains("skipped"), "{out}");
+    // The policy the package exported from arrays loads as the evaluator loads a submission, every name and shape
+    // checked, and plays the same action for the same episode seed.
+    let (config, tensors) = dsrl_policy::checkpoint::read(&env.path("export-cache-numpy1")).unwrap();
+    config
+        .architecture
+        .check_step_cost(config.obs_dim, config.act_dim)
+        .unwrap();
+    let policy = dsrl_policy::Policy::load(&config, &tensors).unwrap();
+    let play = |seed: u64| {
+        let mut rollout = policy.rollout(20.0, 1).unwrap();
+        rollout.start_episode(0, seed).unwrap();
+        rollout.act(&[0], &vec![0.1; config.obs_dim]).unwrap()
+    };
+    assert_eq!(play(4), play(4));
+    assert_ne!(play(4), play(5));
 
     let numpy2 = root.join(".venv-numpy2/bin/python");
     assert!(

@@ -596,13 +596,21 @@ fn train_caps(data: DataArgs) -> anyhow::Result<()> {
 
 fn train_fisor(data: DataArgs) -> anyhow::Result<()> {
     no_thresholds(&data, "FISOR", "")?;
+    if let Some(b) = data.batch_size {
+        anyhow::ensure!(
+            b >= 8 && b.is_multiple_of(2),
+            "FISOR's --batch-size is what a step draws, split into two actor halves with an eighth for the critics: \
+             give an even number of at least 8"
+        );
+    }
     let prepared = prepare(&data)?;
     let default = FisorSettings::default();
     let settings = FisorSettings {
         seed: data.seed,
-        // --batch-size sets the actor's half-batch; the critics keep a quarter of it, as FISOR's 1024 and 256.
-        actor_batch: data.batch_size.unwrap_or(default.actor_batch),
-        critic_batch: data.batch_size.map_or(default.critic_batch, |b| (b / 4).max(1)),
+        // --batch-size is what one step draws (FISOR's 2048): the actor trains on its two halves, the critics on
+        // an eighth of it (FISOR's 256).
+        actor_batch: data.batch_size.map_or(default.actor_batch, |b| (b / 2).max(1)),
+        critic_batch: data.batch_size.map_or(default.critic_batch, |b| (b / 8).max(1)),
         reward_scale: FisorSettings::reward_scale_for(&prepared.task),
         ..default
     };

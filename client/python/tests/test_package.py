@@ -7,6 +7,7 @@ it in the environment):
     DSRL_GOLDEN          suite/tests/it/golden/filters.json: DSRL's own pre_process_data outputs (sha256 per array)
     DSRL_ADMIN_TOKEN     the server's admin token
     DSRL_TEST_UPLOAD     JSON {"task", "path", "version"}: a file not yet on the server, whose conversion takes > 1 s
+    DSRL_TEST_EXPORT     an empty folder, where a policy exported from arrays is left for the Rust test to play
 """
 import hashlib
 import json
@@ -80,6 +81,43 @@ def test_a_bad_filter_raises_with_the_servers_code_and_message():
     with pytest.raises(DsrlError) as e:
         dsrl_client.load_dataset("OfflineNoSuchTask-v0", progress=False)
     assert e.value.status == 404 and e.value.exit_code == 4
+
+
+def test_arrays_export_a_multi_pass_policy_for_the_evaluator():
+    # A FISOR-form diffusion policy from plain arrays (what flax parameters become with numpy.asarray), its flax
+    # Dense layers through flax_dense; tests/e2e/python_package.rs loads it as the evaluator does and plays it.
+    rng = np.random.default_rng(3)
+    task = dsrl_client.task("OfflineBallRun-v0")
+    obs, act, h = task["obs_dim"], task["act_dim"], 16
+
+    def dense(n_in, n_out):
+        return {"kernel": rng.normal(0, 0.3, (n_in, n_out)), "bias": rng.normal(0, 0.1, n_out)}
+
+    tensors = {"actor.time.kernel": rng.normal(0, 0.2, (4, 1))}
+    for name, (n_in, n_out) in {"actor.cond.0": (8, 16), "actor.cond.1": (16, 16), "actor.input": (act + obs + 16, h),
+                                "actor.output": (h, act)}.items():
+        tensors.update(dsrl_client.export.flax_dense(dense(n_in, n_out), name))
+    for k in range(2):
+        tensors[f"actor.blocks.{k}.norm.weight"] = np.ones(h)
+        tensors[f"actor.blocks.{k}.norm.bias"] = np.zeros(h)
+        tensors.update(dsrl_client.export.flax_dense(dense(h, 4 * h), f"actor.blocks.{k}.expand"))
+        tensors.update(dsrl_client.export.flax_dense(dense(4 * h, h), f"actor.blocks.{k}.project"))
+    for j in range(2):
+        for i, (n_in, n_out) in enumerate([(obs + act, 32), (32, 32), (32, 1)]):
+            tensors.update(dsrl_client.export.flax_dense(dense(n_in, n_out), f"cost_q.{j}.{i}"))
+    architecture = {"name": "diffusion", "time_dim": 8, "cond_sizes": [16, 16], "hidden_dim": h, "num_blocks": 2,
+                    "layer_norm": True, "critic_hidden_sizes": [32, 32], "critic_members": 2, "max_action": 1.0,
+                    "sampler": {"kind": "ddpm", "steps": 5, "beta_min": 0.1, "beta_max": 10.0, "clip": True,
+                                "temperature": 1.0, "candidates": 16, "choice": "min_cost_q"}}
+    out = os.environ["DSRL_TEST_EXPORT"]
+    config = dsrl_client.export.export_arrays(tensors, task="OfflineBallRun-v0", architecture=architecture,
+                                              out_dir=out)
+    assert config["conditioning"] == {"kind": "unconditioned"} and config["obs_dim"] == obs
+    raw = open(os.path.join(out, "policy.safetensors"), "rb").read()
+    header = json.loads(raw[8:8 + int.from_bytes(raw[:8], "little")])
+    assert header["actor.input.weight"] == {"dtype": "F32", "shape": [h, act + obs + 16],
+                                            "data_offsets": header["actor.input.weight"]["data_offsets"]}
+    assert len(header) == len(tensors)
 
 
 def test_upload_waits_out_a_conversion_longer_than_the_timeout_and_a_retry_sends_nothing(monkeypatch):

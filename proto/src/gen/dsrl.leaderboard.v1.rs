@@ -222,6 +222,23 @@ pub struct PaperRow {
     #[prost(bool, tag = "4")]
     pub safe: bool,
 }
+/// A row a method beyond the paper publishes, with where and how.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct PublishedRow {
+    #[prost(string, tag = "1")]
+    pub method: ::prost::alloc::string::String,
+    #[prost(double, tag = "2")]
+    pub normalized_reward: f64,
+    #[prost(double, tag = "3")]
+    pub normalized_cost: f64,
+    #[prost(bool, tag = "4")]
+    pub safe: bool,
+    #[prost(string, tag = "5")]
+    pub citation: ::prost::alloc::string::String,
+    #[prost(string, tag = "6")]
+    pub protocol: ::prost::alloc::string::String,
+}
 /// Our reference entries of a method (mean over training seeds) against the paper's row.
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, ::prost::Message)]
@@ -266,6 +283,10 @@ pub struct TaskTable {
     pub paper: ::prost::alloc::vec::Vec<PaperRow>,
     #[prost(message, repeated, tag = "7")]
     pub agreement: ::prost::alloc::vec::Vec<Agreement>,
+    /// Rows methods beyond the paper publish for the task (FISOR's table): self-reported under their own protocol,
+    /// unranked, never part of the agreement.
+    #[prost(message, repeated, tag = "8")]
+    pub published: ::prost::alloc::vec::Vec<PublishedRow>,
 }
 /// An interquartile mean across tasks with its percentile-bootstrap interval and how it was drawn.
 #[allow(clippy::all)]

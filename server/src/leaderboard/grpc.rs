@@ -158,6 +158,18 @@ fn board(board: Board) -> pb::Leaderboard {
                         safe: p.safe,
                     })
                     .collect(),
+                published: t
+                    .published
+                    .into_iter()
+                    .map(|p| pb::PublishedRow {
+                        method: p.method,
+                        normalized_reward: p.normalized_reward,
+                        normalized_cost: p.normalized_cost,
+                        safe: p.safe,
+                        citation: p.citation,
+                        protocol: p.protocol,
+                    })
+                    .collect(),
                 agreement: t
                     .agreement
                     .into_iter()

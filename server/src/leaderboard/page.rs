@@ -8,7 +8,7 @@ use std::fmt::Write;
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
 use super::reference::{ReferenceRecord, TrainingData, method_label};
-use super::{Board, FamilyEntry, FamilyTable, QueuedJob, SubmissionView, TaskTable, UserSubmission};
+use super::{Board, FamilyEntry, FamilyTable, QueuedJob, SubmissionView, TaskEntry, TaskTable, UserSubmission};
 use crate::http::html::{escape, page};
 
 fn number(x: f64) -> String {
@@ -289,7 +289,16 @@ pub fn task_svg(table: &TaskTable) -> Result<String, String> {
         cost_interval: None,
         paper: true,
     });
-    let points: Vec<EntryPoint> = entries.chain(paper).collect();
+    let published = table.published.iter().map(|p| EntryPoint {
+        label: format!("published {}", p.method),
+        normalized_cost: p.normalized_cost,
+        normalized_reward: p.normalized_reward,
+        safe: p.safe,
+        reward_interval: None,
+        cost_interval: None,
+        paper: true,
+    });
+    let points: Vec<EntryPoint> = entries.chain(paper).chain(published).collect();
     entries_svg(&table.task, &points)
 }
 
@@ -395,6 +404,46 @@ fn task_section(html: &mut String, table: &TaskTable, paper_label: &str) {
                 cost,
                 safe,
                 agrees
+            );
+        }
+        html.push_str("</table>\n");
+    }
+    if !table.published.is_empty() {
+        html.push_str(
+            "<table class=\"published\"><caption>Rows methods beyond the paper publish for this task, as their \
+             authors report them under their own protocol (not ranked, not part of the agreement). Beside them, our \
+             reference entries of the same method.</caption><tr><th class=\"name\">method</th><th>published \
+             reward</th><th>published cost</th><th>source</th><th>ours: reward</th><th>ours: cost</th></tr>\n",
+        );
+        for row in &table.published {
+            // Our starter-trained reference entries of the method (each training seed is its own entry): their mean.
+            let ours: Vec<&TaskEntry> = table
+                .entries
+                .iter()
+                .filter(|e| {
+                    e.reference
+                        .as_ref()
+                        .is_some_and(|r| r.method == row.method && r.dataset == TrainingData::Starter)
+                })
+                .collect();
+            let mean = |f: fn(&TaskEntry) -> f64| {
+                if ours.is_empty() {
+                    "–".to_owned()
+                } else {
+                    number(ours.iter().map(|e| f(e)).sum::<f64>() / ours.len() as f64)
+                }
+            };
+            let _ = writeln!(
+                html,
+                "<tr class=\"published-row\"><td class=\"name\">{}</td><td>{}</td><td>{}</td><td>{}<br><small>{}\
+                 </small></td><td>{}</td><td>{}</td></tr>",
+                escape(&row.method),
+                number(row.normalized_reward),
+                number(row.normalized_cost),
+                escape(&row.citation),
+                escape(&row.protocol),
+                mean(|e| e.normalized_reward),
+                mean(|e| e.normalized_cost),
             );
         }
         html.push_str("</table>\n");

@@ -11,6 +11,14 @@ architecture the leaderboard plays (README, "Policies and scoring"). Needs `torc
 
 Sizes (hidden layers, latent size, CDT's dimensions) are read from the module; settings it cannot know (`max_action`,
 `phi`, CDT's scales) come from the module's attributes where OSRL keeps them, else from `architecture` as a dict.
+
+From arrays instead of modules (JAX/flax parameters, NumPy; no torch needed), any architecture, the multi-pass ones
+included (`diffusion`, `latent_policy`), with the tensor names of the README's table:
+
+    export_arrays({"actor.time.kernel": ..., "actor.cond.0.weight": ..., ...}, task="OfflineCarRun-v0",
+                  architecture={"name": "diffusion", "time_dim": 64, ..., "sampler": {"kind": "ddpm", ...}},
+                  out_dir="fisor")
+    flax_dense(params["MLPResNet_0"]["Dense_0"], "actor.input")   # a flax Dense -> {name.weight, name.bias}
 """
 import json
 import os
@@ -39,6 +47,52 @@ def export_policy(module, *, task, architecture, out_dir, cost_threshold=None, t
                          "bcq_actor, cdt")
     with torch.no_grad():
         tensors, arch = writer(module, settings, torch)
+    config = _config(info, {"name": name, **arch, **settings}, cost_threshold, targets, target_cost,
+                     observation_normalization)
+    os.makedirs(out_dir, exist_ok=True)
+    save_file(tensors, os.path.join(out_dir, "policy.safetensors"))
+    return _write_config(out_dir, config)
+
+
+def export_arrays(tensors, *, task, architecture, out_dir, cost_threshold=None, targets=None, target_cost=False,
+                  observation_normalization=None):
+    """Writes a checkpoint from named arrays (NumPy, or anything `numpy.asarray` takes: JAX arrays) and the
+    architecture as `policy.json` declares it (a dict with its `name`); returns the policy.json document. The
+    evaluator checks every name and shape against the declaration when the checkpoint is submitted."""
+    import numpy as np
+
+    info = catalog.task(task)
+    arrays = {name: np.ascontiguousarray(np.asarray(value, dtype=np.float32)) for name, value in tensors.items()}
+    config = _config(info, dict(architecture), cost_threshold, targets, target_cost, observation_normalization)
+    os.makedirs(out_dir, exist_ok=True)
+    _save_safetensors(arrays, os.path.join(out_dir, "policy.safetensors"))
+    return _write_config(out_dir, config)
+
+
+def flax_dense(params, name):
+    """A flax `Dense` layer's parameters (`kernel` [in, out], `bias`) as a PyTorch-style linear layer `name`."""
+    import numpy as np
+
+    return {f"{name}.weight": np.asarray(params["kernel"]).T, f"{name}.bias": np.asarray(params["bias"])}
+
+
+def _save_safetensors(arrays, path):
+    """The safetensors layout: an 8-byte little-endian header length, a JSON header of names, dtypes, shapes and
+    byte ranges, then the little-endian float32 data."""
+    header, offset, chunks = {}, 0, []
+    for name in sorted(arrays):
+        data = arrays[name].astype("<f4").tobytes()
+        header[name] = {"dtype": "F32", "shape": list(arrays[name].shape), "data_offsets": [offset, offset + len(data)]}
+        offset += len(data)
+        chunks.append(data)
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    with open(path + ".part", "wb") as f:
+        f.write(len(text).to_bytes(8, "little") + text + b"".join(chunks))
+    os.replace(path + ".part", path)
+
+
+def _config(info, architecture, cost_threshold, targets, target_cost, observation_normalization):
     if sum(x is not None and x is not False for x in (cost_threshold, targets, target_cost or None)) > 1:
         raise ValueError("give one of cost_threshold, targets, target_cost")
     if cost_threshold is not None:
@@ -50,12 +104,14 @@ def export_policy(module, *, task, architecture, out_dir, cost_threshold=None, t
     else:
         conditioning = {"kind": "unconditioned"}
     config = {"format": "dsrl-policy/1", "task": info["id"], "obs_dim": info["obs_dim"], "act_dim": info["act_dim"],
-              "architecture": {"name": name, **arch, **settings}, "conditioning": conditioning}
+              "architecture": architecture, "conditioning": conditioning}
     if observation_normalization is not None:
         mean, std = observation_normalization
         config["observation_normalization"] = {"mean": [float(x) for x in mean], "std": [float(x) for x in std]}
-    os.makedirs(out_dir, exist_ok=True)
-    save_file(tensors, os.path.join(out_dir, "policy.safetensors"))
+    return config
+
+
+def _write_config(out_dir, config):
     with open(os.path.join(out_dir, "policy.json"), "w") as f:
         json.dump(config, f, indent=1)
     return config
