@@ -17,9 +17,12 @@ set -euo pipefail
 case ${1:-} in -h|--help) sed -n "2,17p" "$0"; exit 0 ;; esac
 cd "$(dirname "$0")/.."
 steps=${1:-20}
-if [ -n "${LSPC_REPO:-}" ] && ! .venv-bench/bin/python -c "import torch, fsrl" 2>/dev/null; then
-  echo "LSPC's PyTorch column needs .venv-bench (bench/offline_step.sh makes it)" >&2
-  exit 2
+if [ -n "${LSPC_REPO:-}" ] && ! .venv-bench/bin/python -c "import torch, fsrl, tqdm" 2>/dev/null; then
+  # bench/offline_step.sh's environment: PyTorch and fast-safe-rl (which lspc_iql.py imports for its logger).
+  echo "making .venv-bench (bench/requirements-torch.txt) for LSPC's PyTorch column" >&2
+  [ -x .venv-bench/bin/python ] || python3 -m venv .venv-bench
+  .venv-bench/bin/pip install -q -r bench/requirements-torch.txt >&2
+  .venv-bench/bin/pip install -q --no-deps osrl-lib==0.1.0 fast-safe-rl==0.1.0 >&2
 fi
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"

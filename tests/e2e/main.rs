@@ -20,6 +20,7 @@ mod http;
 mod import_dsrl;
 mod ingest;
 mod leaderboard;
+mod losses;
 mod operations;
 mod probe;
 mod python_package;

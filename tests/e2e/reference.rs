@@ -66,11 +66,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         // The rows methods beyond the paper publish for the task, each with its citation and protocol.
         let published = dsrl_suite::published::PublishedResults::embedded(&catalog).unwrap();
         let expected = published.for_task(id);
-        assert_eq!(
-            table["published"],
-            serde_json::to_value(&expected).unwrap(),
-            "{id}"
-        );
+        assert_eq!(table["published"], serde_json::to_value(&expected).unwrap(), "{id}");
         // Every reference entry of the current protocol is in its task's table with its record; a method's several
         // training seeds (same budget and dataset) are one row, the mean over them with an interval over seeds and
         // episodes, each seed reachable from it; the scores are the file's episodes scored.
@@ -200,7 +196,10 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
     assert_eq!(page.matches("<tr class=\"paper-row\">").count(), 38 * 7);
     // FISOR's table: 26 rows, each with its source beside it.
     assert_eq!(page.matches("<tr class=\"published-row\">").count(), 26);
-    assert!(page.contains("ICLR 2024, Table 1"), "the published rows name their source");
+    assert!(
+        page.contains("ICLR 2024, Table 1"),
+        "the published rows name their source"
+    );
     assert!(page.contains(&format!("Protocol <strong>{}</strong>", protocol.version)));
     let summary = crate::leaderboard::reqwest_text(&format!("{}/leaderboard/agreement", env.server.url));
     let overall = summarize(&catalog, &cells).pop().unwrap();

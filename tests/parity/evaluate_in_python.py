@@ -129,6 +129,29 @@ def cdt_action(w, arch, states, actions, rtg, ctg, steps):
     return linear(w, "cdt.action_head.mu", state_out)[-1]
 
 
+def mish(v):
+    # softplus as the evaluator writes it: max(v, 0) + log(1 + exp(-|v|)).
+    softplus = np.maximum(v, 0) + np.log(1 + np.exp(-np.abs(v)))
+    return v * np.tanh(softplus)
+
+
+def noise_net(w, arch, x, a, t):
+    """FISOR's noise prediction (`diffusion` architecture) for rows of observations x, noised actions a and step
+    indices t (one per row)."""
+    f = (np.asarray(t, np.float32)[:, None] * w["actor.time.kernel"][:, 0][None, :]) * np.float32(2 * math.pi)
+    cond = np.concatenate([np.cos(f), np.sin(f)], 1)
+    n = len(arch["cond_sizes"])
+    for i in range(n):
+        cond = linear(w, f"actor.cond.{i}", cond)
+        if i + 1 < n:
+            cond = mish(cond)
+    h = linear(w, "actor.input", np.concatenate([a, x, cond], 1))
+    for k in range(arch["num_blocks"]):
+        y = layer_norm(w, f"actor.blocks.{k}.norm", h) if arch["layer_norm"] else h
+        h = h + linear(w, f"actor.blocks.{k}.project", mish(linear(w, f"actor.blocks.{k}.expand", y)))
+    return linear(w, "actor.output", mish(h))
+
+
 def policy_fn(policy_dir, cost_threshold):
     """Returns (config, new_episode(seed) -> (act(obs) -> action, observe(reward, cost)))."""
     config = json.loads((Path(policy_dir) / "policy.json").read_text())
@@ -168,26 +191,6 @@ def policy_fn(policy_dir, cost_threshold):
         )
         return np.clip(proposal + nudge, -scale, scale)[0]
 
-    def mish(v):
-        # softplus as the evaluator writes it: max(v, 0) + log(1 + exp(-|v|)).
-        softplus = np.maximum(v, np.float32(0)) + np.log(np.float32(1) + np.exp(-np.abs(v)))
-        return v * np.tanh(softplus)
-
-    def noise_net(x, a, t):
-        """FISOR's noise prediction for rows of observations x, noised actions a, step index t."""
-        f = (np.float32(t) * w["actor.time.kernel"][:, 0])[None, :] * np.float32(2 * math.pi)
-        cond = np.concatenate([np.cos(f), np.sin(f)], 1).repeat(len(x), 0)
-        n = len(arch["cond_sizes"])
-        for i in range(n):
-            cond = linear(w, f"actor.cond.{i}", cond)
-            if i + 1 < n:
-                cond = mish(cond)
-        h = linear(w, "actor.input", np.concatenate([a, x, cond], 1))
-        for k in range(arch["num_blocks"]):
-            y = layer_norm(w, f"actor.blocks.{k}.norm", h) if arch["layer_norm"] else h
-            h = h + linear(w, f"actor.blocks.{k}.project", mish(linear(w, f"actor.blocks.{k}.expand", y)))
-        return linear(w, "actor.output", mish(h))
-
     def diffusion(x, state):
         sampler = arch["sampler"]
         steps, n, act_dim = sampler["steps"], sampler["candidates"], config["act_dim"]
@@ -204,7 +207,7 @@ def policy_fn(policy_dir, cost_threshold):
         xs = x.repeat(n, 0)
         a = draws()
         for t in reversed(range(steps)):
-            eps = noise_net(xs, a, t)
+            eps = noise_net(w, arch, xs, a, np.full(len(xs), t))
             a = (a - eps * np.float32((1 - alphas[t]) / math.sqrt(1 - hats[t]))) * np.float32(1 / math.sqrt(alphas[t]))
             if t > 0:
                 a = a + draws() * np.float32(math.sqrt(1 - alphas[t]) * sampler["temperature"])
