@@ -194,7 +194,7 @@ pub enum Architecture {
         decoder_hidden_sizes: Vec<usize>,
         latent_dim: usize,
         max_latent: f64,
-        latent: crate::latent::LatentSource,
+        latent: LatentSource,
         max_action: f64,
     },
 }
@@ -212,8 +212,38 @@ pub enum DiffusionSampler {
         clip: bool,
         temperature: f64,
         candidates: usize,
-        choice: crate::diffusion::CandidateChoice,
+        choice: CandidateChoice,
     },
+}
+
+/// Which candidate a diffusion policy plays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CandidateChoice {
+    /// The lowest `max_j cost_q_j(s, a)` (FISOR's `minqc`: the most feasible).
+    MinCostQ,
+    /// The highest `min_j reward_q_j(s, a)` (IDQL-style).
+    MaxRewardQ,
+}
+
+impl CandidateChoice {
+    /// The prefix of the ranking critic's tensors.
+    pub fn critic_prefix(self) -> &'static str {
+        match self {
+            CandidateChoice::MinCostQ => "cost_q",
+            CandidateChoice::MaxRewardQ => "reward_q",
+        }
+    }
+}
+
+/// Where the latent comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LatentSource {
+    /// The safety encoder's squashed Gaussian (LSPC-O).
+    SafetyEncoder,
+    /// The VAE prior `N(0, I)` clamped to `±max_latent` (LSPC-S).
+    Prior,
 }
 
 /// The most denoising steps and candidates a sampler may declare (FISOR: 5 and 16); the step cost bounds their
@@ -323,16 +353,7 @@ impl Architecture {
                 ..
             } => {
                 // Every candidate through every denoising step, then through every ranking critic.
-                let shape = crate::diffusion::DiffusionShape {
-                    obs_dim: input_dim,
-                    act_dim,
-                    time_dim: *time_dim,
-                    cond_sizes: cond_sizes.clone(),
-                    hidden_dim: *hidden_dim,
-                    num_blocks: *num_blocks,
-                    layer_norm: true,
-                };
-                let net = crate::diffusion::NoiseNet::multiply_adds(&shape);
+                let net = noise_net_multiply_adds(input_dim, act_dim, *time_dim, cond_sizes, *hidden_dim, *num_blocks);
                 let (critic, p) = chain(input_dim.saturating_add(act_dim), critic_hidden_sizes, 1);
                 let n = f(*candidates);
                 (
@@ -347,12 +368,11 @@ impl Architecture {
                 latent,
                 ..
             } => {
-                let shape = crate::latent::LatentShape {
-                    obs_dim: input_dim,
-                    act_dim,
-                    latent_dim: *latent_dim,
-                    hidden_sizes: hidden_sizes.clone(),
-                    decoder_hidden_sizes: decoder_hidden_sizes.clone(),
+                // The decoder, and the safety encoder's trunk and heads when it supplies the latent.
+                let (decoder, _) = chain(input_dim.saturating_add(*latent_dim), decoder_hidden_sizes, act_dim);
+                let encoder = match latent {
+                    LatentSource::SafetyEncoder => chain(input_dim, hidden_sizes, latent_dim.saturating_mul(2)).0,
+                    LatentSource::Prior => 0.0,
                 };
                 let widest = hidden_sizes
                     .iter()
@@ -360,10 +380,7 @@ impl Architecture {
                     .copied()
                     .max()
                     .unwrap_or(0);
-                (
-                    crate::latent::LatentPolicy::multiply_adds(&shape, *latent),
-                    f(widest) * 4.0,
-                )
+                (decoder + encoder, f(widest) * 4.0)
             }
         };
         StepCost {
@@ -387,6 +404,29 @@ impl Architecture {
         }
         Ok(())
     }
+}
+
+/// Multiply-adds of one pass of a `diffusion` noise network for one row ([`crate::diffusion::NoiseNet`]): the time
+/// features, the conditioning MLP, the input layer, each block's 4x expansion and projection, the output.
+fn noise_net_multiply_adds(
+    obs_dim: usize,
+    act_dim: usize,
+    time_dim: usize,
+    cond_sizes: &[usize],
+    hidden_dim: usize,
+    num_blocks: usize,
+) -> f64 {
+    let f = |x: usize| x as f64;
+    let mut macs = f(time_dim / 2);
+    let mut width = time_dim;
+    for &size in cond_sizes {
+        macs += f(width) * f(size);
+        width = size;
+    }
+    let h = f(hidden_dim);
+    macs += (f(act_dim) + f(obs_dim) + f(width)) * h;
+    macs += f(num_blocks) * 8.0 * h * h;
+    macs + h * f(act_dim)
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -608,6 +648,28 @@ pub fn read(dir: &Path) -> Result<(PolicyConfig, HashMap<String, Tensor>)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_noise_networks_multiply_adds_are_its_weight_count() {
+        // One multiply-add per weight of each linear layer (and per time-kernel entry) for each row.
+        let shape = crate::diffusion::DiffusionShape {
+            obs_dim: 7,
+            act_dim: 2,
+            time_dim: 8,
+            cond_sizes: vec![16, 12],
+            hidden_dim: 10,
+            num_blocks: 3,
+            layer_norm: true,
+        };
+        let net = crate::diffusion::NoiseNet::new(shape, &mut crate::noise::Noise::seeded(1)).unwrap();
+        let weights: usize = net
+            .named_vars("a")
+            .iter()
+            .filter(|(name, _)| name.ends_with(".weight") && !name.contains(".norm.") || name.ends_with("kernel"))
+            .map(|(_, v)| v.elem_count())
+            .sum();
+        assert_eq!(noise_net_multiply_adds(7, 2, 8, &[16, 12], 10, 3), weights as f64);
+    }
     use crate::Policy;
     use crate::gaussian::{GaussianActor, matrix};
     use crate::noise::Noise;

@@ -21,6 +21,7 @@
 use candle_core::{DType, Device, Tensor, Var};
 
 use crate::Result;
+pub use crate::checkpoint::CandidateChoice;
 use crate::layers::{LayerNorm, Linear, Weights};
 use crate::mlp::{Activation, Mlp, layer_sizes};
 use crate::noise::Noise;
@@ -274,21 +275,6 @@ impl NoiseNet {
             crate::tensors_of(self.named_vars("net")).into_iter().collect();
         NoiseNet::from_weights(self.shape.clone(), "net", &mut Weights::new(&tensors))
     }
-
-    /// Multiply-adds of one pass for one row.
-    pub fn multiply_adds(shape: &DiffusionShape) -> f64 {
-        let f = |x: usize| x as f64;
-        let mut macs = f(shape.time_dim / 2);
-        let mut width = shape.time_dim;
-        for &size in &shape.cond_sizes {
-            macs += f(width) * f(size);
-            width = size;
-        }
-        let h = f(shape.hidden_dim);
-        macs += f(shape.act_dim + shape.obs_dim + shape.cond_dim()) * h;
-        macs += f(shape.num_blocks) * 8.0 * h * h;
-        macs + h * f(shape.act_dim)
-    }
 }
 
 fn check_shape(shape: &DiffusionShape) -> Result<()> {
@@ -384,26 +370,6 @@ impl Sampler {
             }
         }
         Ok(x.clamp(-1f32, 1f32)?)
-    }
-}
-
-/// Which candidate a diffusion policy plays.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CandidateChoice {
-    /// The lowest `max_j cost_q_j(s, a)` (FISOR's `minqc`: the most feasible).
-    MinCostQ,
-    /// The highest `min_j reward_q_j(s, a)` (IDQL-style).
-    MaxRewardQ,
-}
-
-impl CandidateChoice {
-    /// The prefix of the ranking critic's tensors.
-    pub fn critic_prefix(self) -> &'static str {
-        match self {
-            CandidateChoice::MinCostQ => "cost_q",
-            CandidateChoice::MaxRewardQ => "reward_q",
-        }
     }
 }
 

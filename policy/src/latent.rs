@@ -16,6 +16,7 @@
 use candle_core::{Device, Tensor};
 
 use crate::Result;
+pub use crate::checkpoint::LatentSource;
 use crate::layers::Weights;
 use crate::mlp::{Activation, Mlp, layer_sizes};
 use crate::noise::Noise;
@@ -26,16 +27,6 @@ pub const LOG_STD_RANGE: (f64, f64) = (-10.0, 2.0);
 pub const TRAINING_ONLY: [&str; 3] = ["vae.encoder.", "vae.mean.", "vae.log_std."];
 /// In prior mode the safety encoder only trains as well.
 pub const TRAINING_ONLY_PRIOR: [&str; 4] = ["vae.encoder.", "vae.mean.", "vae.log_std.", "safety."];
-
-/// Where the latent comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum LatentSource {
-    /// The safety encoder's squashed Gaussian (LSPC-O).
-    SafetyEncoder,
-    /// The VAE prior `N(0, I)` clamped to `±max_latent` (LSPC-S).
-    Prior,
-}
 
 /// The declared sizes of a latent policy.
 #[derive(Debug, Clone, PartialEq)]
@@ -151,20 +142,5 @@ impl LatentPolicy {
         Ok(Self::decode(&self.decoder, obs, &z, self.max_action)?
             .flatten_all()?
             .to_vec1::<f32>()?)
-    }
-
-    /// Multiply-adds of one action for one state.
-    pub fn multiply_adds(shape: &LatentShape, source: LatentSource) -> f64 {
-        let chain = |sizes: Vec<usize>| sizes.windows(2).map(|w| w[0] as f64 * w[1] as f64).sum::<f64>();
-        let decoder = chain(layer_sizes(
-            shape.obs_dim + shape.latent_dim,
-            &shape.decoder_hidden_sizes,
-            shape.act_dim,
-        ));
-        let encoder = match source {
-            LatentSource::SafetyEncoder => chain(layer_sizes(shape.obs_dim, &shape.hidden_sizes, 2 * shape.latent_dim)),
-            LatentSource::Prior => 0.0,
-        };
-        decoder + encoder
     }
 }
