@@ -16,7 +16,7 @@ import time
 import numpy as np
 import torch
 
-from offline_step_torch import load
+from offline_step_torch import load, stand_in_loggers
 
 
 def main():
@@ -30,6 +30,7 @@ def main():
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     sys.path.insert(0, os.environ["LSPC_REPO"])
+    stand_in_loggers()  # lspc_iql.py imports fsrl.utils' loggers, which import wandb and TensorBoard
     from lspc_iql import LSPC_IQL_Trainer, LSPC_IQL_kwargs
 
     d = load(args.data)
