@@ -30,7 +30,7 @@ use dsrl_policy::mlp::{Activation, Mlp};
 use dsrl_policy::noise::Noise;
 use dsrl_policy::offline::{Ensemble, concat, soft_update};
 
-use crate::offline::{Batch, Figures, Transitions, expectile_loss};
+use crate::offline::{Batch, EveryThresholdLearner, Figures, Transitions, expectile_loss};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// Clamp on the exponentiated advantages (CAPS's `EXP_ADV_MAX`, `EXP_ADVC_MAX`).
@@ -172,14 +172,6 @@ impl CapsLearner {
         s.actor_lr * (1.0 + (std::f64::consts::PI * t).cos()) / 2.0
     }
 
-    pub fn step(&mut self) -> anyhow::Result<Figures> {
-        let s = &self.settings;
-        let batch = self
-            .data
-            .sample(s.batch_size, s.reward_scale, s.cost_scale, &mut self.noise)?;
-        self.update(&batch)
-    }
-
     pub fn update(&mut self, batch: &Batch) -> anyhow::Result<Figures> {
         let s = self.settings.clone();
         let input = concat(&batch.obs, &batch.act)?;
@@ -246,10 +238,20 @@ impl CapsLearner {
             ("actor_lr", self.actor_optim.lr),
         ])
     }
+}
+
+impl EveryThresholdLearner for CapsLearner {
+    fn step(&mut self) -> anyhow::Result<Figures> {
+        let s = &self.settings;
+        let batch = self
+            .data
+            .sample(s.batch_size, s.reward_scale, s.cost_scale, &mut self.noise)?;
+        self.update(&batch)
+    }
 
     /// Writes the evaluator's `caps` checkpoint (trunk, heads, critic pairs; one model for every budget) with
     /// `training` recorded.
-    pub fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
+    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
         let s = &self.settings;
         let config = PolicyConfig {
             format: checkpoint::FORMAT.into(),
@@ -273,20 +275,10 @@ impl CapsLearner {
     }
 }
 
-impl crate::offline::EveryThresholdLearner for CapsLearner {
-    fn step(&mut self) -> anyhow::Result<Figures> {
-        CapsLearner::step(self)
-    }
-
-    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
-        CapsLearner::write(self, dir, task, training)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::offline::tests::{figure, first_weights, toy};
+    use crate::offline::tests::{figure, first_weights, run_steps, toy};
 
     fn small(seed: u64) -> CapsSettings {
         CapsSettings {
@@ -357,14 +349,7 @@ mod tests {
                 .sum::<f32>()
         };
         let before = imitation_error(&learner);
-        let first = learner.step().unwrap();
-        let mut last = first.clone();
-        for _ in 1..100 {
-            last = learner.step().unwrap();
-        }
-        for (name, v) in first.iter().chain(&last) {
-            assert!(v.is_finite(), "{name} = {v}");
-        }
+        let (first, last) = run_steps(|| learner.step(), 100);
         assert!(
             figure(&last, "reward_q") < figure(&first, "reward_q"),
             "{first:?} -> {last:?}"

@@ -32,7 +32,7 @@ use dsrl_policy::noise::Noise;
 use dsrl_policy::offline::{Ensemble, concat, soft_update};
 use dsrl_policy::{DType, Tensor};
 
-use crate::offline::{Batch, Figures, Transitions, expectile_loss};
+use crate::offline::{Batch, EveryThresholdLearner, Figures, Transitions, expectile_loss};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// FISOR's configuration (`configs/train_config.py`, `FISOR.create`'s defaults).
@@ -311,14 +311,6 @@ impl FisorLearner {
         Ok(f64::from(loss.to_scalar::<f32>()?))
     }
 
-    pub fn step(&mut self) -> anyhow::Result<Figures> {
-        let s = &self.settings;
-        let batch = self
-            .data
-            .sample(2 * s.actor_batch, s.reward_scale, 1.0, &mut self.noise)?;
-        self.update(&batch)
-    }
-
     /// One training step on `batch` (2 × the actor batch rows; rewards scaled, costs raw).
     pub fn update(&mut self, batch: &Batch) -> anyhow::Result<Figures> {
         let s = self.settings.clone();
@@ -380,10 +372,20 @@ impl FisorLearner {
         let ended = mask.affine(-1.0, 1.0)?;
         Ok(mask.mul(&running)?.add(&ended.mul(c)?)?.detach())
     }
+}
+
+impl EveryThresholdLearner for FisorLearner {
+    fn step(&mut self) -> anyhow::Result<Figures> {
+        let s = &self.settings;
+        let batch = self
+            .data
+            .sample(2 * s.actor_batch, s.reward_scale, 1.0, &mut self.noise)?;
+        self.update(&batch)
+    }
 
     /// Writes the evaluator's `diffusion` checkpoint (the EMA actor, the target feasibility pair; one model for
     /// every threshold) with `training` recorded.
-    pub fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
+    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
         let s = &self.settings;
         let config = PolicyConfig {
             format: checkpoint::FORMAT.into(),
@@ -420,20 +422,10 @@ impl FisorLearner {
     }
 }
 
-impl crate::offline::EveryThresholdLearner for FisorLearner {
-    fn step(&mut self) -> anyhow::Result<Figures> {
-        FisorLearner::step(self)
-    }
-
-    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
-        FisorLearner::write(self, dir, task, training)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::offline::tests::{figure, first_weights, toy};
+    use crate::offline::tests::{assert_falls, first_weights, run_steps, toy};
 
     fn small(seed: u64) -> FisorSettings {
         FisorSettings {
@@ -539,22 +531,8 @@ mod tests {
     fn a_few_steps_train_deterministically_and_the_checkpoint_plays_the_most_feasible_candidate() {
         let data = toy();
         let mut learner = FisorLearner::new(small(3), &data).unwrap();
-        let first = learner.step().unwrap();
-        let mut last = first.clone();
-        for _ in 1..60 {
-            last = learner.step().unwrap();
-        }
-        for (name, v) in first.iter().chain(&last) {
-            assert!(v.is_finite(), "{name} = {v}");
-        }
-        assert!(
-            figure(&last, "reward_q") < figure(&first, "reward_q"),
-            "{first:?} -> {last:?}"
-        );
-        assert!(
-            figure(&last, "actor") < figure(&first, "actor"),
-            "{first:?} -> {last:?}"
-        );
+        let (first, last) = run_steps(|| learner.step(), 60);
+        assert_falls(&first, &last, &["reward_q", "actor"]);
         let mut again = FisorLearner::new(small(3), &data).unwrap();
         for _ in 0..60 {
             again.step().unwrap();

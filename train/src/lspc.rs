@@ -33,7 +33,7 @@ use dsrl_policy::offline::{Ensemble, concat, soft_update};
 use dsrl_policy::vae::Vae;
 use dsrl_policy::{DType, Tensor};
 
-use crate::offline::{Batch, Figures, Transitions, expectile_loss};
+use crate::offline::{Batch, EveryThresholdLearner, Figures, Transitions, expectile_loss};
 use crate::{Demonstrations, MAX_ACTION};
 
 /// LSPC's configuration (`BCTrainConfig` and the task classes of `lspc_iql_configs.py`).
@@ -183,12 +183,6 @@ impl LspcLearner {
         })
     }
 
-    pub fn step(&mut self) -> anyhow::Result<Figures> {
-        let s = &self.settings;
-        let batch = self.data.sample(s.batch_size, 1.0, 1.0, &mut self.noise)?;
-        self.update(&batch)
-    }
-
     /// The VAE's per-row loss `w·(Σ_d (decode(s, μ + σε) − a)² + β·KL)`, averaged over rows.
     pub fn vae_loss(&self, obs: &Tensor, act: &Tensor, eps: &Tensor, weights: &Tensor) -> anyhow::Result<Tensor> {
         let out = self.vae.forward(obs, act, eps)?;
@@ -283,10 +277,18 @@ impl LspcLearner {
             ("safety", scalar(&safety_loss)?),
         ])
     }
+}
+
+impl EveryThresholdLearner for LspcLearner {
+    fn step(&mut self) -> anyhow::Result<Figures> {
+        let s = &self.settings;
+        let batch = self.data.sample(s.batch_size, 1.0, 1.0, &mut self.noise)?;
+        self.update(&batch)
+    }
 
     /// Writes the evaluator's `latent_policy` checkpoint (decoder and safety encoder: LSPC-O, one model for every
     /// threshold) with `training` recorded.
-    pub fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
+    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
         let s = &self.settings;
         let config = PolicyConfig {
             format: checkpoint::FORMAT.into(),
@@ -312,20 +314,10 @@ impl LspcLearner {
     }
 }
 
-impl crate::offline::EveryThresholdLearner for LspcLearner {
-    fn step(&mut self) -> anyhow::Result<Figures> {
-        LspcLearner::step(self)
-    }
-
-    fn write(&self, dir: &Path, task: &str, training: serde_json::Value) -> anyhow::Result<()> {
-        LspcLearner::write(self, dir, task, training)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::offline::tests::{figure, first_weights, toy};
+    use crate::offline::tests::{assert_falls, first_weights, run_steps, toy};
 
     fn small(seed: u64) -> LspcSettings {
         LspcSettings {
@@ -397,22 +389,8 @@ mod tests {
     fn a_few_steps_train_deterministically_and_the_checkpoint_decodes_the_encoders_latent() {
         let data = toy();
         let mut learner = LspcLearner::new(small(3), &data).unwrap();
-        let first = learner.step().unwrap();
-        let mut last = first.clone();
-        for _ in 1..100 {
-            last = learner.step().unwrap();
-        }
-        for (name, v) in first.iter().chain(&last) {
-            assert!(v.is_finite(), "{name} = {v}");
-        }
-        assert!(
-            figure(&last, "reward_q") < figure(&first, "reward_q"),
-            "{first:?} -> {last:?}"
-        );
-        assert!(
-            figure(&last, "safety") < figure(&first, "safety"),
-            "{first:?} -> {last:?}"
-        );
+        let (first, last) = run_steps(|| learner.step(), 100);
+        assert_falls(&first, &last, &["reward_q", "safety"]);
         let mut again = LspcLearner::new(small(3), &data).unwrap();
         for _ in 0..100 {
             again.step().unwrap();

@@ -208,10 +208,15 @@ pub(crate) mod tests {
 
     /// Steps `learner` `n` times and returns the first and last figures.
     pub(crate) fn run(learner: &mut dyn ThresholdLearner, n: usize) -> (Figures, Figures) {
-        let first = learner.step().unwrap();
+        run_steps(|| learner.step(), n)
+    }
+
+    /// Calls `step` `n` times and returns the first and last figures, every one of them finite.
+    pub(crate) fn run_steps(mut step: impl FnMut() -> anyhow::Result<Figures>, n: usize) -> (Figures, Figures) {
+        let first = step().unwrap();
         let mut last = first.clone();
         for _ in 1..n {
-            last = learner.step().unwrap();
+            last = step().unwrap();
         }
         for (name, v) in first.iter().chain(&last) {
             assert!(v.is_finite(), "{name} = {v}");
@@ -222,6 +227,16 @@ pub(crate) mod tests {
     /// The values of the first variable of `vars` (a network's first weight matrix): what determinism tests compare.
     pub(crate) fn first_weights(vars: Vec<(String, dsrl_policy::Var)>) -> Vec<f32> {
         vars[0].1.as_tensor().flatten_all().unwrap().to_vec1().unwrap()
+    }
+
+    /// Asserts that each of `names` is lower in `last` than in `first`.
+    pub(crate) fn assert_falls(first: &Figures, last: &Figures, names: &[&str]) {
+        for name in names {
+            assert!(
+                figure(last, name) < figure(first, name),
+                "{name}: {first:?} -> {last:?}"
+            );
+        }
     }
 
     pub(crate) fn figure(figures: &[(&'static str, f64)], name: &str) -> f64 {

@@ -280,25 +280,29 @@ pub fn task_svg(table: &TaskTable) -> Result<String, String> {
         cost_interval: Some((e.normalized_cost_interval.low, e.normalized_cost_interval.high)),
         paper: false,
     });
-    let paper = table.paper.iter().map(|p| EntryPoint {
-        label: format!("paper {}", p.method),
-        normalized_cost: p.normalized_cost,
-        normalized_reward: p.normalized_reward,
-        safe: p.safe,
-        reward_interval: None,
-        cost_interval: None,
-        paper: true,
-    });
-    let published = table.published.iter().map(|p| EntryPoint {
-        label: format!("published {}", p.method),
-        normalized_cost: p.normalized_cost,
-        normalized_reward: p.normalized_reward,
-        safe: p.safe,
-        reward_interval: None,
-        cost_interval: None,
-        paper: true,
-    });
-    let points: Vec<EntryPoint> = entries.chain(paper).chain(published).collect();
+    // The self-reported rows, drawn as the paper's: the paper's own, then those of methods beyond it.
+    let reported = table
+        .paper
+        .iter()
+        .map(|p| ("paper", &p.method, p.normalized_cost, p.normalized_reward, p.safe))
+        .chain(
+            table
+                .published
+                .iter()
+                .map(|p| ("published", &p.method, p.normalized_cost, p.normalized_reward, p.safe)),
+        )
+        .map(
+            |(source, method, normalized_cost, normalized_reward, safe)| EntryPoint {
+                label: format!("{source} {method}"),
+                normalized_cost,
+                normalized_reward,
+                safe,
+                reward_interval: None,
+                cost_interval: None,
+                paper: true,
+            },
+        );
+    let points: Vec<EntryPoint> = entries.chain(reported).collect();
     entries_svg(&table.task, &points)
 }
 
