@@ -236,7 +236,7 @@ pub fn reference_sections(
     sections.insert("reference-agreement".to_owned(), s);
 
     let mut s = String::from(
-        "| task | method | seed | steps × batch (of OSRL's samples) | normalized reward [95%] | normalized cost [95%] \
+        "| task | method | seed | steps × batch (of the method's samples) | normalized reward [95%] | normalized cost [95%] \
          | safe | paper reward | paper cost | paper safe |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let mut agree_rows = String::from(
@@ -291,8 +291,8 @@ pub fn reference_sections(
     sections.insert("reference-cells".to_owned(), agree_rows);
 
     let mut s = String::from(
-        "| task | method | seed | models | steps | training CPU s | CPU s per step | OSRL's budget, CPU h (one thread per \
-         model) | training wall s | scoring wall s | dataset | code | CPU |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| task | method | seed | models | steps | training CPU s | CPU s per step | the method's budget, CPU h (one thread \
+         per model) | training wall s | scoring wall s | dataset | code | CPU |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let (mut cpu_total, mut osrl_total, mut wall_total, mut score_total) = (0.0, 0.0, 0.0, 0.0);
     for task in catalog.tasks() {

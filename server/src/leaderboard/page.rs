@@ -25,7 +25,8 @@ fn with_interval(i: &dsrl_suite::leaderboard::Interval) -> String {
     )
 }
 
-/// A reference entry's budget: steps (× models) at a batch size, as a fraction of OSRL's samples.
+/// A reference entry's budget: steps (× models) at a batch size, as a fraction of the method's own budget's samples
+/// (OSRL's for the paper's seven methods; CAPS's, FISOR's and LSPC's code's for theirs).
 fn budget(record: &ReferenceRecord, seeds: &str) -> String {
     let t = &record.training;
     let models = if t.models > 1 {
@@ -34,7 +35,7 @@ fn budget(record: &ReferenceRecord, seeds: &str) -> String {
         String::new()
     };
     format!(
-        "reference: {} steps{models} at batch {} (1/{:.0} of OSRL's samples), seed {seeds}, trained on the {}",
+        "reference: {} steps{models} at batch {} (1/{:.0} of the method's samples), seed {seeds}, trained on the {}",
         t.steps,
         t.batch_size,
         1.0 / t.fraction_of_osrl(),
