@@ -8,8 +8,8 @@
 #      seed 0: BCQ-Lag 2,000 steps per threshold, BEAR-Lag 6,000, CPQ and COptiDICE 5,000 (1/20), CDT 600 at batch
 #      512, CAPS 2,000 (BallRun 20,000); batch 512 throughout (OSRL's, but CDT's 2048).
 #   3. Training seeds 1 and 2 of all eight on BallRun and CarCircle, at the same budgets.
-#   4. FISOR and LSPC (beyond the paper) on the six tasks' four Bullet ones, seed 0, at what this machine allows:
-#      FISOR 500 steps at its batch 2048 (1/2000 of its code's 1,000,000), LSPC 2,000 at its 1024 (1/500).
+#   4. FISOR and LSPC (beyond the paper) on the six tasks, seed 0, at what this machine allows: FISOR 500 steps at
+#      its batch 2048 (1/2000 of its code's 1,000,000), LSPC 2,000 at its 1024 (1/500); the Bullet four first.
 #   1r. Phase 1 trained again from scratch (--reproduce): its entries take the commit of this dsrl-train where the
 #      checkpoints come out as scored. Phase 1 was trained by a build with uncommitted learner sources.
 # Usage: data/reference_sweep.sh [--jobs J] [--phases "1 2 3"]   (J models trained at once, one core each; 2)
@@ -78,6 +78,7 @@ for phase in $phases; do
       ;;
     4)
       run --methods "fisor lspc" --steps-for fisor=500 --steps-for lspc=2000 "${six[@]:0:4}"
+      run --methods "fisor lspc" --steps-for fisor=500 --steps-for lspc=2000 "${six[@]:4}"
       ;;
     *) echo "no phase $phase" >&2; exit 2 ;;
   esac
