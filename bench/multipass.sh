@@ -14,7 +14,7 @@
 # the load average at the start.
 # Usage: bench/multipass.sh [STEPS=20]     LSPC_REPO=<clone of LSPC-Safe-Offline-RL> for LSPC's PyTorch column
 set -euo pipefail
-case ${1:-} in -h|--help) sed -n "2,17p" "$0"; exit 0 ;; esac
+case ${1:-} in -h|--help) sed -n "2,15p" "$0"; exit 0 ;; esac
 cd "$(dirname "$0")/.."
 steps=${1:-20}
 if [ -n "${LSPC_REPO:-}" ] && ! .venv-bench/bin/python -c "import torch, fsrl, tqdm" 2>/dev/null; then
