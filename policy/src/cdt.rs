@@ -385,17 +385,13 @@ pub struct Training<'a> {
 }
 
 impl Training<'_> {
-    /// Zeroes each element with probability `p` and scales the rest by `1/(1 − p)`, as `nn.Dropout` in training.
-    /// An element is dropped when its uniform draw is below `p`, compared in integers: the draw is
-    /// `((u >> 11) + 0.5) / 2⁵³`, so it is below `p` exactly when `u >> 11` is below `⌈p·2⁵³ − 0.5⌉`.
+    /// Zeroes each element with probability `p` and scales the rest by `1/(1 − p)`, as `nn.Dropout` in training
+    /// (the mask from [`Noise::dropout_keep`]).
     pub fn dropout(&mut self, x: &Tensor) -> Result<Tensor> {
         if self.p <= 0.0 {
             return Ok(x.clone());
         }
-        let below = (self.p * (1u64 << 53) as f64 - 0.5).ceil() as u64;
-        let keep: Vec<bool> = (0..x.elem_count())
-            .map(|_| (self.noise.next_u64() >> 11) >= below)
-            .collect();
+        let keep = self.noise.dropout_keep(x.elem_count(), self.p);
         Ok(fused::dropout(x, keep, self.p)?)
     }
 }

@@ -52,21 +52,17 @@ pub fn mish(x: &Tensor) -> Result<Tensor> {
     Ok(x.mul(&softplus(x)?.tanh()?)?)
 }
 
-/// Flax's `Dropout` while training: each entry kept with probability `1 − rate` and scaled by `1/(1 − rate)`.
+/// Flax's `Dropout` while training: each entry kept with probability `1 − rate` and scaled by `1/(1 − rate)` (the
+/// CDT's dropout: the mask from [`Noise::dropout_keep`], one fused operation).
 fn dropout(x: &Tensor, rate: f64, noise: &mut Noise) -> Result<Tensor> {
     if rate <= 0.0 {
         return Ok(x.clone());
     }
-    let keep: Vec<f32> = (0..x.elem_count())
-        .map(|_| {
-            if noise.uniform() >= rate {
-                (1.0 / (1.0 - rate)) as f32
-            } else {
-                0.0
-            }
-        })
-        .collect();
-    Ok(x.mul(&Tensor::from_vec(keep, x.shape(), x.device())?)?)
+    Ok(crate::fused::dropout(
+        x,
+        noise.dropout_keep(x.elem_count(), rate),
+        rate,
+    )?)
 }
 
 /// A linear layer `fan_in → fan_out` with zero bias and weights from `draw(fan_in, fan_out)`.
@@ -408,13 +404,7 @@ impl DiffusionPolicy {
         let values = self.critic.values(&crate::offline::concat(&repeated, &candidates)?)?;
         let ranked = match self.choice {
             // Lowest of the maxima: negate, so both choices take the highest.
-            CandidateChoice::MinCostQ => {
-                let mut max = values[0].clone();
-                for v in &values[1..] {
-                    max = max.maximum(v)?;
-                }
-                max.neg()?
-            }
+            CandidateChoice::MinCostQ => Ensemble::max(&values)?.neg()?,
             CandidateChoice::MaxRewardQ => Ensemble::min(&values)?,
         };
         let scores = ranked.to_vec1::<f32>()?;

@@ -37,6 +37,14 @@ impl Noise {
         (0..n).map(|_| self.normal() as f32).collect()
     }
 
+    /// Which of `n` elements a dropout of probability `p` keeps: an element is dropped when its uniform draw is below
+    /// `p`, compared in integers: the draw is `((u >> 11) + 0.5) / 2⁵³`, so it is below `p` exactly when `u >> 11` is
+    /// below `⌈p·2⁵³ − 0.5⌉`. One draw per element, in order.
+    pub fn dropout_keep(&mut self, n: usize, p: f64) -> Vec<bool> {
+        let below = (p * (1u64 << 53) as f64 - 0.5).ceil() as u64;
+        (0..n).map(|_| (self.next_u64() >> 11) >= below).collect()
+    }
+
     /// A uniformly random permutation of `0..n` (Fisher–Yates).
     pub fn permutation(&mut self, n: usize) -> Vec<u32> {
         let mut p: Vec<u32> = (0..n as u32).collect();

@@ -90,6 +90,21 @@ impl Ensemble {
         Ok(out)
     }
 
+    /// The element-wise maximum over the ensemble (the pessimistic cost estimate: FISOR's feasibility, LSPC's cost).
+    pub fn max(values: &[Tensor]) -> Result<Tensor> {
+        let mut out = values[0].clone();
+        for v in &values[1..] {
+            out = out.maximum(v)?;
+        }
+        Ok(out)
+    }
+
+    /// The mean over the ensemble of each network's mean squared error: [`Ensemble::loss`] over the count (the IQL
+    /// family's critic loss: CAPS, FISOR, LSPC).
+    pub fn mean_loss(values: &[Tensor], target: &Tensor) -> Result<Tensor> {
+        Ok(Ensemble::loss(values, target)?.affine(1.0 / values.len() as f64, 0.0)?)
+    }
+
     /// `Σ_q mean((q − target)²)` (OSRL's critic loss).
     pub fn loss(values: &[Tensor], target: &Tensor) -> Result<Tensor> {
         let mut total = values[0].sub(target)?.sqr()?.mean_all()?;

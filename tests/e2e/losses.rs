@@ -64,10 +64,7 @@ fn fisor_and_lspc_losses_equal_a_numpy_computation_of_their_formulas() {
             }
         }
     };
-    let qc = |fisor: &FisorLearner| {
-        let values = fisor.cost_q.values(&input).unwrap();
-        values[0].maximum(&values[1]).unwrap()
-    };
+    let qc = |fisor: &FisorLearner| dsrl_policy::offline::Ensemble::max(&fisor.cost_q.values(&input).unwrap()).unwrap();
     let vc = |fisor: &FisorLearner| fisor.cost_v.forward(&obs).unwrap().squeeze(1).unwrap();
     shift(fisor.cost_q.named_vars(), median(&qc(&fisor)));
     shift(fisor.cost_v.named_vars(), median(&vc(&fisor)));

@@ -101,11 +101,6 @@ pub struct CapsLearner {
     steps: u64,
 }
 
-/// CAPS's critic loss: the mean over the pair of each network's mean squared error.
-fn pair_loss(pair: &Ensemble, input: &Tensor, target: &Tensor) -> anyhow::Result<Tensor> {
-    Ok(Ensemble::loss(&pair.values(input)?, target)?.affine(0.5, 0.0)?)
-}
-
 impl CapsLearner {
     /// A learner for a task whose episodes last `episode_len` steps (what deployment spreads the budget over).
     pub fn new(settings: CapsSettings, data: &Demonstrations, episode_len: usize) -> anyhow::Result<Self> {
@@ -193,10 +188,10 @@ impl CapsLearner {
 
         // 3. Critics: reward, and the negated cost.
         let reward_target = batch.reward.add(&continues.mul(&next_vr)?)?.detach();
-        let reward_q_loss = pair_loss(&self.nets.reward_q, &input, &reward_target)?;
+        let reward_q_loss = Ensemble::mean_loss(&self.nets.reward_q.values(&input)?, &reward_target)?;
         self.reward_q_optim.step(&reward_q_loss.backward()?)?;
         let cost_target = batch.cost.neg()?.add(&continues.mul(&next_vc)?)?.detach();
-        let cost_q_loss = pair_loss(&self.nets.cost_q, &input, &cost_target)?;
+        let cost_q_loss = Ensemble::mean_loss(&self.nets.cost_q.values(&input)?, &cost_target)?;
         self.cost_q_optim.step(&cost_q_loss.backward()?)?;
 
         // 4. The heads: advantage-weighted regression, each head on its own trade-off.
@@ -278,7 +273,7 @@ impl EveryThresholdLearner for CapsLearner {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::offline::tests::{figure, first_weights, run_steps, toy};
+    use crate::offline::tests::{figure, first_weights, read_back, run_steps, toy};
 
     fn small(seed: u64) -> CapsSettings {
         CapsSettings {
@@ -366,13 +361,8 @@ mod tests {
         );
 
         // Written, read back as the evaluator reads it, and played: one checkpoint at every budget.
-        let dir = tempfile::tempdir().unwrap();
-        learner
-            .write(dir.path(), "toy", serde_json::json!({"steps": 80}))
-            .unwrap();
-        let (config, tensors) = checkpoint::read(dir.path()).unwrap();
+        let (config, tensors, policy) = read_back(&learner, 80);
         assert_eq!(config.conditioning, Conditioning::CostBudget);
-        let policy = dsrl_policy::Policy::load(&config, &tensors).unwrap();
         let obs = [0.3f32, 0.7];
         let o = Tensor::from_vec(obs.to_vec(), (1, 2), &dsrl_policy::Device::Cpu).unwrap();
         let heads: Vec<f32> = learner

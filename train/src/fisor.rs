@@ -143,25 +143,6 @@ pub struct FisorLearner {
     actor_updates: u64,
 }
 
-/// The element-wise maximum over an ensemble's values.
-fn max_of(values: &[Tensor]) -> anyhow::Result<Tensor> {
-    let mut out = values[0].clone();
-    for v in &values[1..] {
-        out = out.maximum(v)?;
-    }
-    Ok(out)
-}
-
-/// The mean over the ensemble of each member's mean squared error (jaxrl5's `((qs − target)²).mean()`).
-fn ensemble_mse(values: &[Tensor], target: &Tensor) -> anyhow::Result<Tensor> {
-    Ok(Ensemble::loss(values, target)?.affine(1.0 / values.len() as f64, 0.0)?)
-}
-
-/// `1` where `mask` holds, else `0`, as float32.
-fn indicator(mask: Tensor) -> anyhow::Result<Tensor> {
-    Ok(mask.to_dtype(DType::F32)?)
-}
-
 impl FisorLearner {
     pub fn new(settings: FisorSettings, data: &Demonstrations) -> anyhow::Result<Self> {
         Self::on_device(settings, data, &dsrl_policy::Device::Cpu)
@@ -234,7 +215,7 @@ impl FisorLearner {
 
     /// The recoded cost: `cost_scale` where the step costs anything, −1 where it is free.
     pub fn recode_cost(cost: &Tensor, cost_scale: f64) -> anyhow::Result<Tensor> {
-        Ok(indicator(cost.gt(0.0)?)?.affine(cost_scale + 1.0, -1.0)?)
+        Ok(cost.gt(0.0)?.to_dtype(DType::F32)?.affine(cost_scale + 1.0, -1.0)?)
     }
 
     /// The actor's per-row weights from the target pairs and the value networks (no gradient).
@@ -243,15 +224,18 @@ impl FisorLearner {
         let input = concat(obs, act)?;
         let q = Ensemble::min(&self.reward_q_target.values(&input)?)?;
         let v = self.reward_v.forward(obs)?.squeeze(1)?;
-        let qc = max_of(&self.cost_q_target.values(&input)?)?;
+        let qc = Ensemble::max(&self.cost_q_target.values(&input)?)?;
         let vc = self.cost_v.forward(obs)?.squeeze(1)?;
         Self::weights(s, &q, &v, &qc, &vc)
     }
 
     /// `[vc > 0]·clip(e^{κ_c(vc − qc)}, 0, W_c) + [vc ≤ 0][qc ≤ 0]·clip(e^{κ_r(q − v)}, 0, W_r)`.
     pub fn weights(s: &FisorSettings, q: &Tensor, v: &Tensor, qc: &Tensor, vc: &Tensor) -> anyhow::Result<Tensor> {
-        let infeasible = indicator(vc.gt(0.0)?)?;
-        let feasible = indicator(vc.le(0.0)?)?.mul(&indicator(qc.le(0.0)?)?)?;
+        let infeasible = vc.gt(0.0)?.to_dtype(DType::F32)?;
+        let feasible = vc
+            .le(0.0)?
+            .to_dtype(DType::F32)?
+            .mul(&qc.le(0.0)?.to_dtype(DType::F32)?)?;
         // Clipped before the indicator multiplies it: an overflow to infinity becomes the clip, never 0·∞.
         let cost_w = vc
             .sub(qc)?
@@ -334,13 +318,13 @@ impl FisorLearner {
         self.reward_v_optim.step(&reward_v_loss.backward()?)?;
         let next_v = self.reward_v.forward(&next_obs)?.squeeze(1)?.detach();
         let target = reward.add(&mask.affine(s.gamma, 0.0)?.mul(&next_v)?)?.detach();
-        let reward_q_loss = ensemble_mse(&self.reward_q.values(&input)?, &target)?;
+        let reward_q_loss = Ensemble::mean_loss(&self.reward_q.values(&input)?, &target)?;
         self.reward_q_optim.step(&reward_q_loss.backward()?)?;
         soft_update(&self.reward_q_target.named_vars(), &self.reward_q.named_vars(), s.tau)?;
 
         // Feasibility value (reversed expectile: a soft minimum over actions), then the pair on the reachability
         // target.
-        let qc = max_of(&self.cost_q_target.values(&input)?)?.detach();
+        let qc = Ensemble::max(&self.cost_q_target.values(&input)?)?.detach();
         let cost_v_loss = expectile_loss(
             &qc.sub(&self.cost_v.forward(&obs)?.squeeze(1)?)?,
             1.0 - s.cost_expectile,
@@ -349,7 +333,7 @@ impl FisorLearner {
         let next_vc = self.cost_v.forward(&next_obs)?.squeeze(1)?.detach();
         let c = Self::recode_cost(&cost, s.cost_scale)?;
         let target = Self::reachability_target(&c, &next_vc, &mask, s.gamma)?;
-        let cost_q_loss = ensemble_mse(&self.cost_q.values(&input)?, &target)?;
+        let cost_q_loss = Ensemble::mean_loss(&self.cost_q.values(&input)?, &target)?;
         self.cost_q_optim.step(&cost_q_loss.backward()?)?;
         soft_update(&self.cost_q_target.named_vars(), &self.cost_q.named_vars(), s.tau)?;
 
@@ -425,7 +409,7 @@ impl EveryThresholdLearner for FisorLearner {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::offline::tests::{assert_falls, first_weights, run_steps, toy};
+    use crate::offline::tests::{assert_falls, first_weights, read_back, run_steps, toy};
 
     fn small(seed: u64) -> FisorSettings {
         FisorSettings {
@@ -544,12 +528,7 @@ mod tests {
 
         // Written, read back as the evaluator reads it, and played: the same action for the same episode seed,
         // within [−1, 1], and the candidate of lowest max Q_h among those the sampler drew.
-        let dir = tempfile::tempdir().unwrap();
-        learner
-            .write(dir.path(), "toy", serde_json::json!({"steps": 60}))
-            .unwrap();
-        let (config, tensors) = checkpoint::read(dir.path()).unwrap();
-        let policy = dsrl_policy::Policy::load(&config, &tensors).unwrap();
+        let (_, _, policy) = read_back(&learner, 60);
         let play = |seed: u64| {
             let mut rollout = policy.rollout(10.0, 1).unwrap();
             rollout.start_episode(0, seed).unwrap();
@@ -568,7 +547,7 @@ mod tests {
         };
         let mut g = Noise::seeded(11);
         let candidates = sampler.sample(&learner.ema_actor, &obs, &mut [&mut g]).unwrap();
-        let qc = max_of(
+        let qc = Ensemble::max(
             &learner
                 .cost_q_target
                 .values(&concat(&obs, &candidates).unwrap())

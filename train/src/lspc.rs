@@ -123,10 +123,6 @@ pub struct LspcLearner {
     data: Transitions,
 }
 
-fn indicator(mask: Tensor) -> anyhow::Result<Tensor> {
-    Ok(mask.to_dtype(DType::F32)?)
-}
-
 impl LspcLearner {
     pub fn new(settings: LspcSettings, data: &Demonstrations) -> anyhow::Result<Self> {
         Self::on_device(settings, data, &dsrl_policy::Device::Cpu)
@@ -220,25 +216,23 @@ impl LspcLearner {
         let reward_v_loss = expectile_loss(&reward_adv, s.iql_tau)?;
         self.reward_v_optim.step(&reward_v_loss.backward()?)?;
         let target = batch.reward.add(&continues.mul(&next_v)?)?.detach();
-        let reward_q_loss = Ensemble::loss(&self.reward_q.values(&input)?, &target)?.affine(0.5, 0.0)?;
+        let reward_q_loss = Ensemble::mean_loss(&self.reward_q.values(&input)?, &target)?;
         self.reward_q_optim.step(&reward_q_loss.backward()?)?;
         soft_update(&self.reward_q_target.named_vars(), &self.reward_q.named_vars(), s.tau)?;
 
         // 4-5. Cost value (a lower expectile of the pessimistic cost) and pair.
-        let values = self.cost_q_target.values(&input)?;
-        let mut qc = values[0].clone();
-        for v in &values[1..] {
-            qc = qc.maximum(v)?;
-        }
-        let qc = qc.relu()?.detach();
+        let qc = Ensemble::max(&self.cost_q_target.values(&input)?)?.relu()?.detach();
         let vc = self.cost_v.forward(&batch.obs)?.squeeze(1)?.relu()?;
         let cost_adv = vc.sub(&qc)?;
         let cost_v_loss = expectile_loss(&cost_adv, s.iql_tau)?;
         self.cost_v_optim.step(&cost_v_loss.backward()?)?;
         let vc = vc.detach();
-        let mask = indicator(vc.lt(s.safe_threshold)?)?.mul(&indicator(qc.lt(s.safe_threshold)?)?)?;
+        let mask = vc
+            .lt(s.safe_threshold)?
+            .to_dtype(DType::F32)?
+            .mul(&qc.lt(s.safe_threshold)?.to_dtype(DType::F32)?)?;
         let target = batch.cost.add(&continues.mul(&next_vc)?)?.detach();
-        let cost_q_loss = Ensemble::loss(&self.cost_q.values(&input)?, &target)?.affine(0.5, 0.0)?;
+        let cost_q_loss = Ensemble::mean_loss(&self.cost_q.values(&input)?, &target)?;
         self.cost_q_optim.step(&cost_q_loss.backward()?)?;
         soft_update(&self.cost_q_target.named_vars(), &self.cost_q.named_vars(), s.tau)?;
 
@@ -317,7 +311,7 @@ impl EveryThresholdLearner for LspcLearner {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::offline::tests::{assert_falls, first_weights, run_steps, toy};
+    use crate::offline::tests::{assert_falls, first_weights, read_back, run_steps, toy};
 
     fn small(seed: u64) -> LspcSettings {
         LspcSettings {
@@ -400,12 +394,7 @@ mod tests {
             first_weights(again.safety.named_vars())
         );
 
-        let dir = tempfile::tempdir().unwrap();
-        learner
-            .write(dir.path(), "toy", serde_json::json!({"steps": 100}))
-            .unwrap();
-        let (config, tensors) = checkpoint::read(dir.path()).unwrap();
-        let policy = dsrl_policy::Policy::load(&config, &tensors).unwrap();
+        let (config, tensors, policy) = read_back(&learner, 100);
         let mut rollout = policy.rollout(20.0, 1).unwrap();
         rollout.start_episode(0, 5).unwrap();
         let action = rollout.act(&[0], &[0.3, 0.7]).unwrap();

@@ -247,6 +247,25 @@ pub(crate) mod tests {
             .1
     }
 
+    /// Writes the checkpoint of a learner trained once and reads it back as the evaluator does: its `policy.json`,
+    /// its tensors and the loaded policy.
+    pub(crate) fn read_back(
+        learner: &dyn EveryThresholdLearner,
+        steps: u64,
+    ) -> (
+        PolicyConfig,
+        std::collections::HashMap<String, Tensor>,
+        dsrl_policy::Policy,
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        learner
+            .write(dir.path(), "toy", serde_json::json!({ "steps": steps }))
+            .unwrap();
+        let (config, tensors) = checkpoint::read(dir.path()).unwrap();
+        let policy = dsrl_policy::Policy::load(&config, &tensors).unwrap();
+        (config, tensors, policy)
+    }
+
     /// Writes `learner`, reads it back as the evaluator does and checks it plays `expected` at `obs` (one row of 2).
     pub(crate) fn plays_as_written(learner: &dyn ThresholdLearner, obs: [f32; 2], expected: f32) {
         let dir = tempfile::tempdir().unwrap();
