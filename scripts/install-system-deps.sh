@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export) and pkg-config;
+# Installs the system packages the build needs (Debian): libhdf5-dev (DSRL HDF5 import/export), pkg-config, and
+# the headless OpenGL that draws replayed episodes (libegl1 + libegl-mesa0 + libgl1-mesa-dri: MuJoCo renders
+# Safety-Gymnasium through EGL on Mesa's software rasterizer);
 # with --tests also what the tests need: chromium (the leaderboard page is checked in headless Chromium) and
 # postgresql (the replica tests start their own server in a temporary folder; the package's cluster is not used)
 # and openssl (they make that server's TLS certificates).
@@ -9,6 +11,9 @@ set -euo pipefail
 need=()
 dpkg -s libhdf5-dev >/dev/null 2>&1 || need+=(libhdf5-dev)
 dpkg -s pkg-config >/dev/null 2>&1 || need+=(pkg-config)
+for package in libegl1 libegl-mesa0 libgl1-mesa-dri; do
+  dpkg -s "$package" >/dev/null 2>&1 || need+=("$package")
+done
 if [ "${1:-}" = "--tests" ]; then
   dpkg -s chromium >/dev/null 2>&1 || need+=(chromium)
   dpkg -s postgresql >/dev/null 2>&1 || need+=(postgresql)

@@ -129,6 +129,7 @@ pub async fn play_episodes_counted(
             group,
             envs_per_session.max(1),
             progress,
+            None,
         )
     });
     let results = futures::future::try_join_all(groups).await?;
@@ -147,6 +148,11 @@ pub async fn play_episodes_counted(
 /// is its simulator's own (MetaDrive's in a process of its own), so where a group runs does not change its
 /// episodes. The answers are handled in the order the requests were sent (each group has one request in flight
 /// at a time), which makes the episodes a function of the seeds and `envs` alone.
+///
+/// With a `watcher`, the group is played only until the watched episode has ended, and that episode is recorded
+/// step by step and drawn (see [`replay_episode`]); the requests for its frames go in the same ordered stream, so
+/// the episodes played are the ones scoring played.
+#[allow(clippy::too_many_arguments)]
 async fn play_group(
     pool: &SimulatorPool,
     task: &Task,
@@ -155,6 +161,7 @@ async fn play_group(
     seeds: &[u64],
     envs: usize,
     progress: &std::sync::atomic::AtomicU32,
+    mut watcher: Option<&mut Watcher>,
 ) -> Result<Vec<EpisodeScore>, EvaluationError> {
     let k = seeds.len().min(envs);
     let mut rollout = Player::new(policy, cost_threshold, k).await?;
@@ -195,17 +202,39 @@ async fn play_group(
     let mut active: Vec<Vec<u32>> = groups;
     let mut resetting: Vec<Vec<u32>> = vec![Vec::new(); active.len()];
     let local = |g: usize, slots: &[u32]| -> Vec<u32> { slots.iter().map(|&i| i - first[g]).collect() };
-    // The requests in flight, oldest first: (group, is a reset).
+    // The requests in flight, oldest first: (group, what was asked).
     let mut in_flight = std::collections::VecDeque::new();
+    // The environment playing the watched episode, while it plays it.
+    let watched = |playing: &[usize], i: u32, watcher: &Option<&mut Watcher>| {
+        watcher.as_ref().is_some_and(|w| playing[i as usize] == w.episode)
+    };
     for (g, slots) in active.iter().enumerate() {
+        if let Some(w) = watcher.as_deref()
+            && let Some(&i) = slots.iter().find(|&&i| playing[i as usize] == w.episode)
+        {
+            sessions[g].send_render(&local(g, &[i]), w.width, w.height).await?;
+            in_flight.push_back((g, Asked::Render));
+        }
         send_actions(&mut sessions[g], &mut rollout, slots, &local(g, slots), &obs, obs_dim).await?;
-        in_flight.push_back((g, false));
+        in_flight.push_back((g, Asked::Step));
     }
-    while let Some((g, is_reset)) = in_flight.pop_front() {
-        match (sessions[g].receive().await?, is_reset) {
-            (Reply::Step(step), false) => {
+    while let Some((g, asked)) = in_flight.pop_front() {
+        match (sessions[g].receive().await?, asked) {
+            (Reply::Render(frames), Asked::Render) => {
+                let w = watcher.as_deref_mut().ok_or_else(|| {
+                    EvaluationError::Internal("a frame arrived for a replay that watches nothing".into())
+                })?;
+                w.frames.push(frames.frames);
+                if w.ended {
+                    // The watched episode is over and drawn: the rest of the group does not matter to it.
+                    return Ok(scores);
+                }
+            }
+            (Reply::Step(step), Asked::Step) => {
                 let mut still = Vec::with_capacity(active[g].len());
                 let mut reset_seeds = Vec::new();
+                // The watched environment, when this step should be drawn (before its next request is sent).
+                let mut draw = None;
                 rollout.observe(&active[g], &step.rewards, &step.costs).await?;
                 for (row, &i) in active[g].iter().enumerate() {
                     let score = &mut scores[playing[i as usize]];
@@ -213,6 +242,18 @@ async fn play_group(
                     score.reward_return += f64::from(step.rewards[row] as f32);
                     score.cost_return += f64::from(step.costs[row] as f32);
                     score.length += 1;
+                    let length = score.length;
+                    if watched(&playing, i, &watcher)
+                        && let Some(w) = watcher.as_deref_mut()
+                    {
+                        w.rewards.push(step.rewards[row]);
+                        w.costs.push(step.costs[row]);
+                        w.ended = step.terminated[row] || step.truncated[row];
+                        if w.ended || length.is_multiple_of(w.stride) {
+                            w.frame_steps.push(length);
+                            draw = Some(i);
+                        }
+                    }
                     obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
                         .copy_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
                     let ended = step.terminated[row] || step.truncated[row];
@@ -230,27 +271,40 @@ async fn play_group(
                     }
                 }
                 active[g] = still;
+                if let (Some(i), Some(w)) = (draw, watcher.as_deref()) {
+                    sessions[g].send_render(&local(g, &[i]), w.width, w.height).await?;
+                    in_flight.push_back((g, Asked::Render));
+                    if w.ended {
+                        continue;
+                    }
+                }
                 if !resetting[g].is_empty() {
                     // The group's next step waits for these observations; the other group keeps the workers busy.
                     sessions[g].send_reset(&local(g, &resetting[g]), &reset_seeds).await?;
-                    in_flight.push_back((g, true));
+                    in_flight.push_back((g, Asked::Reset));
                 } else if !active[g].is_empty() {
                     let slots = local(g, &active[g]);
                     send_actions(&mut sessions[g], &mut rollout, &active[g], &slots, &obs, obs_dim).await?;
-                    in_flight.push_back((g, false));
+                    in_flight.push_back((g, Asked::Step));
                 }
             }
-            (Reply::Reset { observations, .. }, true) => {
+            (Reply::Reset { observations, .. }, Asked::Reset) => {
                 let reset = std::mem::take(&mut resetting[g]);
                 for (row, &i) in reset.iter().enumerate() {
                     obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
                         .copy_from_slice(&observations[row * obs_dim..(row + 1) * obs_dim]);
                 }
+                if let Some(w) = watcher.as_deref()
+                    && let Some(&i) = reset.iter().find(|&&i| playing[i as usize] == w.episode)
+                {
+                    sessions[g].send_render(&local(g, &[i]), w.width, w.height).await?;
+                    in_flight.push_back((g, Asked::Render));
+                }
                 active[g].extend(reset);
                 active[g].sort_unstable();
                 let slots = local(g, &active[g]);
                 send_actions(&mut sessions[g], &mut rollout, &active[g], &slots, &obs, obs_dim).await?;
-                in_flight.push_back((g, false));
+                in_flight.push_back((g, Asked::Step));
             }
             _ => {
                 return Err(EvaluationError::Internal(format!(
@@ -282,4 +336,116 @@ async fn send_actions(
         .collect();
     let actions = rollout.act(slots, &batch).await?;
     session.send_step(local, &actions).await
+}
+
+/// What a request in flight of [`play_group`] asked for.
+#[derive(Debug, Clone, Copy)]
+enum Asked {
+    Step,
+    Reset,
+    Render,
+}
+
+/// How to draw a replayed episode: frames of `width` x `height` pixels after its reset, after every `stride`-th
+/// step and after its last.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct WatchOptions {
+    pub stride: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// One episode played again and drawn ([`replay_episode`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Recording {
+    /// Its returns and length, computed as scoring computes them.
+    pub score: EpisodeScore,
+    /// Each step's reward and cost as the simulator reported them.
+    pub rewards: Vec<f64>,
+    pub costs: Vec<f64>,
+    /// RGB frames (`height * width * 3` bytes each, rows top to bottom): the first after the reset, then one after
+    /// each step of `frame_steps` (the step count, 1-based).
+    pub frames: Vec<Vec<u8>>,
+    pub frame_steps: Vec<u32>,
+    pub options: WatchOptions,
+}
+
+/// The watched episode's record while [`play_group`] plays it.
+struct Watcher {
+    /// Its index among the group's seeds.
+    episode: usize,
+    stride: u32,
+    width: u32,
+    height: u32,
+    rewards: Vec<f64>,
+    costs: Vec<f64>,
+    frames: Vec<Vec<u8>>,
+    frame_steps: Vec<u32>,
+    ended: bool,
+}
+
+/// Plays episode `episode` (an index into `seeds`) again exactly as [`play_episodes`] with the same seeds and layout
+/// played it, and draws it. The episode's environment may have played earlier episodes first (Bullet keeps motor
+/// targets across a reset, so those shape it), so its group is replayed from the start, with the same sessions,
+/// environments and request order, until the episode ends; frames are extra requests in the same stream and change
+/// no simulator state. The recording's returns are therefore the scored episode's, which the caller can check.
+#[allow(clippy::too_many_arguments)]
+pub async fn replay_episode(
+    pool: &SimulatorPool,
+    task: &Task,
+    policy: PolicySource<'_>,
+    cost_threshold: f64,
+    seeds: &[u64],
+    envs_per_session: usize,
+    sessions: usize,
+    episode: usize,
+    options: WatchOptions,
+) -> Result<Recording, EvaluationError> {
+    if episode >= seeds.len() {
+        return Err(EvaluationError::NotFound(format!(
+            "episode {episode} is not among the {} played at this threshold",
+            seeds.len()
+        )));
+    }
+    if options.stride == 0 {
+        return Err(EvaluationError::InvalidArgument("a frame stride of 0 steps".into()));
+    }
+    let run = seeds.len().div_ceil(sessions.max(1)).max(1);
+    let group = &seeds[episode / run * run..((episode / run + 1) * run).min(seeds.len())];
+    let mut watcher = Watcher {
+        episode: episode % run,
+        stride: options.stride,
+        width: options.width,
+        height: options.height,
+        rewards: Vec::new(),
+        costs: Vec::new(),
+        frames: Vec::new(),
+        frame_steps: Vec::new(),
+        ended: false,
+    };
+    let progress = std::sync::atomic::AtomicU32::new(0);
+    let scores = play_group(
+        pool,
+        task,
+        policy,
+        cost_threshold,
+        group,
+        envs_per_session.max(1),
+        &progress,
+        Some(&mut watcher),
+    )
+    .await?;
+    if !watcher.ended {
+        return Err(EvaluationError::Internal(format!(
+            "the replay of episode {episode} stopped before the episode ended"
+        )));
+    }
+    Ok(Recording {
+        score: scores[watcher.episode].clone(),
+        rewards: watcher.rewards,
+        costs: watcher.costs,
+        frames: watcher.frames,
+        frame_steps: watcher.frame_steps,
+        options,
+    })
 }

@@ -12,6 +12,7 @@ pub mod evaluator;
 pub mod export;
 pub mod queue;
 pub mod reference;
+pub mod renders;
 pub mod runner;
 pub mod supervision;
 pub mod users;
@@ -81,6 +82,8 @@ pub struct Leaderboard {
     pub evaluators: supervision::Evaluators,
     /// Wakes this process's evaluators when one of their jobs may have been cancelled.
     pub(crate) cancelled: tokio::sync::Notify,
+    /// Replays of scored episodes to watch: the queue, the renderer's state and counters (`renders`).
+    pub renders: renders::Renders,
 }
 
 /// The suite a task belongs to, as the leaderboard groups them (the paper's three families).
@@ -378,6 +381,7 @@ impl Leaderboard {
             seed_intervals: Mutex::new(HashMap::new()),
             evaluators: supervision::Evaluators::default(),
             cancelled: tokio::sync::Notify::new(),
+            renders: renders::Renders::default(),
             db,
             store,
             catalog,
@@ -582,6 +586,7 @@ impl Leaderboard {
                 database,
                 evaluators_configured: configured,
                 evaluators,
+                renderer: self.renders.state(),
             },
         )
     }

@@ -120,4 +120,6 @@ pub struct Health {
     /// Evaluators this process should run (`leaderboard.evaluators`).
     pub evaluators_configured: u32,
     pub evaluators: Vec<EvaluatorState>,
+    /// The replays of scored episodes (`renders`): informational, never a reason for `degraded`.
+    pub renderer: crate::renders::RendererState,
 }

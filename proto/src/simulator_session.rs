@@ -131,7 +131,18 @@ pub enum Reply {
     Reset { envs: Vec<u32>, observations: Vec<f32> },
     Step(StepResult),
     Drive(Vec<DrivenRest>),
+    Render(RenderedFrames),
     Closed,
+}
+
+/// The images a `Render` asked for: `frames` is `[n * height * width * 3]` RGB bytes, one image per environment in
+/// the request's order, rows top to bottom.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderedFrames {
+    pub envs: Vec<u32>,
+    pub width: u32,
+    pub height: u32,
+    pub frames: Vec<u8>,
 }
 
 pub struct SimulatorSession {
@@ -150,6 +161,7 @@ enum Asked {
     Step(Vec<u32>),
     Reset(Vec<u32>),
     Drive(Vec<u32>),
+    Render { envs: Vec<u32>, width: u32, height: u32 },
     Close,
     Raw,
 }
@@ -222,6 +234,11 @@ impl SimulatorSession {
             session_request::Kind::Step(step) => Asked::Step(self.resolve(&step.envs)),
             session_request::Kind::Reset(reset) => Asked::Reset(self.resolve(&reset.envs)),
             session_request::Kind::Drive(drive) => Asked::Drive(self.resolve(&drive.envs)),
+            session_request::Kind::Render(render) => Asked::Render {
+                envs: self.resolve(&render.envs),
+                width: render.width,
+                height: render.height,
+            },
             session_request::Kind::Close(_) => Asked::Close,
             _ => Asked::Raw,
         };
@@ -279,6 +296,17 @@ impl SimulatorSession {
     pub async fn send_drive(&mut self, envs: &[u32]) -> Result<u64, Status> {
         self.send(session_request::Kind::Drive(pb::Drive { envs: envs.to_vec() }))
             .await
+    }
+
+    /// Queues a render (an RGB image of each named environment as it is now, `width` x `height` pixels) without
+    /// waiting; drawing changes no episode.
+    pub async fn send_render(&mut self, envs: &[u32], width: u32, height: u32) -> Result<u64, Status> {
+        self.send(session_request::Kind::Render(pb::Render {
+            envs: envs.to_vec(),
+            width,
+            height,
+        }))
+        .await
     }
 
     /// Sends a raw request (tests use it to send what a typed call never would).
@@ -369,6 +397,15 @@ impl SimulatorSession {
                 }
                 Ok(())
             }
+            (Asked::Render { envs, width, height }, Reply::Render(r)) => {
+                if &r.envs != envs || (r.width, r.height) != (*width, *height) {
+                    return Err(bad_answer(format!(
+                        "a render of environments {envs:?} at {width}x{height} answered for {:?} at {}x{}",
+                        r.envs, r.width, r.height
+                    )));
+                }
+                Ok(())
+            }
             (Asked::Close, Reply::Closed) | (Asked::Raw, _) => Ok(()),
             (asked, reply) => Err(bad_answer(format!(
                 "a {} request was answered with a {} reply",
@@ -376,6 +413,7 @@ impl SimulatorSession {
                     Asked::Step(_) => "step",
                     Asked::Reset(_) => "reset",
                     Asked::Drive(_) => "drive",
+                    Asked::Render { .. } => "render",
                     Asked::Close => "close",
                     Asked::Raw => "raw",
                 },
@@ -383,6 +421,7 @@ impl SimulatorSession {
                     Reply::Step(_) => "step",
                     Reply::Reset { .. } => "reset",
                     Reply::Drive(_) => "drive",
+                    Reply::Render(_) => "render",
                     Reply::Closed => "closed",
                 }
             ))),
@@ -427,6 +466,28 @@ impl SimulatorSession {
                     })
                     .collect::<Result<_, Status>>()?,
             )),
+            Some(session_response::Kind::Render(rendered)) => {
+                let frames = required(rendered.frames, "frames")?;
+                frames.check("frames", DType::Uint8, 1)?;
+                let [n, height, width, 3] = frames.shape[..] else {
+                    return Err(bad_answer(format!(
+                        "frames of shape {:?}, not [n, height, width, 3]",
+                        frames.shape
+                    )));
+                };
+                if n != rendered.envs.len() as u64 {
+                    return Err(bad_answer(format!(
+                        "{n} frames for {} environments",
+                        rendered.envs.len()
+                    )));
+                }
+                Ok(Reply::Render(RenderedFrames {
+                    envs: rendered.envs,
+                    width: u32::try_from(width).map_err(|_| bad_answer("a frame too wide".into()))?,
+                    height: u32::try_from(height).map_err(|_| bad_answer("a frame too tall".into()))?,
+                    frames: frames.data,
+                }))
+            }
             Some(session_response::Kind::Closed(_)) => Ok(Reply::Closed),
             _ => Err(Status::internal("unexpected response in a simulator session")),
         }
@@ -467,6 +528,15 @@ impl SimulatorSession {
         match self.receive().await? {
             Reply::Drive(episodes) => Ok(episodes),
             _ => Err(Status::internal("a drive was not answered with driven episodes")),
+        }
+    }
+
+    /// Draws the named environments (empty: all) as they are now; see [`Self::send_render`].
+    pub async fn render(&mut self, envs: &[u32], width: u32, height: u32) -> Result<RenderedFrames, Status> {
+        self.send_render(envs, width, height).await?;
+        match self.receive().await? {
+            Reply::Render(frames) => Ok(frames),
+            _ => Err(Status::internal("a render was not answered with frames")),
         }
     }
 

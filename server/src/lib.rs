@@ -99,9 +99,13 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         converter_program,
     )?;
     leaderboard.evaluators.restarts = metrics.evaluator_restarts.clone();
+    leaderboard.renders.rendered = metrics.replays_rendered.clone();
+    leaderboard.renders.failures = metrics.replay_failures.clone();
+    leaderboard.renders.restarts = metrics.renderer_restarts.clone();
     let leaderboard = Arc::new(leaderboard);
     leaderboard.import_reference_results().await?;
     leaderboard::runner::spawn(leaderboard.clone());
+    leaderboard::renders::spawn(leaderboard.clone());
     let datasets = Arc::new(datasets);
     spawn_derived_gc(datasets.clone(), config.gc.interval_seconds, metrics.clone());
     Ok(AppState {

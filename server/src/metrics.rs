@@ -42,6 +42,9 @@ pub struct Metrics {
     pub panics: Family<RouteLabels, Counter>,
     /// Evaluators of this process started again after a panic (the leaderboard's supervisor counts into it).
     pub evaluator_restarts: Counter,
+    pub replays_rendered: Counter,
+    pub replay_failures: Counter,
+    pub renderer_restarts: Counter,
     /// HDF5 export requests: `computed` (converted now) or `cached`.
     pub hdf5_exports: Family<OutcomeLabels, Counter>,
     /// Bytes of all filtered versions stored, read at scrape time.
@@ -106,6 +109,24 @@ impl Metrics {
             "Evaluator tasks of this process started again after a panic",
             evaluator_restarts.clone(),
         );
+        let replays_rendered = Counter::default();
+        registry.register(
+            "replays_rendered",
+            "Scored episodes replayed, drawn and stored to watch",
+            replays_rendered.clone(),
+        );
+        let replay_failures = Counter::default();
+        registry.register(
+            "replay_failures",
+            "Replays of scored episodes that failed (the reason is served with the replay)",
+            replay_failures.clone(),
+        );
+        let renderer_restarts = Counter::default();
+        registry.register(
+            "renderer_restarts",
+            "The replay renderer started again after a panic",
+            renderer_restarts.clone(),
+        );
         let hdf5_exports = Family::<OutcomeLabels, Counter>::default();
         registry.register(
             "hdf5_exports",
@@ -129,6 +150,9 @@ impl Metrics {
             hdf5_exports,
             derived_bytes,
             evaluator_restarts,
+            replays_rendered,
+            replay_failures,
+            renderer_restarts,
             panics,
             registry,
             requests,

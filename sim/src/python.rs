@@ -321,6 +321,17 @@ impl PyBatch {
         })
     }
 
+    /// RGB images of `envs` as they are now: uint8 `[n, height, width, 3]` (see `tasks.Env.frame`).
+    pub fn frames(&self, envs: &[u32], width: u32, height: u32) -> Result<Vec<u8>, SimError> {
+        Python::attach(|py| {
+            let result = self
+                .batch
+                .bind(py)
+                .call_method1("frames", (envs.to_vec(), width, height));
+            result.and_then(bytes_of).map_err(|e| simulator_error(py, "render", e))
+        })
+    }
+
     pub fn close(&self) {
         Python::attach(|py| {
             if let Err(err) = self.batch.bind(py).call_method0("close") {

@@ -7,9 +7,9 @@ use std::sync::{Arc, Mutex};
 
 use dsrl_proto::simulator::v1 as pb;
 use dsrl_proto::simulator::v1::{
-    AutoReset, Closed, DType, DescribeRequest, Driven, DrivenEpisode, HealthRequest, HealthResponse, Observations,
-    Opened, Reset, SessionRequest, SessionResponse, TaskSpec, Tensor, Transition, session_request, session_response,
-    simulator_server::Simulator,
+    AutoReset, Closed, DType, DescribeRequest, Driven, DrivenEpisode, Frames, HealthRequest, HealthResponse,
+    Observations, Opened, Reset, SessionRequest, SessionResponse, TaskSpec, Tensor, Transition, session_request,
+    session_response, simulator_server::Simulator,
 };
 use dsrl_suite::catalog::{Catalog, Family};
 use tokio::sync::mpsc;
@@ -414,7 +414,7 @@ struct Shape {
     auto_reset: bool,
 }
 
-/// Checks and answers one reset or step (on the Python thread).
+/// Checks and answers one reset, step, drive or render (on the Python thread).
 fn respond(
     kind: session_request::Kind,
     state: &mut SessionState,
@@ -528,7 +528,19 @@ fn respond(
             }
             Ok(session_response::Kind::Drive(Driven { episodes }))
         }
-        _ => Err(SimError::InvalidArgument("not a reset, a step or a drive".into())),
+        session_request::Kind::Render(render) => {
+            let envs = state.check_render(&render)?;
+            let (width, height) = (render.width as usize, render.height as usize);
+            let frames = batch.frames(&envs, render.width, render.height)?;
+            let frames = tensor(DType::Uint8, &[envs.len(), height, width, 3], frames, 1, "frames")?;
+            Ok(session_response::Kind::Render(Frames {
+                envs,
+                frames: Some(frames),
+            }))
+        }
+        _ => Err(SimError::InvalidArgument(
+            "not a reset, a step, a drive or a render".into(),
+        )),
     }
 }
 

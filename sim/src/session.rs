@@ -1,9 +1,13 @@
 //! The rules of one session, checked in Rust before anything reaches Python: which environments a request names,
 //! the actions' dtype, shape and values, and which environments have finished their episode.
 
-use dsrl_proto::simulator::v1::{DType, Drive, Open, Reset, Step};
+use dsrl_proto::simulator::v1::{DType, Drive, Open, Render, Reset, Step};
 
 use crate::error::SimError;
+
+/// The sides of a rendered frame, in pixels: large enough to see an agent, small enough that a frame (at most
+/// 768 KiB) stays far below a gRPC message's limit.
+pub const FRAME_SIDES: std::ops::RangeInclusive<u32> = 16..=512;
 
 /// Capacity limits of a worker.
 #[derive(Debug, Clone, Copy)]
@@ -170,6 +174,22 @@ impl SessionState {
         Ok(envs)
     }
 
+    /// Checks a render: the environments, and each side of the frame within [`FRAME_SIDES`]. A finished
+    /// environment may be drawn (its last state).
+    pub fn check_render(&self, render: &Render) -> Result<Vec<u32>, SimError> {
+        let envs = self.envs(&render.envs)?;
+        for (side, value) in [("width", render.width), ("height", render.height)] {
+            if !FRAME_SIDES.contains(&value) {
+                return Err(SimError::InvalidArgument(format!(
+                    "a frame {side} of {value} pixels: give {} to {}",
+                    FRAME_SIDES.start(),
+                    FRAME_SIDES.end()
+                )));
+            }
+        }
+        Ok(envs)
+    }
+
     /// Driven environments have played their episode to its end.
     pub fn after_drive(&mut self, envs: &[u32]) {
         for &env in envs {
@@ -305,6 +325,27 @@ mod tests {
         assert!(matches!(err, SimError::FailedPrecondition(_)), "{err}");
         state.after_reset(&[1]);
         assert!(state.check_drive(&drive(vec![0, 1])).is_ok());
+    }
+
+    #[test]
+    fn render_checks_envs_and_frame_sides() {
+        let mut state = SessionState::new(3, 1, 2, false);
+        let render = |envs: Vec<u32>, width, height| Render { envs, width, height };
+        assert_eq!(state.check_render(&render(vec![], 160, 120)).unwrap(), vec![0, 1]);
+        for bad in [
+            render(vec![2], 160, 160),
+            render(vec![0, 0], 160, 160),
+            render(vec![], 15, 160),
+            render(vec![], 160, 513),
+            render(vec![], 0, 0),
+        ] {
+            assert!(
+                matches!(state.check_render(&bad), Err(SimError::InvalidArgument(_))),
+                "{bad:?}"
+            );
+        }
+        state.after_step(&[0], &[1], &[0]);
+        assert_eq!(state.check_render(&render(vec![0], 16, 512)).unwrap(), vec![0]);
     }
 
     #[test]

@@ -598,6 +598,7 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
                 .status(),
             404
         );
+        watch_an_episode(&env, &finished[0]);
         finished.swap_remove(0)
     };
 
@@ -624,6 +625,146 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
     assert_eq!(done["episodes"], reference["episodes"]);
     assert_eq!(done["normalized_reward"], reference["normalized_reward"]);
     assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
+}
+
+/// A scored episode is played again and drawn on request: the replay is the table's episode (the same returns and
+/// length to the bit, recomputed here from its steps), its animation has one frame per drawn step and the reset,
+/// and the pages link to it. Episode 13 at the second threshold was played by an environment after two earlier
+/// episodes of its own (5 environments play 20 episodes), so the replay has to follow the scoring layout exactly.
+fn watch_an_episode(env: &Env, done: &serde_json::Value) {
+    let id = done["id"].as_i64().unwrap();
+    let (threshold, episode) = (20.0, 13);
+    let scored = done["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["cost_threshold"] == threshold && e["episode"] == episode)
+        .unwrap()
+        .clone();
+    let base = format!("{}/v1/submissions/{id}/episodes/{threshold}/{episode}", env.server.url);
+    let get = |url: &str| {
+        let url = url.to_owned();
+        block_on(async move {
+            let response = reqwest::get(&url).await.unwrap();
+            let status = response.status().as_u16();
+            let content_type = response
+                .headers()
+                .get("content-type")
+                .map(|v| v.to_str().unwrap().to_owned())
+                .unwrap_or_default();
+            (status, content_type, response.bytes().await.unwrap().to_vec())
+        })
+    };
+    let (status, _, body) = get(&format!("{base}/replay.json"));
+    assert_eq!(
+        status,
+        202,
+        "the first request queues the replay: {}",
+        String::from_utf8_lossy(&body)
+    );
+    let queued: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(queued["state"], "queued", "{queued}");
+    let page_url = format!("{}/submissions/{id}/episodes/{threshold}/{episode}", env.server.url);
+    let waiting = reqwest_text(&page_url);
+    assert!(
+        waiting.contains("id=\"replay-queued\"") && waiting.contains("http-equiv=\"refresh\""),
+        "{waiting}"
+    );
+    let mut replay = serde_json::Value::Null;
+    assert!(
+        dsrl_e2e::wait_for(Duration::from_secs(300), || {
+            let (status, _, body) = get(&format!("{base}/replay.json"));
+            assert!(
+                status == 200 || status == 202,
+                "{status}: {}",
+                String::from_utf8_lossy(&body)
+            );
+            replay = serde_json::from_slice(&body).unwrap();
+            status == 200
+        }),
+        "the replay was not made within 300 s: {replay}"
+    );
+    // The table's episode, to the bit, and the steps add up to it as scoring adds them.
+    assert_eq!(replay["reward_return"], scored["reward_return"], "{replay} vs {scored}");
+    assert_eq!(replay["cost_return"], scored["cost_return"]);
+    assert_eq!(replay["length"], scored["length"]);
+    let steps = |key: &str| -> Vec<f64> {
+        replay[key]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect()
+    };
+    let (rewards, costs) = (steps("rewards"), steps("costs"));
+    assert_eq!(rewards.len() as u64, scored["length"].as_u64().unwrap());
+    let sum = |values: &[f64]| values.iter().map(|&v| f64::from(v as f32)).sum::<f64>();
+    assert_eq!(sum(&rewards), scored["reward_return"].as_f64().unwrap());
+    assert_eq!(sum(&costs), scored["cost_return"].as_f64().unwrap());
+    let frame_steps = replay["frame_steps"].as_array().unwrap();
+    assert_eq!(frame_steps.last().unwrap(), &scored["length"], "the last step is drawn");
+
+    let (status, content_type, gif) = get(&format!("{base}/replay.gif"));
+    assert_eq!((status, content_type.as_str()), (200, "image/gif"));
+    assert_eq!(gif.len() as u64, replay["gif_bytes"].as_u64().unwrap());
+    assert_eq!(
+        hex::encode(<sha2::Sha256 as sha2::Digest>::digest(&gif)),
+        replay["gif_sha256"]
+    );
+    let mut decoder = gif::DecodeOptions::new().read_info(gif.as_slice()).unwrap();
+    assert_eq!(
+        (u32::from(decoder.width()), u32::from(decoder.height())),
+        (
+            replay["frame_width"].as_u64().unwrap() as u32,
+            replay["frame_height"].as_u64().unwrap() as u32
+        )
+    );
+    let mut frames = 0;
+    let mut distinct = std::collections::HashSet::new();
+    while let Some(frame) = decoder.read_next_frame().unwrap() {
+        distinct.insert(frame.buffer.to_vec());
+        frames += 1;
+    }
+    assert_eq!(
+        frames,
+        frame_steps.len() + 1,
+        "the reset's frame and one per drawn step"
+    );
+    assert!(
+        distinct.len() > frames / 2,
+        "the frames show a moving agent: {} distinct of {frames}",
+        distinct.len()
+    );
+
+    // Asked again, the replay is served from the store, unchanged.
+    let (status, _, again) = get(&format!("{base}/replay.json"));
+    assert_eq!(status, 200);
+    assert_eq!(serde_json::from_slice::<serde_json::Value>(&again).unwrap(), replay);
+    // The pages: the submission's episode table links each episode; the episode's page shows the animation beside
+    // its steps' plot.
+    let submission_page = reqwest_text(&format!("{}/submissions/{id}", env.server.url));
+    assert!(
+        submission_page.contains(&format!("href=\"/submissions/{id}/episodes/{threshold}/{episode}\"")),
+        "{submission_page}"
+    );
+    let profile = tempfile::tempdir().unwrap();
+    let dom = String::from_utf8(chromium(profile.path(), &["--dump-dom", &page_url]).stdout).unwrap();
+    assert!(
+        dom.contains("<img id=\"replay\"") && dom.contains("replay.gif") && dom.contains("id=\"replay-plot\""),
+        "{dom}"
+    );
+    // What cannot be watched says why.
+    for (path, want) in [
+        (format!("{id}/episodes/{threshold}/20/replay.json"), 404),
+        (format!("{id}/episodes/7/0/replay.json"), 404),
+        (format!("{id}/episodes/x/0/replay.json"), 400),
+        (format!("{id}/episodes/{threshold}/0/replay.gif"), 404),
+        (format!("999999/episodes/{threshold}/0/replay.json"), 404),
+    ] {
+        let (status, _, body) = get(&format!("{}/v1/submissions/{path}", env.server.url));
+        assert_eq!(status, want, "{path}: {}", String::from_utf8_lossy(&body));
+        assert!(String::from_utf8_lossy(&body).contains("\"message\""), "{path}");
+    }
 }
 
 /// Headless Chromium (Debian's `chromium`, installed by `scripts/install-system-deps.sh`) with the flags this

@@ -6,6 +6,6 @@
 mod pool;
 mod session;
 
-pub use dsrl_proto::simulator_session::{Reply, StepResult};
+pub use dsrl_proto::simulator_session::{RenderedFrames, Reply, StepResult};
 pub use pool::{SimulatorPool, WorkerStatus};
 pub use session::{PooledSession, split_in_two};

@@ -141,7 +141,16 @@ impl PooledSession {
         Ok(())
     }
 
-    /// The answer to the oldest request sent with [`Self::send_step`] or [`Self::send_reset`].
+    /// Queues a render of the named environments (see `Render` in the simulator proto) without waiting for it.
+    pub async fn send_render(&mut self, envs: &[u32], width: u32, height: u32) -> Result<(), EvaluationError> {
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
+        let call = self.session.send_render(envs, width, height);
+        deadline(&worker, timeout, "render", call).await?;
+        Ok(())
+    }
+
+    /// The answer to the oldest request sent with [`Self::send_step`], [`Self::send_reset`] or
+    /// [`Self::send_render`].
     pub async fn receive(&mut self) -> Result<Reply, EvaluationError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "queued request", self.session.receive()).await

@@ -48,7 +48,7 @@ pub struct SessionRequest {
     /// Echoed in the response.
     #[prost(uint64, tag = "1")]
     pub id: u64,
-    #[prost(oneof = "session_request::Kind", tags = "2, 3, 4, 5, 6")]
+    #[prost(oneof = "session_request::Kind", tags = "2, 3, 4, 5, 6, 7")]
     pub kind: ::core::option::Option<session_request::Kind>,
 }
 /// Nested message and enum types in `SessionRequest`.
@@ -66,6 +66,8 @@ pub mod session_request {
         Close(super::Close),
         #[prost(message, tag = "6")]
         Drive(super::Drive),
+        #[prost(message, tag = "7")]
+        Render(super::Render),
     }
 }
 #[allow(clippy::all)]
@@ -154,6 +156,22 @@ pub struct Drive {
     #[prost(uint32, repeated, tag = "1")]
     pub envs: ::prost::alloc::vec::Vec<u32>,
 }
+/// Images of environments as they are now, drawn without a display: MuJoCo through EGL (Safety-Gymnasium, a camera
+/// tracking the agent), pybullet's software renderer (Bullet-Safety-Gym, a camera following the agent), MetaDrive's
+/// top-down view. Drawing never changes an episode: the same requests with and without renders give the same
+/// observations, rewards and costs. Each drawing costs ~10-100 ms, so a client asks for the frames it keeps.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct Render {
+    /// Environments to draw (empty: all).
+    #[prost(uint32, repeated, tag = "1")]
+    pub envs: ::prost::alloc::vec::Vec<u32>,
+    /// Pixels, each 16 to 512.
+    #[prost(uint32, tag = "2")]
+    pub width: u32,
+    #[prost(uint32, tag = "3")]
+    pub height: u32,
+}
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]
 pub struct Close {}
@@ -162,7 +180,7 @@ pub struct Close {}
 pub struct SessionResponse {
     #[prost(uint64, tag = "1")]
     pub id: u64,
-    #[prost(oneof = "session_response::Kind", tags = "2, 3, 4, 5, 6")]
+    #[prost(oneof = "session_response::Kind", tags = "2, 3, 4, 5, 6, 7")]
     pub kind: ::core::option::Option<session_response::Kind>,
 }
 /// Nested message and enum types in `SessionResponse`.
@@ -180,6 +198,8 @@ pub mod session_response {
         Closed(super::Closed),
         #[prost(message, tag = "6")]
         Drive(super::Driven),
+        #[prost(message, tag = "7")]
+        Render(super::Frames),
     }
 }
 #[allow(clippy::all)]
@@ -257,6 +277,15 @@ pub struct DrivenEpisode {
     pub truncated: bool,
 }
 #[allow(clippy::all)]
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct Frames {
+    #[prost(uint32, repeated, tag = "1")]
+    pub envs: ::prost::alloc::vec::Vec<u32>,
+    /// UINT8 \[len(envs), height, width, 3\]: RGB, rows top to bottom.
+    #[prost(message, optional, tag = "2")]
+    pub frames: ::core::option::Option<Tensor>,
+}
+#[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]
 pub struct Closed {}
 #[allow(clippy::all)]
@@ -283,6 +312,8 @@ pub enum DType {
     Float64 = 2,
     /// One byte per element, 0 or 1.
     Bool = 3,
+    /// One byte per element, 0 to 255 (image pixels).
+    Uint8 = 4,
 }
 impl DType {
     /// String value of the enum field names used in the ProtoBuf definition.
@@ -295,6 +326,7 @@ impl DType {
             Self::Float32 => "FLOAT32",
             Self::Float64 => "FLOAT64",
             Self::Bool => "BOOL",
+            Self::Uint8 => "UINT8",
         }
     }
     /// Creates an enum from field names used in the ProtoBuf definition.
@@ -304,6 +336,7 @@ impl DType {
             "FLOAT32" => Some(Self::Float32),
             "FLOAT64" => Some(Self::Float64),
             "BOOL" => Some(Self::Bool),
+            "UINT8" => Some(Self::Uint8),
             _ => None,
         }
     }

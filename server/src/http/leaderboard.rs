@@ -391,3 +391,89 @@ pub async fn submission_page(
         Html(page::render_submission(&view)),
     ))
 }
+
+/// A scored episode named in a path: submission, cost threshold (as the episode table prints it), episode.
+fn episode_path(id: &str, threshold: &str, episode: &str) -> Result<(i64, f64, u32), ApiError> {
+    let threshold: f64 = threshold
+        .parse()
+        .map_err(|_| ApiError::InvalidArgument(format!("{threshold:?} is not a cost threshold (a number)")))?;
+    let episode: u32 = episode
+        .parse()
+        .map_err(|_| ApiError::InvalidArgument(format!("{episode:?} is not an episode number")))?;
+    Ok((submission_id(id)?, threshold, episode))
+}
+
+/// `GET /v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json`: a scored episode played again from its
+/// held seed and drawn. 200 with the replay (returns equal to the scored episode's, each step's reward and cost, the
+/// animation's size and digest) once made; 202 while it waits (asking queues it; replays start only while no
+/// submission waits or is scored).
+#[utoipa::path(get, path = "/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json", tag = "leaderboard",
+    params(("id" = String, Path, description = "Submission id (a number)"),
+        ("threshold" = String, Path, description = "One of the task's cost thresholds (20, 40, 80 ...)"),
+        ("episode" = String, Path, description = "The episode's number at that threshold, from 0")),
+    responses(
+        (status = 200, body = crate::leaderboard::renders::EpisodeReplay, description = "The replay; its animation is replay.gif"),
+        (status = 202, content_type = "application/json", body = Object, description = "{\"state\": \"queued\", \"ahead\": N}: queued behind N replays"),
+        (status = 400, description = "Not a submission id, threshold or episode number"),
+        (status = 404, description = "No such submission, threshold or episode; not scored; scored under another protocol; or its checkpoint is not held here"),
+        (status = 500, description = "The replay failed; the message says why")))]
+pub async fn episode_replay(
+    State(state): State<AppState>,
+    Path((id, threshold, episode)): Path<(String, String, String)>,
+) -> Result<Response, ApiError> {
+    use crate::leaderboard::renders::ReplayState;
+    let (id, threshold, episode) = episode_path(&id, &threshold, &episode)?;
+    Ok(match state.leaderboard.replay(id, threshold, episode).await? {
+        ReplayState::Ready(replay) => Json(replay).into_response(),
+        ReplayState::Queued { ahead } => (
+            StatusCode::ACCEPTED,
+            [(header::RETRY_AFTER, HeaderValue::from_static("5"))],
+            Json(serde_json::json!({"state": "queued", "ahead": ahead})),
+        )
+            .into_response(),
+        ReplayState::Failed(reason) => return Err(ApiError::Internal(format!("the replay failed: {reason}"))),
+    })
+}
+
+/// `GET /v1/submissions/{id}/episodes/{threshold}/{episode}/replay.gif`: the replay's animation (made first by a
+/// request for replay.json).
+#[utoipa::path(get, path = "/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.gif", tag = "leaderboard",
+    params(("id" = String, Path, description = "Submission id (a number)"),
+        ("threshold" = String, Path, description = "One of the task's cost thresholds"),
+        ("episode" = String, Path, description = "The episode's number at that threshold, from 0")),
+    responses(
+        (status = 200, content_type = "image/gif", body = Vec<u8>, description = "A looping animated GIF"),
+        (status = 400, description = "Not a submission id, threshold or episode number"),
+        (status = 404, description = "Not replayed yet (GET replay.json queues it), or not replayable")))]
+pub async fn episode_replay_gif(
+    State(state): State<AppState>,
+    Path((id, threshold, episode)): Path<(String, String, String)>,
+) -> Result<impl IntoResponse, ApiError> {
+    let (id, threshold, episode) = episode_path(&id, &threshold, &episode)?;
+    let gif = state.leaderboard.replay_gif(id, threshold, episode).await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("image/gif")),
+            // A replay never changes once made.
+            (
+                header::CACHE_CONTROL,
+                HeaderValue::from_static("public, max-age=86400, immutable"),
+            ),
+        ],
+        gif,
+    ))
+}
+
+/// `GET /submissions/{id}/episodes/{threshold}/{episode}`: the episode's page: its animation beside its
+/// step-by-step reward and cost; while the replay waits, a note that reloads itself.
+pub async fn episode_page(
+    State(state): State<AppState>,
+    Path((id, threshold, episode)): Path<(String, String, String)>,
+) -> Result<impl IntoResponse, ApiError> {
+    let (id, threshold, episode) = episode_path(&id, &threshold, &episode)?;
+    let replay = state.leaderboard.replay(id, threshold, episode).await?;
+    Ok((
+        [(header::CACHE_CONTROL, "no-cache")],
+        Html(page::render_episode(id, threshold, episode, &replay)),
+    ))
+}

@@ -70,12 +70,24 @@ pub fn router(state: AppState) -> Router {
             "/v1/submissions/{id}/episodes.csv",
             get(leaderboard::submission_episodes_csv),
         )
+        .route(
+            "/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json",
+            get(leaderboard::episode_replay),
+        )
+        .route(
+            "/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.gif",
+            get(leaderboard::episode_replay_gif),
+        )
         .route("/v1/users/{name}/submissions", get(leaderboard::user_submissions))
         .route("/users/{name}", get(leaderboard::user_page))
         .route("/leaderboard", get(leaderboard::leaderboard_page))
         .route("/leaderboard/agreement", get(leaderboard::agreement_page))
         .route("/leaderboard/plots/{table}", get(leaderboard::plot))
         .route("/submissions/{id}", get(leaderboard::submission_page))
+        .route(
+            "/submissions/{id}/episodes/{threshold}/{episode}",
+            get(leaderboard::episode_page),
+        )
         .layer(axum::middleware::map_response(html::defensive_headers))
         .with_state(state)
 }

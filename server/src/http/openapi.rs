@@ -41,6 +41,8 @@ use super::{datasets, leaderboard, metrics, simulators};
         leaderboard::leaderboard_csv,
         leaderboard::leaderboard_parquet,
         leaderboard::submission_episodes_csv,
+        leaderboard::episode_replay,
+        leaderboard::episode_replay_gif,
         leaderboard::user_submissions,
         leaderboard::user_page,
         leaderboard::submission_page,

@@ -8,6 +8,7 @@ use std::fmt::Write;
 use dsrl_suite::plot::{EntryPoint, entries_svg};
 
 use super::reference::{ReferenceRecord, TrainingData, method_label};
+use super::renders::{EpisodeReplay, ReplayState};
 use super::{Board, FamilyEntry, FamilyTable, QueuedJob, SubmissionView, TaskEntry, TaskTable, UserSubmission};
 use crate::http::html::{escape, page};
 
@@ -704,5 +705,163 @@ pub fn render_submission(view: &SubmissionView) -> String {
         escape(&view.checkpoint_sha256),
         view.id
     );
+    episodes_section(&mut html, view);
     page(&format!("{} — submission {}", view.name, view.id), &html)
+}
+
+/// A scored submission's episodes, each with a link to watch it played again (the first of each threshold is the
+/// one the section names).
+fn episodes_section(html: &mut String, view: &SubmissionView) {
+    if view.state != "finished" || view.episodes.is_empty() {
+        return;
+    }
+    html.push_str(
+        "<h2>Episodes</h2>\n<p id=\"watch\">Watch an episode: it is played again on this server's simulators from its \
+         held seed with this policy, drawn, and kept (the first request queues it; replays wait while submissions are \
+         scored). ",
+    );
+    for t in &view.thresholds {
+        let _ = write!(
+            html,
+            "<a class=\"watch-first\" href=\"/submissions/{}/episodes/{}/0\">threshold {}, episode 0</a> ",
+            view.id, t.cost_threshold, t.cost_threshold
+        );
+    }
+    html.push_str(
+        "</p>\n<table id=\"episodes\"><tr><th>cost threshold</th><th>episode</th><th>reward return</th>\
+         <th>cost return</th><th>length</th><th></th></tr>\n",
+    );
+    for e in &view.episodes {
+        let _ = writeln!(
+            html,
+            "<tr><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{}</td>\
+             <td class=\"name\"><a href=\"/submissions/{}/episodes/{}/{}\">watch</a></td></tr>",
+            e.cost_threshold, e.episode, e.reward_return, e.cost_return, e.length, view.id, e.cost_threshold, e.episode
+        );
+    }
+    html.push_str("</table>\n");
+}
+
+/// An episode's page: its animation beside its step-by-step reward and cumulative cost; while its replay waits,
+/// a note that reloads the page every five seconds (a `refresh` meta element: the pages run no script).
+pub fn render_episode(submission: i64, threshold: f64, episode: u32, state: &ReplayState) -> String {
+    let title = format!("submission {submission}, cost threshold {threshold}, episode {episode}");
+    let mut html = format!(
+        "<h1>Episode {episode} <small>cost threshold {threshold} · <a href=\"/submissions/{submission}\">submission \
+         {submission}</a></small></h1>\n"
+    );
+    match state {
+        ReplayState::Queued { ahead } => {
+            let _ = writeln!(
+                html,
+                "<p id=\"replay-queued\">Being replayed ({ahead} replays ahead; replays wait while submissions are \
+                 scored). This page reloads itself.</p>"
+            );
+            return page(&title, &html).replacen("<head>", "<head><meta http-equiv=\"refresh\" content=\"5\">", 1);
+        }
+        ReplayState::Failed(reason) => {
+            let _ = writeln!(
+                html,
+                "<p id=\"replay-failed\" class=\"error\">The replay failed: {}</p>",
+                escape(reason)
+            );
+        }
+        ReplayState::Ready(replay) => {
+            let base = format!("/v1/submissions/{submission}/episodes/{threshold}/{episode}");
+            let _ = writeln!(
+                html,
+                "<p id=\"replay-summary\">{}: reward return {:.2}, cost return {:.2}, {} steps, the scored \
+                 episode's. Played again on protocol <code>{}</code> by <code>{}</code>, {}; one frame every {} \
+                 step(s).</p>\n<div style=\"display:flex;gap:1em;align-items:flex-start\"><img id=\"replay\" \
+                 src=\"{base}/replay.gif\" width=\"{}\" height=\"{}\" alt=\"the episode, drawn\">{}</div>\n\
+                 <p><a href=\"{base}/replay.json\">every step's reward and cost (JSON)</a> · \
+                 <a href=\"{base}/replay.gif\">the animation</a> (sha256 <code>{}</code>)</p>",
+                escape(&replay.task),
+                replay.reward_return,
+                replay.cost_return,
+                replay.length,
+                escape(&replay.protocol_version),
+                escape(&replay.rendered_by),
+                escape(&replay.rendered_at),
+                replay.frame_steps.first().copied().unwrap_or(1),
+                replay.frame_width * 2,
+                replay.frame_height * 2,
+                replay_svg(replay),
+                escape(&replay.gif_sha256),
+            );
+        }
+    }
+    page(&title, &html)
+}
+
+/// Each step's reward (above) and the cost accumulated so far against the threshold (below), as an inline SVG.
+pub fn replay_svg(replay: &EpisodeReplay) -> String {
+    const WIDTH: f64 = 480.0;
+    const PANEL: f64 = 120.0;
+    const MARGIN: f64 = 40.0;
+    let steps = replay.rewards.len().max(1) as f64;
+    let cumulative: Vec<f64> = replay
+        .costs
+        .iter()
+        .scan(0.0, |sum, c| {
+            *sum += c;
+            Some(*sum)
+        })
+        .collect();
+    let mut svg = format!(
+        "<svg id=\"replay-plot\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" \
+         font-family=\"sans-serif\" font-size=\"11\">",
+        WIDTH + MARGIN,
+        2.0 * PANEL + 3.0 * MARGIN
+    );
+    let panels = [
+        ("reward per step", &replay.rewards[..], None, "#2a6"),
+        ("cost so far", &cumulative[..], Some(replay.cost_threshold), "#a33"),
+    ];
+    for (k, (label, values, limit, colour)) in panels.into_iter().enumerate() {
+        let top = MARGIN + k as f64 * (PANEL + MARGIN);
+        let lowest = values.iter().copied().chain(limit).fold(0.0f64, f64::min);
+        let highest = values.iter().copied().chain(limit).fold(lowest + 1e-9, f64::max);
+        let y = |v: f64| top + PANEL * (1.0 - (v - lowest) / (highest - lowest));
+        let x = |i: usize| MARGIN + WIDTH * (i as f64 + 1.0) / steps;
+        let _ = write!(
+            svg,
+            "<text x=\"{MARGIN}\" y=\"{:.1}\">{label} (from {} to {})</text><rect x=\"{MARGIN}\" y=\"{top:.1}\" \
+             width=\"{WIDTH}\" height=\"{PANEL}\" fill=\"none\" stroke=\"#ccc\"/>",
+            top - 6.0,
+            number(lowest),
+            number(highest)
+        );
+        if let Some(limit) = limit {
+            let _ = write!(
+                svg,
+                "<line x1=\"{MARGIN}\" x2=\"{:.1}\" y1=\"{:.1}\" y2=\"{:.1}\" stroke=\"#888\" \
+                 stroke-dasharray=\"4 3\"/><text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">threshold {}</text>",
+                MARGIN + WIDTH,
+                y(limit),
+                y(limit),
+                MARGIN + WIDTH - 4.0,
+                y(limit) - 3.0,
+                number(limit)
+            );
+        }
+        let points: Vec<String> = values
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| format!("{:.1},{:.1}", x(i), y(v)))
+            .collect();
+        let _ = write!(
+            svg,
+            "<polyline fill=\"none\" stroke=\"{colour}\" stroke-width=\"1.2\" points=\"{}\"/>",
+            points.join(" ")
+        );
+    }
+    let _ = write!(
+        svg,
+        "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">step (1 to {})</text></svg>",
+        MARGIN + WIDTH / 2.0,
+        2.0 * PANEL + 3.0 * MARGIN - 8.0,
+        replay.rewards.len()
+    );
+    svg
 }

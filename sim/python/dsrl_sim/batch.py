@@ -8,6 +8,7 @@
     # float32 [n, act_dim] (the actions the simulators applied: clipped, or a controller's)
     episodes = batch.drive([0, 1])                      # opened with a controller: play the rest of each episode
     # [(observations, applied actions, rewards, costs, terminated, truncated)], see tasks.drive
+    frames = batch.frames([0], 160, 160)                # uint8 [n, 160, 160, 3]: the envs drawn as they are now
 
 Bullet-Safety-Gym and Safety-Gymnasium envs live in this process. MetaDrive allows one engine per process, so each
 MetaDrive env lives in its own process (multiprocessing, spawn start method) and a batch steps them in parallel.
@@ -38,6 +39,8 @@ def _host(conn, sim_id, controller):
                 conn.send(env.step(argument))
             elif command == "drive":
                 conn.send(tasks.drive(env))
+            elif command == "frame":
+                conn.send(env.frame(*argument))
             else:
                 env.close()
                 conn.send(None)
@@ -145,6 +148,17 @@ class Batch:
                 self.envs[i].send("drive")
             return [self.envs[i].receive() for i in indices]
         return [tasks.drive(self.envs[i]) for i in indices]
+
+    def frames(self, indices, width, height):
+        """RGB images of the named envs as they are now: uint8 [n, height, width, 3] (see `tasks.Env.frame`)."""
+        indices = list(indices)
+        if self.remote:
+            for i in indices:
+                self.envs[i].send("frame", (width, height))
+            images = [self.envs[i].receive() for i in indices]
+        else:
+            images = [self.envs[i].frame(width, height) for i in indices]
+        return np.stack(images).astype(np.uint8, copy=False).tobytes()
 
     def close(self):
         for env in self.envs:

@@ -149,8 +149,48 @@ class Env:
         return (np.asarray(obs, dtype=np.float32).reshape(-1), float(reward), float(cost), bool(terminated),
                 bool(truncated), action)
 
+    def frame(self, width, height):
+        """An RGB image of the environment as it is now, uint8 [height, width, 3], drawn without a display. Drawing
+        reads the simulator's state and changes none of it, so an episode is the same with or without frames."""
+        if self.family == SAFETY_GYMNASIUM:
+            return _mujoco_frame(self._env.unwrapped, width, height)
+        if self.family == BULLET:
+            return _bullet_frame(self._env.unwrapped, width, height)
+        # MetaDrive's top-down view (pygame on SDL's dummy video driver), centred on the ego vehicle.
+        os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+        image = self._env.render(mode="topdown", window=False, screen_size=(width, height))
+        return np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[:height, :width, :3])
+
     def close(self):
         self._env.close()
+
+
+def _mujoco_frame(builder, width, height):
+    """Safety-Gymnasium's tracking camera through MuJoCo's EGL context (Mesa's software rasterizer where there is
+    no GPU), shadows and reflections off: ~50 ms a frame at 160 x 160 on one core instead of ~95."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import mujoco
+    from safety_gymnasium.builder import RenderConf
+
+    builder.render_parameters = RenderConf("rgb_array", int(width), int(height), None, "track")
+    viewer = getattr(builder.task, "viewer", None)
+    if viewer is not None:
+        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
+            viewer.scn.flags[flag] = 0
+    return np.ascontiguousarray(np.asarray(builder.render(), dtype=np.uint8)[:, :, :3])
+
+
+def _bullet_frame(env, width, height):
+    """pybullet's software renderer (ER_TINY_RENDERER: no OpenGL), looking down at the agent from behind."""
+    import pybullet
+
+    target = list(env.agent.get_position())
+    view = env.bc.computeViewMatrixFromYawPitchRoll(cameraTargetPosition=target, distance=8.0, yaw=-90.0,
+                                                    pitch=-60.0, roll=0.0, upAxisIndex=2)
+    projection = env.bc.computeProjectionMatrixFOV(fov=60.0, aspect=width / height, nearVal=0.1, farVal=100.0)
+    _, _, pixels, _, _ = env.bc.getCameraImage(width=int(width), height=int(height), viewMatrix=view,
+                                                projectionMatrix=projection, renderer=pybullet.ER_TINY_RENDERER)
+    return np.ascontiguousarray(np.asarray(pixels, dtype=np.uint8).reshape(height, width, 4)[:, :, :3])
 
 
 def drive(env):

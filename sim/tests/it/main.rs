@@ -5,5 +5,6 @@ mod all_tasks;
 mod compliance;
 mod controller;
 mod determinism;
+mod render;
 mod smoke;
 mod support;
