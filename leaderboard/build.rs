@@ -5,15 +5,16 @@ include!("../suite/build-support/commit.rs");
 
 /// `dsrl_evaluation::SCORING_PATH` and `SCORING_DEPENDENCIES` (through Cargo.lock), relative to this crate; the
 /// test `the_scorer_build_watches_the_scoring_path` holds the two lists together.
-const SCORING_SOURCES: [&str; 14] = [
+const SCORING_SOURCES: [&str; 15] = [
     "src",
     "../policy/src",
     "../evaluation/src",
     "../sim/src",
     "../sim/python/dsrl_sim",
     "../suite/src/score.rs",
-    "../suite/src/leaderboard.rs",
-    "../suite/src/protocol.rs",
+    "../scoring/src/leaderboard.rs",
+    "../scoring/src/protocol.rs",
+    "../pynumerics/src/pyrandom.rs",
     "../suite/src/catalog.rs",
     "../data/tasks.csv",
     "../proto/dsrl/simulator/v1/simulator.proto",

@@ -26,6 +26,7 @@ fn main() {
     let mut sources: Vec<&str> = vec![
         "src",
         "../suite/src",
+        "../pynumerics/src",
         "../policy/src",
         "../sim/src",
         "../evaluation/src",

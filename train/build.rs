@@ -6,5 +6,12 @@ include!("../suite/build-support/commit.rs");
 fn main() {
     // What shapes the weights: the learners, the networks and the data reader they build on, the locked
     // dependencies.
-    record_build_commit(&["src", "../policy/src", "../suite/src", "../Cargo.lock"]);
+    record_build_commit(&[
+        "src",
+        "../policy/src",
+        "../suite/src",
+        "../filters/src",
+        "../pynumerics/src",
+        "../Cargo.lock",
+    ]);
 }

@@ -18,7 +18,7 @@ pub mod simulators;
 pub use config::SimulatorsConfig;
 pub use error::EvaluationError;
 
-/// The scorer's revision, part of the protocol version (`dsrl_suite::protocol`): bump it when a change to the
+/// The scorer's revision, part of the protocol version (`dsrl_scoring::protocol`): bump it when a change to the
 /// scoring path changes what any episode scores. The scoring path is what `SCORING_PATH` lists; the drift test below
 /// holds the digest of every file on it and of the dependencies' versions, so a change to any of them fails until
 /// someone decides whether it changes scores (then this is bumped, and the protocol version with it) and records
@@ -30,8 +30,8 @@ pub const SCORER_REVISION: u32 = 1;
 /// checks, the fused operations), where a submitted policy runs and how it answers (`inference.rs`), the evaluator
 /// and the pool it plays through, the held seeds' derivation, the simulator worker (its sessions, its Python
 /// bridge, the simulator package it steps), the leaderboard's runner, and the arithmetic and the normalization
-/// constants that turn returns into scores and ranks.
-pub const SCORING_PATH: [&str; 13] = [
+/// constants that turn returns into scores and ranks (with the bootstrap's random numbers).
+pub const SCORING_PATH: [&str; 14] = [
     "policy/src",
     "evaluation/src",
     "sim/src",
@@ -39,8 +39,9 @@ pub const SCORING_PATH: [&str; 13] = [
     "leaderboard/src/runner.rs",
     "leaderboard/src/checkpoints.rs",
     "suite/src/score.rs",
-    "suite/src/leaderboard.rs",
-    "suite/src/protocol.rs",
+    "scoring/src/leaderboard.rs",
+    "scoring/src/protocol.rs",
+    "pynumerics/src/pyrandom.rs",
     "suite/src/catalog.rs",
     "data/tasks.csv",
     "proto/dsrl/simulator/v1/simulator.proto",

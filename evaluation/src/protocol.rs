@@ -1,10 +1,10 @@
 //! The protocol a leaderboard scores under: its catalog, the simulator pins compiled in here, its episodes per
-//! threshold and scoring layout, the held-seed policy and the scorer's revision (`dsrl_suite::protocol`). Every
+//! threshold and scoring layout, the held-seed policy and the scorer's revision (`dsrl_scoring::protocol`). Every
 //! result records the version it was scored under; the tables rank only the current one's, and the documents'
 //! reference tables use it.
 
+use dsrl_scoring::protocol::{Protocol, ProtocolParts};
 use dsrl_suite::Catalog;
-use dsrl_suite::protocol::{Protocol, ProtocolParts};
 
 use crate::{SCORER_REVISION, SIMULATOR_PINS, seeds};
 
@@ -12,7 +12,7 @@ use crate::{SCORER_REVISION, SIMULATOR_PINS, seeds};
 pub const DEFAULT_EPISODES_PER_THRESHOLD: u32 = 20;
 
 /// The leaderboard's default scoring layout: environments per threshold, one session each.
-pub use dsrl_suite::protocol::DEFAULT_ENVS_PER_SESSION;
+pub use dsrl_scoring::protocol::DEFAULT_ENVS_PER_SESSION;
 
 /// The protocol of a leaderboard with `catalog` that plays `episodes_per_threshold` episodes per threshold on
 /// `envs_per_session` environments per threshold.

@@ -33,14 +33,14 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use bytes::Bytes;
-use dsrl_suite::catalog::{Catalog, Family, Task};
-use dsrl_suite::leaderboard::{
+use dsrl_scoring::leaderboard::{
     Interval, entry_interval, iqm_over_seeds_with_interval, rank, seeds_interval, threshold_scores,
 };
-use dsrl_suite::paper::{PAPER_LABEL, PaperResults, PaperRow};
-use dsrl_suite::protocol::Protocol;
-use dsrl_suite::published::{PublishedResults, PublishedRow};
-use dsrl_suite::reference::{Agreement, AgreementSummary, ScoredEntry, agreement, summarize, summarize_by_method};
+use dsrl_scoring::paper::{PAPER_LABEL, PaperResults, PaperRow};
+use dsrl_scoring::protocol::Protocol;
+use dsrl_scoring::published::{PublishedResults, PublishedRow};
+use dsrl_scoring::reference::{Agreement, AgreementSummary, ScoredEntry, agreement, summarize, summarize_by_method};
+use dsrl_suite::catalog::{Catalog, Family, Task};
 use dsrl_suite::score::NormalizedScore;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
@@ -404,7 +404,7 @@ impl Leaderboard {
             (TrainingData::Starter, reference::EMBEDDED_RESULTS),
             (TrainingData::FullBuild, reference::EMBEDDED_FULL_BUILD_RESULTS),
         ] {
-            let read = dsrl_suite::reference::read_results(text, &self.catalog).map_err(ApiError::internal)?;
+            let read = dsrl_scoring::reference::read_results(text, &self.catalog).map_err(ApiError::internal)?;
             entries.extend(read.into_iter().map(|e| (dataset, e)));
         }
         let report = reference::import(self, &entries).await?;
@@ -859,7 +859,7 @@ impl Leaderboard {
             };
             let scores: Vec<NormalizedScore> = groups
                 .iter()
-                .map(|members| dsrl_suite::reference::mean_over_seeds(members.iter().map(|(row, _)| score_of(row))))
+                .map(|members| dsrl_scoring::reference::mean_over_seeds(members.iter().map(|(row, _)| score_of(row))))
                 .collect();
             let mut entries = Vec::new();
             for (place, i) in rank(&scores).into_iter().enumerate() {

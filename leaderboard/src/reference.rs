@@ -10,8 +10,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use dsrl_scoring::reference::{ReferenceEntry, ScoringRecord, TrainingBudget};
 use dsrl_service::error::ApiError;
-use dsrl_suite::reference::{ReferenceEntry, ScoringRecord, TrainingBudget};
 
 use super::Leaderboard;
 use super::queue::{self, Imported, Scores};

@@ -212,7 +212,7 @@ async fn keep_lease(
 
 async fn store(leaderboard: &Leaderboard, job: &Job, owner: &str, episodes: &[EpisodeRow]) -> Result<bool, ApiError> {
     let task = leaderboard.task(&job.task)?;
-    let score = dsrl_suite::leaderboard::entry_score(task, episodes)
+    let score = dsrl_scoring::leaderboard::entry_score(task, episodes)
         .ok_or_else(|| ApiError::Internal(format!("job {} was scored without episodes", job.id)))?;
     let scores = queue::Scores {
         episodes,

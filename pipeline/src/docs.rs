@@ -20,13 +20,13 @@ use std::fmt::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use dsrl_suite::Catalog;
-use dsrl_suite::leaderboard::entry_interval;
-use dsrl_suite::paper::PaperResults;
-use dsrl_suite::reference::{
+use dsrl_scoring::leaderboard::entry_interval;
+use dsrl_scoring::paper::PaperResults;
+use dsrl_scoring::reference::{
     FIDELITY_GOAL, ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize,
     summarize_by_method,
 };
+use dsrl_suite::Catalog;
 
 /// The documents that hold generated sections, relative to the repository root.
 pub const DOCUMENTS: [&str; 3] = ["data/README.md", "data/reference/README.md", "BENCHMARKS.md"];
@@ -697,7 +697,7 @@ mod tests {
     fn entry(method: &str, seed: u64, reward: f64, cost: f64) -> ReferenceEntry {
         let catalog = Catalog::embedded().unwrap();
         let task = catalog.get("OfflineBallRun-v0").unwrap();
-        dsrl_suite::synthetic::reference_entry(task, method, seed, reward, cost)
+        dsrl_scoring::reference::synthetic_entry(task, method, seed, reward, cost)
     }
 
     #[test]

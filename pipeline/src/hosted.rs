@@ -13,11 +13,11 @@ use std::fmt::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use dsrl_filters::plan::{in_tempting_corner, plan};
+use dsrl_filters::spec::{FilterSpec, density_presets};
 use dsrl_suite::EpisodeSummary;
 use dsrl_suite::catalog::{Catalog, Task};
 use dsrl_suite::convert::parse_part_file_name;
-use dsrl_suite::filters::plan::{in_tempting_corner, plan};
-use dsrl_suite::filters::spec::{FilterSpec, density_presets};
 
 /// What a hosted dataset can lack, as `data/starter_gaps.csv` names it.
 pub const GAP_KINDS: [&str; 7] = [

@@ -99,7 +99,7 @@ mod tests {
             "a starter version per task"
         );
         let text = std::fs::read_to_string(root.join("data/reference/results.jsonl")).unwrap();
-        let entries = dsrl_suite::reference::read_results(&text, &catalog).unwrap();
+        let entries = dsrl_scoring::reference::read_results(&text, &catalog).unwrap();
         let unknown: Vec<String> = entries
             .iter()
             .filter(|e| identities.kind(&e.task, &e.dataset_version).is_none())

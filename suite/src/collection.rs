@@ -8,8 +8,8 @@
 
 use std::collections::HashMap;
 
-use crate::filters::numpy_math::floor_divide;
-use crate::filters::pyrandom::PyRandom;
+use dsrl_pynumerics::numpy_math::floor_divide;
+use dsrl_pynumerics::pyrandom::PyRandom;
 
 /// The ranges and capacity of a trajectory buffer (FSRL `TrajectoryBuffer`).
 #[derive(Debug, Clone, PartialEq)]

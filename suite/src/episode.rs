@@ -18,38 +18,7 @@ pub struct EpisodeSummary {
     pub cost_return: f32,
 }
 
-/// `np.sum` of a contiguous float32 array as NumPy 1.24 computes it: pairwise summation with 8 accumulators
-/// in blocks of at most 128 elements, every operation in float32.
-pub fn numpy_sum_f32(values: &[f32]) -> f32 {
-    let n = values.len();
-    if n < 8 {
-        let mut sum = 0.0f32;
-        for &v in values {
-            sum += v;
-        }
-        sum
-    } else if n <= 128 {
-        let mut r = [0.0f32; 8];
-        r.copy_from_slice(&values[..8]);
-        let whole = n - n % 8;
-        let mut i = 8;
-        while i < whole {
-            for j in 0..8 {
-                r[j] += values[i + j];
-            }
-            i += 8;
-        }
-        let mut sum = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-        for &v in &values[whole..] {
-            sum += v;
-        }
-        sum
-    } else {
-        let mut half = n / 2;
-        half -= half % 8;
-        numpy_sum_f32(&values[..half]) + numpy_sum_f32(&values[half..])
-    }
-}
+pub use dsrl_pynumerics::numpy_math::numpy_sum_f32;
 
 /// The smallest and largest value of an iterator of returns; `None` when empty.
 pub fn return_range(values: impl Iterator<Item = f32>) -> Option<(f32, f32)> {
@@ -57,6 +26,17 @@ pub fn return_range(values: impl Iterator<Item = f32>) -> Option<(f32, f32)> {
         None => Some((v, v)),
         Some((lo, hi)) => Some((lo.min(v), hi.max(v))),
     })
+}
+
+/// What happened to one input episode (for plots).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Fate {
+    Kept,
+    Relabelled,
+    RemovedByDensity,
+    RemovedByInpaint,
+    RemovedByEpsilon,
 }
 
 #[cfg(test)]

@@ -135,7 +135,7 @@ pub enum Provenance {
         /// The seed of the density filter's random sampling, when that filter ran.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         seed: Option<u64>,
-        counts: crate::filters::plan::FilterCounts,
+        counts: FilterCounts,
         /// What the output reproduces, bit for bit.
         reference: String,
     },
@@ -275,4 +275,16 @@ mod tests {
         let back: Manifest = serde_json::from_value(json).unwrap();
         assert_eq!(back, m);
     }
+}
+
+/// How many trajectories each step removed or changed.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FilterCounts {
+    pub input_episodes: u64,
+    pub removed_by_density: u64,
+    pub relabelled_outliers: u64,
+    pub removed_by_inpaint: u64,
+    pub removed_by_epsilon: u64,
+    pub output_episodes: u64,
 }

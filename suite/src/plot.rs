@@ -5,7 +5,7 @@
 use plotters::prelude::*;
 
 use crate::catalog::Task;
-use crate::filters::plan::Fate;
+use crate::episode::Fate;
 
 /// One trajectory on the plot.
 #[derive(Debug, Clone, Copy)]

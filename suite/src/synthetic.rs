@@ -3,8 +3,6 @@
 //! They are never benchmark data.
 
 use crate::catalog::Task;
-use crate::reference::{ReferenceEntry, ScoringRecord, TrainingBudget};
-use crate::score::EpisodeResult;
 use crate::transitions::TransitionChunk;
 
 /// SplitMix64: tiny, seedable, and stable across versions, which is what reproducible fixtures need.
@@ -112,51 +110,6 @@ pub fn transitions(spec: SyntheticSpec) -> impl Iterator<Item = TransitionChunk>
         }
         Some(chunk)
     })
-}
-
-/// A made-up reference entry on `task` for tests: two episodes at each of the task's thresholds, each with the given
-/// returns; its checkpoint digest names the method and seed, its protocol version is `p1.x`. Never a result.
-pub fn reference_entry(task: &Task, method: &str, seed: u64, reward_return: f64, cost_return: f64) -> ReferenceEntry {
-    let episodes = task
-        .cost_thresholds
-        .iter()
-        .flat_map(|&k| {
-            (0..2).map(move |i| EpisodeResult {
-                cost_threshold: k,
-                episode: i,
-                reward_return,
-                cost_return,
-                length: 10,
-            })
-        })
-        .collect();
-    ReferenceEntry {
-        task: task.id.to_string(),
-        method: method.into(),
-        seed,
-        training: TrainingBudget {
-            steps: 10,
-            batch_size: 512,
-            models: 1,
-            seconds: 1.0,
-            cpu_seconds: 1.0,
-            cpu: None,
-            osrl_steps: 100_000,
-            osrl_batch_size: 512,
-        },
-        dataset_version: "0".repeat(64),
-        code_commit: "abc".into(),
-        checkpoint_sha256: format!("{}{method}{seed}", task.id),
-        protocol_version: "p1.x".into(),
-        scoring: ScoringRecord {
-            submission: 1,
-            started_at: "a".into(),
-            finished_at: "b".into(),
-            seconds: 1.0,
-            build: None,
-        },
-        episodes,
-    }
 }
 
 #[cfg(test)]

@@ -281,7 +281,7 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     let protocol = board["protocol"]["version"].as_str().unwrap().to_owned();
     let catalog = dsrl_suite::Catalog::embedded().unwrap();
     let text = std::fs::read_to_string(&results).unwrap();
-    let entries = dsrl_suite::reference::read_results(&text, &catalog).unwrap();
+    let entries = dsrl_scoring::reference::read_results(&text, &catalog).unwrap();
     let mut methods: Vec<&str> = entries.iter().map(|e| e.method.as_str()).collect();
     methods.sort_unstable();
     assert_eq!(
@@ -350,7 +350,7 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     assert!(!stderr.contains("submitted as"), "{stderr}");
     let reproduced_bearl = state.join("reproduced/policies").join(TASK).join("seed-0/bearl");
     assert!(reproduced_bearl.join("threshold-40").is_dir());
-    let after = dsrl_suite::reference::read_results(&std::fs::read_to_string(&results).unwrap(), &catalog).unwrap();
+    let after = dsrl_scoring::reference::read_results(&std::fs::read_to_string(&results).unwrap(), &catalog).unwrap();
     if entries[0].code_commit.ends_with("-modified") {
         // Refused for its uncommitted build only after the networks were found to be the scored ones.
         assert!(!reproduced.status.success(), "{stderr}");
@@ -491,7 +491,7 @@ fn the_reference_entries_script_trains_all_its_tasks_in_one_pool() {
     );
     let catalog = dsrl_suite::Catalog::embedded().unwrap();
     let text = std::fs::read_to_string(env.path("results.jsonl")).unwrap();
-    let mut recorded: Vec<(String, String)> = dsrl_suite::reference::read_results(&text, &catalog)
+    let mut recorded: Vec<(String, String)> = dsrl_scoring::reference::read_results(&text, &catalog)
         .unwrap()
         .into_iter()
         .map(|e| (e.task, e.method))

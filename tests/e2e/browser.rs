@@ -59,7 +59,7 @@ fn the_dataset_browser_lists_every_task_and_its_card_plans_filters() {
     let index: Vec<dsrl_suite::EpisodeSummary> = serde_json::from_value(manifest["episode_index"].clone()).unwrap();
     let corner = index
         .iter()
-        .filter(|e| dsrl_suite::filters::plan::in_tempting_corner(task, e.cost_return, e.reward_return))
+        .filter(|e| dsrl_filters::plan::in_tempting_corner(task, e.cost_return, e.reward_return))
         .count();
     assert!(
         card.contains(&format!("reward ≥ max reward/2)</td><td>{corner}</td>")),

@@ -3,10 +3,10 @@
 
 use std::io::Cursor;
 
+use dsrl_filters::{apply, plan::plan, spec::FilterSpec};
 use dsrl_proto::datasets::v1::dataset_service_client::DatasetServiceClient;
 use dsrl_proto::datasets::v1::{GetManifestRequest, StreamTransitionsRequest};
 use dsrl_suite::catalog::{Catalog, ObservationSpace};
-use dsrl_suite::filters::{apply, plan::plan, spec::FilterSpec};
 use futures::StreamExt;
 
 use crate::{Env, get_json, s, sha256_file};

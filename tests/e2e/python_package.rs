@@ -2,7 +2,7 @@
 //! with maturin as `pip install ./client/python` builds it, installed into a scratch folder, and its pytest suite
 //! (`client/python/tests`) runs under two interpreters of the repository:
 //! - `.venv` (CPython 3.11, NumPy 1.24, gymnasium 0.29, DSRL's pins): the whole suite, including `pre_process_data`
-//!   against DSRL's own golden outputs (`suite/tests/it/golden/filters.json`) on the same synthetic datasets;
+//!   against DSRL's own golden outputs (`filters/tests/it/golden/filters.json`) on the same synthetic datasets;
 //! - `.venv-numpy2` (NumPy 2.x, gymnasium 1.x): the loading, caching and error tests.
 //!
 //! The real simulator behind `gym.make` is checked in `.venv-sim` (the workers' simulators) against the workers'
@@ -162,7 +162,7 @@ fn the_python_package_loads_filters_and_caches_like_the_cli_and_dsrl() {
     let upload =
         serde_json::json!({"task": upload_task, "path": upload_file, "version": made.version.as_str()}).to_string();
     let root = dsrl_e2e::repo_root();
-    let golden = root.join("suite/tests/it/golden/filters.json");
+    let golden = root.join("filters/tests/it/golden/filters.json");
     let pytest = |python: &Path, cache: &str, select: Option<&str>| {
         let mut command = Command::new(python);
         command

@@ -3,9 +3,9 @@
 //! with the paper equal to what the results file gives.
 
 use dsrl_leaderboard::reference::{TrainingData, entry_name, method_label};
+use dsrl_scoring::paper::{PAPER_METHODS, PaperResults};
+use dsrl_scoring::reference::{ReferenceEntry, agreement, read_results, scored_entries, summarize};
 use dsrl_suite::Catalog;
-use dsrl_suite::paper::{PAPER_METHODS, PaperResults};
-use dsrl_suite::reference::{ReferenceEntry, agreement, read_results, scored_entries, summarize};
 
 use crate::{Env, get_json};
 
@@ -64,7 +64,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
             assert_eq!(row["safe"], expected.safe);
         }
         // The rows methods beyond the paper publish for the task, each with its citation and protocol.
-        let published = dsrl_suite::published::PublishedResults::embedded(&catalog).unwrap();
+        let published = dsrl_scoring::published::PublishedResults::embedded(&catalog).unwrap();
         let expected = published.for_task(id);
         assert_eq!(table["published"], serde_json::to_value(&expected).unwrap(), "{id}");
         // Every reference entry of the current protocol is in its task's table with its record; a method's several
@@ -140,7 +140,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
                 }
                 shown
             };
-            let score = dsrl_suite::reference::mean_over_seeds(
+            let score = dsrl_scoring::reference::mean_over_seeds(
                 group
                     .iter()
                     .map(|m| m.score(task).unwrap())
@@ -183,7 +183,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         assert_eq!(board[key], serde_json::to_value(summarize(&catalog, cells)).unwrap());
         assert_eq!(
             board[format!("{key}_by_method")],
-            serde_json::to_value(dsrl_suite::reference::summarize_by_method(cells)).unwrap()
+            serde_json::to_value(dsrl_scoring::reference::summarize_by_method(cells)).unwrap()
         );
         for table in tables {
             let task_cells: Vec<_> = cells.iter().filter(|c| c.task == table["task"]).collect();
@@ -268,7 +268,7 @@ pub(crate) fn the_papers_rows_and_the_reference_entries_are_shown_under_their_pr
         unique.sort();
         unique.dedup();
         assert_eq!(unique.len(), names.len(), "{name}: {names:?}");
-        let methods: Vec<String> = dsrl_suite::reference::REFERENCE_METHODS
+        let methods: Vec<String> = dsrl_scoring::reference::REFERENCE_METHODS
             .iter()
             .flat_map(|m| [TrainingData::Starter, TrainingData::FullBuild].map(|kind| method_label(m, kind)))
             .collect();

@@ -1,5 +1,5 @@
 """Measures the ziggurat tables NumPy's Generator.standard_normal uses, through NumPy's public API only, and writes
-them as Rust source (suite/src/filters/ziggurat_tables.rs).
+them as Rust source (pynumerics/src/ziggurat_tables.rs).
 
 How: PCG64's state can be set directly, and its output is an invertible function of the state, so we can make the
 generator's next 64-bit draw any word we choose. standard_normal splits that word into a layer index (8 bits), a sign
@@ -9,7 +9,7 @@ again. So:
   - ki[idx]: the smallest rabs for which the call consumes more than one draw (binary search on the state);
   - fi[idx] = exp(-x^2/2) with x = wi[idx] * 2^52, in double precision. fi only enters a comparison with a fresh
     uniform variate, so a last-bit difference would change an outcome with probability ~2^-52 per draw.
-Run with NumPy 1.24:  python tests/golden/ziggurat_probe.py > suite/src/filters/ziggurat_tables.rs
+Run with NumPy 1.24:  python tests/golden/ziggurat_probe.py > pynumerics/src/ziggurat_tables.rs
 """
 import math
 

@@ -739,7 +739,7 @@ impl DataArgs {
             anyhow::ensure!(file.is_file(), "--dataset {}: no such file", file.display());
         }
         if let Some(filter) = &self.filter {
-            dsrl_suite::filters::spec::FilterSpec::parse(filter, task).map_err(|e| anyhow::anyhow!("--filter: {e}"))?;
+            dsrl_filters::spec::FilterSpec::parse(filter, task).map_err(|e| anyhow::anyhow!("--filter: {e}"))?;
         }
         anyhow::ensure!(
             self.cost_thresholds.iter().all(|k| k.is_finite() && *k >= 0.0),

@@ -1,4 +1,4 @@
-//! `dsrl-train reference-entry`: one line of the reference results file (`dsrl_suite::reference`) from a trained
+//! `dsrl-train reference-entry`: one line of the reference results file (`dsrl_scoring::reference`) from a trained
 //! model folder and the leaderboard's answer for its scored submission. Everything it writes is read from those
 //! two: the budget, seed, dataset version and code commit from each model's `policy.json` training record; the
 //! checkpoint digest, protocol version, scoring times and every episode from the submission. The pairing holds only
@@ -11,10 +11,10 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail, ensure};
 use dsrl_policy::checkpoint::{self, CONFIG_FILE};
-use dsrl_suite::Catalog;
-use dsrl_suite::reference::{
+use dsrl_scoring::reference::{
     REFERENCE_METHODS, ReferenceEntry, ScoringRecord, TrainingBudget, osrl_budget, read_results, upsert, write_results,
 };
+use dsrl_suite::Catalog;
 use dsrl_suite::score::EpisodeResult;
 use serde::Deserialize;
 

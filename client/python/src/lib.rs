@@ -115,7 +115,7 @@ fn task_json(id: &str) -> PyResult<String> {
 /// and density with `task`, `density` (as Python writes it), `cbins`, `rbins`, `max_npb` and `min_npb`.
 #[pyfunction]
 fn density_presets_json() -> PyResult<String> {
-    let presets: Vec<serde_json::Value> = dsrl_suite::filters::spec::density_presets()
+    let presets: Vec<serde_json::Value> = dsrl_filters::spec::density_presets()
         .into_iter()
         .map(|((task, density), grid)| {
             serde_json::json!({"task": task, "density": density, "cbins": grid.cbins, "rbins": grid.rbins,

@@ -1,10 +1,10 @@
 """The Python package against a real dsrl-server process (started by tests/e2e/python_package.rs, which passes
 it in the environment):
 
-    DSRL_SERVER          the server, with the golden datasets of suite/tests/it/golden/filters.json ingested
+    DSRL_SERVER          the server, with the golden datasets of filters/tests/it/golden/filters.json ingested
     DSRL_DATASET_DIR     an empty cache for this run
     DSRL_TEST_VERSIONS   JSON {golden dataset name: {"task", "version"}}
-    DSRL_GOLDEN          suite/tests/it/golden/filters.json: DSRL's own pre_process_data outputs (sha256 per array)
+    DSRL_GOLDEN          filters/tests/it/golden/filters.json: DSRL's own pre_process_data outputs (sha256 per array)
     DSRL_ADMIN_TOKEN     the server's admin token
     DSRL_TEST_UPLOAD     JSON {"task", "path", "version"}: a file not yet on the server, whose conversion takes > 1 s
     DSRL_TEST_EXPORT     an empty folder, where a policy exported from arrays is left for the Rust test to play

@@ -12,9 +12,9 @@ use std::fmt::Write;
 use axum::extract::{Path, Query, State};
 use axum::http::{StatusCode, header};
 use axum::response::{Html, IntoResponse, Response};
+use dsrl_filters::plan::plan;
+use dsrl_filters::spec::FilterSpec;
 use dsrl_suite::catalog::Family;
-use dsrl_suite::filters::plan::plan;
-use dsrl_suite::filters::spec::FilterSpec;
 use dsrl_suite::{Manifest, Task};
 use serde::Deserialize;
 
@@ -231,7 +231,7 @@ pub async fn card(
     let corner = manifest
         .episode_index
         .iter()
-        .filter(|e| dsrl_suite::filters::plan::in_tempting_corner(task, e.cost_return, e.reward_return))
+        .filter(|e| dsrl_filters::plan::in_tempting_corner(task, e.cost_return, e.reward_return))
         .count();
     let version = escape(manifest.version.as_str());
     let _ = write!(

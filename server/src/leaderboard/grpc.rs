@@ -96,7 +96,7 @@ fn reference(r: ReferenceRecord) -> pb::ReferenceRecord {
     }
 }
 
-fn interval(i: dsrl_suite::leaderboard::Interval) -> pb::Interval {
+fn interval(i: dsrl_scoring::leaderboard::Interval) -> pb::Interval {
     pb::Interval {
         estimate: i.estimate,
         low: i.low,
@@ -228,7 +228,7 @@ fn board(board: Board) -> pb::Leaderboard {
     }
 }
 
-fn agreement_summary(a: dsrl_suite::reference::AgreementSummary) -> pb::AgreementSummary {
+fn agreement_summary(a: dsrl_scoring::reference::AgreementSummary) -> pb::AgreementSummary {
     pb::AgreementSummary {
         scope: a.scope,
         cells: a.cells as u32,

@@ -17,7 +17,7 @@ fn number(x: f64) -> String {
 }
 
 /// `estimate [low, high]`.
-fn with_interval(i: &dsrl_suite::leaderboard::Interval) -> String {
+fn with_interval(i: &dsrl_scoring::leaderboard::Interval) -> String {
     format!(
         "{} <small>[{}, {}]</small>",
         number(i.estimate),
@@ -53,7 +53,7 @@ fn percent(share: Option<f64>) -> String {
 const AGREEMENT_HEADER: &str = "<th>verdicts that agree</th><th>chance (from the safe rates)</th><th>\"every method \
      unsafe\"</th><th>\"BC-Safe safe, the rest unsafe\"</th><th>mean |Δ reward|</th><th>mean |Δ cost|</th>";
 
-fn agreement_cells(s: &dsrl_suite::reference::AgreementSummary) -> String {
+fn agreement_cells(s: &dsrl_scoring::reference::AgreementSummary) -> String {
     format!(
         "<td>{}</td><td class=\"baseline\">{}</td><td class=\"baseline\">{}</td><td class=\"baseline\">{}</td><td>{}</td><td>{}</td>",
         share(s),
@@ -65,7 +65,7 @@ fn agreement_cells(s: &dsrl_suite::reference::AgreementSummary) -> String {
     )
 }
 
-fn share(summary: &dsrl_suite::reference::AgreementSummary) -> String {
+fn share(summary: &dsrl_scoring::reference::AgreementSummary) -> String {
     match summary.share {
         Some(share) => format!("{} of {} ({:.0}%)", summary.agreeing, summary.cells, 100.0 * share),
         None => "no cells yet".into(),
@@ -485,7 +485,10 @@ fn full_build_agreement(html: &mut String, board: &Board) {
 }
 
 /// An agreement table's rows, one per scope (family or overall), and its end.
-fn scope_rows<'a>(html: &mut String, summaries: impl IntoIterator<Item = &'a dsrl_suite::reference::AgreementSummary>) {
+fn scope_rows<'a>(
+    html: &mut String,
+    summaries: impl IntoIterator<Item = &'a dsrl_scoring::reference::AgreementSummary>,
+) {
     for s in summaries {
         let _ = writeln!(
             html,
@@ -510,7 +513,7 @@ pub fn render_agreement(board: &Board) -> String {
         escape(&board.protocol.version),
         escape(board.paper_label)
     );
-    let rows = |html: &mut String, summaries: &[dsrl_suite::reference::AgreementSummary]| {
+    let rows = |html: &mut String, summaries: &[dsrl_scoring::reference::AgreementSummary]| {
         for s in summaries {
             let _ = writeln!(
                 html,

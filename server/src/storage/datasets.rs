@@ -8,9 +8,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bytes::Bytes;
-use dsrl_suite::filters;
-use dsrl_suite::filters::plan::{Fate, plan};
-use dsrl_suite::filters::spec::{FilterError, FilterSpec};
+use dsrl_filters::plan::{Fate, plan};
+use dsrl_filters::spec::{FilterError, FilterSpec};
 use dsrl_suite::manifest::ManifestFacts;
 use dsrl_suite::plot::{Point, cost_reward_svg};
 use dsrl_suite::{Catalog, Manifest, ObservationSpace, Provenance, TagName, Task, VersionId, VersionRef};
@@ -626,7 +625,7 @@ impl Datasets {
         let episodes = parent_manifest.episode_index;
         // Streamed in bounded memory (the kept episodes spill to a scratch file and are read back in output order).
         let converted = tokio::task::spawn_blocking(move || {
-            filters::apply::filter_to(
+            dsrl_filters::apply::filter_to(
                 &source,
                 &episodes,
                 &planned,
@@ -655,7 +654,7 @@ impl Datasets {
                     request: request.to_owned(),
                     seed: spec.grid.map(|_| spec.seed),
                     counts,
-                    reference: filters::REFERENCE.to_owned(),
+                    reference: dsrl_filters::REFERENCE.to_owned(),
                 },
                 license: parent_manifest.license,
                 created_at: now.clone(),

@@ -1,3 +1,2 @@
 //! Integration tests of the dataset formats: canonical Parquet, foreign Parquet layouts, DSRL HDF5.
-mod filters;
 mod formats;

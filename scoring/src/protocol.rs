@@ -16,7 +16,7 @@
 use serde::Serialize;
 use sha2::{Digest, Sha256};
 
-use crate::catalog::Catalog;
+use dsrl_suite::catalog::Catalog;
 
 /// The revision of the benchmark rules themselves (how scores are aggregated, what is safe, how entries rank).
 pub const RULES: u32 = 1;

@@ -13,10 +13,10 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::{Catalog, Family, Task};
 use crate::leaderboard::entry_score;
 use crate::paper::{PAPER_METHODS, PaperResults};
-use crate::score::{EpisodeResult, NormalizedScore};
+use dsrl_suite::catalog::{Catalog, Family, Task};
+use dsrl_suite::score::{EpisodeResult, NormalizedScore};
 
 /// The methods reference entries are trained with: OSRL's seven, then CAPS, FISOR and LSPC (beyond the paper).
 pub const REFERENCE_METHODS: [&str; 10] = [
@@ -383,13 +383,58 @@ pub fn summarize_by_method(cells: &[Agreement]) -> Vec<AgreementSummary> {
         .collect()
 }
 
+/// A made-up reference entry on `task` for tests: two episodes at each of the task's thresholds, each with the given
+/// returns; its checkpoint digest names the method and seed, its protocol version is `p1.x`. Never a result.
+pub fn synthetic_entry(task: &Task, method: &str, seed: u64, reward_return: f64, cost_return: f64) -> ReferenceEntry {
+    let episodes = task
+        .cost_thresholds
+        .iter()
+        .flat_map(|&k| {
+            (0..2).map(move |i| EpisodeResult {
+                cost_threshold: k,
+                episode: i,
+                reward_return,
+                cost_return,
+                length: 10,
+            })
+        })
+        .collect();
+    ReferenceEntry {
+        task: task.id.to_string(),
+        method: method.into(),
+        seed,
+        training: TrainingBudget {
+            steps: 10,
+            batch_size: 512,
+            models: 1,
+            seconds: 1.0,
+            cpu_seconds: 1.0,
+            cpu: None,
+            osrl_steps: 100_000,
+            osrl_batch_size: 512,
+        },
+        dataset_version: "0".repeat(64),
+        code_commit: "abc".into(),
+        checkpoint_sha256: format!("{}{method}{seed}", task.id),
+        protocol_version: "p1.x".into(),
+        scoring: ScoringRecord {
+            submission: 1,
+            started_at: "a".into(),
+            finished_at: "b".into(),
+            seconds: 1.0,
+            build: None,
+        },
+        episodes,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn entry(task: &str, method: &str, seed: u64, cost: f64) -> ReferenceEntry {
         let catalog = Catalog::embedded().unwrap();
-        crate::synthetic::reference_entry(catalog.get(task).unwrap(), method, seed, 100.0, cost)
+        synthetic_entry(catalog.get(task).unwrap(), method, seed, 100.0, cost)
     }
 
     #[test]

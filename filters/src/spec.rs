@@ -7,10 +7,10 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::Task;
+use dsrl_suite::catalog::Task;
 
 /// `data/density_presets.csv`, compiled in: the per-task grid parameters of DSRL's `DENSITY_CFG`.
-pub const EMBEDDED_DENSITY_PRESETS_CSV: &str = include_str!("../../../data/density_presets.csv");
+pub const EMBEDDED_DENSITY_PRESETS_CSV: &str = include_str!("../../data/density_presets.csv");
 
 /// Grid parameters of the density filter.
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -403,7 +403,7 @@ impl FilterSpec {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::catalog::Catalog;
+    use dsrl_suite::catalog::Catalog;
 
     fn ant() -> Task {
         Catalog::embedded().unwrap().get("OfflineAntRun-v0").unwrap().clone()

@@ -4,12 +4,8 @@
 //! for outliers and noise) and NumPy 1.24's float32 arithmetic.
 
 pub mod apply;
-pub mod nprandom;
-pub mod numpy_math;
 pub mod plan;
-pub mod pyrandom;
 pub mod spec;
-mod ziggurat_tables;
 
 /// What filtered datasets reproduce.
 pub const REFERENCE: &str = "DSRL OfflineEnv.pre_process_data with the current reference's bounds (GitHub HEAD), \

@@ -6,8 +6,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::Catalog;
-use crate::score::NormalizedScore;
+use dsrl_suite::catalog::Catalog;
+use dsrl_suite::score::NormalizedScore;
 
 /// `data/paper_results.csv`, compiled in.
 pub const EMBEDDED_PAPER_RESULTS_CSV: &str = include_str!("../../data/paper_results.csv");
@@ -96,7 +96,7 @@ impl PaperResults {
                     "a normalized cost of exactly 1, where the safety rules disagree".into(),
                 ));
             }
-            if safe != crate::score::is_safe(row.normalized_cost) {
+            if safe != dsrl_suite::score::is_safe(row.normalized_cost) {
                 return Err(invalid(format!(
                     "safe = {} disagrees with normalized cost {}",
                     row.safe, row.normalized_cost

@@ -3,11 +3,11 @@
 
 use std::collections::HashMap;
 
+use dsrl_filters::apply::gather;
+use dsrl_filters::plan::plan;
+use dsrl_filters::spec::FilterSpec;
 use dsrl_suite::catalog::{Catalog, ObservationSpace};
 use dsrl_suite::convert::write_canonical;
-use dsrl_suite::filters::apply::gather;
-use dsrl_suite::filters::plan::plan;
-use dsrl_suite::filters::spec::FilterSpec;
 use dsrl_suite::synthetic::{SyntheticSpec, transitions};
 use sha2::{Digest, Sha256};
 
@@ -108,10 +108,10 @@ fn every_filter_matches_dsrls_reference_bit_for_bit() {
             continue;
         }
         let (whole, streamed) = (dir.path().join("whole.parquet"), dir.path().join("streamed.parquet"));
-        let written = dsrl_suite::filters::apply::write(task, ObservationSpace::Simulator, &out, &whole).unwrap();
+        let written = dsrl_filters::apply::write(task, ObservationSpace::Simulator, &out, &whole).unwrap();
         let (o, a) = (task.obs_dim as usize, task.act_dim as usize);
         let spill = dir.path().join("spill");
-        let streamed = dsrl_suite::filters::apply::filter_to(
+        let streamed = dsrl_filters::apply::filter_to(
             path,
             episodes,
             &planned,

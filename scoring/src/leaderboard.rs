@@ -3,9 +3,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::Task;
-use crate::filters::pyrandom::PyRandom;
-use crate::score::{EpisodeResult, NormalizedScore};
+use dsrl_pynumerics::pyrandom::PyRandom;
+use dsrl_suite::catalog::Task;
+use dsrl_suite::score::{EpisodeResult, NormalizedScore};
 
 /// Orders entries for a task's table: safe entries (normalized cost ≤ 1) by normalized reward, highest first; then
 /// the unsafe ones, the least violating first (normalized cost, then reward). Returns indices into `scores`; ties
@@ -307,7 +307,7 @@ mod tests {
 
     #[test]
     fn an_entry_on_one_task_gets_an_interval_over_its_episodes() {
-        let catalog = crate::catalog::Catalog::embedded().unwrap();
+        let catalog = dsrl_suite::catalog::Catalog::embedded().unwrap();
         let task = catalog.get("OfflineBallRun-v0").unwrap();
         let episodes: Vec<EpisodeResult> = task
             .cost_thresholds
@@ -351,7 +351,7 @@ mod tests {
     /// Seeds whose means differ widely give an interval wider than any one seed's episode-only interval.
     #[test]
     fn an_interval_over_seeds_that_differ_is_wider_than_any_seeds() {
-        let catalog = crate::catalog::Catalog::embedded().unwrap();
+        let catalog = dsrl_suite::catalog::Catalog::embedded().unwrap();
         let task = catalog.get("OfflineBallRun-v0").unwrap();
         // Three seeds, 10 episodes per threshold, cost returns spread ±2 around 5, 30 and 60 (a CPQ-like spread).
         let seed_episodes = |centre: f64| -> Vec<EpisodeResult> {

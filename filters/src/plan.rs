@@ -7,40 +7,18 @@
 
 use std::collections::HashMap;
 
-use serde::{Deserialize, Serialize};
-
-use super::nprandom::NumpyGenerator;
-use super::numpy_math::floor_divide;
-use super::pyrandom::PyRandom;
-use super::spec::{FilterError, FilterSpec, Grid, InpaintRange};
-use crate::catalog::Task;
-use crate::episode::EpisodeSummary;
+use crate::spec::{FilterError, FilterSpec, Grid, InpaintRange};
+use dsrl_pynumerics::nprandom::NumpyGenerator;
+use dsrl_pynumerics::numpy_math::floor_divide;
+use dsrl_pynumerics::pyrandom::PyRandom;
+use dsrl_suite::catalog::Task;
+use dsrl_suite::episode::EpisodeSummary;
 
 /// Seed of the NumPy generator DSRL's `OfflineEnv` creates (`Generator(PCG64(seed=1234))`).
 pub const DSRL_GENERATOR_SEED: u64 = 1234;
 
-/// How many trajectories each step removed or changed.
-#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct FilterCounts {
-    pub input_episodes: u64,
-    pub removed_by_density: u64,
-    pub relabelled_outliers: u64,
-    pub removed_by_inpaint: u64,
-    pub removed_by_epsilon: u64,
-    pub output_episodes: u64,
-}
-
-/// What happened to one input episode (for plots).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Fate {
-    Kept,
-    Relabelled,
-    RemovedByDensity,
-    RemovedByInpaint,
-    RemovedByEpsilon,
-}
+pub use dsrl_suite::episode::Fate;
+pub use dsrl_suite::manifest::FilterCounts;
 
 #[derive(Debug, Clone)]
 pub struct Plan {
@@ -253,10 +231,10 @@ pub fn plan(spec: &FilterSpec, task: &Task, episodes: &[EpisodeSummary]) -> Resu
         // DSRL's `int(target_cost)`; the spec bounds target_cost to [1, MAX_TARGET_COST] for outliers, checked
         // again here because a saturating cast would hand the generator an empty or absurd range.
         let cost_population = spec.target_cost.trunc();
-        if !(1.0..=super::spec::MAX_TARGET_COST).contains(&cost_population) {
+        if !(1.0..=crate::spec::MAX_TARGET_COST).contains(&cost_population) {
             return Err(reject(format!(
                 "outliers need 1 <= target_cost <= {}, got {}",
-                super::spec::MAX_TARGET_COST,
+                crate::spec::MAX_TARGET_COST,
                 spec.target_cost
             )));
         }
@@ -384,7 +362,7 @@ fn inpaint(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::catalog::Catalog;
+    use dsrl_suite::catalog::Catalog;
 
     fn task() -> Task {
         Catalog::embedded().unwrap().get("OfflineCarCircle-v0").unwrap().clone()

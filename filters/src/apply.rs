@@ -4,13 +4,13 @@
 
 use std::path::Path;
 
-use super::numpy_math::numpy_std_f32_nd;
-use super::plan::Plan;
-use crate::catalog::{ObservationSpace, Task};
-use crate::convert::{Converted, ImportError, write_canonical, write_relabelled};
-use crate::episode::EpisodeSummary;
-use crate::parquet_file::ParquetTransitions;
-use crate::transitions::TransitionChunk;
+use crate::plan::Plan;
+use dsrl_pynumerics::numpy_math::numpy_std_f32_nd;
+use dsrl_suite::catalog::{ObservationSpace, Task};
+use dsrl_suite::convert::{Converted, ImportError, write_canonical, write_relabelled};
+use dsrl_suite::episode::EpisodeSummary;
+use dsrl_suite::parquet_file::ParquetTransitions;
+use dsrl_suite::transitions::TransitionChunk;
 
 /// The filtered transitions, in output order, in memory (NumPy's reference holds them in memory too).
 pub fn gather(
@@ -92,7 +92,7 @@ fn for_each_episode_piece(
         std::ops::Range<usize>,
     ) -> Result<(), ImportError>,
 ) -> Result<(), ImportError> {
-    let malformed = |e: crate::parquet_file::ReadError| ImportError::Malformed {
+    let malformed = |e: dsrl_suite::parquet_file::ReadError| ImportError::Malformed {
         format: "Parquet",
         message: e.to_string(),
     };
@@ -210,7 +210,7 @@ impl StreamingSum {
         for v in values {
             self.block.push(v);
             if self.block.len() == 8192 {
-                self.total += crate::episode::numpy_sum_f32(&self.block);
+                self.total += dsrl_suite::episode::numpy_sum_f32(&self.block);
                 self.block.clear();
             }
             self.count += 1;
@@ -219,7 +219,7 @@ impl StreamingSum {
 
     fn finish(mut self) -> (f32, usize) {
         if !self.block.is_empty() {
-            self.total += crate::episode::numpy_sum_f32(&self.block);
+            self.total += dsrl_suite::episode::numpy_sum_f32(&self.block);
             self.block.clear();
         }
         (self.total, self.count)

@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::Catalog;
+use dsrl_suite::catalog::Catalog;
 
 pub const EMBEDDED_PUBLISHED_RESULTS_CSV: &str = include_str!("../../data/published_results.csv");
 pub const EMBEDDED_PUBLISHED_SOURCES_CSV: &str = include_str!("../../data/published_sources.csv");
@@ -108,7 +108,7 @@ impl PublishedResults {
                 return Err(invalid(format!("{} {} appears twice", row.task, row.method)));
             }
             out.push(PublishedRow {
-                safe: crate::score::is_safe(row.normalized_cost),
+                safe: dsrl_suite::score::is_safe(row.normalized_cost),
                 task: row.task,
                 method: row.method,
                 normalized_reward: row.normalized_reward,

@@ -1,8 +1,6 @@
 //! The few NumPy 1.24 numerics the filters depend on, reproduced exactly: float floor division (`npy_divmod`),
 //! `np.sum` of a float32 array (pairwise within 8192-element buffer blocks), and `np.std` of a float32 array.
 
-use crate::episode::numpy_sum_f32;
-
 /// Python/NumPy `a // b` for floats (`npy_divmod`): the floor of the true quotient, computed via `fmod` so it is
 /// exact where `(a / b).floor()` would round across an integer.
 pub fn floor_divide(a: f64, b: f64) -> f64 {
@@ -45,6 +43,39 @@ pub fn numpy_std_f32_nd(values: &[f32]) -> f32 {
     let sum = numpy_sum_f32_nd(&squares);
     let variance = (sum as f64 / count as f64) as f32;
     variance.sqrt()
+}
+
+/// `np.sum` of a contiguous float32 array as NumPy 1.24 computes it: pairwise summation with 8 accumulators
+/// in blocks of at most 128 elements, every operation in float32.
+pub fn numpy_sum_f32(values: &[f32]) -> f32 {
+    let n = values.len();
+    if n < 8 {
+        let mut sum = 0.0f32;
+        for &v in values {
+            sum += v;
+        }
+        sum
+    } else if n <= 128 {
+        let mut r = [0.0f32; 8];
+        r.copy_from_slice(&values[..8]);
+        let whole = n - n % 8;
+        let mut i = 8;
+        while i < whole {
+            for j in 0..8 {
+                r[j] += values[i + j];
+            }
+            i += 8;
+        }
+        let mut sum = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for &v in &values[whole..] {
+            sum += v;
+        }
+        sum
+    } else {
+        let mut half = n / 2;
+        half -= half % 8;
+        numpy_sum_f32(&values[..half]) + numpy_sum_f32(&values[half..])
+    }
 }
 
 #[cfg(test)]

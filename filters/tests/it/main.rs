@@ -1,0 +1,3 @@
+//! Integration tests of the filters against DSRL's own outputs.
+
+mod filters;
