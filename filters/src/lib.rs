@@ -7,6 +7,7 @@ pub mod apply;
 pub mod plan;
 pub mod spec;
 
-/// What filtered datasets reproduce.
-pub const REFERENCE: &str = "DSRL OfflineEnv.pre_process_data with the current reference's bounds (GitHub HEAD), \
+/// What filtered datasets reproduce: DSRL's own code ("upstream", docs/glossary.md). The text is recorded in every
+/// filtered version's provenance (its `reference` field, the name clients read), so it stays as first written.
+pub const UPSTREAM: &str = "DSRL OfflineEnv.pre_process_data with the current reference's bounds (GitHub HEAD), \
 NumPy 1.24 and CPython random semantics";

@@ -4,8 +4,8 @@
 //! training budget, dataset version, code commit, how it was scored) and every episode. Importing, not re-scoring:
 //! a fresh server shows them at once, the larger checkpoints need not be in the repository, and each entry keeps
 //! the protocol version it was scored under, so an entry from another protocol is counted, not ranked (see
-//! ARCHITECTURE.md, "Reference entries"). Idempotent: an entry already present is left alone (its record brought up
-//! to the file's when only that changed, as when its checkpoints were reproduced by another commit), and the
+//! docs/leaderboard.md, "The leaderboard of record"). Idempotent: an entry already present is left alone (its record
+//! brought up to the file's when only that changed, as when its checkpoints were reproduced by another commit), and the
 //! reference account's entries that the file no longer holds are withdrawn (kept, off the tables).
 
 use serde::{Deserialize, Serialize};

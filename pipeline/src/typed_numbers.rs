@@ -8,12 +8,22 @@
 use std::collections::BTreeMap;
 
 /// The documents checked, relative to the repository root.
-pub const CHECKED_DOCUMENTS: [&str; 5] = [
+pub const CHECKED_DOCUMENTS: [&str; 15] = [
     "README.md",
     "ARCHITECTURE.md",
     "BENCHMARKS.md",
     "data/README.md",
     "data/reference/README.md",
+    "docs/datasets.md",
+    "docs/decisions.md",
+    "docs/filters.md",
+    "docs/glossary.md",
+    "docs/leaderboard.md",
+    "docs/operations.md",
+    "docs/policies.md",
+    "docs/server.md",
+    "docs/simulators.md",
+    "docs/training.md",
 ];
 
 /// The list of sections with typed numbers, relative to the repository root.

@@ -654,7 +654,7 @@ impl Datasets {
                     request: request.to_owned(),
                     seed: spec.grid.map(|_| spec.seed),
                     counts,
-                    reference: dsrl_filters::REFERENCE.to_owned(),
+                    reference: dsrl_filters::UPSTREAM.to_owned(),
                 },
                 license: parent_manifest.license,
                 created_at: now.clone(),
