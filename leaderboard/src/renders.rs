@@ -250,6 +250,15 @@ impl Leaderboard {
 
     /// Replays `key`, checks it against the scored episode and stores it.
     async fn render(&self, key: EpisodeKey) -> Result<(), ApiError> {
+        // A test-only delay (`DSRL_TEST_REPLAY_DELAY_MS`, debug builds): holds a replay in progress long enough for
+        // a test to submit a job under it and see the replay give way.
+        #[cfg(debug_assertions)]
+        if let Some(ms) = std::env::var("DSRL_TEST_REPLAY_DELAY_MS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+        {
+            tokio::time::sleep(Duration::from_millis(ms)).await;
+        }
         let row = queue::get(&self.db, key.submission).await?;
         let task = self.task(&row.task)?;
         let threshold = task.cost_thresholds[key.threshold_index];

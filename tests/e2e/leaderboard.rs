@@ -458,6 +458,8 @@ pub(crate) fn scoring_env(lease_seconds: &str) -> Env {
             ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
             ("DSRL__LEADERBOARD__SEED_SECRET", SECRET),
             ("DSRL__LEADERBOARD__LEASE_SECONDS", lease_seconds),
+            // Replays hold 3 s before they play, so a test can submit under one (debug builds only).
+            ("DSRL_TEST_REPLAY_DELAY_MS", "3000"),
         ],
     )
 }
@@ -664,6 +666,32 @@ fn watch_an_episode(env: &Env, done: &serde_json::Value) {
     );
     let queued: serde_json::Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(queued["state"], "queued", "{queued}");
+    // A submission that arrives while the replay plays takes the machine: the replay gives way and waits for it.
+    let health = || get_json(&format!("{}/healthz", env.server.url))["renderer"].clone();
+    assert!(
+        dsrl_e2e::wait_for(Duration::from_secs(60), || !health()["replaying"].is_null()),
+        "the replay never started: {}",
+        health()
+    );
+    let carol = create_user(env, "carol");
+    let dir = tempfile::tempdir().unwrap();
+    let other = submit(
+        env,
+        &carol,
+        &crate::make_policy(&dir.path().join("mlp"), TASK, "target-cost-mlp", 5),
+        "untrained",
+    )
+    .ok()
+    .json();
+    let other = client(env, &carol, &["--json", "status", &other["id"].to_string(), "--wait"])
+        .ok()
+        .json();
+    assert_eq!(other["state"], "finished", "{other}");
+    assert!(
+        health()["yielded"].as_u64().unwrap() >= 1,
+        "the replay did not give way: {}",
+        health()
+    );
     let page_url = format!("{}/submissions/{id}/episodes/{threshold}/{episode}", env.server.url);
     let waiting = reqwest_text(&page_url);
     assert!(
