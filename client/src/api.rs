@@ -633,6 +633,33 @@ impl Client {
         self.get_json(&format!("/v1/submissions/{id}")).await
     }
 
+    /// `GET /v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json`: `Some(replay)` once made, `None`
+    /// while it is queued (the request queues it).
+    pub async fn episode_replay(
+        &self,
+        id: i64,
+        threshold: f64,
+        episode: u32,
+    ) -> Result<Option<serde_json::Value>, ClientError> {
+        let path = format!("/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json");
+        let response = self.send(self.http.get(self.url(&path))).await?;
+        if response.status() == reqwest::StatusCode::ACCEPTED {
+            return Ok(None);
+        }
+        Self::json_of(response, "replay").await.map(Some)
+    }
+
+    /// `GET …/replay.gif`: the replay's animation (made first through [`Self::episode_replay`]).
+    pub async fn episode_replay_gif(&self, id: i64, threshold: f64, episode: u32) -> Result<Vec<u8>, ClientError> {
+        let path = format!("/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.gif");
+        let response = self.send(self.http.get(self.url(&path))).await?;
+        let bytes = response
+            .bytes()
+            .await
+            .map_err(|e| ClientError::Protocol(format!("GET {path}: {e}")))?;
+        Ok(bytes.to_vec())
+    }
+
     pub async fn cancel(&self, id: i64) -> Result<serde_json::Value, ClientError> {
         let request = self.http.post(self.url(&format!("/v1/submissions/{id}/cancel")));
         let response = self.send(self.bearer(request, "cancelling")?).await?;

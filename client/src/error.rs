@@ -16,6 +16,8 @@ pub mod exit {
     pub const REJECTED: u8 = 6;
     /// Missing or wrong admin token (401, 403).
     pub const UNAUTHORIZED: u8 = 7;
+    /// The server queued the work and has not done it yet (`watch` without `--wait`): run the command again.
+    pub const PENDING: u8 = 8;
 }
 
 #[derive(Debug, thiserror::Error)]

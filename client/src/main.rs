@@ -38,6 +38,7 @@ Exit codes:
   5  server unreachable or failing (5xx); an interrupted download is kept and resumes on the next fetch
   6  rejected by the server: invalid (400, 413, 416), a duplicate submission (409), over quota (429)
   7  missing or wrong token (401, 403)
+  8  queued, not done yet (watch without --wait): run it again
 
 Environment:
   DSRL_SERVER        server URL (default http://127.0.0.1:7070)
@@ -128,6 +129,25 @@ enum Command {
         #[arg(long)]
         episodes: bool,
         /// Wait until it is scored, fails or is cancelled.
+        #[arg(long)]
+        wait: bool,
+    },
+    /// Watch a scored episode: the server plays it again from its held seed with the submitted policy, draws it
+    /// and keeps it (the first request queues the replay; replays wait while submissions are scored). Saves the
+    /// animated GIF and prints the replay's returns (the scored episode's) and where its page is.
+    Watch {
+        /// The submission id.
+        id: i64,
+        /// One of the task's cost thresholds, as `status --episodes` prints it (e.g. 20).
+        #[arg(long)]
+        threshold: f64,
+        /// The episode's number at that threshold, from 0.
+        #[arg(long, default_value_t = 0)]
+        episode: u32,
+        /// Where to save the GIF [default: submission-ID-threshold-K-episode-E.gif].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Wait until the replay is made (otherwise a queued replay says so and exits 3).
         #[arg(long)]
         wait: bool,
     },
@@ -376,6 +396,13 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
             };
             return Ok(report_submission(&submission, cli.json, episodes));
         }
+        Command::Watch {
+            id,
+            threshold,
+            episode,
+            out,
+            wait,
+        } => return watch_episode(&client, cli.json, (id, threshold, episode), out, wait).await,
         Command::Cancel { id, token } => {
             let submission = client.with_token(token).cancel(id).await?;
             return Ok(report_submission(&submission, cli.json, false));
@@ -565,6 +592,61 @@ async fn run_admin(client: Client, server: &str, json: bool, admin: AdminArgs) -
 const ENDED: [&str; 3] = ["finished", "failed", "cancelled"];
 
 /// Polls a submission until it ends, with a spinner showing its state.
+/// `watch`: the replay of one scored episode, waited for with `wait`, its GIF saved to `out`.
+async fn watch_episode(
+    client: &Client,
+    json: bool,
+    (id, threshold, episode): (i64, f64, u32),
+    out: Option<PathBuf>,
+    wait: bool,
+) -> Result<u8, ClientError> {
+    let spinner = if json || !wait {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new_spinner()
+    };
+    let replay = loop {
+        match client.episode_replay(id, threshold, episode).await? {
+            Some(replay) => break replay,
+            None if wait => {
+                spinner.set_message(format!("episode {episode} at threshold {threshold}: replay queued"));
+                spinner.tick();
+                tokio::time::sleep(std::time::Duration::from_secs(2)).await;
+            }
+            None => {
+                if json {
+                    print_json(&serde_json::json!({"state": "queued"}));
+                } else {
+                    out!("the replay is queued (it waits while submissions are scored); run again, or add --wait");
+                }
+                return Ok(exit::PENDING);
+            }
+        }
+    };
+    spinner.finish_and_clear();
+    let gif = client.episode_replay_gif(id, threshold, episode).await?;
+    let path =
+        out.unwrap_or_else(|| PathBuf::from(format!("submission-{id}-threshold-{threshold}-episode-{episode}.gif")));
+    std::fs::write(&path, &gif).map_err(ClientError::io(format!("writing {}", path.display())))?;
+    if json {
+        let mut replay = replay;
+        replay["gif_path"] = serde_json::json!(path.display().to_string());
+        print_json(&replay);
+    } else {
+        out!(
+            "{} episode {episode} at cost threshold {threshold}: reward return {}, cost return {}, {} steps; \
+             {} frames saved to {} (page: /submissions/{id}/episodes/{threshold}/{episode})",
+            replay["task"].as_str().unwrap_or_default(),
+            number(&replay["reward_return"]),
+            number(&replay["cost_return"]),
+            replay["length"],
+            replay["frame_steps"].as_array().map_or(0, |f| f.len() + 1),
+            path.display()
+        );
+    }
+    Ok(exit::OK)
+}
+
 async fn wait_for_submission(client: &Client, id: i64, quiet: bool) -> Result<serde_json::Value, ClientError> {
     let spinner = if quiet {
         ProgressBar::hidden()

@@ -764,6 +764,28 @@ fn watch_an_episode(env: &Env, done: &serde_json::Value) {
         distinct.len()
     );
 
+    // The CLI saves the same animation and prints the same replay; a replay not made yet exits 8 (queued).
+    let saved = tempfile::tempdir().unwrap();
+    let gif_path = saved.path().join("episode.gif");
+    let (threshold_arg, episode_arg) = (threshold.to_string(), episode.to_string());
+    let run = env.cli.run(&[
+        "--json",
+        "watch",
+        &id.to_string(),
+        "--threshold",
+        &threshold_arg,
+        "--episode",
+        &episode_arg,
+        "--out",
+        s(&gif_path),
+    ]);
+    let printed = run.ok().json();
+    assert_eq!(printed["reward_return"], replay["reward_return"], "{printed}");
+    assert_eq!(std::fs::read(&gif_path).unwrap(), gif);
+    let queued = env
+        .cli
+        .run(&["watch", &id.to_string(), "--threshold", "10", "--episode", "1"]);
+    assert_eq!(queued.code, 8, "{queued:?}");
     // Asked again, the replay is served from the store, unchanged.
     let (status, _, again) = get(&format!("{base}/replay.json"));
     assert_eq!(status, 200);
