@@ -2,18 +2,19 @@
 //! store, with metadata in SQLite or PostgreSQL. `build_state` + `app` are the whole server, so tests run it on
 //! port 0.
 //!
-//! Layout: `storage` (the dataset service over the object store and the database), `http` (REST routes), `grpc`
-//! (gRPC service), `starter` (datasets loaded at start), `leaderboard` (its REST/gRPC routes and page over the
-//! `dsrl-leaderboard` crate, where submissions, the job queue and the evaluators live). Configuration, the error
+//! Layout, by feature, each with its REST routes, gRPC service and pages: `datasets` (the dataset service over the
+//! object store and the database, uploads, downloads, DSRL's legacy URLs, the browser, the starters loaded at start),
+//! `leaderboard` (over the `dsrl-leaderboard` crate, where submissions, the job queue, the evaluators and the
+//! replays live), `simulators` (the pool's status); `http` holds what every route shares (the router, the admin
+//! check, the page layout, failures, `/metrics`, the OpenAPI document). Configuration, the error
 //! type and the database are `dsrl-service`'s, shared with the evaluator process; playing policies on the
 //! simulators is `dsrl-evaluation`'s.
 
-pub mod grpc;
+pub mod datasets;
 pub mod http;
 pub mod leaderboard;
 pub mod metrics;
-pub mod starter;
-pub mod storage;
+pub mod simulators;
 
 // The configuration and the error type are shared with the evaluators; re-exported at the paths the API uses.
 pub use dsrl_service::{config, error};
@@ -28,11 +29,11 @@ use tonic::server::NamedService;
 use tower_http::trace::TraceLayer;
 
 use crate::config::Config;
+use crate::datasets::converter::Converter;
+use crate::datasets::service::{Datasets, DatasetsSetup};
 use crate::http::auth::AdminAuth;
 use crate::leaderboard::Leaderboard;
 use crate::metrics::Metrics;
-use crate::storage::converter::Converter;
-use crate::storage::datasets::{Datasets, DatasetsSetup};
 use dsrl_evaluation::simulators::SimulatorPool;
 
 /// What every handler shares.
@@ -73,7 +74,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
         metrics: metrics.clone(),
         limits: derived_limits(config),
     })?;
-    let interrupted = storage::uploads::recover(datasets.db()).await?;
+    let interrupted = datasets::uploads::recover(datasets.db()).await?;
     if interrupted > 0 {
         tracing::warn!(
             interrupted,
@@ -84,7 +85,7 @@ pub async fn build_state(config: &Config, converter: Converter) -> anyhow::Resul
     if let Some(dir) = &config.datasets.starter_dir
         && dir.is_dir()
     {
-        let created = starter::load(&datasets, dir).await?;
+        let created = datasets::starter::load(&datasets, dir).await?;
         tracing::info!(dir = %dir.display(), created, "starter datasets checked");
     }
     metrics.dataset_versions.set(datasets.db().version_count().await?);
@@ -160,12 +161,12 @@ fn spawn_derived_gc(datasets: Arc<Datasets>, interval_seconds: u64, metrics: Arc
 
 /// The limits on derived work and data from the configuration (`datasets.*_derivations`, the anonymous budget, and
 /// `gc`'s policy, which the server also applies while it runs).
-fn derived_limits(config: &Config) -> storage::datasets::DerivedLimits {
-    storage::datasets::DerivedLimits {
+fn derived_limits(config: &Config) -> datasets::service::DerivedLimits {
+    datasets::service::DerivedLimits {
         max_concurrent: config.datasets.max_concurrent_derivations,
         max_waiting: config.datasets.max_waiting_derivations,
         anonymous_bytes_per_hour: config.datasets.anonymous_derived_bytes_per_hour,
-        gc: storage::datasets::GcPolicy {
+        gc: datasets::service::GcPolicy {
             max_idle: std::time::Duration::from_secs(config.gc.derived_max_idle_hours.saturating_mul(3600)),
             max_bytes: config.gc.derived_max_bytes,
         },
@@ -174,7 +175,7 @@ fn derived_limits(config: &Config) -> storage::datasets::DerivedLimits {
 
 /// Applies the garbage-collection policy (`gc` in the configuration) to filtered versions: `dsrl-server gc`. Safe
 /// while replicas serve the same database and store (see `Datasets::collect_garbage`).
-pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::datasets::GcReport> {
+pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<datasets::service::GcReport> {
     let store = dsrl_service::open_store(config)?;
     let db = dsrl_service::open_db(config).await?;
     // Its own temporary folder: a server on the same data folder clears `tmp` at start and owns what is in it.
@@ -190,7 +191,7 @@ pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::d
         metrics: Arc::new(Metrics::new()),
         limits: derived_limits(config),
     })?;
-    let policy = storage::datasets::GcPolicy {
+    let policy = datasets::service::GcPolicy {
         max_idle: std::time::Duration::from_secs(config.gc.derived_max_idle_hours.saturating_mul(3600)),
         max_bytes: config.gc.derived_max_bytes,
     };
@@ -201,8 +202,11 @@ pub async fn run_gc(config: &Config, dry_run: bool) -> anyhow::Result<storage::d
 
 /// REST and gRPC routes with metrics, request tracing, and panics turned into 500s.
 pub fn app(state: AppState) -> Router {
-    let grpc_service = DatasetServiceServer::new(grpc::DatasetGrpc::new(state.clone()));
-    let grpc_path = format!("/{}/{{*method}}", DatasetServiceServer::<grpc::DatasetGrpc>::NAME);
+    let grpc_service = DatasetServiceServer::new(datasets::grpc::DatasetGrpc::new(state.clone()));
+    let grpc_path = format!(
+        "/{}/{{*method}}",
+        DatasetServiceServer::<datasets::grpc::DatasetGrpc>::NAME
+    );
     // A submission arrives in one message: allow its size (the files' own limits are checked in the handler).
     let leaderboard_service = LeaderboardServiceServer::new(leaderboard::grpc::LeaderboardGrpc::new(state.clone()))
         .max_decoding_message_size(state.leaderboard.config.max_submission_bytes as usize + (1 << 20));

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 use dsrl_evaluation::limit_memory;
-use dsrl_server::storage::converter::{ConvertReply, Converter, exit_when_stdin_closes};
+use dsrl_server::datasets::converter::{ConvertReply, Converter, exit_when_stdin_closes};
 use dsrl_service::ProcessArgs;
 
 /// Serve offline safe-RL datasets: the 38-task catalog, versioned Parquet datasets, downloads with resume.

@@ -44,8 +44,8 @@ impl AdminAuth {
 
 /// Whether a request comes with a token this server knows (the admin's, or a leaderboard user's): only requests
 /// without one are held to the anonymous budget of derived data.
-pub async fn requester(state: &crate::AppState, headers: &HeaderMap) -> crate::storage::datasets::Requester {
-    use crate::storage::datasets::Requester;
+pub async fn requester(state: &crate::AppState, headers: &HeaderMap) -> crate::datasets::service::Requester {
+    use crate::datasets::service::Requester;
     if dsrl_service::secrets::bearer(headers).is_none() {
         return Requester::Anonymous;
     }

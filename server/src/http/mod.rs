@@ -1,16 +1,10 @@
 //! The REST side of the server: routes, the admin check, downloads, metrics and the OpenAPI document.
 
 pub mod auth;
-pub mod browser;
-pub mod datasets;
-pub mod download;
-pub mod dsrl_download;
 pub mod failures;
 pub mod html;
-pub mod leaderboard;
 pub mod metrics;
 pub mod openapi;
-pub mod simulators;
 
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
@@ -20,73 +14,80 @@ use axum::response::IntoResponse;
 use axum::routing::{get, post, put};
 
 use crate::AppState;
+use crate::{datasets, leaderboard, simulators};
 
 pub fn router(state: AppState) -> Router {
     Router::new()
-        .route("/", get(browser::index))
-        .route("/tasks/{task}", get(browser::card))
+        .route("/", get(datasets::pages::index))
+        .route("/tasks/{task}", get(datasets::pages::card))
         .route("/healthz", get(healthz))
         .route("/metrics", get(metrics::metrics))
         .route("/openapi.json", get(openapi_json))
-        .route("/v1/server", get(datasets::server_info))
+        .route("/v1/server", get(datasets::rest::server_info))
         .route("/v1/simulators", get(simulators::list_simulators))
-        .route("/v1/tasks", get(datasets::list_tasks))
-        .route("/v1/tasks/{task}", get(datasets::get_task))
+        .route("/v1/tasks", get(datasets::rest::list_tasks))
+        .route("/v1/tasks/{task}", get(datasets::rest::get_task))
         .route(
             "/v1/datasets/{task}/versions",
-            get(datasets::list_versions).post(datasets::ingest),
+            get(datasets::rest::list_versions).post(datasets::rest::ingest),
         )
-        .route("/v1/datasets/{task}/versions/{version}", get(datasets::get_manifest))
+        .route(
+            "/v1/datasets/{task}/versions/{version}",
+            get(datasets::rest::get_manifest),
+        )
         .route(
             "/v1/datasets/{task}/versions/{version}/download",
-            get(download::download),
+            get(datasets::download::download),
         )
         .route(
             "/v1/datasets/{task}/versions/{version}/plot.svg",
-            get(datasets::get_plot),
+            get(datasets::rest::get_plot),
         )
         .route(
             "/v1/datasets/{task}/versions/{version}/croissant.json",
-            get(datasets::get_croissant),
+            get(datasets::rest::get_croissant),
         )
-        .route("/v1/datasets/{task}/tags/{tag}", put(datasets::put_tag))
-        .route("/v1/uploads", get(datasets::find_uploads))
-        .route("/v1/uploads/{upload}", get(datasets::get_upload))
+        .route("/v1/datasets/{task}/tags/{tag}", put(datasets::rest::put_tag))
+        .route("/v1/uploads", get(datasets::rest::find_uploads))
+        .route("/v1/uploads/{upload}", get(datasets::rest::get_upload))
         // DSRL's own download URLs (`http://data.offline-saferl.org/download/{file}` in dsrl 0.1.0).
-        .route("/download/{file}", get(dsrl_download::dsrl_download))
-        .route("/v1/users", post(leaderboard::create_user))
+        .route("/download/{file}", get(datasets::dsrl_download::dsrl_download))
+        .route("/v1/users", post(leaderboard::rest::create_user))
         .route(
             "/v1/submissions",
-            post(leaderboard::submit).layer(DefaultBodyLimit::max(
+            post(leaderboard::rest::submit).layer(DefaultBodyLimit::max(
                 state.leaderboard.config.max_submission_bytes as usize,
             )),
         )
-        .route("/v1/submissions/{id}", get(leaderboard::get_submission))
-        .route("/v1/submissions/{id}/cancel", post(leaderboard::cancel_submission))
-        .route("/v1/leaderboard", get(leaderboard::get_leaderboard))
-        .route("/v1/leaderboard.csv", get(leaderboard::leaderboard_csv))
-        .route("/v1/leaderboard.parquet", get(leaderboard::leaderboard_parquet))
+        .route("/v1/submissions/{id}", get(leaderboard::rest::get_submission))
+        .route(
+            "/v1/submissions/{id}/cancel",
+            post(leaderboard::rest::cancel_submission),
+        )
+        .route("/v1/leaderboard", get(leaderboard::rest::get_leaderboard))
+        .route("/v1/leaderboard.csv", get(leaderboard::rest::leaderboard_csv))
+        .route("/v1/leaderboard.parquet", get(leaderboard::rest::leaderboard_parquet))
         .route(
             "/v1/submissions/{id}/episodes.csv",
-            get(leaderboard::submission_episodes_csv),
+            get(leaderboard::rest::submission_episodes_csv),
         )
         .route(
             "/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json",
-            get(leaderboard::episode_replay),
+            get(leaderboard::rest::episode_replay),
         )
         .route(
             "/v1/submissions/{id}/episodes/{threshold}/{episode}/replay.gif",
-            get(leaderboard::episode_replay_gif),
+            get(leaderboard::rest::episode_replay_gif),
         )
-        .route("/v1/users/{name}/submissions", get(leaderboard::user_submissions))
-        .route("/users/{name}", get(leaderboard::user_page))
-        .route("/leaderboard", get(leaderboard::leaderboard_page))
-        .route("/leaderboard/agreement", get(leaderboard::agreement_page))
-        .route("/leaderboard/plots/{table}", get(leaderboard::plot))
-        .route("/submissions/{id}", get(leaderboard::submission_page))
+        .route("/v1/users/{name}/submissions", get(leaderboard::rest::user_submissions))
+        .route("/users/{name}", get(leaderboard::rest::user_page))
+        .route("/leaderboard", get(leaderboard::rest::leaderboard_page))
+        .route("/leaderboard/agreement", get(leaderboard::rest::agreement_page))
+        .route("/leaderboard/plots/{table}", get(leaderboard::rest::plot))
+        .route("/submissions/{id}", get(leaderboard::rest::submission_page))
         .route(
             "/submissions/{id}/episodes/{threshold}/{episode}",
-            get(leaderboard::episode_page),
+            get(leaderboard::rest::episode_page),
         )
         .layer(axum::middleware::map_response(html::defensive_headers))
         .with_state(state)

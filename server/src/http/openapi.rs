@@ -3,7 +3,10 @@
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
-use super::{datasets, leaderboard, metrics, simulators};
+use super::metrics;
+use crate::datasets::{dsrl_download, pages, rest as datasets};
+use crate::leaderboard::rest as leaderboard;
+use crate::simulators;
 
 #[derive(OpenApi)]
 #[openapi(
@@ -27,9 +30,9 @@ use super::{datasets, leaderboard, metrics, simulators};
         datasets::put_tag,
         simulators::list_simulators,
         download_doc,
-        super::dsrl_download::dsrl_download,
-        super::browser::index,
-        super::browser::card,
+        dsrl_download::dsrl_download,
+        pages::index,
+        pages::card,
         leaderboard::create_user,
         leaderboard::submit,
         leaderboard::get_submission,

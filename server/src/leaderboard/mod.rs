@@ -1,8 +1,9 @@
-//! The leaderboard as the API serves it: the REST handlers live in `http::leaderboard`, the gRPC service in `grpc`,
-//! the HTML page in `page`. Submissions, the queue and the evaluators are the `dsrl-leaderboard` crate's,
-//! re-exported here at the paths the API uses.
+//! The leaderboard as the API serves it, each side in this folder: the REST routes (`rest`), the gRPC service
+//! (`grpc`) and the HTML pages (`page`). Submissions, the queue, the evaluators and the replays are the
+//! `dsrl-leaderboard` crate's, re-exported here at the paths the API uses.
 
 pub mod grpc;
 pub mod page;
+pub mod rest;
 
 pub use dsrl_leaderboard::*;

@@ -1,5 +1,5 @@
-use dsrl_server::storage::converter::Converter;
-use dsrl_server::storage::datasets::{IngestRequest, LatestPolicy};
+use dsrl_server::datasets::converter::Converter;
+use dsrl_server::datasets::service::{IngestRequest, LatestPolicy};
 use dsrl_suite::ObservationSpace;
 
 use crate::{config, dataset};

@@ -136,7 +136,7 @@ pub async fn download(
             )));
         }
     };
-    let requester = super::auth::requester(&state, &headers).await;
+    let requester = crate::http::auth::requester(&state, &headers).await;
     let (task, record) = state
         .datasets
         .resolve_filtered(&task, &reference, query.filter.as_deref(), requester)
@@ -191,7 +191,7 @@ pub(crate) async fn serve_hdf5_export(
     state: &AppState,
     record: &dsrl_service::db::VersionRecord,
     headers: &HeaderMap,
-    requester: crate::storage::datasets::Requester,
+    requester: crate::datasets::service::Requester,
     file_name: &str,
     mut response_headers: HeaderMap,
 ) -> Result<Response, ApiError> {

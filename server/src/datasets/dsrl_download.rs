@@ -17,8 +17,8 @@ use dsrl_suite::Task;
 use dsrl_suite::catalog::Family;
 
 use crate::AppState;
+use crate::datasets::download::serve_hdf5_export;
 use crate::error::ApiError;
-use crate::http::download::serve_hdf5_export;
 
 /// DSRL's file name for a task: `{prefix}-{cap}-{n}.hdf5` with the paper's cap and trajectory count.
 pub fn dsrl_file_name(task: &Task) -> String {
@@ -66,7 +66,7 @@ pub async fn dsrl_download(
         )));
     }
     let (_, record) = state.datasets.resolve(task.id.as_str(), "latest").await?;
-    let requester = super::auth::requester(&state, &headers).await;
+    let requester = crate::http::auth::requester(&state, &headers).await;
     let mut response_headers = HeaderMap::new();
     let value = |v: &str| HeaderValue::from_str(v).map_err(ApiError::internal);
     // `latest` can move to a new version.

@@ -19,8 +19,8 @@ use dsrl_suite::{Manifest, Task};
 use serde::Deserialize;
 
 use crate::AppState;
+use crate::datasets::dsrl_download::dsrl_file_name;
 use crate::error::ApiError;
-use crate::http::dsrl_download::dsrl_file_name;
 use crate::http::html::{escape, page};
 
 /// `a` encoded for a URL query value.

@@ -14,11 +14,11 @@ use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 
 use crate::AppState;
+use crate::datasets::db::VersionRecord;
+use crate::datasets::service::{IngestRequest, LatestPolicy};
+use crate::datasets::uploads::{self, UploadView};
 use crate::error::ApiError;
 use crate::metrics::OutcomeLabels;
-use crate::storage::datasets::{IngestRequest, LatestPolicy};
-use crate::storage::db::VersionRecord;
-use crate::storage::uploads::{self, UploadView};
 
 /// Header carrying the provenance of data built by a recipe (JSON, `{"kind": "recipe", ...}`).
 pub const PROVENANCE_HEADER: &str = "dsrl-provenance";
@@ -177,7 +177,7 @@ pub async fn get_manifest(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let query = VersionQuery::from(query)?;
-    let requester = super::auth::requester(&state, &headers).await;
+    let requester = crate::http::auth::requester(&state, &headers).await;
     let (_, record) = state
         .datasets
         .resolve_filtered(&task, &reference, query.filter.as_deref(), requester)
@@ -411,7 +411,7 @@ const LINGER_BYTES: u64 = 64 << 20;
 /// Reads and discards what is left of a rejected upload, within bounds, as nginx's lingering close does: an
 /// HTTP/1.1 client that is still sending when the server answers and closes gets a broken pipe instead of the
 /// answer. Bounded, so a client that keeps sending cannot hold the connection.
-pub(super) async fn linger(stream: &mut axum::body::BodyDataStream) {
+pub(crate) async fn linger(stream: &mut axum::body::BodyDataStream) {
     let mut drained = 0u64;
     let _ = tokio::time::timeout(LINGER_TIME, async {
         while let Some(Ok(chunk)) = stream.next().await {

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use dsrl_suite::convert::{join_compact_parts, parse_part_file_name};
 use dsrl_suite::{ObservationSpace, Provenance};
 
-use crate::storage::datasets::{Datasets, IngestRequest, LatestPolicy};
+use crate::datasets::service::{Datasets, IngestRequest, LatestPolicy};
 
 /// One starter dataset: its task, the name it is known by, and its file or its parts in order.
 #[derive(Debug, PartialEq)]

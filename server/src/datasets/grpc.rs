@@ -13,9 +13,9 @@ use parquet::arrow::async_reader::ParquetRecordBatchStreamBuilder;
 use tonic::{Request, Response, Status};
 
 use crate::AppState;
+use crate::datasets::db::VersionRecord;
+use crate::datasets::objects;
 use crate::error::ApiError;
-use crate::storage::db::VersionRecord;
-use crate::storage::objects;
 
 /// Target size of one streamed record batch.
 const STREAM_BATCH_BYTES: usize = 1 << 20;
@@ -30,7 +30,7 @@ impl DatasetGrpc {
     }
 
     /// Whether the request carries a token this server knows (its `authorization` metadata).
-    async fn requester<T>(&self, request: &Request<T>) -> crate::storage::datasets::Requester {
+    async fn requester<T>(&self, request: &Request<T>) -> crate::datasets::service::Requester {
         let headers = request.metadata().clone().into_headers();
         crate::http::auth::requester(&self.state, &headers).await
     }

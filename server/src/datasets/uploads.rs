@@ -10,8 +10,8 @@
 use serde::Serialize;
 use sqlx::Row;
 
+use crate::datasets::db::{Db, now_ms, rfc3339_at_ms};
 use crate::error::ApiError;
-use crate::storage::db::{Db, now_ms, rfc3339_at_ms};
 
 /// How often a converting server says it is still at work, and how old its last word may be before the upload is
 /// reported interrupted.

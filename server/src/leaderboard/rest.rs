@@ -92,7 +92,7 @@ async fn receive_submission(
         Err(e) => {
             // Refused before the body is read: read and discard it (bounded), or a client still sending the
             // checkpoint gets a broken pipe instead of this answer.
-            super::datasets::linger(&mut request.into_body().into_data_stream()).await;
+            crate::datasets::rest::linger(&mut request.into_body().into_data_stream()).await;
             return Err(e);
         }
     };
