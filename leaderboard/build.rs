@@ -18,7 +18,7 @@ const SCORING_SOURCES: [&str; 15] = [
     "../suite/src/catalog.rs",
     "../data/tasks.csv",
     "../proto/dsrl/simulator/v1/simulator.proto",
-    "../proto/src/simulator_session.rs",
+    "../simulators/src",
     "../sim/python/requirements.txt",
     "../Cargo.lock",
 ];

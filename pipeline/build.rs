@@ -31,6 +31,7 @@ fn main() {
         "../sim/src",
         "../evaluation/src",
         "../proto/src",
+        "../simulators/src",
         "../Cargo.lock",
     ];
     sources.extend(simulator.iter().map(String::as_str));

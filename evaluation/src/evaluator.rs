@@ -10,9 +10,9 @@ use dsrl_proto::simulator::v1::{AutoReset, Open};
 use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
 
-use crate::error::EvaluationError;
+use crate::EvaluationError;
 use crate::inference::{Player, PolicySource};
-use crate::simulators::{PooledSession, Reply, SimulatorPool, split_in_two};
+use dsrl_simulators::{PooledSession, Reply, SimulatorPool, split_in_two};
 
 /// One evaluated episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -21,7 +21,7 @@ use bytes::{Buf, BufMut, Bytes, BytesMut};
 use dsrl_policy::{Policy, Rollout, checkpoint};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-use crate::error::EvaluationError;
+use crate::EvaluationError;
 
 const LOAD: u8 = 1;
 const START: u8 = 2;

@@ -1,22 +1,20 @@
 //! Playing policies on the real simulators, for whoever needs it without the HTTP server: the leaderboard's
 //! evaluators (`dsrl-server`), and the data pipeline (`dsrl-admin`) that trains and scores experts.
 //!
-//! - `simulators`: the pool of `dsrl-sim-worker` processes (local ones supervised, remote ones health-checked);
+//! - the pool of `dsrl-sim-worker` processes it plays through is `dsrl-simulators`'s;
 //! - `evaluator`: episodes from given seeds, played with a policy's deterministic actions, and the checks a policy
 //!   passes before it is played;
 //! - `inference`: where a submitted policy computes its actions (in a memory-capped child process);
 //! - `seeds` and `protocol`: the held episode seeds and the protocol version results are scored under.
 
-mod config;
-mod error;
 pub mod evaluator;
 pub mod inference;
 pub mod protocol;
 pub mod seeds;
-pub mod simulators;
 
-pub use config::SimulatorsConfig;
-pub use error::EvaluationError;
+/// What can go wrong while playing a policy: the kinds a simulator session fails with, which the policy's own checks
+/// use too (a policy that does not fit its task is `InvalidArgument`, as a malformed request to a worker is).
+pub use dsrl_simulators::SimulatorError as EvaluationError;
 
 /// The scorer's revision, part of the protocol version (`dsrl_scoring::protocol`): bump it when a change to the
 /// scoring path changes what any episode scores. The scoring path is what `SCORING_PATH` lists; the drift test below
@@ -45,7 +43,7 @@ pub const SCORING_PATH: [&str; 14] = [
     "suite/src/catalog.rs",
     "data/tasks.csv",
     "proto/dsrl/simulator/v1/simulator.proto",
-    "proto/src/simulator_session.rs",
+    "simulators/src",
 ];
 
 /// The locked dependencies whose versions the scoring path's results depend on: the tensor library and its matrix
@@ -181,7 +179,8 @@ mod tests {
             "evaluation/src/inference.rs",
             "evaluation/src/seeds.rs",
             "evaluation/src/evaluator.rs",
-            "evaluation/src/simulators/pool.rs",
+            "simulators/src/pool.rs",
+            "simulators/src/session.rs",
             "sim/src/session.rs",
             "sim/src/python.rs",
             "sim/python/dsrl_sim/tasks.py",

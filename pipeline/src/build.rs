@@ -9,9 +9,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Context;
-use dsrl_evaluation::SimulatorsConfig;
-use dsrl_evaluation::simulators::SimulatorPool;
 use dsrl_pynumerics::pyrandom::PyRandom;
+use dsrl_simulators::SimulatorPool;
+use dsrl_simulators::SimulatorsConfig;
 use dsrl_suite::catalog::{ObservationSpace, Task};
 use dsrl_suite::collection::{Stored, TrajectoryBuffer, filter_points};
 use dsrl_suite::convert::{Converted, ImportError, write_canonical};

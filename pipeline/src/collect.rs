@@ -1,9 +1,9 @@
 //! Episodes of a block of sweep settings, played through one pooled simulator session: driven whole by the worker's
 //! driver where the deal allows, stepped otherwise.
 
-use dsrl_evaluation::simulators::{PooledSession, SimulatorPool, StepResult};
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
-use dsrl_proto::simulator_session::DrivenRest;
+use dsrl_simulators::session::DrivenRest;
+use dsrl_simulators::{PooledSession, SimulatorPool, StepResult};
 use dsrl_suite::transitions::TransitionChunk;
 
 use crate::recipe::{Recipe, Setting};

@@ -4,9 +4,9 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 use dsrl_client::api::{Client, IngestOptions};
-use dsrl_evaluation::SimulatorsConfig;
 use dsrl_pipeline::build::Run;
 use dsrl_pipeline::recipe::Recipe;
+use dsrl_simulators::SimulatorsConfig;
 use dsrl_suite::Catalog;
 
 #[derive(Parser, Debug)]
@@ -386,7 +386,7 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
         _ => vec![(task.cost_thresholds[0], task.cost_thresholds.clone())],
     };
     let workers = args.workers.unwrap_or_else(cores).max(1);
-    let pool = dsrl_evaluation::simulators::SimulatorPool::start(&SimulatorsConfig {
+    let pool = dsrl_simulators::SimulatorPool::start(&SimulatorsConfig {
         local_workers: workers,
         worker_binary: args.worker_binary.clone(),
         ..SimulatorsConfig::default()

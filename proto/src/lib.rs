@@ -24,4 +24,4 @@ pub mod simulator {
     }
 }
 
-pub mod simulator_session;
+pub mod tensor;

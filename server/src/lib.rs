@@ -34,7 +34,7 @@ use crate::datasets::service::{Datasets, DatasetsSetup};
 use crate::http::auth::AdminAuth;
 use crate::leaderboard::Leaderboard;
 use crate::metrics::Metrics;
-use dsrl_evaluation::simulators::SimulatorPool;
+use dsrl_simulators::SimulatorPool;
 
 /// What every handler shares.
 #[derive(Clone)]

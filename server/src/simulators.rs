@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use crate::AppState;
 use crate::error::ApiError;
-use dsrl_evaluation::simulators::WorkerStatus;
+use dsrl_simulators::WorkerStatus;
 
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct SimulatorPoolStatus {

@@ -6,8 +6,8 @@ use std::time::Instant;
 
 use clap::Parser;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
-use dsrl_proto::simulator_session::{Reply, SimulatorSession};
 use dsrl_sim::random_actions::UniformActions;
+use dsrl_simulators::session::{Reply, SimulatorSession};
 
 /// Measures env-steps/s of one task through a running dsrl-sim-worker; prints one JSON line.
 #[derive(Parser, Debug)]

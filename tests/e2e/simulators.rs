@@ -3,9 +3,9 @@
 
 use std::time::Duration;
 
-use dsrl_evaluation::SimulatorsConfig;
-use dsrl_evaluation::simulators::SimulatorPool;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
+use dsrl_simulators::SimulatorPool;
+use dsrl_simulators::SimulatorsConfig;
 
 use crate::{Env, get_json, get_json_with_token};
 

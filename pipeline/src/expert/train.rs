@@ -13,9 +13,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use dsrl_evaluation::simulators::{PooledSession, Reply, SimulatorPool};
 use dsrl_policy::noise::Noise;
 use dsrl_proto::simulator::v1::{AutoReset, Open};
+use dsrl_simulators::{PooledSession, Reply, SimulatorPool};
 use dsrl_suite::catalog::{ObservationSpace, Task};
 use dsrl_suite::collection::{BufferSnapshot, Stored, TrajectoryBuffer};
 use dsrl_suite::convert::{ImportError, write_canonical};
@@ -392,7 +392,7 @@ async fn play(
     let mut groups: Vec<(usize, Vec<usize>)> = Vec::new();
     for s in 0..sessions.len() {
         let members: Vec<usize> = (0..total).filter(|&j| layout[j].0 == s).collect();
-        for half in dsrl_evaluation::simulators::split_in_two(members.len()) {
+        for half in dsrl_simulators::split_in_two(members.len()) {
             groups.push((s, half.iter().map(|&i| members[i as usize]).collect()));
         }
     }

@@ -18,7 +18,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dsrl_client::api::{Client, IngestOptions};
-use dsrl_evaluation::SimulatorsConfig;
+use dsrl_simulators::SimulatorsConfig;
 use dsrl_suite::Catalog;
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use dsrl_proto::simulator::v1::{AutoReset, DType, DescribeRequest, Open, Step, Tensor, session_request};
-use dsrl_proto::simulator_session::{Reply, SimulatorSession};
+use dsrl_simulators::session::{Reply, SimulatorSession};
 use tonic::Code;
 
 use crate::support::{Actions, Worker};

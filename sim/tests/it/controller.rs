@@ -3,7 +3,7 @@
 //! lets it play a whole episode inside the worker.
 
 use dsrl_proto::simulator::v1::{AutoReset, Controller, Idm, Open, controller};
-use dsrl_proto::simulator_session::{SimulatorSession, StepResult};
+use dsrl_simulators::session::{SimulatorSession, StepResult};
 use tonic::Code;
 
 use crate::support::Worker;

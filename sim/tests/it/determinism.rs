@@ -2,7 +2,7 @@
 //! separate processes); a different seed gives a different one (so the comparison can fail).
 
 use dsrl_proto::simulator::v1::AutoReset;
-use dsrl_proto::simulator_session::StepResult;
+use dsrl_simulators::session::StepResult;
 
 use crate::support::{Actions, Worker};
 

@@ -4,7 +4,7 @@
 //! without any.
 
 use dsrl_proto::simulator::v1::{AutoReset, Render, session_request};
-use dsrl_proto::simulator_session::StepResult;
+use dsrl_simulators::session::StepResult;
 use tonic::Code;
 
 use crate::support::{Actions, Worker};

@@ -4,7 +4,7 @@ use std::time::{Duration, Instant};
 
 use dsrl_proto::simulator::v1::simulator_client::SimulatorClient;
 use dsrl_proto::simulator::v1::{AutoReset, HealthRequest, HealthResponse, Open};
-use dsrl_proto::simulator_session::SimulatorSession;
+use dsrl_simulators::session::SimulatorSession;
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 use tonic::transport::Channel;

@@ -8,18 +8,18 @@ use std::time::Duration;
 
 use futures::future::BoxFuture;
 
+use crate::session::SimulatorSession;
 use dsrl_proto::simulator::v1::simulator_client::SimulatorClient;
 use dsrl_proto::simulator::v1::{HealthRequest, Open};
-use dsrl_proto::simulator_session::SimulatorSession;
 use serde::Serialize;
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 use tokio::sync::watch;
 use tonic::transport::{Channel, Endpoint};
 
-use super::session::PooledSession;
 use crate::config::SimulatorsConfig;
-use crate::error::EvaluationError;
+use crate::error::SimulatorError;
+use crate::pooled::PooledSession;
 
 /// A worker as `GET /v1/simulators` shows it.
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -254,13 +254,13 @@ impl SimulatorPool {
     }
 
     /// Opens a session on the healthy worker with the most free capacity.
-    pub async fn open(&self, open: Open) -> Result<PooledSession, EvaluationError> {
+    pub async fn open(&self, open: Open) -> Result<PooledSession, SimulatorError> {
         let num_envs = open.num_envs;
         let (slot, channel, name) = self.place(num_envs)?;
         let opened = tokio::time::timeout(self.request_timeout, SimulatorSession::open(channel, open)).await;
         let result = match opened {
             Ok(result) => result.map_err(|status| PooledSession::error(&name, status)),
-            Err(_) => Err(EvaluationError::Unavailable(format!(
+            Err(_) => Err(SimulatorError::Unavailable(format!(
                 "simulator worker {name} did not open a session within {:?}",
                 self.request_timeout
             ))),
@@ -277,7 +277,7 @@ impl SimulatorPool {
             }
         });
         let (session, observations) = result?;
-        let load = super::session::WorkerLoad::join(&slot.open_sessions);
+        let load = crate::pooled::WorkerLoad::join(&slot.open_sessions);
         Ok(PooledSession::new(
             session,
             observations,
@@ -289,7 +289,7 @@ impl SimulatorPool {
 
     /// Chooses the healthy worker with the most free capacity and reserves `num_envs` there; one placement at a
     /// time, so two concurrent opens never both see the same free capacity.
-    fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), EvaluationError> {
+    fn place(&self, num_envs: u32) -> Result<(Arc<Slot>, Channel, String), SimulatorError> {
         let _one_at_a_time = self.placing.lock().expect("placement lock");
         let mut best: Option<(f64, Arc<Slot>, Channel, String)> = None;
         for slot in &self.current() {
@@ -321,7 +321,7 @@ impl SimulatorPool {
                         (None, false) => format!("{} starting", w.name),
                     })
                     .collect();
-                Err(EvaluationError::Unavailable(if workers.is_empty() {
+                Err(SimulatorError::Unavailable(if workers.is_empty() {
                     "no simulator workers are configured or discovered (simulators.local_workers / remote_workers / \
                      worker_services)"
                         .to_owned()

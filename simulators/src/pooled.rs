@@ -2,11 +2,11 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
+use crate::session::{DrivenRest, Reply, SimulatorSession, StepResult};
 use dsrl_proto::simulator::v1::{Controller, TaskSpec};
-use dsrl_proto::simulator_session::{DrivenRest, Reply, SimulatorSession, StepResult};
 use tonic::{Code, Status};
 
-use crate::error::EvaluationError;
+use crate::error::SimulatorError;
 
 /// A session's place among its worker's open sessions. A worker answers the calls of all its sessions one after
 /// another on its one Python thread, so a call waits behind the other sessions' calls: its deadline is the
@@ -66,16 +66,16 @@ impl PooledSession {
 
     /// A worker's status as this server's error: the worker's own verdicts keep their meaning; a broken stream
     /// means the worker died.
-    pub(super) fn error(worker: &str, status: Status) -> EvaluationError {
+    pub(super) fn error(worker: &str, status: Status) -> SimulatorError {
         let message = format!("simulator worker {worker}: {}", status.message());
         match status.code() {
-            Code::NotFound => EvaluationError::NotFound(message),
+            Code::NotFound => SimulatorError::NotFound(message),
             Code::InvalidArgument | Code::FailedPrecondition | Code::OutOfRange => {
-                EvaluationError::InvalidArgument(message)
+                SimulatorError::InvalidArgument(message)
             }
-            Code::ResourceExhausted | Code::Unavailable => EvaluationError::Unavailable(message),
-            Code::Internal => EvaluationError::Internal(message),
-            _ => EvaluationError::Unavailable(format!(
+            Code::ResourceExhausted | Code::Unavailable => SimulatorError::Unavailable(message),
+            Code::Internal => SimulatorError::Internal(message),
+            _ => SimulatorError::Unavailable(format!(
                 "simulator worker {worker} failed during the session: {}",
                 status.message()
             )),
@@ -95,14 +95,14 @@ impl PooledSession {
         &self.initial_observations
     }
 
-    pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, EvaluationError> {
+    pub async fn step(&mut self, envs: &[u32], actions: &[f32]) -> Result<StepResult, SimulatorError> {
         let timeout = self.timeout();
         let worker = self.worker.clone();
         let call = self.session.step(envs, actions);
         deadline(&worker, timeout, "step", call).await
     }
 
-    pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, EvaluationError> {
+    pub async fn reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<Vec<f32>, SimulatorError> {
         self.reset_with(envs, seeds, None).await
     }
 
@@ -112,7 +112,7 @@ impl PooledSession {
         envs: &[u32],
         seeds: &[u64],
         controller: Option<Controller>,
-    ) -> Result<Vec<f32>, EvaluationError> {
+    ) -> Result<Vec<f32>, SimulatorError> {
         let timeout = self.timeout();
         let worker = self.worker.clone();
         let call = self.session.reset_with(envs, seeds, controller);
@@ -121,28 +121,28 @@ impl PooledSession {
 
     /// The controller plays the rest of each named environment's episode inside the worker (a session opened with a
     /// controller only): one answer per episode instead of one per step. The deadline holds for the whole drive.
-    pub async fn drive(&mut self, envs: &[u32]) -> Result<Vec<DrivenRest>, EvaluationError> {
+    pub async fn drive(&mut self, envs: &[u32]) -> Result<Vec<DrivenRest>, SimulatorError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "drive", self.session.drive(envs)).await
     }
 
     /// Queues a step without waiting for its result, so the worker can step it while the caller acts on another
     /// group of the session's environments; [`Self::receive`] returns the answers in the order they were sent.
-    pub async fn send_step(&mut self, envs: &[u32], actions: &[f32]) -> Result<(), EvaluationError> {
+    pub async fn send_step(&mut self, envs: &[u32], actions: &[f32]) -> Result<(), SimulatorError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "step", self.session.send_step(envs, actions)).await?;
         Ok(())
     }
 
     /// Queues a reset without waiting for its observations (see [`Self::send_step`]).
-    pub async fn send_reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<(), EvaluationError> {
+    pub async fn send_reset(&mut self, envs: &[u32], seeds: &[u64]) -> Result<(), SimulatorError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "reset", self.session.send_reset(envs, seeds)).await?;
         Ok(())
     }
 
     /// Queues a render of the named environments (see `Render` in the simulator proto) without waiting for it.
-    pub async fn send_render(&mut self, envs: &[u32], width: u32, height: u32) -> Result<(), EvaluationError> {
+    pub async fn send_render(&mut self, envs: &[u32], width: u32, height: u32) -> Result<(), SimulatorError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         let call = self.session.send_render(envs, width, height);
         deadline(&worker, timeout, "render", call).await?;
@@ -151,12 +151,12 @@ impl PooledSession {
 
     /// The answer to the oldest request sent with [`Self::send_step`], [`Self::send_reset`] or
     /// [`Self::send_render`].
-    pub async fn receive(&mut self) -> Result<Reply, EvaluationError> {
+    pub async fn receive(&mut self) -> Result<Reply, SimulatorError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "queued request", self.session.receive()).await
     }
 
-    pub async fn close(self) -> Result<(), EvaluationError> {
+    pub async fn close(self) -> Result<(), SimulatorError> {
         let (timeout, worker) = (self.timeout(), self.worker.clone());
         deadline(&worker, timeout, "close", self.session.close()).await
     }
@@ -167,10 +167,10 @@ async fn deadline<T>(
     timeout: Duration,
     what: &str,
     call: impl Future<Output = Result<T, Status>>,
-) -> Result<T, EvaluationError> {
+) -> Result<T, SimulatorError> {
     match tokio::time::timeout(timeout, call).await {
         Ok(result) => result.map_err(|status| PooledSession::error(worker, status)),
-        Err(_) => Err(EvaluationError::Unavailable(format!(
+        Err(_) => Err(SimulatorError::Unavailable(format!(
             "simulator worker {worker} did not answer a {what} within {timeout:?}"
         ))),
     }

@@ -1,8 +1,9 @@
-//! What can go wrong while playing a policy. The server maps each kind to its own `ApiError` (one `From` in
-//! `server/src/error.rs`), so the status table stays in one place.
+//! What can go wrong in a simulator session, and so while playing a policy on one (`dsrl-evaluation` uses the same
+//! kinds as `EvaluationError`). The service maps each kind to its own `ApiError` (one `From` in
+//! `service/src/error.rs`), so the status table stays in one place.
 
 #[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
-pub enum EvaluationError {
+pub enum SimulatorError {
     /// Something the caller named does not exist (a worker answered NOT_FOUND).
     #[error("{0}")]
     NotFound(String),
