@@ -10,9 +10,9 @@ use std::sync::Arc;
 use axum::Router;
 use axum::http::header;
 use axum::response::IntoResponse;
-use dsrl_evaluation::simulators::SimulatorPool;
 use dsrl_service::config::Config;
 use dsrl_service::error::ApiError;
+use dsrl_simulators::SimulatorPool;
 use prometheus_client::registry::Registry;
 
 use crate::{Leaderboard, queue, runner};

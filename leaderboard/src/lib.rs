@@ -51,10 +51,10 @@ use self::queue::{EpisodeRow, Quotas};
 use self::reference::{ReferenceRecord, TrainingData};
 use self::seeds::HeldSeeds;
 use self::users::User;
-use dsrl_evaluation::simulators::SimulatorPool;
 use dsrl_service::config::LeaderboardConfig;
 use dsrl_service::db::Db;
 use dsrl_service::error::ApiError;
+use dsrl_simulators::SimulatorPool;
 
 pub struct Leaderboard {
     pub db: Db,

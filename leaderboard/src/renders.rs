@@ -392,14 +392,7 @@ pub fn spawn(leaderboard: Arc<Leaderboard>) {
             lock(&leaderboard.renders.state).running = true;
             let run = tokio::spawn(renderer(leaderboard.clone())).await;
             let message = match run {
-                Err(e) if e.is_panic() => {
-                    let payload = e.into_panic();
-                    payload
-                        .downcast_ref::<String>()
-                        .cloned()
-                        .or_else(|| payload.downcast_ref::<&str>().map(|s| (*s).to_owned()))
-                        .unwrap_or_else(|| "a panic without a message".to_owned())
-                }
+                Err(e) if e.is_panic() => crate::supervision::panic_message(e.into_panic()),
                 // Returned or cancelled: the runtime is shutting down.
                 _ => return,
             };

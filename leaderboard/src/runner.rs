@@ -65,14 +65,7 @@ async fn supervise(leaderboard: Arc<Leaderboard>, index: usize) {
         let run = tokio::spawn(evaluator(leaderboard.clone(), index, owner.clone()));
         let panic = match run.await {
             Ok(()) => return,
-            Err(e) if e.is_panic() => {
-                let payload = e.into_panic();
-                payload
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| payload.downcast_ref::<&str>().map(|s| (*s).to_owned()))
-                    .unwrap_or_else(|| "a panic without a message".to_owned())
-            }
+            Err(e) if e.is_panic() => super::supervision::panic_message(e.into_panic()),
             // Cancelled: the runtime is shutting down.
             Err(_) => return,
         };

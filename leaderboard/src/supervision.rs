@@ -9,6 +9,15 @@ use serde::Serialize;
 
 use dsrl_service::db::now_rfc3339;
 
+/// What a panicked task's payload says (a `String` or `&str` message), for the logs and `/healthz`.
+pub fn panic_message(payload: Box<dyn std::any::Any + Send>) -> String {
+    payload
+        .downcast_ref::<String>()
+        .cloned()
+        .or_else(|| payload.downcast_ref::<&str>().map(|s| (*s).to_owned()))
+        .unwrap_or_else(|| "a panic without a message".to_owned())
+}
+
 /// One evaluator as `/healthz` shows it.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct EvaluatorState {
