@@ -122,6 +122,39 @@ fn put_slots(payload: &mut BytesMut, slots: &[u32]) {
     slots.iter().for_each(|&s| payload.put_u32_le(s));
 }
 
+/// How often [`awake_timeout`] looks at the clock, and how late a look may come before the time since the last one
+/// counts as time this process did not run.
+const AWAKE_TICK: std::time::Duration = std::time::Duration::from_millis(250);
+const SUSPENDED_AFTER: std::time::Duration = std::time::Duration::from_millis(1250);
+
+/// `tokio::time::timeout` over the time this process was running. A policy is held to its per-request deadline for
+/// time it could have used; when the evaluator itself was not running (its process group stopped, the machine
+/// suspended or starved for seconds), the policy's process was not either, and that time is not the checkpoint's:
+/// a clock look that comes far later than asked adds one tick, not the gap.
+async fn awake_timeout<F: std::future::Future>(
+    limit: std::time::Duration,
+    call: F,
+) -> Result<F::Output, tokio::time::error::Elapsed> {
+    tokio::pin!(call);
+    let mut awake = std::time::Duration::ZERO;
+    let mut last = tokio::time::Instant::now();
+    loop {
+        let left = limit.saturating_sub(awake);
+        match tokio::time::timeout(left.min(AWAKE_TICK), &mut call).await {
+            Ok(output) => return Ok(output),
+            Err(elapsed) => {
+                let now = tokio::time::Instant::now();
+                let gap = now - last;
+                last = now;
+                awake += if gap > SUSPENDED_AFTER { AWAKE_TICK } else { gap };
+                if awake >= limit {
+                    return Err(elapsed);
+                }
+            }
+        }
+    }
+}
+
 /// The parent's side of one child process.
 pub struct ChildPlayer {
     child: tokio::process::Child,
@@ -170,7 +203,7 @@ impl ChildPlayer {
             ACT => "act",
             _ => "observe",
         };
-        match tokio::time::timeout(self.request_timeout, self.exchange(op, payload)).await {
+        match awake_timeout(self.request_timeout, self.exchange(op, payload)).await {
             Ok(Ok(Ok(answer))) => Ok(answer),
             // The policy itself failed (a shape it cannot handle, a non-finite action): not worth a retry.
             Ok(Ok(Err(message))) => Err(policy_error(message)),
@@ -442,6 +475,28 @@ fn handle(rollout: &mut Rollout<'_>, op: u8, payload: &[u8]) -> Result<Vec<u8>, 
 #[cfg(all(test, unix))]
 mod tests {
     use super::*;
+
+    /// An answer 2.6 s after the call, 2 s of which the runtime was blocked (as in a stopped process group), comes
+    /// within a 1 s limit; a call that never answers still ends at its limit.
+    #[tokio::test(flavor = "current_thread")]
+    async fn time_the_evaluator_did_not_run_is_not_held_against_the_policy() {
+        let answer = tokio::time::sleep(std::time::Duration::from_millis(2600));
+        let stall = async {
+            tokio::task::yield_now().await;
+            std::thread::sleep(std::time::Duration::from_secs(2));
+        };
+        let started = std::time::Instant::now();
+        let (result, ()) = tokio::join!(awake_timeout(std::time::Duration::from_secs(1), answer), stall);
+        assert!(result.is_ok(), "timed out after {:?}", started.elapsed());
+        let started = std::time::Instant::now();
+        let never = awake_timeout(std::time::Duration::from_millis(500), std::future::pending::<()>()).await;
+        assert!(never.is_err());
+        assert!(
+            started.elapsed() < std::time::Duration::from_secs(2),
+            "{:?}",
+            started.elapsed()
+        );
+    }
 
     /// A child that answers nothing, stopped by `signal` before it is asked to act: `sleep` stands in for the
     /// policy process, since what is tested is how its exit status is read, not how it plays (no core file).
