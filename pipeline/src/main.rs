@@ -496,6 +496,118 @@ async fn run() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    match Args::parse().command {
+        Command::Collect(args) => collect(args).await,
+        Command::Evaluate(args) => evaluate(args).await,
+        Command::Build(args) => build(args).await,
+        Command::BuildTask {
+            task,
+            plan,
+            recipes,
+            state,
+            workers,
+        } => {
+            let args = dsrl_pipeline::full::TaskBuild {
+                task,
+                plan,
+                recipes,
+                state,
+                workers,
+            };
+            dsrl_pipeline::full::build_task(&args).await
+        }
+        Command::Compact(args) => compact(args),
+        Command::ImportDsrl {
+            dir,
+            server,
+            token,
+            tag,
+            latest,
+            json,
+        } => import_dsrl(&dir, &server, token, tag, latest, json).await,
+        Command::Docs { check } => docs(check),
+    }
+}
+
+/// `dsrl-admin import-dsrl`: DSRL's own HDF5 files uploaded as versions of their tasks.
+async fn import_dsrl(
+    dir: &std::path::Path,
+    server: &str,
+    token: Option<String>,
+    tag: String,
+    latest: bool,
+    json: bool,
+) -> anyhow::Result<()> {
+    let client = dsrl_client::api::Client::new(server)?.with_token(token);
+    let options = dsrl_pipeline::import_dsrl::ImportOptions { tag, latest };
+    let report = dsrl_pipeline::import_dsrl::import(&client, dir, &options).await?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        for r in &report {
+            println!(
+                "{}: {} {}{}",
+                r.file,
+                r.outcome,
+                r.version.as_deref().map(|v| &v[..12.min(v.len())]).unwrap_or(""),
+                r.reason.as_deref().map(|w| format!(" ({w})")).unwrap_or_default()
+            );
+        }
+    }
+    if report.iter().any(|r| r.outcome == "refused") {
+        anyhow::bail!("some files were refused (see above)");
+    }
+    Ok(())
+}
+
+/// `dsrl-admin docs`: the documents' generated sections from the committed data (`--check`: only compare).
+fn docs(check: bool) -> anyhow::Result<()> {
+    let report = dsrl_pipeline::docs::run(std::path::Path::new("."), check)?;
+    for (path, sections) in &report.stale {
+        eprintln!(
+            "{} {}: {}",
+            if check { "differs from the data:" } else { "regenerated" },
+            path.display(),
+            sections.join(", ")
+        );
+    }
+    if check && !report.stale.is_empty() {
+        anyhow::bail!("documents differ from what the committed data gives: run `dsrl-admin docs`");
+    }
+    Ok(())
+}
+
+/// The recipe `dsrl-admin collect` runs: `--recipe`, or the task's recipe under the working directory's
+/// `data/recipes/`; checked to be the task's.
+fn collect_recipe(task: &str, recipe: Option<PathBuf>) -> anyhow::Result<(Recipe, PathBuf)> {
+    let recipe_path = match recipe {
+        Some(path) => path,
+        None => {
+            let path = Recipe::default_path(task);
+            anyhow::ensure!(
+                path.is_file(),
+                "no recipe at {} under {}: run dsrl-admin from the root of the clone whose recipes it builds, \
+                 or name one with --recipe",
+                path.display(),
+                std::env::current_dir()
+                    .map(|d| d.display().to_string())
+                    .unwrap_or_default()
+            );
+            path
+        }
+    };
+    let recipe = Recipe::load(&recipe_path)?;
+    anyhow::ensure!(
+        recipe.task == task,
+        "{} is the recipe of {}, not {task}",
+        recipe_path.display(),
+        recipe.task
+    );
+    Ok((recipe, recipe_path))
+}
+
+/// `dsrl-admin collect`: a task's recipe run on the simulators into a dataset file, optionally ingested.
+async fn collect(args: CollectArgs) -> anyhow::Result<()> {
     let CollectArgs {
         task,
         recipe,
@@ -516,96 +628,9 @@ async fn run() -> anyhow::Result<()> {
         token,
         tag,
         json,
-    } = match Args::parse().command {
-        Command::Evaluate(args) => return evaluate(args).await,
-        Command::Build(args) => return build(args).await,
-        Command::BuildTask {
-            task,
-            plan,
-            recipes,
-            state,
-            workers,
-        } => {
-            let args = dsrl_pipeline::full::TaskBuild {
-                task,
-                plan,
-                recipes,
-                state,
-                workers,
-            };
-            return dsrl_pipeline::full::build_task(&args).await;
-        }
-        Command::Compact(args) => return compact(args),
-        Command::ImportDsrl {
-            dir,
-            server,
-            token,
-            tag,
-            latest,
-            json,
-        } => {
-            let client = dsrl_client::api::Client::new(&server)?.with_token(token);
-            let options = dsrl_pipeline::import_dsrl::ImportOptions { tag, latest };
-            let report = dsrl_pipeline::import_dsrl::import(&client, &dir, &options).await?;
-            if json {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            } else {
-                for r in &report {
-                    println!(
-                        "{}: {} {}{}",
-                        r.file,
-                        r.outcome,
-                        r.version.as_deref().map(|v| &v[..12.min(v.len())]).unwrap_or(""),
-                        r.reason.as_deref().map(|w| format!(" ({w})")).unwrap_or_default()
-                    );
-                }
-            }
-            if report.iter().any(|r| r.outcome == "refused") {
-                anyhow::bail!("some files were refused (see above)");
-            }
-            return Ok(());
-        }
-        Command::Docs { check } => {
-            let report = dsrl_pipeline::docs::run(std::path::Path::new("."), check)?;
-            for (path, sections) in &report.stale {
-                eprintln!(
-                    "{} {}: {}",
-                    if check { "differs from the data:" } else { "regenerated" },
-                    path.display(),
-                    sections.join(", ")
-                );
-            }
-            if check && !report.stale.is_empty() {
-                anyhow::bail!("documents differ from what the committed data gives: run `dsrl-admin docs`");
-            }
-            return Ok(());
-        }
-        Command::Collect(args) => args,
-    };
+    } = args;
     let catalog = Catalog::embedded()?;
-    let recipe_path = match recipe {
-        Some(path) => path,
-        None => {
-            let path = Recipe::default_path(&task);
-            anyhow::ensure!(
-                path.is_file(),
-                "no recipe at {} under {}: run dsrl-admin from the root of the clone whose recipes it builds, \
-                 or name one with --recipe",
-                path.display(),
-                std::env::current_dir()
-                    .map(|d| d.display().to_string())
-                    .unwrap_or_default()
-            );
-            path
-        }
-    };
-    let recipe = Recipe::load(&recipe_path)?;
-    anyhow::ensure!(
-        recipe.task == task,
-        "{} is the recipe of {}, not {task}",
-        recipe_path.display(),
-        recipe.task
-    );
+    let (recipe, recipe_path) = collect_recipe(&task, recipe)?;
     let home = std::env::var_os("HOME").map(PathBuf::from).unwrap_or_default();
     let state_dir = state.unwrap_or_else(|| home.join(".dsrl/collect").join(&task));
     let run = Run {
