@@ -23,7 +23,7 @@ use anyhow::{Context, bail};
 use dsrl_scoring::leaderboard::entry_interval;
 use dsrl_scoring::paper::PaperResults;
 use dsrl_scoring::reference::{
-    FIDELITY_GOAL, ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize,
+    Agreement, FIDELITY_GOAL, ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize,
     summarize_by_method,
 };
 use dsrl_suite::Catalog;
@@ -124,15 +124,39 @@ pub fn reference_sections(
             .kind(&e.task, &e.dataset_version)
             .map_or("uncommitted dataset", |k| k.label())
     };
-    let mut sections = BTreeMap::new();
     let current: Vec<&ReferenceEntry> = entries
         .iter()
         .filter(|e| e.protocol_version == protocol_version)
         .collect();
     let cells = agreement(catalog, paper, &scored_entries(entries, catalog, protocol_version));
-
-    let mut s = String::new();
     let others = entries.len() - current.len();
+    let (rows, cell_rows) = entry_rows(catalog, paper, &current, &cells);
+    BTreeMap::from([
+        (
+            "reference-agreement".to_owned(),
+            agreement_section(catalog, &current, others, &cells, protocol_version, &dataset),
+        ),
+        ("reference-entries".to_owned(), rows),
+        ("reference-cells".to_owned(), cell_rows),
+        (
+            "reference-compute".to_owned(),
+            compute_section(catalog, &current, &dataset),
+        ),
+        ("reference-seeds".to_owned(), seeds_section(catalog, paper, &current)),
+    ])
+}
+
+/// How many entries of the protocol cover which tasks, which builds trained them and on which datasets, the
+/// agreement with the paper beside the trivial rules, and the fidelity goal.
+fn agreement_section(
+    catalog: &Catalog,
+    current: &[&ReferenceEntry],
+    others: usize,
+    cells: &[Agreement],
+    protocol_version: &str,
+    dataset: &dyn Fn(&ReferenceEntry) -> &'static str,
+) -> String {
+    let mut s = String::new();
     let covered: std::collections::BTreeSet<&str> = current.iter().map(|e| e.task.as_str()).collect();
     let missing: Vec<String> = catalog
         .tasks()
@@ -161,7 +185,7 @@ pub fn reference_sections(
     // Which builds trained them: an entry of a build with uncommitted sources is not reproducible from its commit
     // alone (`data/reference_entries.sh --reproduce` trains it again with a clean one).
     let mut commits: BTreeMap<&str, usize> = BTreeMap::new();
-    for e in &current {
+    for e in current {
         *commits.entry(e.code_commit.as_str()).or_default() += 1;
     }
     let by_commit: Vec<String> = commits
@@ -178,7 +202,7 @@ pub fn reference_sections(
     let _ = writeln!(s, "Trained by the `dsrl-train` of {}.\n", by_commit.join("; "));
     // Which datasets: the agreement below is over entries of one kind of dataset only.
     let mut kinds: BTreeMap<&str, usize> = BTreeMap::new();
-    for e in &current {
+    for e in current {
         *kinds.entry(dataset(e)).or_default() += 1;
     }
     let by_kind: Vec<String> = kinds
@@ -193,8 +217,8 @@ pub fn reference_sections(
          | scope | (task, method) cells | verdicts that agree | share | chance | every method unsafe | BC-Safe safe, \
          the rest unsafe | mean \\|Δ reward\\| | mean \\|Δ cost\\| |\n|---|---|---|---|---|---|---|---|---|\n",
     );
-    let summaries = summarize(catalog, &cells);
-    let by_method = summarize_by_method(&cells);
+    let summaries = summarize(catalog, cells);
+    let by_method = summarize_by_method(cells);
     for summary in summaries.iter().chain(&by_method) {
         let _ = writeln!(
             s,
@@ -233,8 +257,16 @@ pub fn reference_sections(
             if met { "met" } else { "not met" }
         );
     }
-    sections.insert("reference-agreement".to_owned(), s);
+    s
+}
 
+/// Every entry with its interval and the paper's row, and every (task, method) cell of the agreement.
+fn entry_rows(
+    catalog: &Catalog,
+    paper: &PaperResults,
+    current: &[&ReferenceEntry],
+    cells: &[Agreement],
+) -> (String, String) {
     let mut s = String::from(
         "| task | method | seed | steps × batch (of the method's samples) | normalized reward [95%] | normalized cost [95%] \
          | safe | paper reward | paper cost | paper safe |\n|---|---|---|---|---|---|---|---|---|---|\n",
@@ -287,9 +319,15 @@ pub fn reference_sections(
             );
         }
     }
-    sections.insert("reference-entries".to_owned(), s);
-    sections.insert("reference-cells".to_owned(), agree_rows);
+    (s, agree_rows)
+}
 
+/// Every entry's training and scoring compute, with the totals.
+fn compute_section(
+    catalog: &Catalog,
+    current: &[&ReferenceEntry],
+    dataset: &dyn Fn(&ReferenceEntry) -> &'static str,
+) -> String {
     let mut s = String::from(
         "| task | method | seed | models | steps | training CPU s | CPU s per step | the method's budget, CPU h (one thread \
          per model) | training wall s | scoring wall s | dataset | code | CPU |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
@@ -334,9 +372,7 @@ pub fn reference_sections(
         score_total,
         score_total / 3600.0
     );
-    sections.insert("reference-compute".to_owned(), s);
-    sections.insert("reference-seeds".to_owned(), seeds_section(catalog, paper, &current));
-    sections
+    s
 }
 
 /// The committed results of reference entries trained on full builds: the same format as `results.jsonl`, kept
