@@ -278,6 +278,85 @@ fn deflate_level(first_chunk: &[u8]) -> std::io::Result<u32> {
     )
 }
 
+/// One chunk's bytes of a key on its way to compression: its key index, its first row, its deflate level, its raw
+/// (full-size, zero-padded) bytes.
+type Raw = (usize, usize, u32, Vec<u8>);
+
+/// A compressed chunk on its way to the writer: its key index (in `DSRL_KEYS`), its first row, its bytes.
+type Compressed = (usize, usize, Vec<u8>);
+
+/// A compression thread: deflates raw chunks `(key, first row, level, bytes)` until the reader stops sending or
+/// the writer stops taking.
+fn compress_chunks(
+    raw: &std::sync::Mutex<std::sync::mpsc::Receiver<Raw>>,
+    compressed: &std::sync::mpsc::SyncSender<Compressed>,
+) {
+    loop {
+        let next = raw.lock().map(|rx| rx.recv());
+        let Ok(Ok((key, row, level, bytes))) = next else { break };
+        let Ok(bytes) = deflate(&bytes, level) else { break };
+        if compressed.send((key, row, bytes)).is_err() {
+            break;
+        }
+    }
+}
+
+/// The writer: the one thread that calls into libhdf5 once the datasets exist, writing each compressed chunk
+/// directly at its row (`ids`: each key's dataset id).
+fn write_chunks(
+    ids: &[(hdf5_sys::h5i::hid_t, usize)],
+    chunks: std::sync::mpsc::Receiver<Compressed>,
+) -> Result<(), Hdf5Error> {
+    for (key, row, bytes) in chunks {
+        let offset: [u64; 2] = [row as u64, 0];
+        let id = ids[key].0;
+        // SAFETY: a live dataset id of this file, an offset of the dataset's rank (1 or 2; the second entry is read
+        // only for matrices), and a buffer of `bytes.len()` bytes; under the library's lock.
+        let status = hdf5::sync::sync(|| unsafe {
+            hdf5_sys::h5d::H5Dwrite_chunk(
+                id,
+                hdf5_sys::h5p::H5P_DEFAULT,
+                0,
+                offset.as_ptr(),
+                bytes.len(),
+                bytes.as_ptr().cast(),
+            )
+        });
+        if status < 0 {
+            return Err(Hdf5Error::Layout(format!(
+                "writing a chunk of {} at row {row}",
+                DSRL_KEYS[key]
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Appends rows `rows` of the transitions `c` to key `key`'s chunk buffer, as HDF5 stores them (little-endian
+/// float32, or one byte per bool); `dim` is the key's width.
+fn append_rows(buf: &mut Vec<u8>, key: usize, c: &TransitionChunk, rows: std::ops::Range<usize>, dim: usize) {
+    // HDF5's little-endian float32 is the machine's own layout here: one copy of the bytes.
+    let floats = |values: &[f32], buf: &mut Vec<u8>| {
+        if cfg!(target_endian = "little") {
+            buf.extend_from_slice(arrow_buffer::ToByteSlice::to_byte_slice(values));
+        } else {
+            for v in values {
+                buf.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    };
+    let (r, end) = (rows.start, rows.end);
+    match key {
+        0 => floats(&c.observations[r * dim..end * dim], buf),
+        1 => floats(&c.next_observations[r * dim..end * dim], buf),
+        2 => floats(&c.actions[r * dim..end * dim], buf),
+        3 => floats(&c.rewards[r..end], buf),
+        4 => floats(&c.costs[r..end], buf),
+        5 => buf.extend(c.terminals[r..end].iter().map(|&b| u8::from(b))),
+        _ => buf.extend(c.timeouts[r..end].iter().map(|&b| u8::from(b))),
+    }
+}
+
 /// Writes a dataset in DSRL's HDF5 layout: float32 arrays, bool flags, the gzip filter, keys in DSRL's order, chunks
 /// of about 256 kB as h5py makes them. The chunks are compressed on every core and written straight into the file
 /// (`H5Dwrite_chunk`), so libhdf5's one-thread deflate is not the bound: the source is read, the chunks compressed
@@ -325,15 +404,11 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
         (vector(TERMINALS, false)?, 1, 1),
         (vector(TIMEOUTS, false)?, 1, 1),
     ];
-    // One chunk's bytes of a key: its key index, its first row, its deflate level, its raw (full-size, zero-padded)
-    // bytes.
-    type Raw = (usize, usize, u32, Vec<u8>);
 
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get()).max(1);
     let (to_compress, compress_rx) = std::sync::mpsc::sync_channel::<Raw>(2 * workers);
     let compress_rx = std::sync::Arc::new(std::sync::Mutex::new(compress_rx));
-    // A compressed chunk: its key index, its first row, its bytes.
-    let (to_write, write_rx) = std::sync::mpsc::sync_channel::<(usize, usize, Vec<u8>)>(2 * workers);
+    let (to_write, write_rx) = std::sync::mpsc::sync_channel::<Compressed>(2 * workers);
     let ids: Vec<(hdf5_sys::h5i::hid_t, usize)> = keys
         .iter()
         .map(|((ds, chunk), dim, _)| (ds.id(), chunk * dim))
@@ -341,44 +416,10 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
     let result = std::thread::scope(|scope| -> Result<usize, Hdf5Error> {
         for _ in 0..workers {
             let (rx, tx) = (compress_rx.clone(), to_write.clone());
-            scope.spawn(move || {
-                loop {
-                    let next = rx.lock().map(|rx| rx.recv());
-                    let Ok(Ok((key, row, level, raw))) = next else { break };
-                    let Ok(compressed) = deflate(&raw, level) else { break };
-                    if tx.send((key, row, compressed)).is_err() {
-                        break;
-                    }
-                }
-            });
+            scope.spawn(move || compress_chunks(&rx, &tx));
         }
         drop(to_write);
-        // The writer: the one thread that calls into libhdf5 after the datasets exist.
-        let writer = scope.spawn(move || -> Result<(), Hdf5Error> {
-            for (key, row, bytes) in write_rx {
-                let offset: [u64; 2] = [row as u64, 0];
-                let id = ids[key].0;
-                // SAFETY: a live dataset id of this file, an offset of the dataset's rank (1 or 2; the second entry
-                // is read only for matrices), and a buffer of `bytes.len()` bytes; under the library's lock.
-                let status = hdf5::sync::sync(|| unsafe {
-                    hdf5_sys::h5d::H5Dwrite_chunk(
-                        id,
-                        hdf5_sys::h5p::H5P_DEFAULT,
-                        0,
-                        offset.as_ptr(),
-                        bytes.len(),
-                        bytes.as_ptr().cast(),
-                    )
-                });
-                if status < 0 {
-                    return Err(Hdf5Error::Layout(format!(
-                        "writing a chunk of {} at row {row}",
-                        DSRL_KEYS[key]
-                    )));
-                }
-            }
-            Ok(())
-        });
+        let writer = scope.spawn(move || write_chunks(&ids, write_rx));
         // The reader: fills each key's current chunk and hands it over when full.
         let mut pending: Vec<Vec<u8>> = keys
             .iter()
@@ -417,25 +458,7 @@ pub fn write_dsrl_hdf5(mut source: ParquetTransitions, out: &Path) -> Result<(),
                     let room = chunk_start[key] + chunk_rows - (at + r);
                     let end = (r + room).min(c.len());
                     let buf = &mut pending[key];
-                    // HDF5's little-endian float32 is the machine's own layout here: one copy of the bytes.
-                    let floats = |values: &[f32], buf: &mut Vec<u8>| {
-                        if cfg!(target_endian = "little") {
-                            buf.extend_from_slice(arrow_buffer::ToByteSlice::to_byte_slice(values));
-                        } else {
-                            for v in values {
-                                buf.extend_from_slice(&v.to_le_bytes());
-                            }
-                        }
-                    };
-                    match key {
-                        0 => floats(&c.observations[r * dim..end * dim], buf),
-                        1 => floats(&c.next_observations[r * dim..end * dim], buf),
-                        2 => floats(&c.actions[r * dim..end * dim], buf),
-                        3 => floats(&c.rewards[r..end], buf),
-                        4 => floats(&c.costs[r..end], buf),
-                        5 => buf.extend(c.terminals[r..end].iter().map(|&b| u8::from(b))),
-                        _ => buf.extend(c.timeouts[r..end].iter().map(|&b| u8::from(b))),
-                    }
+                    append_rows(buf, key, &c, r..end, *dim);
                     if at + end - chunk_start[key] == *chunk_rows {
                         let full = std::mem::replace(buf, Vec::with_capacity(buf.capacity()));
                         hand_over(key, chunk_start[key], full)?;
