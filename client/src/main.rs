@@ -319,53 +319,13 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
                 progress: !cli.json,
             };
             let outcome = cache.fetch(&client, &task, &version, &options).await?;
-            if cli.json {
-                print_json(&outcome);
-            } else {
-                let mut how = if outcome.downloaded_bytes == 0 && outcome.resumed_from.is_none() {
-                    "cache hit".to_owned()
-                } else if let Some(offset) = outcome.resumed_from {
-                    format!(
-                        "resumed at byte {offset}, {} bytes downloaded",
-                        outcome.downloaded_bytes
-                    )
-                } else {
-                    format!("{} bytes downloaded", outcome.downloaded_bytes)
-                };
-                if outcome.converted {
-                    how.push_str(", converted to DSRL HDF5");
-                }
-                how.push_str(&format!(", {:.2} s", outcome.seconds));
-                eprintln!("{} {} verified ({how})", outcome.task, &outcome.version[..12]);
-                out!("{}", outcome.path.display());
-            }
+            report_fetch(&outcome, cli.json);
         }
         Command::Verify => {
             let report = tokio::task::spawn_blocking(move || cache.verify(!cli.json))
                 .await
                 .map_err(|e| ClientError::Protocol(format!("verify task: {e}")))??;
-            if cli.json {
-                print_json(&report);
-            } else {
-                for f in &report.files {
-                    if f.status != "ok" {
-                        out!("{} {} (removed)", f.status.to_uppercase(), f.path.display());
-                    }
-                }
-                for p in &report.partial {
-                    out!("PARTIAL {} (kept; the next fetch resumes it)", p.display());
-                }
-                out!(
-                    "{} files checked, {} corrupt or missing, {} partial, {} bytes hashed",
-                    report.files.len(),
-                    report.corrupt(),
-                    report.partial.len(),
-                    report.bytes_hashed
-                );
-            }
-            if report.corrupt() > 0 {
-                return Ok(exit::INTEGRITY);
-            }
+            return Ok(report_verify(&report, cli.json));
         }
         Command::Submit {
             dir,
@@ -418,6 +378,58 @@ async fn run(cli: Cli) -> Result<u8, ClientError> {
         Command::Admin(admin) => return run_admin(client, &cli.server, cli.json, admin).await,
     }
     Ok(exit::OK)
+}
+
+/// `fetch`'s answer: the path on standard output, how it got there on standard error (or all of it as JSON).
+fn report_fetch(outcome: &dsrl_client::cache::FetchOutcome, json: bool) {
+    if json {
+        print_json(outcome);
+        return;
+    }
+    let mut how = if outcome.downloaded_bytes == 0 && outcome.resumed_from.is_none() {
+        "cache hit".to_owned()
+    } else if let Some(offset) = outcome.resumed_from {
+        format!(
+            "resumed at byte {offset}, {} bytes downloaded",
+            outcome.downloaded_bytes
+        )
+    } else {
+        format!("{} bytes downloaded", outcome.downloaded_bytes)
+    };
+    if outcome.converted {
+        how.push_str(", converted to DSRL HDF5");
+    }
+    how.push_str(&format!(", {:.2} s", outcome.seconds));
+    eprintln!("{} {} verified ({how})", outcome.task, &outcome.version[..12]);
+    out!("{}", outcome.path.display());
+}
+
+/// `verify`'s answer; the exit code is INTEGRITY when a file was corrupt or missing.
+fn report_verify(report: &dsrl_client::cache::VerifyReport, json: bool) -> u8 {
+    if json {
+        print_json(report);
+    } else {
+        for f in &report.files {
+            if f.status != "ok" {
+                out!("{} {} (removed)", f.status.to_uppercase(), f.path.display());
+            }
+        }
+        for p in &report.partial {
+            out!("PARTIAL {} (kept; the next fetch resumes it)", p.display());
+        }
+        out!(
+            "{} files checked, {} corrupt or missing, {} partial, {} bytes hashed",
+            report.files.len(),
+            report.corrupt(),
+            report.partial.len(),
+            report.bytes_hashed
+        );
+    }
+    if report.corrupt() > 0 {
+        exit::INTEGRITY
+    } else {
+        exit::OK
+    }
 }
 
 /// `list`'s table: one line per task with its constants and its `latest` version.
