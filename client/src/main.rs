@@ -147,7 +147,7 @@ enum Command {
         /// Where to save the GIF [default: submission-ID-threshold-K-episode-E.gif].
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Wait until the replay is made (otherwise a queued replay says so and exits 3).
+        /// Wait until the replay is made (otherwise a queued replay says so and exits 8).
         #[arg(long)]
         wait: bool,
     },
