@@ -786,6 +786,28 @@ fn watch_an_episode(env: &Env, done: &serde_json::Value) {
         .cli
         .run(&["watch", &id.to_string(), "--threshold", "10", "--episode", "1"]);
     assert_eq!(queued.code, 8, "{queued:?}");
+    // The same replay over gRPC, and the same refusal for an episode that was not played.
+    {
+        use dsrl_proto::leaderboard::v1 as pb;
+        use dsrl_proto::leaderboard::v1::leaderboard_service_client::LeaderboardServiceClient;
+        let url = env.server.url.clone();
+        let (expected_gif, expected) = (gif.clone(), replay.clone());
+        block_on(async move {
+            let mut grpc = LeaderboardServiceClient::connect(url).await.unwrap();
+            let ask = |episode: u32| pb::GetEpisodeReplayRequest {
+                submission: id,
+                cost_threshold: threshold,
+                episode,
+            };
+            let got = grpc.get_episode_replay(ask(episode)).await.unwrap().into_inner();
+            assert_eq!(got.state, "ready");
+            assert_eq!(got.gif, expected_gif);
+            assert_eq!(serde_json::json!(got.reward_return), expected["reward_return"]);
+            assert_eq!(got.length as u64, expected["length"].as_u64().unwrap());
+            let missing = grpc.get_episode_replay(ask(20)).await.unwrap_err();
+            assert_eq!(missing.code(), tonic::Code::NotFound, "{missing:?}");
+        });
+    }
     // Asked again, the replay is served from the store, unchanged.
     let (status, _, again) = get(&format!("{base}/replay.json"));
     assert_eq!(status, 200);

@@ -36,6 +36,60 @@ pub struct CancelSubmissionRequest {
 }
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, ::prost::Message)]
+pub struct GetEpisodeReplayRequest {
+    #[prost(int64, tag = "1")]
+    pub submission: i64,
+    /// One of the task's cost thresholds.
+    #[prost(double, tag = "2")]
+    pub cost_threshold: f64,
+    /// The episode's number at that threshold, from 0.
+    #[prost(uint32, tag = "3")]
+    pub episode: u32,
+}
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct EpisodeReplay {
+    /// "ready" or "queued".
+    #[prost(string, tag = "1")]
+    pub state: ::prost::alloc::string::String,
+    /// While queued: the replays ahead of it.
+    #[prost(uint32, tag = "2")]
+    pub ahead: u32,
+    /// The rest only when ready. The returns and length are the scored episode's (checked before it was kept).
+    #[prost(string, tag = "3")]
+    pub task: ::prost::alloc::string::String,
+    #[prost(double, tag = "4")]
+    pub reward_return: f64,
+    #[prost(double, tag = "5")]
+    pub cost_return: f64,
+    #[prost(uint32, tag = "6")]
+    pub length: u32,
+    /// Each step's reward and cost as the simulator reported them.
+    #[prost(double, repeated, tag = "7")]
+    pub rewards: ::prost::alloc::vec::Vec<f64>,
+    #[prost(double, repeated, tag = "8")]
+    pub costs: ::prost::alloc::vec::Vec<f64>,
+    /// The steps drawn after the reset's frame (1-based), one animation frame each.
+    #[prost(uint32, repeated, tag = "9")]
+    pub frame_steps: ::prost::alloc::vec::Vec<u32>,
+    #[prost(uint32, tag = "10")]
+    pub frame_width: u32,
+    #[prost(uint32, tag = "11")]
+    pub frame_height: u32,
+    /// The looping animated GIF and its sha256.
+    #[prost(bytes = "vec", tag = "12")]
+    pub gif: ::prost::alloc::vec::Vec<u8>,
+    #[prost(string, tag = "13")]
+    pub gif_sha256: ::prost::alloc::string::String,
+    #[prost(string, tag = "14")]
+    pub protocol_version: ::prost::alloc::string::String,
+    #[prost(string, tag = "15")]
+    pub rendered_by: ::prost::alloc::string::String,
+    #[prost(string, tag = "16")]
+    pub rendered_at: ::prost::alloc::string::String,
+}
+#[allow(clippy::all)]
+#[derive(Clone, Copy, PartialEq, ::prost::Message)]
 pub struct ThresholdResult {
     #[prost(double, tag = "1")]
     pub cost_threshold: f64,
@@ -581,6 +635,36 @@ pub mod leaderboard_service_client {
                 );
             self.inner.unary(req, path, codec).await
         }
+        /// A scored episode played again from its held seed and drawn (REST: .../episodes/{threshold}/{episode}/replay.json
+        /// and replay.gif). The first request queues the replay: `state` is "queued" until it is made, then "ready" with
+        /// the animation. NOT_FOUND: no such submission, threshold or episode, not scored, scored under another protocol, or
+        /// a checkpoint this server does not hold; INTERNAL: the replay failed, with the reason.
+        pub async fn get_episode_replay(
+            &mut self,
+            request: impl tonic::IntoRequest<super::GetEpisodeReplayRequest>,
+        ) -> std::result::Result<tonic::Response<super::EpisodeReplay>, tonic::Status> {
+            self.inner
+                .ready()
+                .await
+                .map_err(|e| {
+                    tonic::Status::unknown(
+                        format!("Service was not ready: {}", e.into()),
+                    )
+                })?;
+            let codec = tonic_prost::ProstCodec::default();
+            let path = http::uri::PathAndQuery::from_static(
+                "/dsrl.leaderboard.v1.LeaderboardService/GetEpisodeReplay",
+            );
+            let mut req = request.into_request();
+            req.extensions_mut()
+                .insert(
+                    GrpcMethod::new(
+                        "dsrl.leaderboard.v1.LeaderboardService",
+                        "GetEpisodeReplay",
+                    ),
+                );
+            self.inner.unary(req, path, codec).await
+        }
         /// Each task's table (only `task` when given) and each family's aggregate.
         pub async fn get_leaderboard(
             &mut self,
@@ -637,6 +721,14 @@ pub mod leaderboard_service_server {
             &self,
             request: tonic::Request<super::CancelSubmissionRequest>,
         ) -> std::result::Result<tonic::Response<super::Submission>, tonic::Status>;
+        /// A scored episode played again from its held seed and drawn (REST: .../episodes/{threshold}/{episode}/replay.json
+        /// and replay.gif). The first request queues the replay: `state` is "queued" until it is made, then "ready" with
+        /// the animation. NOT_FOUND: no such submission, threshold or episode, not scored, scored under another protocol, or
+        /// a checkpoint this server does not hold; INTERNAL: the replay failed, with the reason.
+        async fn get_episode_replay(
+            &self,
+            request: tonic::Request<super::GetEpisodeReplayRequest>,
+        ) -> std::result::Result<tonic::Response<super::EpisodeReplay>, tonic::Status>;
         /// Each task's table (only `task` when given) and each family's aggregate.
         async fn get_leaderboard(
             &self,
@@ -844,6 +936,55 @@ pub mod leaderboard_service_server {
                     let inner = self.inner.clone();
                     let fut = async move {
                         let method = CancelSubmissionSvc(inner);
+                        let codec = tonic_prost::ProstCodec::default();
+                        let mut grpc = tonic::server::Grpc::new(codec)
+                            .apply_compression_config(
+                                accept_compression_encodings,
+                                send_compression_encodings,
+                            )
+                            .apply_max_message_size_config(
+                                max_decoding_message_size,
+                                max_encoding_message_size,
+                            );
+                        let res = grpc.unary(method, req).await;
+                        Ok(res)
+                    };
+                    Box::pin(fut)
+                }
+                "/dsrl.leaderboard.v1.LeaderboardService/GetEpisodeReplay" => {
+                    #[allow(non_camel_case_types)]
+                    struct GetEpisodeReplaySvc<T: LeaderboardService>(pub Arc<T>);
+                    impl<
+                        T: LeaderboardService,
+                    > tonic::server::UnaryService<super::GetEpisodeReplayRequest>
+                    for GetEpisodeReplaySvc<T> {
+                        type Response = super::EpisodeReplay;
+                        type Future = BoxFuture<
+                            tonic::Response<Self::Response>,
+                            tonic::Status,
+                        >;
+                        fn call(
+                            &mut self,
+                            request: tonic::Request<super::GetEpisodeReplayRequest>,
+                        ) -> Self::Future {
+                            let inner = Arc::clone(&self.0);
+                            let fut = async move {
+                                <T as LeaderboardService>::get_episode_replay(
+                                        &inner,
+                                        request,
+                                    )
+                                    .await
+                            };
+                            Box::pin(fut)
+                        }
+                    }
+                    let accept_compression_encodings = self.accept_compression_encodings;
+                    let send_compression_encodings = self.send_compression_encodings;
+                    let max_decoding_message_size = self.max_decoding_message_size;
+                    let max_encoding_message_size = self.max_encoding_message_size;
+                    let inner = self.inner.clone();
+                    let fut = async move {
+                        let method = GetEpisodeReplaySvc(inner);
                         let codec = tonic_prost::ProstCodec::default();
                         let mut grpc = tonic::server::Grpc::new(codec)
                             .apply_compression_config(

@@ -288,6 +288,49 @@ impl LeaderboardService for LeaderboardGrpc {
         Ok(Response::new(submission(view, false)))
     }
 
+    async fn get_episode_replay(
+        &self,
+        request: Request<pb::GetEpisodeReplayRequest>,
+    ) -> Result<Response<pb::EpisodeReplay>, Status> {
+        use crate::leaderboard::renders::ReplayState;
+        let r = request.into_inner();
+        let leaderboard = &self.state.leaderboard;
+        let replay = match leaderboard.replay(r.submission, r.cost_threshold, r.episode).await? {
+            ReplayState::Queued { ahead } => pb::EpisodeReplay {
+                state: "queued".into(),
+                ahead: u32::try_from(ahead).unwrap_or(u32::MAX),
+                ..Default::default()
+            },
+            ReplayState::Failed(reason) => {
+                return Err(ApiError::Internal(format!("the replay failed: {reason}")).into());
+            }
+            ReplayState::Ready(replay) => {
+                let gif = leaderboard
+                    .replay_gif(r.submission, r.cost_threshold, r.episode)
+                    .await?;
+                pb::EpisodeReplay {
+                    state: "ready".into(),
+                    ahead: 0,
+                    task: replay.task,
+                    reward_return: replay.reward_return,
+                    cost_return: replay.cost_return,
+                    length: replay.length,
+                    rewards: replay.rewards,
+                    costs: replay.costs,
+                    frame_steps: replay.frame_steps,
+                    frame_width: replay.frame_width,
+                    frame_height: replay.frame_height,
+                    gif: gif.to_vec(),
+                    gif_sha256: replay.gif_sha256,
+                    protocol_version: replay.protocol_version,
+                    rendered_by: replay.rendered_by,
+                    rendered_at: replay.rendered_at,
+                }
+            }
+        };
+        Ok(Response::new(replay))
+    }
+
     async fn get_leaderboard(
         &self,
         request: Request<pb::GetLeaderboardRequest>,
