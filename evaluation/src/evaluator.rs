@@ -119,8 +119,7 @@ pub async fn play_episodes_counted(
     sessions: usize,
     progress: &std::sync::atomic::AtomicU32,
 ) -> Result<Vec<EpisodeScore>, EvaluationError> {
-    let run = seeds.len().div_ceil(sessions.max(1)).max(1);
-    let groups = seeds.chunks(run).map(|group| {
+    let groups = seeds.chunks(session_run(seeds.len(), sessions)).map(|group| {
         play_group(
             pool,
             task,
@@ -134,6 +133,11 @@ pub async fn play_episodes_counted(
     });
     let results = futures::future::try_join_all(groups).await?;
     Ok(results.into_iter().flatten().collect())
+}
+
+/// How many consecutive seeds each of `sessions` concurrent groups plays (the last may play fewer).
+fn session_run(seeds: usize, sessions: usize) -> usize {
+    seeds.div_ceil(sessions.max(1)).max(1)
 }
 
 /// Up to `envs` environments playing `seeds` in order: environment `i` starts with seed `i`, and each finished
@@ -204,15 +208,13 @@ async fn play_group(
     let local = |g: usize, slots: &[u32]| -> Vec<u32> { slots.iter().map(|&i| i - first[g]).collect() };
     // The requests in flight, oldest first: (group, what was asked).
     let mut in_flight = std::collections::VecDeque::new();
-    // The environment playing the watched episode, while it plays it.
-    let watched = |playing: &[usize], i: u32, watcher: &Option<&mut Watcher>| {
-        watcher.as_ref().is_some_and(|w| playing[i as usize] == w.episode)
-    };
     for (g, slots) in active.iter().enumerate() {
         if let Some(w) = watcher.as_deref()
             && let Some(&i) = slots.iter().find(|&&i| playing[i as usize] == w.episode)
         {
-            sessions[g].send_render(&local(g, &[i]), w.width, w.height).await?;
+            sessions[g]
+                .send_render(&local(g, &[i]), w.options.width, w.options.height)
+                .await?;
             in_flight.push_back((g, Asked::Render));
         }
         send_actions(&mut sessions[g], &mut rollout, slots, &local(g, slots), &obs, obs_dim).await?;
@@ -243,13 +245,13 @@ async fn play_group(
                     score.cost_return += f64::from(step.costs[row] as f32);
                     score.length += 1;
                     let length = score.length;
-                    if watched(&playing, i, &watcher)
-                        && let Some(w) = watcher.as_deref_mut()
+                    if let Some(w) = watcher.as_deref_mut()
+                        && playing[i as usize] == w.episode
                     {
                         w.rewards.push(step.rewards[row]);
                         w.costs.push(step.costs[row]);
                         w.ended = step.terminated[row] || step.truncated[row];
-                        if w.ended || length.is_multiple_of(w.stride) {
+                        if w.ended || length.is_multiple_of(w.options.stride) {
                             w.frame_steps.push(length);
                             draw = Some(i);
                         }
@@ -272,7 +274,9 @@ async fn play_group(
                 }
                 active[g] = still;
                 if let (Some(i), Some(w)) = (draw, watcher.as_deref()) {
-                    sessions[g].send_render(&local(g, &[i]), w.width, w.height).await?;
+                    sessions[g]
+                        .send_render(&local(g, &[i]), w.options.width, w.options.height)
+                        .await?;
                     in_flight.push_back((g, Asked::Render));
                     if w.ended {
                         continue;
@@ -297,7 +301,9 @@ async fn play_group(
                 if let Some(w) = watcher.as_deref()
                     && let Some(&i) = reset.iter().find(|&&i| playing[i as usize] == w.episode)
                 {
-                    sessions[g].send_render(&local(g, &[i]), w.width, w.height).await?;
+                    sessions[g]
+                        .send_render(&local(g, &[i]), w.options.width, w.options.height)
+                        .await?;
                     in_flight.push_back((g, Asked::Render));
                 }
                 active[g].extend(reset);
@@ -374,9 +380,7 @@ pub struct Recording {
 struct Watcher {
     /// Its index among the group's seeds.
     episode: usize,
-    stride: u32,
-    width: u32,
-    height: u32,
+    options: WatchOptions,
     rewards: Vec<f64>,
     costs: Vec<f64>,
     frames: Vec<Vec<u8>>,
@@ -410,13 +414,14 @@ pub async fn replay_episode(
     if options.stride == 0 {
         return Err(EvaluationError::InvalidArgument("a frame stride of 0 steps".into()));
     }
-    let run = seeds.len().div_ceil(sessions.max(1)).max(1);
-    let group = &seeds[episode / run * run..((episode / run + 1) * run).min(seeds.len())];
+    let run = session_run(seeds.len(), sessions);
+    let group = seeds
+        .chunks(run)
+        .nth(episode / run)
+        .expect("the episode is among the seeds");
     let mut watcher = Watcher {
         episode: episode % run,
-        stride: options.stride,
-        width: options.width,
-        height: options.height,
+        options,
         rewards: Vec::new(),
         costs: Vec::new(),
         frames: Vec::new(),

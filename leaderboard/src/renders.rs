@@ -14,8 +14,6 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use dsrl_evaluation::evaluator::{Recording, WatchOptions, replay_episode};
-use dsrl_evaluation::inference::{IsolatedPolicy, PolicySource};
-use dsrl_policy::{Policy, checkpoint};
 use dsrl_service::error::ApiError;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStoreExt, PutPayload};
@@ -80,7 +78,11 @@ pub struct EpisodeReplay {
 /// Where a requested replay stands.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ReplayState {
-    Ready(Box<EpisodeReplay>),
+    /// Made: the record, and the key its animation is read with ([`Leaderboard::stored_gif`]).
+    Ready {
+        replay: Box<EpisodeReplay>,
+        key: EpisodeKey,
+    },
     /// Queued: `ahead` replays come first; none starts while submissions wait or are scored.
     Queued {
         ahead: usize,
@@ -199,7 +201,10 @@ impl Leaderboard {
     pub async fn replay(&self, submission: i64, cost_threshold: f64, episode: u32) -> Result<ReplayState, ApiError> {
         let key = self.replayable(submission, cost_threshold, episode).await?;
         if let Some(replay) = self.stored_replay(key).await? {
-            return Ok(ReplayState::Ready(Box::new(replay)));
+            return Ok(ReplayState::Ready {
+                replay: Box::new(replay),
+                key,
+            });
         }
         if let Some(reason) = lock(&self.renders.failed).get(&key) {
             return Ok(ReplayState::Failed(reason.clone()));
@@ -218,6 +223,11 @@ impl Leaderboard {
                  replayed yet: GET its replay.json to queue it"
             )));
         };
+        self.stored_gif(key, &replay).await
+    }
+
+    /// The stored animation of a replay whose record is `replay`, checked against the record's size.
+    pub async fn stored_gif(&self, key: EpisodeKey, replay: &EpisodeReplay) -> Result<Bytes, ApiError> {
         let gif = self.store.get(&key.object("gif")).await?.bytes().await?;
         if gif.len() as u64 != replay.gif_bytes {
             return Err(ApiError::Internal(format!(
@@ -281,31 +291,13 @@ impl Leaderboard {
             width: FRAME_SIDE,
             height: FRAME_SIDE,
         };
-        // The policy runs where scoring ran it: in a memory-capped child process, or here in tests that embed the
-        // server.
-        let (isolated, local);
-        let policy = match &self.policy_program {
-            Some(program) => {
-                isolated = IsolatedPolicy {
-                    program: program.clone(),
-                    memory_limit_bytes: self.config.policy_memory_limit_bytes,
-                    request_timeout: Duration::from_secs(self.config.policy_request_seconds.max(1)),
-                    config,
-                    weights,
-                };
-                PolicySource::Isolated(&isolated)
-            }
-            None => {
-                let config = checkpoint::parse_config(&config).map_err(|e| ApiError::Internal(e.to_string()))?;
-                let tensors = checkpoint::parse_weights(&weights).map_err(|e| ApiError::Internal(e.to_string()))?;
-                local = Policy::load(&config, &tensors).map_err(|e| ApiError::Internal(e.to_string()))?;
-                PolicySource::Local(&local)
-            }
-        };
+        // The policy runs where scoring ran it.
+        let policy =
+            crate::runner::prepare_policy(self, config, weights).map_err(|e| ApiError::Internal(e.to_string()))?;
         let recording = replay_episode(
             &self.simulators,
             task,
-            policy,
+            policy.source(),
             threshold,
             &seeds,
             self.config.envs_per_session as usize,

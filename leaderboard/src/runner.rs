@@ -13,6 +13,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Duration;
 
+use bytes::Bytes;
 use dsrl_policy::Policy;
 use dsrl_policy::checkpoint;
 
@@ -228,6 +229,45 @@ async fn injected_fault(leaderboard: &Leaderboard, job: &Job) {
     }
 }
 
+/// A checkpoint ready to play where scoring plays it: built here (tests that embed the server) or handed to a
+/// memory-capped child process (`inference`).
+pub(crate) enum PreparedPolicy {
+    Local(Box<Policy>),
+    Isolated(IsolatedPolicy),
+}
+
+impl PreparedPolicy {
+    pub(crate) fn source(&self) -> PolicySource<'_> {
+        match self {
+            PreparedPolicy::Local(policy) => PolicySource::Local(policy),
+            PreparedPolicy::Isolated(isolated) => PolicySource::Isolated(isolated),
+        }
+    }
+}
+
+/// A stored checkpoint's bytes made ready to play, as this process plays submitted policies (the evaluators and
+/// the replays alike).
+pub(crate) fn prepare_policy(
+    leaderboard: &Leaderboard,
+    config: Bytes,
+    weights: Bytes,
+) -> Result<PreparedPolicy, dsrl_policy::PolicyError> {
+    match &leaderboard.policy_program {
+        Some(program) => Ok(PreparedPolicy::Isolated(IsolatedPolicy {
+            program: program.clone(),
+            memory_limit_bytes: leaderboard.config.policy_memory_limit_bytes,
+            request_timeout: Duration::from_secs(leaderboard.config.policy_request_seconds.max(1)),
+            config,
+            weights,
+        })),
+        None => {
+            let config = checkpoint::parse_config(&config)?;
+            let tensors = checkpoint::parse_weights(&weights)?;
+            Ok(PreparedPolicy::Local(Box::new(Policy::load(&config, &tensors)?)))
+        }
+    }
+}
+
 /// Plays `episodes_per_threshold` held-seed episodes at each of the task's thresholds, all thresholds at once.
 async fn evaluate(leaderboard: &Leaderboard, job: &Job, progress: &AtomicU32) -> Outcome {
     #[cfg(debug_assertions)]
@@ -236,33 +276,13 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job, progress: &AtomicU32) ->
         Ok(task) => task,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
-    // Each checkpoint: built here (tests that embed the server) or handed to child processes (`inference`).
-    enum Loaded {
-        Local(Box<Policy>),
-        Isolated(IsolatedPolicy),
-    }
     let mut policies = Vec::new();
     for record in &job.checkpoints {
         let (config_bytes, weights_bytes) = match leaderboard.load(record).await {
             Ok(bytes) => bytes,
             Err(e) => return Outcome::Interrupted(format!("reading the checkpoint: {e}")),
         };
-        let loaded = match &leaderboard.policy_program {
-            Some(program) => Ok(Loaded::Isolated(IsolatedPolicy {
-                program: program.clone(),
-                memory_limit_bytes: leaderboard.config.policy_memory_limit_bytes,
-                request_timeout: Duration::from_secs(leaderboard.config.policy_request_seconds.max(1)),
-                config: config_bytes,
-                weights: weights_bytes,
-            })),
-            None => checkpoint::parse_config(&config_bytes)
-                .and_then(|config| {
-                    let tensors = checkpoint::parse_weights(&weights_bytes)?;
-                    Policy::load(&config, &tensors)
-                })
-                .map(|p| Loaded::Local(Box::new(p))),
-        };
-        match loaded {
+        match prepare_policy(leaderboard, config_bytes, weights_bytes) {
             Ok(policy) => policies.push((record.cost_threshold, policy)),
             Err(e) => return Outcome::Failed(format!("loading the checkpoint {}: {e}", record.slot)),
         }
@@ -271,10 +291,7 @@ async fn evaluate(leaderboard: &Leaderboard, job: &Job, progress: &AtomicU32) ->
         let policy = policies
             .iter()
             .find(|(t, _)| t.is_none() || *t == Some(threshold))
-            .map(|(_, p)| match p {
-                Loaded::Local(policy) => PolicySource::Local(policy),
-                Loaded::Isolated(isolated) => PolicySource::Isolated(isolated),
-            });
+            .map(|(_, p)| p.source());
         let seeds = leaderboard
             .seeds
             .seeds(task.id.as_str(), index, job.episodes_per_threshold);

@@ -304,10 +304,8 @@ impl LeaderboardService for LeaderboardGrpc {
             ReplayState::Failed(reason) => {
                 return Err(ApiError::Internal(format!("the replay failed: {reason}")).into());
             }
-            ReplayState::Ready(replay) => {
-                let gif = leaderboard
-                    .replay_gif(r.submission, r.cost_threshold, r.episode)
-                    .await?;
+            ReplayState::Ready { replay, key } => {
+                let gif = leaderboard.stored_gif(key, &replay).await?;
                 pb::EpisodeReplay {
                     state: "ready".into(),
                     ahead: 0,

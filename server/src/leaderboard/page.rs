@@ -769,7 +769,7 @@ pub fn render_episode(submission: i64, threshold: f64, episode: u32, state: &Rep
                 escape(reason)
             );
         }
-        ReplayState::Ready(replay) => {
+        ReplayState::Ready { replay, .. } => {
             let base = format!("/v1/submissions/{submission}/episodes/{threshold}/{episode}");
             let _ = writeln!(
                 html,

@@ -424,7 +424,7 @@ pub async fn episode_replay(
     use crate::leaderboard::renders::ReplayState;
     let (id, threshold, episode) = episode_path(&id, &threshold, &episode)?;
     Ok(match state.leaderboard.replay(id, threshold, episode).await? {
-        ReplayState::Ready(replay) => Json(replay).into_response(),
+        ReplayState::Ready { replay, .. } => Json(replay).into_response(),
         ReplayState::Queued { ahead } => (
             StatusCode::ACCEPTED,
             [(header::RETRY_AFTER, HeaderValue::from_static("5"))],
