@@ -629,6 +629,11 @@ impl Client {
         Self::json_of(response, "submit response").await
     }
 
+    /// `GET /v1/users/{name}/submissions`: every submission a user made, newest first.
+    pub async fn user_submissions(&self, name: &str) -> Result<serde_json::Value, ClientError> {
+        self.get_json(&format!("/v1/users/{}/submissions", seg(name))).await
+    }
+
     pub async fn submission(&self, id: i64) -> Result<serde_json::Value, ClientError> {
         self.get_json(&format!("/v1/submissions/{id}")).await
     }

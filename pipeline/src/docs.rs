@@ -183,7 +183,7 @@ fn agreement_section(
         }
     );
     // Which builds trained them: an entry of a build with uncommitted sources is not reproducible from its commit
-    // alone (`data/reference_entries.sh --reproduce` trains it again with a clean one).
+    // alone (`dsrl-admin reference --reproduce` trains it again with a clean one).
     let mut commits: BTreeMap<&str, usize> = BTreeMap::new();
     for e in current {
         *commits.entry(e.code_commit.as_str()).or_default() += 1;

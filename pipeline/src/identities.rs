@@ -80,6 +80,11 @@ impl Identities {
     pub fn starters(&self) -> &BTreeMap<String, String> {
         &self.starters
     }
+
+    /// The committed full build's version of `task`, where one is committed.
+    pub fn full_build(&self, task: &str) -> Option<&str> {
+        self.full.get(task).map(String::as_str)
+    }
 }
 
 #[cfg(test)]

@@ -16,6 +16,7 @@ pub mod hosted;
 pub mod identities;
 pub mod import_dsrl;
 pub mod recipe;
+pub mod reference;
 #[cfg(test)]
 mod typed_numbers;
 

@@ -40,6 +40,18 @@ enum Command {
     /// builds every task, in the plan's order (a warm start's source first). How long each task took, and what it
     /// cost in CPU, is in its record and in data/README.md ("Full builds").
     Build(BuildArgs),
+    /// Make the leaderboard's reference entries as the committed plan (data/reference/plan.toml) says: train each
+    /// phase's models with dsrl-train, have a scoring server score every entry on the held seeds, and write each
+    /// scored entry into the phase's results file (data/reference/results.jsonl, or full_builds.jsonl for the
+    /// full-build phases). Run from the repository root.
+    ///
+    /// Without --server it starts a private dsrl-server (its state, with its own held-seed secret, in the phase's
+    /// state folder; quotas and the evaluation deadline lifted) and stops it at the end; a full-build phase hosts
+    /// each task's finished build from --full-builds there as the task's latest. Resumable: killed at any point, the
+    /// same command resumes (finished models are kept, submissions made are waited for, entries the results file
+    /// holds at the same budget and dataset version are neither trained nor submitted). A scoring that fails for the
+    /// service's sake is submitted again twice at most; one failed as the checkpoint's fault stops the run.
+    Reference(ReferenceArgs),
     /// One task's full build (what `build` runs in a child process; progress as JSON lines on stdout).
     #[command(hide = true)]
     BuildTask {
@@ -203,6 +215,96 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         failed.join(", ")
     );
     Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+struct ReferenceArgs {
+    /// Phases of the plan to run, in this order (e.g. 1 2 full); --list shows them.
+    phases: Vec<String>,
+    /// The plan.
+    #[arg(long, default_value = dsrl_pipeline::reference::plan::PLAN_PATH)]
+    plan: PathBuf,
+    /// Print the plan's phases and exit.
+    #[arg(long)]
+    list: bool,
+    /// Only this task of the phases (repeatable).
+    #[arg(long = "task")]
+    tasks: Vec<String>,
+    /// Models trained at once, one core each.
+    #[arg(long, default_value_t = 2)]
+    jobs: usize,
+    /// Evaluators of the private scoring server (jobs scored at once).
+    #[arg(long, default_value_t = 2)]
+    evaluators: u32,
+    /// State folder (models, submissions, the private server) instead of ~/.dsrl/<the phase's state>.
+    #[arg(long)]
+    state: Option<PathBuf>,
+    /// Results file instead of the phase's.
+    #[arg(long)]
+    results: Option<PathBuf>,
+    /// Where the full builds are (dsrl-admin build's --root; default ~/.dsrl/full).
+    #[arg(long)]
+    full_builds: Option<PathBuf>,
+    /// Train, submit nothing.
+    #[arg(long)]
+    train_only: bool,
+    /// Train the phase's recorded entries again from scratch (into <state>/reproduced) and submit nothing: an entry
+    /// whose checkpoints come out with the digest it was scored with takes the new training record (the commit of
+    /// this dsrl-train, its seconds), keeping its scoring; one that does not is left as it is, and the run fails.
+    #[arg(long, conflicts_with = "train_only")]
+    reproduce: bool,
+    /// Train on this many GPUs (cuda:0 .. cuda:G-1, models dealt in turn; --jobs at a time in all) with a
+    /// dsrl-train built by scripts/build-cuda.sh.
+    #[arg(long, default_value_t = 0)]
+    gpus: u32,
+    /// Score on this server instead of a private one, as the user of --token named --user (its daily quota must
+    /// allow the entries; starter phases only).
+    #[arg(long, env = "DSRL_SERVER")]
+    server: Option<String>,
+    #[arg(long, env = "DSRL_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    #[arg(long, env = "DSRL_USER")]
+    user: Option<String>,
+}
+
+async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
+    let plan = dsrl_pipeline::reference::plan::Plan::load(&args.plan)?;
+    if args.list || args.phases.is_empty() {
+        for phase in &plan.phases {
+            println!("{:<12} {}", phase.name, phase.about);
+        }
+        anyhow::ensure!(args.list, "name the phases to run (the plan's are above)");
+        return Ok(());
+    }
+    let home = std::env::var_os("HOME").map(PathBuf::from).unwrap_or_default();
+    // dsrl-train and dsrl-server: named in the environment, else beside this binary, else on PATH.
+    let sibling = |name: &str, variable: &str| -> PathBuf {
+        if let Some(path) = std::env::var_os(variable) {
+            return PathBuf::from(path);
+        }
+        let beside = std::env::current_exe().ok().and_then(|e| Some(e.parent()?.join(name)));
+        beside.filter(|p| p.is_file()).unwrap_or_else(|| PathBuf::from(name))
+    };
+    let options = dsrl_pipeline::reference::Options {
+        plan: args.plan,
+        phases: args.phases,
+        tasks: args.tasks,
+        jobs: args.jobs,
+        evaluators: args.evaluators,
+        state: args.state,
+        results: args.results,
+        full_builds: args.full_builds.unwrap_or_else(|| home.join(".dsrl/full")),
+        train_only: args.train_only,
+        reproduce: args.reproduce,
+        gpus: args.gpus,
+        server: args.server,
+        token: args.token,
+        user: args.user,
+        train_binary: sibling("dsrl-train", "DSRL_TRAIN"),
+        server_binary: sibling("dsrl-server", "DSRL_SERVER_BIN"),
+        repo: std::env::current_dir()?,
+    };
+    dsrl_pipeline::reference::run(&options).await
 }
 
 #[derive(clap::Args, Debug)]
@@ -500,6 +602,7 @@ async fn run() -> anyhow::Result<()> {
         Command::Collect(args) => collect(args).await,
         Command::Evaluate(args) => evaluate(args).await,
         Command::Build(args) => build(args).await,
+        Command::Reference(args) => reference(args).await,
         Command::BuildTask {
             task,
             plan,

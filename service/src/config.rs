@@ -64,7 +64,7 @@ pub struct LeaderboardConfig {
     /// horizon × episodes per threshold × thresholds), checked before it is queued: a job's worst case is minutes.
     pub max_job_multiply_adds: u64,
     /// Import the committed reference results (`data/reference/results.jsonl`, compiled in) at start-up as the
-    /// leaderboard's reference entries. Off on the server that scores them (`data/reference_entries.sh`).
+    /// leaderboard's reference entries. Off on the server that scores them (`dsrl-admin reference`).
     pub import_reference_results: bool,
 }
 

@@ -3,7 +3,7 @@
 //! threshold with the training recorded; `dsrl-train cdt` trains one model (at a small batch: OSRL's 2048 takes tens
 //! of seconds a step) with OSRL's return targets; `dsrl-train caps` one model that takes each threshold as its
 //! episode's cost budget; `dsrl-train fisor` and `dsrl-train lspc` one model each that takes several network passes
-//! per action. `data/reference_entries.sh` trains all ten, has the leaderboard score each on real
+//! per action. `dsrl-admin reference` trains all ten, has the leaderboard score each on real
 //! simulator workers with the paper's protocol (3 thresholds × 20 episodes), records each in the results file and
 //! resumes without redoing anything.
 
@@ -229,16 +229,16 @@ fn each_baseline_records_its_training_and_the_same_seed_trains_the_same_weights(
         "nothing is written for a device that is not there"
     );
 
-    // Each of these is scored by the leaderboard in the reference script's test below (every method, trained by
-    // the script and scored with the paper's protocol), which makes its own checkpoints the same way.
+    // Each of these is scored by the leaderboard in the reference command's test below (every method, trained by
+    // the command and scored with the paper's protocol), which makes its own checkpoints the same way.
 }
 
-/// `data/reference_entries.sh`, the one command that reproduces the reference table, end to end on a server hosting
-/// the BallRun starter: it trains every method (a few steps, two jobs at a time: one per threshold for the
-/// per-threshold methods), submits each entry in turn and waits for its score.
+/// `dsrl-admin reference`, the one command that reproduces the reference table from its plan, end to end on a
+/// server hosting the BallRun starter: it trains every method (a few steps, two jobs at a time: one per threshold
+/// for the per-threshold methods), submits each entry in turn and waits for its score.
 #[test]
-fn the_reference_entries_script_trains_scores_and_records_every_method_and_resumes() {
-    // Two episodes per threshold: the script's path, not the protocol's count, is what is tested (the protocol's
+fn the_reference_command_trains_scores_and_records_every_method_and_resumes() {
+    // Two episodes per threshold: the command's path, not the protocol's count, is what is tested (the protocol's
     // twenty are scored in the leaderboard's own test).
     let (env, token) = scoring_server(&[
         ("DSRL__SIMULATORS__LOCAL_WORKERS", "2"),
@@ -247,28 +247,15 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
     ]);
     let state = env.path("reference-state");
     let results = env.path("results.jsonl");
-    let run = |extra: &[&str]| {
-        let budgets = [
-            "--steps",
-            "3",
-            "--cdt-steps",
-            "1",
-            "--caps-steps",
-            "3",
-            "--batch-size",
-            "16",
-            "--jobs",
-            "2",
-        ];
-        let methods = [
-            "--methods",
-            "bc-all bc-safe cdt bcql bearl cpq coptidice caps fisor lspc",
-        ];
-        reference_entries(&env, &token, &[extra, &budgets, &methods].concat())
-    };
+    let plan = concat!(
+        "methods = [\"bc-all\", \"bc-safe\", \"cdt\", \"bcql\", \"bearl\", \"cpq\", \"coptidice\", ",
+        "\"caps\", \"fisor\", \"lspc\"]\n",
+        "steps = 3\nsteps_for = { cdt = 1, caps = 3 }\nbatch_size = 16\n"
+    );
+    let run = |extra: &[&str]| reference(&env, &token, plan, &[&["--jobs", "2"], extra].concat());
     let output = run(&[]);
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "reference_entries.sh failed: {stderr}");
+    assert!(output.status.success(), "dsrl-admin reference failed: {stderr}");
     assert!(stderr.contains("training 20 models (2 at a time)"), "{stderr}");
     // BEAR-Lag trains three times --steps, as OSRL's 300,000 against 100,000.
     let policies = state.join("policies").join(TASK).join("seed-0");
@@ -375,32 +362,33 @@ fn the_reference_entries_script_trains_scores_and_records_every_method_and_resum
 }
 
 /// A scoring the leaderboard fails as the checkpoint's fault (here: a policy memory limit too small to load any
-/// weights) would fail again, and the server refuses the same checkpoint while that submission stands: the script
+/// weights) would fail again, and the server refuses the same checkpoint while that submission stands: the command
 /// stops with the reason after one submission instead of "retrying" the submission it already has.
 #[test]
-fn the_reference_entries_script_stops_at_a_scoring_failed_for_the_checkpoints_sake() {
+fn the_reference_command_stops_at_a_scoring_failed_for_the_checkpoints_sake() {
     let (env, token) = scoring_server(&[
         ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
         ("DSRL__LEADERBOARD__POLICY_MEMORY_LIMIT_BYTES", "50000000"),
     ]);
-    let output = reference_entries(
+    let output = reference(
         &env,
         &token,
-        &["--steps", "3", "--batch-size", "16", "--methods", "bc-all"],
+        "methods = [\"bc-all\"]\nsteps = 3\nbatch_size = 16\n",
+        &[],
     );
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success(), "{stderr}");
     assert!(stderr.contains("MB memory limit"), "{stderr}");
-    assert!(stderr.contains("failed it as the checkpoint's fault"), "{stderr}");
+    assert!(stderr.contains("as the checkpoint's fault: not submitted again"), "{stderr}");
     assert_eq!(stderr.matches("submitted as").count(), 1, "{stderr}");
     assert!(!env.path("results.jsonl").exists(), "nothing is recorded");
 }
 
 /// A model whose training fails leaves no marker (a rerun trains it again rather than taking it for done) and
-/// stops the script once the models training beside it have finished (their work is kept); a script stopped by a
+/// stops the command once the models training beside it have finished (their work is kept); a command stopped by a
 /// signal stops its models too, so none trains on beside the copies a rerun would start.
 #[test]
-fn the_reference_entries_script_stops_whole_at_a_failed_training_or_a_signal() {
+fn the_reference_command_stops_whole_at_a_failed_training_or_a_signal() {
     let (env, token) = scoring_server(&[("DSRL__SIMULATORS__LOCAL_WORKERS", "1")]);
     let models = env.path("reference-state").join("policies").join(TASK).join("seed-0");
     let markers = || -> Vec<String> {
@@ -413,20 +401,13 @@ fn the_reference_entries_script_stops_whole_at_a_failed_training_or_a_signal() {
         found.retain(|n| n.starts_with(".trained"));
         found
     };
-    // BCQ-Lag's steps are refused by dsrl-train's parser.
-    let args = [
-        "--steps",
-        "3",
-        "--steps-for",
-        "bcql=-1",
-        "--jobs",
-        "2",
-        "--methods",
-        "bc-all bcql",
-    ];
-    let output = reference_entries(&env, &token, &args);
+    // BCQ-Lag cannot write its models: a file stands where its folder goes.
+    std::fs::create_dir_all(&models).unwrap();
+    std::fs::write(models.join("bcql"), b"in the way").unwrap();
+    let output = reference(&env, &token, "methods = [\"bc-all\", \"bcql\"]\nsteps = 3\n", &["--jobs", "2"]);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success(), "{stderr}");
+    assert!(stderr.contains("failed to train"), "{stderr}");
     assert_eq!(markers(), [".trained-bc-all---steps-3-batch-osrl"], "{stderr}");
 
     // Stopped while BC-All trains (long enough to be still training): nothing is left training into the state.
@@ -439,7 +420,7 @@ fn the_reference_entries_script_stops_whole_at_a_failed_training_or_a_signal() {
             .filter(|c| c.contains(&state) && c.contains("dsrl-train bc"))
             .count()
     };
-    let mut script = reference_entries_command(&env, &token, &["--steps", "100000000", "--methods", "bc-all"])
+    let mut command = reference_command(&env, &token, "methods = [\"bc-all\"]\nsteps = 100000000\n", &[])
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
@@ -448,18 +429,18 @@ fn the_reference_entries_script_stops_whole_at_a_failed_training_or_a_signal() {
         assert!(std::time::Instant::now() < deadline, "BC-All never started training");
         std::thread::sleep(std::time::Duration::from_millis(200));
     }
-    let kill = Command::new("kill").args(["-TERM", &script.id().to_string()]).status();
+    let kill = Command::new("kill").args(["-TERM", &command.id().to_string()]).status();
     assert!(kill.unwrap().success());
-    assert!(!script.wait().unwrap().success());
+    assert!(!command.wait().unwrap().success());
     std::thread::sleep(std::time::Duration::from_millis(500));
-    assert_eq!(training(), 0, "a model trains on after its script stopped");
+    assert_eq!(training(), 0, "a model trains on after its command stopped");
     assert_eq!(markers(), [".trained-bc-all---steps-3-batch-osrl"]);
 }
 
 /// All of a run's tasks train in one pool (a task's last models beside the next task's first, no core waiting for a
 /// task to finish), and each method is handed in as soon as its own models have trained, whichever task it is of.
 #[test]
-fn the_reference_entries_script_trains_all_its_tasks_in_one_pool() {
+fn the_reference_command_trains_all_its_tasks_in_one_pool() {
     const CAR_RUN: &str = "OfflineCarRun-v0";
     let (env, token) = scoring_server(&[
         ("DSRL__SIMULATORS__LOCAL_WORKERS", "2"),
@@ -470,18 +451,8 @@ fn the_reference_entries_script_trains_all_its_tasks_in_one_pool() {
     env.cli
         .run(&["admin", "ingest", "--task", CAR_RUN, crate::s(&car_run)])
         .ok();
-    let args = [
-        "--steps",
-        "3",
-        "--batch-size",
-        "16",
-        "--jobs",
-        "2",
-        "--methods",
-        "bc-all",
-        CAR_RUN,
-    ];
-    let output = reference_entries(&env, &token, &args);
+    let plan = format!("tasks = [\"{CAR_RUN}\", \"{TASK}\"]\nmethods = [\"bc-all\"]\nsteps = 3\nbatch_size = 16\n");
+    let output = reference(&env, &token, &plan, &["--jobs", "2"]);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
     assert_eq!(stderr.matches("training ").count(), 1, "{stderr}");
@@ -517,25 +488,37 @@ fn scoring_server(settings: &[(&str, &str)]) -> (crate::Env, String) {
     (env, token)
 }
 
-/// `data/reference_entries.sh ARGS` on BallRun against `env`'s server as the user of `token`, its state and
-/// results file in `env`'s folder.
-fn reference_entries(env: &crate::Env, token: &str, args: &[&str]) -> std::process::Output {
-    reference_entries_command(env, token, args).output().unwrap()
+/// `dsrl-admin reference` over a plan of one phase with one run (`run`: the keys of a `[[phase.run]]`, on BallRun
+/// unless it names `tasks`) against `env`'s server as the user of `token`, its state and results file in `env`'s
+/// folder.
+fn reference(env: &crate::Env, token: &str, run: &str, args: &[&str]) -> std::process::Output {
+    reference_command(env, token, run, args).output().unwrap()
 }
 
-fn reference_entries_command(env: &crate::Env, token: &str, args: &[&str]) -> Command {
-    let mut command = Command::new(dsrl_e2e::repo_root().join("data/reference_entries.sh"));
+fn reference_command(env: &crate::Env, token: &str, run: &str, args: &[&str]) -> Command {
+    let plan = env.path("plan.toml");
+    let tasks = if run.contains("tasks =") {
+        String::new()
+    } else {
+        format!("tasks = [\"{TASK}\"]\n")
+    };
+    std::fs::write(
+        &plan,
+        format!("[[phase]]\nname = \"test\"\nabout = \"the e2e test's\"\n[[phase.run]]\n{tasks}{run}"),
+    )
+    .unwrap();
+    let mut command = Command::new(dsrl_e2e::bin("dsrl-admin"));
     command
+        .current_dir(dsrl_e2e::repo_root())
+        .args(["reference", "test", "--plan"])
+        .arg(&plan)
         .args(args)
-        .arg(TASK)
         .arg("--state")
         .arg(env.path("reference-state"))
         .arg("--results")
         .arg(env.path("results.jsonl"))
-        .env("DSRL_SERVER", &env.server.url)
-        .env("DSRL_TOKEN", token)
+        .args(["--server", &env.server.url, "--token", token, "--user", "reference"])
         .env("DSRL_TRAIN", dsrl_e2e::bin("dsrl-train"))
-        .env("DSRL_CLIENT", dsrl_e2e::bin("dsrl-client"))
         .env("DSRL_DATASET_DIR", env.path("cache"));
     command
 }

@@ -182,13 +182,13 @@ enum Command {
     /// Writes a scored model as a line of the reference results file (data/reference/results.jsonl): its budget,
     /// seed, dataset version and code commit from the models' policy.json, its checkpoint digest, protocol version
     /// and every episode from the leaderboard's JSON for its submission (`dsrl-client status ID --json`). Replaces
-    /// the entry of the same task, method and seed. `data/reference_entries.sh` runs it after each scoring. The
+    /// the entry of the same task, method and seed. `dsrl-admin reference` runs it after each scoring. The
     /// model's checkpoints must have the digest the submission scored.
     ///
     /// With --reproduce instead of --submission: the model was trained again from scratch, and the entry already
     /// in the file takes its training record (code commit, seconds) when its checkpoints have the digest the entry
     /// was scored with (so the networks are the ones scored); otherwise it fails and changes nothing
-    /// (`data/reference_entries.sh --reproduce`).
+    /// (`dsrl-admin reference --reproduce`).
     ReferenceEntry {
         /// The model folder that was submitted (e.g. policies/<task>/seed-0/bc-safe), or trained again.
         #[arg(long)]

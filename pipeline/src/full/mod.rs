@@ -83,6 +83,11 @@ fn state_record(state: &Path, task: &str) -> anyhow::Result<Option<(BuildRecord,
     record::read(&dir, task)
 }
 
+/// Whether the build in state folder `state` has finished (its record is written last).
+pub fn finished(state: &Path, task: &str) -> anyhow::Result<bool> {
+    Ok(state_record(state, task)?.is_some())
+}
+
 /// Runs the builds: every task in order, `jobs` at a time, a warm start's source finished before the task that
 /// starts from it. Returns each task's outcome; a failed task does not stop the others.
 pub async fn build(options: &BuildOptions) -> anyhow::Result<Vec<Outcome>> {
