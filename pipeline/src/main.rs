@@ -271,7 +271,7 @@ async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
     let plan = dsrl_pipeline::reference::plan::Plan::load(&args.plan)?;
     if args.list || args.phases.is_empty() {
         for phase in &plan.phases {
-            println!("{:<12} {}", phase.name, phase.about);
+            println!("{:<15} {}", phase.name, phase.about);
         }
         anyhow::ensure!(args.list, "name the phases to run (the plan's are above)");
         return Ok(());

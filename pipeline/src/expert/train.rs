@@ -518,6 +518,134 @@ pub struct Training<'a> {
     pub warm_start: Option<WarmStartWeights>,
 }
 
+/// A learner's saved tensors, by name.
+type Tensors = HashMap<String, dsrl_policy::Tensor>;
+
+/// The state a run starts from: its last save in `root`, or a fresh start (the warm start's observation statistics
+/// where there is one). Returns the state, the trajectory buffer and the saved learner's tensors (a resumed run).
+fn resume_or_start(
+    root: &Path,
+    recipe: &Recipe,
+    expert: &ExpertSettings,
+    warm_start: Option<&WarmStartWeights>,
+) -> anyhow::Result<(State, TrajectoryBuffer<Episode>, Option<Tensors>)> {
+    let limits = recipe.buffer_limits();
+    if let Some((state, tensors, episodes)) = load(root)? {
+        let stored = episodes
+            .into_iter()
+            .map(|e| Stored {
+                reward_return: e.reward_return,
+                cost_return: e.cost_return,
+                payload: e,
+            })
+            .collect();
+        let buffer = TrajectoryBuffer::restore(limits, state.buffer.clone(), stored).map_err(anyhow::Error::msg)?;
+        tracing::info!(
+            collects = state.collects,
+            steps = state.steps,
+            "resuming the expert from its last save"
+        );
+        return Ok((state, buffer, Some(tensors)));
+    }
+    let buffer = TrajectoryBuffer::new(limits, recipe.seed).map_err(anyhow::Error::msg)?;
+    let state = State {
+        collects: 0,
+        steps: 0,
+        // Apart from the buffer's and the episode seeds' streams.
+        noise: Noise::seeded(recipe.seed ^ 0x5EED_0FE7_BE57),
+        learner: LearnerState {
+            lagrangian: super::lagrangian::PidLagrangian::new(
+                expert.lagrangian.kp,
+                expert.lagrangian.ki,
+                expert.lagrangian.kd,
+            ),
+            actor_steps: 0,
+            critic_steps: 0,
+            observation_stats: warm_start.and_then(|w| w.observation_stats.clone()),
+        },
+        buffer: buffer.snapshot(),
+        buffered: Vec::new(),
+        max_action: None,
+        log: Vec::new(),
+    };
+    Ok((state, buffer, None))
+}
+
+/// The global environment numbers of each session, in order.
+fn session_members(layout: &[(usize, u32)]) -> Vec<Vec<u32>> {
+    let session_count = layout.last().map_or(0, |&(s, _)| s + 1);
+    (0..session_count)
+        .map(|s| {
+            (0..layout.len() as u32)
+                .filter(|&j| layout[j as usize].0 == s)
+                .collect()
+        })
+        .collect()
+}
+
+/// Opens a segment's sessions, each environment seeded for collect `collects`.
+async fn open_sessions(
+    pool: &SimulatorPool,
+    recipe: &Recipe,
+    members: &[Vec<u32>],
+    collects: u64,
+) -> anyhow::Result<Vec<PooledSession>> {
+    let opens = members.iter().map(|envs| {
+        let seeds: Vec<u64> = envs.iter().map(|&j| env_seed(recipe, collects, j)).collect();
+        pool.open(Open {
+            task: recipe.task.clone(),
+            num_envs: envs.len() as u32,
+            seeds,
+            auto_reset: AutoReset::None as i32,
+            controller: None,
+        })
+    });
+    Ok(futures::future::try_join_all(opens).await?)
+}
+
+/// Offers a collect's episodes to the trajectory buffer; returns their reward and cost returns.
+fn offer_episodes(
+    buffer: &mut TrajectoryBuffer<Episode>,
+    episodes: Vec<TransitionChunk>,
+    recipe: &Recipe,
+    collects: u64,
+) -> (Vec<f64>, Vec<f64>) {
+    let mut rewards = Vec::with_capacity(episodes.len());
+    let mut costs = Vec::with_capacity(episodes.len());
+    for (j, chunk) in episodes.into_iter().enumerate() {
+        let episode = Episode::from_chunk(collects as usize, j as u32, env_seed(recipe, collects, j as u32), chunk);
+        costs.push(episode.cost_return);
+        rewards.push(episode.reward_return);
+        buffer.offer(Stored {
+            reward_return: episode.reward_return,
+            cost_return: episode.cost_return,
+            payload: episode,
+        });
+    }
+    (rewards, costs)
+}
+
+/// The final expert, also when a run stopped between its last save and this write.
+fn write_final_policy(
+    root: &Path,
+    task: &Task,
+    expert: &ExpertSettings,
+    learner: Option<&Learner>,
+    tensors: Option<Tensors>,
+    state: &State,
+) -> anyhow::Result<()> {
+    let policy_dir = root.join("policy");
+    match (learner, tensors, state.max_action) {
+        (Some(learner), _, _) => learner.write_policy(&policy_dir, task.id.as_str())?,
+        (None, Some(tensors), Some(max_action)) if !policy_dir.join("policy.json").is_file() => {
+            Learner::restore(expert, max_action, &tensors, &state.learner)?
+                .write_policy(&policy_dir, task.id.as_str())?
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
 /// Trains the recipe's expert and returns what its trajectory buffer kept.
 pub async fn train(
     pool: &SimulatorPool,
@@ -535,64 +663,12 @@ pub async fn train(
     let expert: &ExpertSettings = recipe.expert.as_ref().context("the recipe has no expert section")?;
     std::fs::create_dir_all(root)?;
     let (obs_dim, act_dim) = (task.obs_dim as usize, task.act_dim as usize);
-    let limits = recipe.buffer_limits();
-    let (mut state, mut buffer, tensors) = match load(root)? {
-        Some((state, tensors, episodes)) => {
-            let stored = episodes
-                .into_iter()
-                .map(|e| Stored {
-                    reward_return: e.reward_return,
-                    cost_return: e.cost_return,
-                    payload: e,
-                })
-                .collect();
-            let buffer = TrajectoryBuffer::restore(limits, state.buffer.clone(), stored).map_err(anyhow::Error::msg)?;
-            tracing::info!(
-                collects = state.collects,
-                steps = state.steps,
-                "resuming the expert from its last save"
-            );
-            (state, buffer, Some(tensors))
-        }
-        None => {
-            let buffer = TrajectoryBuffer::new(limits, recipe.seed).map_err(anyhow::Error::msg)?;
-            let state = State {
-                collects: 0,
-                steps: 0,
-                // Apart from the buffer's and the episode seeds' streams.
-                noise: Noise::seeded(recipe.seed ^ 0x5EED_0FE7_BE57),
-                learner: LearnerState {
-                    lagrangian: super::lagrangian::PidLagrangian::new(
-                        expert.lagrangian.kp,
-                        expert.lagrangian.ki,
-                        expert.lagrangian.kd,
-                    ),
-                    actor_steps: 0,
-                    critic_steps: 0,
-                    observation_stats: warm_start.as_ref().and_then(|w| w.observation_stats.clone()),
-                },
-                buffer: buffer.snapshot(),
-                buffered: Vec::new(),
-                max_action: None,
-                log: Vec::new(),
-            };
-            (state, buffer, None)
-        }
-    };
+    let (mut state, mut buffer, mut tensors) = resume_or_start(root, recipe, expert, warm_start.as_ref())?;
     bar.set_length(budget);
     bar.set_position(state.steps.min(budget));
     let layout = layout(expert.envs as usize, sessions);
-    let session_count = layout.last().map_or(0, |&(s, _)| s + 1);
-    // The global environment numbers of each session, in order.
-    let members: Vec<Vec<u32>> = (0..session_count)
-        .map(|s| {
-            (0..layout.len() as u32)
-                .filter(|&j| layout[j as usize].0 == s)
-                .collect()
-        })
-        .collect();
+    let members = session_members(&layout);
     let mut learner: Option<Learner> = None;
-    let mut tensors = tensors;
     // Only a run that starts here takes the warm start; a resumed one has it in its save already.
     let mut warm = if tensors.is_none() {
         warm_start.map(|w| w.tensors)
@@ -601,17 +677,7 @@ pub async fn train(
     };
     while state.steps < budget {
         // A segment: fresh sessions, `checkpoint_every_collects` collects, a save.
-        let opens = members.iter().map(|envs| {
-            let seeds: Vec<u64> = envs.iter().map(|&j| env_seed(recipe, state.collects, j)).collect();
-            pool.open(Open {
-                task: recipe.task.clone(),
-                num_envs: envs.len() as u32,
-                seeds,
-                auto_reset: AutoReset::None as i32,
-                controller: None,
-            })
-        });
-        let mut sessions = futures::future::try_join_all(opens).await?;
+        let mut sessions = open_sessions(pool, recipe, &members, state.collects).await?;
         let max_action = symmetric_bound(&sessions[0])?;
         state.max_action = Some(max_action);
         let learner = match &mut learner {
@@ -658,23 +724,7 @@ pub async fn train(
                 act_dim,
             )
             .await?;
-            let mut costs = Vec::with_capacity(played.episodes.len());
-            let mut rewards = Vec::with_capacity(played.episodes.len());
-            for (j, chunk) in played.episodes.into_iter().enumerate() {
-                let episode = Episode::from_chunk(
-                    state.collects as usize,
-                    j as u32,
-                    env_seed(recipe, state.collects, j as u32),
-                    chunk,
-                );
-                costs.push(episode.cost_return);
-                rewards.push(episode.reward_return);
-                buffer.offer(Stored {
-                    reward_return: episode.reward_return,
-                    cost_return: episode.cost_return,
-                    payload: episode,
-                });
-            }
+            let (rewards, costs) = offer_episodes(&mut buffer, played.episodes, recipe, state.collects);
             let cost_limit = expert.cost_limit_at(state.steps, budget);
             // The next collect's resets need no policy: the workers do them while the learner updates.
             resets_sent =
@@ -729,16 +779,7 @@ pub async fn train(
         let (task, root) = (task.clone(), root.to_path_buf());
         tokio::task::block_in_place(|| save(&root, &task, &state, learner, &buffer))?;
     }
-    // The final expert, also when a run stopped between its last save and this write.
-    let policy_dir = root.join("policy");
-    match (&learner, tensors, state.max_action) {
-        (Some(learner), _, _) => learner.write_policy(&policy_dir, task.id.as_str())?,
-        (None, Some(tensors), Some(max_action)) if !policy_dir.join("policy.json").is_file() => {
-            Learner::restore(expert, max_action, &tensors, &state.learner)?
-                .write_policy(&policy_dir, task.id.as_str())?
-        }
-        _ => {}
-    }
+    write_final_policy(root, task, expert, learner.as_ref(), tensors, &state)?;
     write_log(root, &state.log)?;
     let (offered, _) = buffer.counts();
     Ok(ExpertCollection {
