@@ -770,45 +770,58 @@ fn main() -> anyhow::Result<()> {
     if let Some(data) = command.data() {
         data.check()?;
     }
-    let (mode, data) = match command {
-        Command::Bc { mode, data } => (mode, data),
-        Command::Bcql { data } => return per_threshold("bcql", data, BcqlLearner::on_device),
-        Command::Cdt { data } => return train_cdt(data),
-        Command::Caps { data } => return train_caps(data),
-        Command::Fisor { data } => return train_fisor(data),
-        Command::Lspc { data } => return train_lspc(data),
-        Command::Parity { dir } => return dsrl_train::parity::run(&dir),
+    match command {
+        Command::Bc { mode, data } => train_bc(mode, data),
+        Command::Bcql { data } => per_threshold("bcql", data, BcqlLearner::on_device),
+        Command::Bearl { data } => per_threshold("bearl", data, BearlLearner::on_device),
+        Command::Cpq { data } => per_threshold("cpq", data, CpqLearner::on_device),
+        Command::Coptidice { data } => per_threshold("coptidice", data, CoptidiceLearner::on_device),
+        Command::Cdt { data } => train_cdt(data),
+        Command::Caps { data } => train_caps(data),
+        Command::Fisor { data } => train_fisor(data),
+        Command::Lspc { data } => train_lspc(data),
+        Command::Parity { dir } => dsrl_train::parity::run(&dir),
         Command::ReferenceEntry {
             model,
             submission,
             reproduce,
             method,
             results,
-        } => {
-            let entry = match submission {
-                Some(submission) => dsrl_train::reference::record(&model, &submission, &method, &results)?,
-                None => {
-                    debug_assert!(reproduce, "clap requires one of the two");
-                    dsrl_train::reference::reproduce(&model, &method, &results)?
-                }
-            };
-            println!(
-                "{} {} seed {}: {} episodes under protocol {}, checkpoints {} trained by {} -> {}",
-                entry.task,
-                entry.method,
-                entry.seed,
-                entry.episodes.len(),
-                entry.protocol_version,
-                &entry.checkpoint_sha256[..12],
-                entry.code_commit,
-                results.display()
-            );
-            return Ok(());
+        } => reference_entry(&model, submission.as_deref(), reproduce, &method, &results),
+    }
+}
+
+/// `reference-entry`: the results-file line of a scored entry, or (`--reproduce`) its training record renewed.
+fn reference_entry(
+    model: &std::path::Path,
+    submission: Option<&std::path::Path>,
+    reproduce: bool,
+    method: &str,
+    results: &std::path::Path,
+) -> anyhow::Result<()> {
+    let entry = match submission {
+        Some(submission) => dsrl_train::reference::record(model, submission, method, results)?,
+        None => {
+            debug_assert!(reproduce, "clap requires one of the two");
+            dsrl_train::reference::reproduce(model, method, results)?
         }
-        Command::Bearl { data } => return per_threshold("bearl", data, BearlLearner::on_device),
-        Command::Cpq { data } => return per_threshold("cpq", data, CpqLearner::on_device),
-        Command::Coptidice { data } => return per_threshold("coptidice", data, CoptidiceLearner::on_device),
     };
+    println!(
+        "{} {} seed {}: {} episodes under protocol {}, checkpoints {} trained by {} -> {}",
+        entry.task,
+        entry.method,
+        entry.seed,
+        entry.episodes.len(),
+        entry.protocol_version,
+        &entry.checkpoint_sha256[..12],
+        entry.code_commit,
+        results.display()
+    );
+    Ok(())
+}
+
+/// BC-All (one model on every episode) or BC-Safe (one per threshold, on the episodes within it).
+fn train_bc(mode: Mode, data: DataArgs) -> anyhow::Result<()> {
     let DataArgs {
         task,
         cost_thresholds,

@@ -136,11 +136,10 @@ async fn run_phase(
     std::fs::create_dir_all(&state.root)?;
 
     // The scoring server: the one given, or a private one (stopped when this function returns).
-    let private;
-    let (url, token, user) = match &options.server {
-        Some(url) => (url.clone(), options.token.clone(), options.user.clone().unwrap_or_default()),
+    let (private, url, token, user) = match &options.server {
+        Some(url) => (None, url.clone(), options.token.clone(), options.user.clone().unwrap_or_default()),
         None => {
-            private = server::PrivateServer::start(
+            let private = server::PrivateServer::start(
                 &options.server_binary,
                 &state.root,
                 &options.repo,
@@ -150,23 +149,12 @@ async fn run_phase(
             if phase.dataset == Dataset::FullBuild {
                 host_full_builds(&work, options, &private).await?;
             }
-            (private.url.clone(), Some(private.token.clone()), server::USER.to_owned())
+            let (url, token) = (private.url.clone(), Some(private.token.clone()));
+            (Some(private), url, token, server::USER.to_owned())
         }
     };
     let client = Client::new(&url)?.with_token(token);
-    // Fetched once, so the parallel models read one verified cached file; the version hosted must be the one the
-    // phase trains on (a committed identity), or the entries would name a dataset no other server can host.
-    let cache = Cache::new(Cache::default_root());
-    for (task, version) in &work.tasks {
-        let fetched = cache.fetch(&client, task, "latest", &FetchOptions::default()).await?;
-        anyhow::ensure!(
-            &fetched.version == version,
-            "{url} hosts {} as {task}'s latest, but phase {} trains on {version} (the committed {})",
-            fetched.version,
-            phase.name,
-            if phase.dataset == Dataset::FullBuild { "full build" } else { "starter" }
-        );
-    }
+    fetch_datasets(&client, phase, &work).await?;
 
     let trained_tasks: Vec<&str> = work.tasks.iter().map(|(t, _)| t.as_str()).collect();
     eprintln!(
@@ -188,8 +176,7 @@ async fn run_phase(
     let bar = progress_bar(pool.total);
     let mut pending = work.entries.clone();
     let mut unreproduced: Vec<String> = Vec::new();
-    let mut terminate = signal(SignalKind::terminate())?;
-    let mut interrupt = signal(SignalKind::interrupt())?;
+    let mut stop = Stop::new()?;
     let mut next_look = Instant::now();
     loop {
         let training = pool.step()?;
@@ -201,18 +188,7 @@ async fn run_phase(
                 .partition(|e| training::trained(&work.models, e, &state));
             pending = rest;
             if !options.train_only {
-                for entry in ready {
-                    if options.reproduce {
-                        if !reproduce(options, &state, &results, &entry)? {
-                            unreproduced.push(entry.to_string());
-                        }
-                    } else {
-                        scorer.submit(&entry).await?;
-                    }
-                }
-                if !options.reproduce {
-                    scorer.record_finished(Wait::Look).await?;
-                }
+                hand_in(ready, options, &results, &mut scorer, &mut unreproduced).await?;
             }
             bar.set_message(format!("{} scored and recorded, {} being scored", scorer.recorded, scorer.in_flight()));
             next_look = Instant::now() + LOOK_EVERY;
@@ -222,8 +198,7 @@ async fn run_phase(
         }
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_secs(1)) => {}
-            _ = terminate.recv() => anyhow::bail!("stopped by SIGTERM; run the same command again to resume"),
-            _ = interrupt.recv() => anyhow::bail!("stopped by SIGINT; run the same command again to resume"),
+            stopped = stop.requested() => return Err(stopped),
         }
     }
     bar.finish_and_clear();
@@ -242,10 +217,76 @@ async fn run_phase(
     }
     tokio::select! {
         done = scorer.record_finished(Wait::UntilEnded) => done?,
-        _ = terminate.recv() => anyhow::bail!("stopped by SIGTERM; run the same command again to resume"),
-        _ = interrupt.recv() => anyhow::bail!("stopped by SIGINT; run the same command again to resume"),
+        stopped = stop.requested() => return Err(stopped),
     }
     eprintln!("{} every entry scored and recorded in {}", now(), results.display());
+    drop(private);
+    Ok(())
+}
+
+/// Hands in entries whose models have all trained: submits each (or, with --reproduce, compares its retrained
+/// checkpoints with the scored ones, adding those that differ to `unreproduced`), then records the scorings that
+/// have finished.
+async fn hand_in(
+    ready: Vec<EntryKey>,
+    options: &Options,
+    results: &Path,
+    scorer: &mut Scorer,
+    unreproduced: &mut Vec<String>,
+) -> anyhow::Result<()> {
+    for entry in ready {
+        if !options.reproduce {
+            scorer.submit(&entry).await?;
+        } else if !reproduce(options, &scorer.state, results, &entry)? {
+            unreproduced.push(entry.to_string());
+        }
+    }
+    if !options.reproduce {
+        scorer.record_finished(Wait::Look).await?;
+    }
+    Ok(())
+}
+
+/// SIGTERM and SIGINT stop a run, and its children with it; the same command resumes it.
+struct Stop {
+    terminate: tokio::signal::unix::Signal,
+    interrupt: tokio::signal::unix::Signal,
+}
+
+impl Stop {
+    fn new() -> std::io::Result<Stop> {
+        Ok(Stop {
+            terminate: signal(SignalKind::terminate())?,
+            interrupt: signal(SignalKind::interrupt())?,
+        })
+    }
+
+    /// Waits for a signal; the error says which and how to resume.
+    async fn requested(&mut self) -> anyhow::Error {
+        let name = tokio::select! {
+            _ = self.terminate.recv() => "SIGTERM",
+            _ = self.interrupt.recv() => "SIGINT",
+        };
+        anyhow::anyhow!("stopped by {name}; run the same command again to resume")
+    }
+}
+
+/// Fetches each task's dataset once, so the parallel models read one verified cached file. The version hosted must
+/// be the one the phase trains on (a committed identity), or the entries would name a dataset no other server can
+/// host.
+async fn fetch_datasets(client: &Client, phase: &Phase, work: &Work) -> anyhow::Result<()> {
+    let cache = Cache::new(Cache::default_root());
+    for (task, version) in &work.tasks {
+        let fetched = cache.fetch(client, task, "latest", &FetchOptions::default()).await?;
+        anyhow::ensure!(
+            &fetched.version == version,
+            "{} hosts {} as {task}'s latest, but phase {} trains on {version} (the committed {})",
+            client.base(),
+            fetched.version,
+            phase.name,
+            if phase.dataset == Dataset::FullBuild { "full build" } else { "starter" }
+        );
+    }
     Ok(())
 }
 
