@@ -786,6 +786,29 @@ fn watch_an_episode(env: &Env, done: &serde_json::Value) {
         .cli
         .run(&["watch", &id.to_string(), "--threshold", "10", "--episode", "1"]);
     assert_eq!(queued.code, 8, "{queued:?}");
+    // From Python: the package's `watch` answers the same replay and writes the same GIF.
+    let python_gif = env.path("python-replay.gif");
+    let script = format!(
+        "import json, dsrl_client\n\
+         r = dsrl_client.watch({id}, threshold={threshold}, episode={episode}, gif={:?}, server={:?})\n\
+         print(json.dumps(r))\n\
+         try:\n    dsrl_client.watch({id}, threshold={threshold}, episode=20, server={:?})\n\
+         except dsrl_client.DsrlError as e:\n    print('refused:', e)\n",
+        s(&python_gif),
+        env.server.url,
+        env.server.url
+    );
+    let out = std::process::Command::new(dsrl_e2e::python())
+        .args(["-c", &script])
+        .env("PYTHONPATH", crate::python_package::installed_wheel())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    let from_python: serde_json::Value = serde_json::from_str(text.lines().next().unwrap()).unwrap();
+    assert_eq!(from_python, replay);
+    assert_eq!(std::fs::read(&python_gif).unwrap(), gif);
+    assert!(text.contains("refused:"), "{text}");
     // The same replay over gRPC, and the same refusal for an episode that was not played.
     {
         use dsrl_proto::leaderboard::v1 as pb;

@@ -25,7 +25,7 @@ const GOLDEN_DATASETS: [(&str, &str, usize, u64); 5] = [
 ];
 
 /// The wheel, built once per test process and unpacked into a scratch `site` folder the tests put on PYTHONPATH.
-fn installed_wheel() -> &'static Path {
+pub(crate) fn installed_wheel() -> &'static Path {
     &built_wheel().1
 }
 

@@ -13,7 +13,7 @@ use dsrl_suite::parquet_file::ParquetTransitions;
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
-use pyo3::types::{PyByteArray, PyTuple};
+use pyo3::types::{PyByteArray, PyBytes, PyTuple};
 
 create_exception!(
     _native,
@@ -272,6 +272,36 @@ fn submission(py: Python<'_>, id: i64, server: Option<&str>) -> PyResult<String>
     block_on(py, async { client.submission(id).await }).map(|v| v.to_string())
 }
 
+/// A scored episode's replay as JSON (its seed, returns, length and every step's reward and cost), or `None` while
+/// the server is still making it (the request queues it).
+#[pyfunction]
+#[pyo3(signature = (id, threshold, episode, server = None))]
+fn episode_replay(
+    py: Python<'_>,
+    id: i64,
+    threshold: f64,
+    episode: u32,
+    server: Option<&str>,
+) -> PyResult<Option<String>> {
+    let client = client(py, server, None)?;
+    block_on(py, async { client.episode_replay(id, threshold, episode).await }).map(|r| r.map(|v| v.to_string()))
+}
+
+/// The replay's animated GIF (made first through `episode_replay`).
+#[pyfunction]
+#[pyo3(signature = (id, threshold, episode, server = None))]
+fn episode_replay_gif<'py>(
+    py: Python<'py>,
+    id: i64,
+    threshold: f64,
+    episode: u32,
+    server: Option<&str>,
+) -> PyResult<Bound<'py, PyBytes>> {
+    let client = client(py, server, None)?;
+    let bytes = block_on(py, async { client.episode_replay_gif(id, threshold, episode).await })?;
+    Ok(PyBytes::new(py, &bytes))
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("DsrlError", m.py().get_type::<DsrlError>())?;
@@ -285,5 +315,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ingest, m)?)?;
     m.add_function(wrap_pyfunction!(submit, m)?)?;
     m.add_function(wrap_pyfunction!(submission, m)?)?;
+    m.add_function(wrap_pyfunction!(episode_replay, m)?)?;
+    m.add_function(wrap_pyfunction!(episode_replay_gif, m)?)?;
     Ok(())
 }

@@ -92,7 +92,7 @@ impl Scorer {
                 }
             };
             crate::write_atomically(&id_file, id.to_string().as_bytes())?;
-            eprintln!("{}: {} submitted as {id}", entry.task, entry.method.name());
+            eprintln!("{entry} submitted as {id}");
         }
         self.in_flight.push(entry.clone());
         Ok(())

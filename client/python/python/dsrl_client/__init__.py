@@ -15,13 +15,13 @@ from ._native import DsrlError, default_cache_dir, default_server
 from .catalog import task, tasks
 from .datasets import Dataset, StarterDataset, fetch, load_dataset, read_parquet
 from .export import export_arrays, export_policy
-from .leaderboard import submit
+from .leaderboard import submit, watch
 from .offline_env import OfflineEnv, OfflineEnvWrapper, register_all, wrap_env
 from .simulators import SimulatorMissing
 from .uploads import upload
 
 __all__ = ["DsrlError", "Dataset", "OfflineEnv", "OfflineEnvWrapper", "SimulatorMissing", "StarterDataset",
            "default_cache_dir", "default_server", "export_arrays", "export_policy", "fetch", "load_dataset",
-           "read_parquet", "submit", "upload", "task", "tasks", "wrap_env"]
+           "read_parquet", "submit", "upload", "task", "tasks", "watch", "wrap_env"]
 
 register_all()

@@ -23,3 +23,28 @@ def submit(folder, *, task, name, token=None, server=None, wait=False, timeout=3
         time.sleep(poll)
         submission = json.loads(_native.submission(int(submission["id"]), server))
     return submission
+
+
+def watch(submission, *, threshold, episode=0, gif=None, server=None, wait=False, timeout=600.0, poll=2.0):
+    """A scored episode of `submission` (its id) at `threshold`, replayed by the server from its held seed with the
+    submitted policy: a dict with the episode's seed, returns, length and every step's reward and cost (`steps`), the
+    same as `dsrl-client watch`. The server makes a replay on the first request and while it waits for scoring to be
+    idle; until then this returns None, or with `wait=True` polls until it is made. `gif=PATH` also writes the
+    episode's animated GIF there. Raises `DsrlError` for an episode the submission did not play (not_found) or a
+    submission whose checkpoint the server does not hold."""
+    deadline = time.monotonic() + timeout
+    while True:
+        replay = _native.episode_replay(int(submission), float(threshold), int(episode), server)
+        if replay is not None:
+            break
+        if not wait:
+            return None
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the replay of submission {submission}'s episode {episode} at threshold {threshold} "
+                               f"is still queued after {timeout} s")
+        time.sleep(poll)
+    replay = json.loads(replay)
+    if gif is not None:
+        with open(gif, "wb") as f:
+            f.write(_native.episode_replay_gif(int(submission), float(threshold), int(episode), server))
+    return replay
