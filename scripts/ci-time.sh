@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # How long CI takes, measured as CI runs it: `.ci/run` on a fresh clone of HEAD with a cold target folder, every
 # line of its output stamped with the seconds since start. Writes tests/CI_TIME.md: the total, the phases (system
-# packages and Python environments, the test build with clippy's lints, the tests outside the end-to-end binary, the end-to-end
-# binary) and the end-to-end tests that finished latest after the one before (with two test threads, an
+# packages and Python environments, the test build with clippy's lints, the test binaries (the end-to-end one
+# beside the others, scripts/run-tests.py) and the end-to-end binary within them) and the end-to-end tests that finished latest after the one before (with two test threads, an
 # approximation of each test's time), with the commit, machine and date. Crates and pip packages already downloaded
 # on this machine are not downloaded again, so a new machine takes a few minutes more.
 # Usage: scripts/ci-time.sh   (40-50 minutes; run it on a quiet machine)
@@ -32,11 +32,22 @@ finished = [t for t, l in lines if re.search(r"Finished `\w+` profile", l)]
 # One build before the tests: the test build, clippy's lints inside it (scripts/test.sh).
 build_start = first(r"Checking|Compiling")
 build_end = finished[0] if finished else None
-# By line, not by second: the binaries before the end-to-end one report in the same second it starts.
+# By line, not by second: the binaries before the end-to-end one report in the same second it starts. The other
+# test binaries run beside it (scripts/run-tests.py) and print each of their blocks whole, from its "Running" line
+# to its "test result" line: the end-to-end binary's lines are those outside such blocks.
 e2e_line = next((i for i, (t, l) in enumerate(lines) if re.search(r"Running e2e/main\.rs", l)), None)
 e2e_start = None if e2e_line is None else lines[e2e_line][0]
-e2e_end = None if e2e_line is None else next(
-    (t for t, l in lines[e2e_line:] if l.startswith("test result")), None)
+e2e_lines, e2e_end, inside_other = [], None, False
+for t, l in ([] if e2e_line is None else lines[e2e_line + 1:]):
+    if re.search(r"^\s*Running ", l):
+        inside_other = True
+    elif inside_other:
+        inside_other = not l.startswith("test result")
+    elif l.startswith("test result"):
+        e2e_end = t
+        break
+    else:
+        e2e_lines.append((t, l))
 cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
 nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
 date = subprocess.run(["date", "-u", "+%F"], capture_output=True, text=True).stdout.strip()
@@ -47,17 +58,14 @@ print("A cold `.ci/run` on a fresh clone, measured by `scripts/ci-time.sh` (a ge
 failed = sorted({l.split()[1] for t, l in lines if re.match(r"test \S+ \.\.\. FAILED", l)})
 print(f"Commit {commit}, {date}, {nproc} cores, {cpu}; exit status {status}. **Total: {total / 60:.1f} min.**\n")
 if failed:
-    print("Failed: " + ", ".join(failed) + " (cargo stops after the first failing test binary).\n")
+    print("Failed: " + ", ".join(failed) + " (every test binary ran: scripts/run-tests.py goes on past a failure).\n")
 print("| phase | minutes |\n|---|---|")
 print(f"| system packages, fmt, until the first crate compiles | {m(build_start)} |")
 print(f"| the test build with clippy's lints (the Python environments install beside it) | {m(None if build_end is None or build_start is None else build_end - build_start)} |")
 last_result = max((t for t, l in lines if l.startswith("test result")), default=None)
-outside = None
-if None not in (last_result, build_end, e2e_start, e2e_end):
-    outside = last_result - build_end - (e2e_end - e2e_start)
-print(f"| tests outside the end-to-end binary | {m(outside)} |")
-print(f"| the end-to-end binary | {m(None if e2e_end is None or e2e_start is None else e2e_end - e2e_start)} |")
-tests = [(t, l) for t, l in lines if e2e_start and t >= e2e_start and re.match(r"test \S+ \.\.\. (ok|FAILED|ignored)", l)]
+print(f"| every test binary (the end-to-end one beside the others), then the doc-tests | {m(None if last_result is None or build_end is None else last_result - build_end)} |")
+print(f"| of which the end-to-end binary | {m(None if e2e_end is None or e2e_start is None else e2e_end - e2e_start)} |")
+tests = [(t, l) for t, l in e2e_lines if re.match(r"test \S+ \.\.\. (ok|FAILED|ignored)", l)]
 gaps, last = [], e2e_start
 for t, l in tests:
     gaps.append((t - last, l.split()[1], l.split()[-1]))

@@ -3,7 +3,7 @@
 # simulators') installing in the background while Rust compiles (they wait on the network and pip, not on the cores
 # the compiler needs; that all 38 tasks build, reset and step is sim/tests/it/all_tasks.rs), formatting, the
 # generated gRPC code's drift check (a test), the test build with clippy's lints as errors, then every test of the
-# workspace (unit, per-crate integration, cross-process end-to-end).
+# workspace (unit, per-crate integration, cross-process end-to-end; scripts/run-tests.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/install-system-deps.sh --tests
@@ -32,5 +32,6 @@ if ! wait "$setup_pid"; then
   exit 1
 fi
 cat "$setup_log" >&2
-# --no-fail-fast: one failing test binary does not hide the results of the others.
-cargo test --locked --workspace --no-fail-fast
+# Every test binary of the workspace, as `cargo test --locked --workspace --no-fail-fast` runs them (one failing
+# binary does not hide the others' results), but the end-to-end binary beside the others instead of before them.
+scripts/run-tests.py --locked

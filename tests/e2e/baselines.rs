@@ -379,7 +379,10 @@ fn the_reference_command_stops_at_a_scoring_failed_for_the_checkpoints_sake() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success(), "{stderr}");
     assert!(stderr.contains("MB memory limit"), "{stderr}");
-    assert!(stderr.contains("as the checkpoint's fault: not submitted again"), "{stderr}");
+    assert!(
+        stderr.contains("as the checkpoint's fault: not submitted again"),
+        "{stderr}"
+    );
     assert_eq!(stderr.matches("submitted as").count(), 1, "{stderr}");
     assert!(!env.path("results.jsonl").exists(), "nothing is recorded");
 }
@@ -404,7 +407,12 @@ fn the_reference_command_stops_whole_at_a_failed_training_or_a_signal() {
     // BCQ-Lag cannot write its models: a file stands where its folder goes.
     std::fs::create_dir_all(&models).unwrap();
     std::fs::write(models.join("bcql"), b"in the way").unwrap();
-    let output = reference(&env, &token, "methods = [\"bc-all\", \"bcql\"]\nsteps = 3\n", &["--jobs", "2"]);
+    let output = reference(
+        &env,
+        &token,
+        "methods = [\"bc-all\", \"bcql\"]\nsteps = 3\n",
+        &["--jobs", "2"],
+    );
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success(), "{stderr}");
     assert!(stderr.contains("failed to train"), "{stderr}");

@@ -25,7 +25,7 @@ use anyhow::Context;
 use dsrl_client::api::Client;
 use dsrl_client::cache::{Cache, FetchOptions};
 use dsrl_suite::Catalog;
-use tokio::signal::unix::{signal, SignalKind};
+use tokio::signal::unix::{SignalKind, signal};
 
 use crate::identities::Identities;
 use plan::{Dataset, Phase, Plan};
@@ -116,36 +116,42 @@ struct Work {
     tasks: Vec<(String, String)>,
 }
 
-async fn run_phase(
-    phase: &Phase,
-    options: &Options,
-    catalog: &Catalog,
-    identities: &Identities,
-) -> anyhow::Result<()> {
+async fn run_phase(phase: &Phase, options: &Options, catalog: &Catalog, identities: &Identities) -> anyhow::Result<()> {
     let home = std::env::var_os("HOME").map(PathBuf::from).unwrap_or_default();
     let state = StateDir::new(
-        options.state.clone().unwrap_or_else(|| home.join(".dsrl").join(&phase.state)),
+        options
+            .state
+            .clone()
+            .unwrap_or_else(|| home.join(".dsrl").join(&phase.state)),
         options.reproduce,
     );
-    let results = options.results.clone().unwrap_or_else(|| options.repo.join(&phase.results));
+    let results = options
+        .results
+        .clone()
+        .unwrap_or_else(|| options.repo.join(&phase.results));
     let work = plan_work(phase, options, catalog, identities, &results)?;
     if work.models.is_empty() {
-        eprintln!("every entry of phase {} is in {} already", phase.name, results.display());
+        eprintln!(
+            "every entry of phase {} is in {} already",
+            phase.name,
+            results.display()
+        );
         return Ok(());
     }
     std::fs::create_dir_all(&state.root)?;
 
     // The scoring server: the one given, or a private one (stopped when this function returns).
     let (private, url, token, user) = match &options.server {
-        Some(url) => (None, url.clone(), options.token.clone(), options.user.clone().unwrap_or_default()),
+        Some(url) => (
+            None,
+            url.clone(),
+            options.token.clone(),
+            options.user.clone().unwrap_or_default(),
+        ),
         None => {
-            let private = server::PrivateServer::start(
-                &options.server_binary,
-                &state.root,
-                &options.repo,
-                options.evaluators,
-            )
-            .await?;
+            let private =
+                server::PrivateServer::start(&options.server_binary, &state.root, &options.repo, options.evaluators)
+                    .await?;
             if phase.dataset == Dataset::FullBuild {
                 host_full_builds(&work, options, &private).await?;
             }
@@ -172,7 +178,13 @@ async fn run_phase(
         url.clone(),
         state.clone(),
     );
-    let mut scorer = Scorer::new(client, user, options.train_binary.clone(), results.clone(), state.clone());
+    let mut scorer = Scorer::new(
+        client,
+        user,
+        options.train_binary.clone(),
+        results.clone(),
+        state.clone(),
+    );
     let bar = progress_bar(pool.total);
     let mut pending = work.entries.clone();
     let mut unreproduced: Vec<String> = Vec::new();
@@ -190,7 +202,11 @@ async fn run_phase(
             if !options.train_only {
                 hand_in(ready, options, &results, &mut scorer, &mut unreproduced).await?;
             }
-            bar.set_message(format!("{} scored and recorded, {} being scored", scorer.recorded, scorer.in_flight()));
+            bar.set_message(format!(
+                "{} scored and recorded, {} being scored",
+                scorer.recorded,
+                scorer.in_flight()
+            ));
             next_look = Instant::now() + LOOK_EVERY;
         }
         if !training {
@@ -284,7 +300,11 @@ async fn fetch_datasets(client: &Client, phase: &Phase, work: &Work) -> anyhow::
             client.base(),
             fetched.version,
             phase.name,
-            if phase.dataset == Dataset::FullBuild { "full build" } else { "starter" }
+            if phase.dataset == Dataset::FullBuild {
+                "full build"
+            } else {
+                "starter"
+            }
         );
     }
     Ok(())
@@ -313,7 +333,9 @@ fn plan_work(
     let mut without_build: Vec<String> = Vec::new();
     let mut dealt = 0u32;
     for run in &phase.runs {
-        let tasks = run.task_ids(catalog).map_err(|e| anyhow::anyhow!("phase {}: {e}", phase.name))?;
+        let tasks = run
+            .task_ids(catalog)
+            .map_err(|e| anyhow::anyhow!("phase {}: {e}", phase.name))?;
         for task_id in tasks {
             if !options.tasks.is_empty() && !options.tasks.contains(&task_id) {
                 continue;
@@ -420,7 +442,11 @@ async fn host_full_builds(work: &Work, options: &Options, server: &server::Priva
         .filter(|o| !o.ok() || o.uploaded.is_none())
         .map(crate::full::describe)
         .collect();
-    anyhow::ensure!(failed.is_empty(), "hosting the full builds failed: {}", failed.join("; "));
+    anyhow::ensure!(
+        failed.is_empty(),
+        "hosting the full builds failed: {}",
+        failed.join("; ")
+    );
     Ok(())
 }
 

@@ -193,7 +193,7 @@ impl Run {
                         return Err(format!(
                             "no task or group {id:?} (groups: all, bullet, safety-gymnasium, metadrive; near: {})",
                             catalog.nearest(id, 3).join(", ")
-                        ))
+                        ));
                     }
                 },
             };
@@ -274,7 +274,12 @@ mod tests {
         let first = &plan.phases[0].runs;
         let tasks: usize = first.iter().map(|r| r.task_ids(&catalog).unwrap().len()).sum();
         assert_eq!(tasks, catalog.tasks().len(), "phase 1 covers every task once");
-        assert!(plan.phases(&["nope".into()]).unwrap_err().to_string().contains("its phases: 1,"));
+        assert!(
+            plan.phases(&["nope".into()])
+                .unwrap_err()
+                .to_string()
+                .contains("its phases: 1,")
+        );
     }
 
     #[test]
@@ -296,10 +301,19 @@ mod tests {
     fn mistakes_are_named_before_anything_trains() {
         let base = "[[phase]]\nname = \"x\"\nabout = \"\"\n[[phase.run]]\n";
         for (run, says) in [
-            ("tasks = [\"OfflineBalRun-v0\"]\nmethods = [\"bc-all\"]", "OfflineBallRun-v0"),
+            (
+                "tasks = [\"OfflineBalRun-v0\"]\nmethods = [\"bc-all\"]",
+                "OfflineBallRun-v0",
+            ),
             ("tasks = [\"all\"]\nmethods = [\"bc-al\"]", "unknown variant"),
-            ("tasks = [\"all\"]\nmethods = [\"cpq\"]\nsteps_for = { cpq = 0 }", "steps_for.cpq"),
-            ("tasks = [\"all\"]\nmethods = [\"cpq\"]\nseeds = []", "at least one seed"),
+            (
+                "tasks = [\"all\"]\nmethods = [\"cpq\"]\nsteps_for = { cpq = 0 }",
+                "steps_for.cpq",
+            ),
+            (
+                "tasks = [\"all\"]\nmethods = [\"cpq\"]\nseeds = []",
+                "at least one seed",
+            ),
             ("tasks = [\"all\"]\nmethods = [\"cpq\"]\nstep = 3", "unknown field"),
         ] {
             let error = Plan::parse(&format!("{base}{run}\n")).unwrap_err().to_string();

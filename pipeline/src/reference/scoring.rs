@@ -10,7 +10,7 @@ use anyhow::Context;
 use dsrl_client::api::Client;
 use dsrl_client::error::ClientError;
 
-use super::state::{newer, EntryKey, StateDir};
+use super::state::{EntryKey, StateDir, newer};
 
 /// A scoring that failed for the service's sake (a simulator worker that stopped answering on an overloaded
 /// machine fails a job after its attempts) is submitted again this many times at most.
@@ -85,7 +85,9 @@ impl Scorer {
                         break self.made_before(entry, &name).await?;
                     }
                     // The server's quota of submissions in flight: wait for those made.
-                    Err(ClientError::Server { code, .. }) if code == "resource_exhausted" && !self.in_flight.is_empty() => {
+                    Err(ClientError::Server { code, .. })
+                        if code == "resource_exhausted" && !self.in_flight.is_empty() =>
+                    {
                         self.record_finished(Wait::UntilEnded).await?;
                     }
                     Err(e) => return Err(anyhow::Error::new(e).context(format!("submitting {entry}"))),

@@ -74,10 +74,7 @@ impl PrivateServer {
                 .strip_prefix("dsrl-server listening on ")
                 .map(str::to_owned)
                 .with_context(|| format!("unexpected first line from the scoring server: {line:?}"))?,
-            _ => anyhow::bail!(
-                "the scoring server did not start; see {}",
-                log_path.display()
-            ),
+            _ => anyhow::bail!("the scoring server did not start; see {}", log_path.display()),
         };
         eprintln!(
             "started a private scoring server on {url} (state in {}, log {})",

@@ -49,7 +49,10 @@ impl Model {
         if let Some(device) = &self.device {
             command.arg("--device").arg(device);
         }
-        command.stdin(Stdio::null()).stdout(Stdio::inherit()).stderr(Stdio::inherit());
+        command
+            .stdin(Stdio::null())
+            .stdout(Stdio::inherit())
+            .stderr(Stdio::inherit());
         command
     }
 
