@@ -122,33 +122,98 @@ fn put_slots(payload: &mut BytesMut, slots: &[u32]) {
     slots.iter().for_each(|&s| payload.put_u32_le(s));
 }
 
-/// How often [`awake_timeout`] looks at the clock, and how late a look may come before the time since the last one
-/// counts as time this process did not run.
+/// How often [`within_budget`] looks at the clock, and how late a look may come before the time since the last one
+/// counts as time this process did not run: when the evaluator itself was not running (its process group stopped,
+/// the machine suspended or starved for seconds), the policy's process was not either, and a look that comes far
+/// later than asked adds one tick, not the gap.
 const AWAKE_TICK: std::time::Duration = std::time::Duration::from_millis(250);
 const SUSPENDED_AFTER: std::time::Duration = std::time::Duration::from_millis(1250);
 
-/// `tokio::time::timeout` over the time this process was running. A policy is held to its per-request deadline for
-/// time it could have used; when the evaluator itself was not running (its process group stopped, the machine
-/// suspended or starved for seconds), the policy's process was not either, and that time is not the checkpoint's:
-/// a clock look that comes far later than asked adds one tick, not the gap.
-async fn awake_timeout<F: std::future::Future>(
+/// How long a request may take on the clock, in multiples of its CPU budget, before the policy process is taken for
+/// one that makes no progress.
+const CLOCK_FACTOR: u32 = 4;
+
+/// How a policy request ran out of time.
+#[derive(Debug, PartialEq)]
+enum Overdue {
+    /// The policy process used more CPU seconds on the request than it may (the checkpoint's doing).
+    Cpu(f64),
+    /// The request outlasted `CLOCK_FACTOR` times the budget on the evaluator's running clock while the policy
+    /// process used less than its budget of CPU: it was starved or stopped, which is the machine's doing.
+    Clock,
+}
+
+/// The CPU seconds (user and system) process `pid` has used, from `/proc/<pid>/stat`; `None` where that cannot be
+/// read (no `/proc`, the process gone).
+fn cpu_seconds(pid: u32) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // The command name (field 2) is in parentheses and may hold spaces: count the fields after its ')'. The first
+    // of them is field 3, so utime and stime (fields 14 and 15) are the 12th and 13th.
+    let fields: Vec<&str> = stat.get(stat.rfind(')')? + 1..)?.split_whitespace().collect();
+    let ticks = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
+    // SAFETY: sysconf reads a constant of the system.
+    let per_second = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    (per_second > 0).then(|| ticks as f64 / per_second as f64)
+}
+
+/// A policy request held to its budget: `limit` of the policy process's CPU time, which is what a checkpoint
+/// decides (a network too expensive to act in time), and not the clock, which a busy machine decides (a policy
+/// process starved of CPU by other work answers late through no fault of the checkpoint). A process that makes no
+/// progress at all is not waited on forever: after `CLOCK_FACTOR` times the budget of the evaluator's running time
+/// (`AWAKE_TICK`), the request ends as `Overdue::Clock`. Where the process's CPU time cannot be read, the clock
+/// alone is the budget, as the checkpoint's.
+///
+/// The process's CPU time is first read at the first clock look (`AWAKE_TICK`): a request shorter than that costs
+/// no read, and the time before the first read is charged in full (at most a tick more than the process used).
+async fn within_budget<F: std::future::Future>(
+    pid: Option<u32>,
     limit: std::time::Duration,
     call: F,
-) -> Result<F::Output, tokio::time::error::Elapsed> {
+) -> Result<F::Output, Overdue> {
     tokio::pin!(call);
+    let started = tokio::time::Instant::now();
+    let limit_seconds = limit.as_secs_f64();
+    // (CPU seconds at the first look, wall seconds before it)
+    let mut first_look: Option<(f64, f64)> = None;
+    let mut readable = pid.is_some();
+    let cpu_used = |first: Option<(f64, f64)>| -> Option<f64> {
+        let (cpu_then, before) = first?;
+        Some(cpu_seconds(pid?)? - cpu_then + before)
+    };
     let mut awake = std::time::Duration::ZERO;
-    let mut last = tokio::time::Instant::now();
+    let mut last = started;
     loop {
-        let left = limit.saturating_sub(awake);
+        let clock_limit = if readable { limit * CLOCK_FACTOR } else { limit };
+        let left = clock_limit.saturating_sub(awake);
         match tokio::time::timeout(left.min(AWAKE_TICK), &mut call).await {
-            Ok(output) => return Ok(output),
-            Err(elapsed) => {
+            Ok(output) => {
+                // A request that ended between two looks is held to the budget too.
+                if let Some(used) = cpu_used(first_look).filter(|&used| used > limit_seconds) {
+                    return Err(Overdue::Cpu(used));
+                }
+                return Ok(output);
+            }
+            Err(_) => {
                 let now = tokio::time::Instant::now();
                 let gap = now - last;
                 last = now;
                 awake += if gap > SUSPENDED_AFTER { AWAKE_TICK } else { gap };
-                if awake >= limit {
-                    return Err(elapsed);
+                if first_look.is_none() && readable {
+                    match pid.and_then(cpu_seconds) {
+                        Some(cpu) => first_look = Some((cpu, (now - started).as_secs_f64())),
+                        None => readable = false,
+                    }
+                }
+                if let Some(used) = cpu_used(first_look).filter(|&used| used > limit_seconds) {
+                    return Err(Overdue::Cpu(used));
+                }
+                let clock_limit = if readable { limit * CLOCK_FACTOR } else { limit };
+                if awake >= clock_limit {
+                    return Err(if readable {
+                        Overdue::Clock
+                    } else {
+                        Overdue::Cpu(awake.as_secs_f64())
+                    });
                 }
             }
         }
@@ -203,15 +268,25 @@ impl ChildPlayer {
             ACT => "act",
             _ => "observe",
         };
-        match awake_timeout(self.request_timeout, self.exchange(op, payload)).await {
+        let pid = self.child.id();
+        match within_budget(pid, self.request_timeout, self.exchange(op, payload)).await {
             Ok(Ok(Ok(answer))) => Ok(answer),
             // The policy itself failed (a shape it cannot handle, a non-finite action): not worth a retry.
             Ok(Ok(Err(message))) => Err(policy_error(message)),
-            Err(_) => {
+            Err(Overdue::Cpu(used)) => {
                 let _ = self.child.start_kill();
                 Err(EvaluationError::InvalidArgument(format!(
-                    "the policy process did not answer a {what} request within {} s \
-                     (leaderboard.policy_request_seconds); it was stopped",
+                    "the policy process did not answer a {what} request within {} s of CPU time (it used {used:.1} \
+                     s; leaderboard.policy_request_seconds); it was stopped",
+                    self.request_timeout.as_secs_f64()
+                )))
+            }
+            Err(Overdue::Clock) => {
+                let _ = self.child.start_kill();
+                Err(EvaluationError::Unavailable(format!(
+                    "the policy process did not answer a {what} request within {} s while using less than its {} s \
+                     of CPU time: it was starved or stopped, not too slow; the job goes back to the queue",
+                    (self.request_timeout * CLOCK_FACTOR).as_secs_f64(),
                     self.request_timeout.as_secs_f64()
                 )))
             }
@@ -486,16 +561,49 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_secs(2));
         };
         let started = std::time::Instant::now();
-        let (result, ()) = tokio::join!(awake_timeout(std::time::Duration::from_secs(1), answer), stall);
+        let (result, ()) = tokio::join!(within_budget(None, std::time::Duration::from_secs(1), answer), stall);
         assert!(result.is_ok(), "timed out after {:?}", started.elapsed());
         let started = std::time::Instant::now();
-        let never = awake_timeout(std::time::Duration::from_millis(500), std::future::pending::<()>()).await;
+        let never = within_budget(None, std::time::Duration::from_millis(500), std::future::pending::<()>()).await;
         assert!(never.is_err());
         assert!(
             started.elapsed() < std::time::Duration::from_secs(2),
             "{:?}",
             started.elapsed()
         );
+    }
+
+    /// A process that computes past its CPU budget is the checkpoint's doing; one that sleeps (as a starved or
+    /// stopped process does) ends on the clock, at `CLOCK_FACTOR` times the budget, as the machine's. Real processes:
+    /// a shell's busy loop and `sleep`.
+    #[tokio::test(flavor = "current_thread")]
+    async fn a_request_is_held_to_the_policy_processes_cpu_time_not_the_clock() {
+        let spawn = |script: &str| {
+            tokio::process::Command::new("sh")
+                .args(["-c", script])
+                .kill_on_drop(true)
+                .spawn()
+                .unwrap()
+        };
+        let busy = spawn("while :; do :; done");
+        let limit = std::time::Duration::from_millis(600);
+        let started = std::time::Instant::now();
+        let overdue = within_budget(busy.id(), limit, std::future::pending::<()>()).await;
+        assert!(matches!(overdue, Err(Overdue::Cpu(used)) if used > 0.6), "{overdue:?}");
+        assert!(started.elapsed() < limit * CLOCK_FACTOR, "{:?}", started.elapsed());
+
+        let idle = spawn("sleep 30");
+        let started = std::time::Instant::now();
+        let overdue = within_budget(idle.id(), limit, std::future::pending::<()>()).await;
+        assert_eq!(overdue, Err(Overdue::Clock));
+        assert!(started.elapsed() >= limit * CLOCK_FACTOR, "{:?}", started.elapsed());
+
+        // An answer within the budget is an answer; without a process to read, the clock is the budget.
+        let answer = within_budget(idle.id(), limit, async { 7 }).await;
+        assert_eq!(answer, Ok(7));
+        let unreadable = within_budget(None, limit, std::future::pending::<()>()).await;
+        assert!(matches!(unreadable, Err(Overdue::Cpu(_))), "{unreadable:?}");
+        assert!(cpu_seconds(std::process::id()).is_some_and(|s| s > 0.0));
     }
 
     /// A child that answers nothing, stopped by `signal` before it is asked to act: `sleep` stands in for the

@@ -57,8 +57,10 @@ pub struct LeaderboardConfig {
     /// `max_evaluation_seconds`) before it fails with the reason.
     pub deadline_factor: f64,
     pub min_deadline_seconds: u64,
-    /// Every request to a submitted policy's process (load, act, observe) must be answered within this; a process
-    /// that does not is stopped and its job fails with the reason.
+    /// Every request to a submitted policy's process (load, act, observe) may use this many seconds of the
+    /// process's CPU time; a process that uses more is stopped and its job fails with the reason (the checkpoint's
+    /// fault). One that answers nothing within four times this on the clock while using less (starved by other work,
+    /// or stopped) is stopped too, and its job goes back to the queue.
     pub policy_request_seconds: u64,
     /// The most multiply-adds a submission's scoring may take in all (its network's cost per action × the task's
     /// horizon × episodes per threshold × thresholds), checked before it is queued: a job's worst case is minutes.

@@ -154,7 +154,7 @@ fn a_worker_answering_out_of_protocol_fails_the_job_as_infrastructure_and_it_may
 }
 
 #[test]
-fn a_policy_process_that_stops_answering_fails_its_job_and_one_killed_from_outside_is_requeued() {
+fn a_policy_process_starved_or_killed_from_outside_gives_its_job_back() {
     let models = tempfile::tempdir().unwrap();
     train_bc(models.path(), "all", 0);
     train_bc(models.path(), "safe", 1);
@@ -169,17 +169,15 @@ fn a_policy_process_that_stops_answering_fails_its_job_and_one_killed_from_outsi
         child = policy_child(env.server.pid());
         child.is_some()
     }));
-    // Stopped (as a process in swap, or stuck in a call, would be): the job ends at the request deadline.
+    // Stopped, as a process starved by other work (or in swap) is: it uses none of its 3 s of CPU time, so its
+    // request ends on the clock, at four times the budget, and not as the checkpoint's fault. The job goes back to
+    // the queue and a fresh policy process scores it.
     let started = std::time::Instant::now();
     signal(child.unwrap(), SIGSTOP);
-    let failed = wait_for_state(&env, &stopped["id"], &["failed"], Duration::from_secs(60));
-    assert!(started.elapsed() < Duration::from_secs(30), "{:?}", started.elapsed());
-    let reason = failed["reason"].as_str().unwrap();
-    assert!(
-        reason.contains("did not answer") && reason.contains("within 3 s"),
-        "{failed}"
-    );
-    assert_eq!(failed["failure"], "checkpoint");
+    let done = wait_for_state(&env, &stopped["id"], &["finished", "failed"], Duration::from_secs(180));
+    assert_eq!(done["state"], "finished", "{done}");
+    assert_eq!(done["attempts"], 2, "scored again after the stopped process: {done}");
+    assert!(started.elapsed() >= Duration::from_secs(12), "{:?}", started.elapsed());
 
     // Killed from outside: not the checkpoint's fault; the job goes back to the queue and is scored.
     let killed = submit(&env, &alice, &models.path().join("bc-safe"), "BC-Safe")
