@@ -564,7 +564,12 @@ mod tests {
         let (result, ()) = tokio::join!(within_budget(None, std::time::Duration::from_secs(1), answer), stall);
         assert!(result.is_ok(), "timed out after {:?}", started.elapsed());
         let started = std::time::Instant::now();
-        let never = within_budget(None, std::time::Duration::from_millis(500), std::future::pending::<()>()).await;
+        let never = within_budget(
+            None,
+            std::time::Duration::from_millis(500),
+            std::future::pending::<()>(),
+        )
+        .await;
         assert!(never.is_err());
         assert!(
             started.elapsed() < std::time::Duration::from_secs(2),
