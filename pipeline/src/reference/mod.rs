@@ -27,6 +27,7 @@ use dsrl_client::cache::{Cache, FetchOptions};
 use dsrl_suite::Catalog;
 use tokio::signal::unix::{SignalKind, signal};
 
+use crate::full::now_rfc3339;
 use crate::identities::Identities;
 use plan::{Dataset, Phase, Plan};
 use scoring::{Scorer, Wait};
@@ -102,7 +103,12 @@ pub async fn run(options: &Options) -> anyhow::Result<()> {
     }
     let identities = Identities::read(&catalog, &options.repo)?;
     for phase in phases {
-        eprintln!("{} reference entries: phase {} ({})", now(), phase.name, phase.about);
+        eprintln!(
+            "{} reference entries: phase {} ({})",
+            now_rfc3339(),
+            phase.name,
+            phase.about
+        );
         run_phase(phase, options, &catalog, &identities).await?;
     }
     Ok(())
@@ -165,7 +171,7 @@ async fn run_phase(phase: &Phase, options: &Options, catalog: &Catalog, identiti
     let trained_tasks: Vec<&str> = work.tasks.iter().map(|(t, _)| t.as_str()).collect();
     eprintln!(
         "{} training {} models ({} at a time) of {} into {}",
-        now(),
+        now_rfc3339(),
         work.models.len(),
         options.jobs,
         trained_tasks.join(" "),
@@ -225,7 +231,7 @@ async fn run_phase(phase: &Phase, options: &Options, catalog: &Catalog, identiti
         anyhow::ensure!(unreproduced.is_empty(), "not reproduced: {}", unreproduced.join("; "));
         eprintln!(
             "{} every entry reproduced; {} names the commit of {}",
-            now(),
+            now_rfc3339(),
             results.display(),
             options.train_binary.display()
         );
@@ -235,7 +241,11 @@ async fn run_phase(phase: &Phase, options: &Options, catalog: &Catalog, identiti
         done = scorer.record_finished(Wait::UntilEnded) => done?,
         stopped = stop.requested() => return Err(stopped),
     }
-    eprintln!("{} every entry scored and recorded in {}", now(), results.display());
+    eprintln!(
+        "{} every entry scored and recorded in {}",
+        now_rfc3339(),
+        results.display()
+    );
     drop(private);
     Ok(())
 }
@@ -453,18 +463,7 @@ async fn host_full_builds(work: &Work, options: &Options, server: &server::Priva
 /// Trains an entry's checkpoints again (done by the pool) and has `dsrl-train reference-entry --reproduce` compare
 /// them with the scored ones; false when they differ (the entry is left as it is).
 fn reproduce(options: &Options, state: &StateDir, results: &Path, entry: &EntryKey) -> anyhow::Result<bool> {
-    let status = std::process::Command::new(&options.train_binary)
-        .arg("reference-entry")
-        .arg("--reproduce")
-        .arg("--model")
-        .arg(state.model_dir(entry))
-        .arg("--method")
-        .arg(entry.method.name())
-        .arg("--results")
-        .arg(results)
-        .status()
-        .with_context(|| format!("running {}", options.train_binary.display()))?;
-    Ok(status.success())
+    Ok(scoring::reference_entry(&options.train_binary, state, entry, results, None)?.success())
 }
 
 fn progress_bar(models: u64) -> indicatif::ProgressBar {
@@ -484,18 +483,4 @@ fn which(program: &Path) -> Option<PathBuf> {
     std::env::split_paths(&std::env::var_os("PATH")?)
         .map(|dir| dir.join(program))
         .find(|p| p.is_file())
-}
-
-/// The time of day for log lines, to the second (UTC, RFC 3339).
-fn now() -> String {
-    let t = time::OffsetDateTime::now_utc();
-    format!(
-        "{:04}-{:02}-{:02}T{:02}:{:02}:{:02}Z",
-        t.year(),
-        u8::from(t.month()),
-        t.day(),
-        t.hour(),
-        t.minute(),
-        t.second()
-    )
 }

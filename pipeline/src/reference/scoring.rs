@@ -196,23 +196,39 @@ impl Scorer {
         if newer(&mark, &json) {
             return Ok(());
         }
-        let status = std::process::Command::new(&self.train)
-            .arg("reference-entry")
-            .arg("--model")
-            .arg(self.state.model_dir(entry))
-            .arg("--submission")
-            .arg(&json)
-            .arg("--method")
-            .arg(entry.method.name())
-            .arg("--results")
-            .arg(&self.results)
-            .status()
-            .with_context(|| format!("running {}", self.train.display()))?;
+        let status = reference_entry(&self.train, &self.state, entry, &self.results, Some(&json))?;
         anyhow::ensure!(status.success(), "recording {entry} failed ({status})");
         std::fs::write(&mark, b"")?;
         self.recorded += 1;
         Ok(())
     }
+}
+
+/// `dsrl-train reference-entry` for an entry's model: with `submission` (its final answer), the entry's line in
+/// `results`; without (`--reproduce`), the check that its retrained checkpoints are the scored ones, renewing its
+/// training record when they are.
+pub fn reference_entry(
+    train: &std::path::Path,
+    state: &StateDir,
+    entry: &EntryKey,
+    results: &std::path::Path,
+    submission: Option<&std::path::Path>,
+) -> anyhow::Result<std::process::ExitStatus> {
+    let mut command = std::process::Command::new(train);
+    command.arg("reference-entry");
+    match submission {
+        Some(json) => command.arg("--submission").arg(json),
+        None => command.arg("--reproduce"),
+    };
+    command
+        .arg("--model")
+        .arg(state.model_dir(entry))
+        .arg("--method")
+        .arg(entry.method.name())
+        .arg("--results")
+        .arg(results)
+        .status()
+        .with_context(|| format!("running {}", train.display()))
 }
 
 fn read_id(path: &std::path::Path) -> Option<i64> {
