@@ -230,7 +230,14 @@ impl From<UnknownTask> for ApiError {
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
         crate::db::note_failure(&e);
-        ApiError::Internal(format!("database: {e}"))
+        match e {
+            // Every connection stayed busy for the pool's acquire timeout: the server is overloaded (or its cores
+            // are taken by other work), and the same request may succeed in a moment. Clients retry "unavailable".
+            sqlx::Error::PoolTimedOut => {
+                ApiError::Unavailable(format!("database: {e}: the server is overloaded; try again shortly"))
+            }
+            e => ApiError::Internal(format!("database: {e}")),
+        }
     }
 }
 
@@ -319,6 +326,23 @@ mod tests {
             );
             assert_eq!(serde_json::to_value(code).unwrap(), code.as_str());
         }
+    }
+
+    /// A real pool of one SQLite connection, held while a second request waits past the acquire timeout.
+    #[tokio::test]
+    async fn a_database_pool_that_times_out_is_unavailable_not_internal() {
+        let pool = sqlx::sqlite::SqlitePoolOptions::new()
+            .max_connections(1)
+            .acquire_timeout(std::time::Duration::from_millis(50))
+            .connect("sqlite::memory:")
+            .await
+            .unwrap();
+        let _held = pool.acquire().await.unwrap();
+        let err = ApiError::from(pool.acquire().await.unwrap_err());
+        assert_eq!(err.code(), ErrorCode::Unavailable, "{err}");
+        assert_eq!(tonic::Status::from(err).code(), tonic::Code::Unavailable);
+        // Other database errors stay the server's fault.
+        assert_eq!(ApiError::from(sqlx::Error::RowNotFound).code(), ErrorCode::Internal);
     }
 
     #[test]

@@ -30,6 +30,7 @@ mod s3;
 mod services;
 mod simulators;
 mod starter;
+mod workspace;
 mod writes;
 
 use std::path::{Path, PathBuf};

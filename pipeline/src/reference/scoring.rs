@@ -17,6 +17,19 @@ use super::state::{EntryKey, StateDir, newer};
 const RETRIES: u32 = 2;
 /// How often a submission being scored is looked at while the run waits for it.
 const WAIT_POLL: Duration = Duration::from_secs(5);
+/// How long the server may keep answering "unavailable" (or not answer) before the run gives up: a machine whose
+/// cores are taken by other work can starve the server's database pool for minutes, which is no reason to stop a
+/// run of hours.
+const PATIENCE: Duration = Duration::from_secs(15 * 60);
+
+/// Whether an answer says "not now" rather than "no": the server overloaded, or not answering in time.
+fn transient(e: &ClientError) -> bool {
+    match e {
+        ClientError::Server { code, .. } => code == "unavailable",
+        ClientError::Unreachable { .. } | ClientError::Timeout { .. } => true,
+        _ => false,
+    }
+}
 
 pub struct Scorer {
     pub client: Client,
@@ -67,7 +80,7 @@ impl Scorer {
         }
         // So is one kept from a scoring server whose state was reset since: its id names someone else's.
         if let Some(id) = read_id(&id_file) {
-            let same = match self.client.submission(id).await {
+            let same = match self.submission(id).await {
                 Ok(s) => s["task"] == entry.task.as_str() && s["name"] == name.as_str(),
                 Err(ClientError::Server { status: 404, .. }) => false,
                 Err(e) => return Err(e.into()),
@@ -77,6 +90,7 @@ impl Scorer {
             }
         }
         if read_id(&id_file).is_none() {
+            let started = std::time::Instant::now();
             let id = loop {
                 match self.client.submit(&model, &entry.task, &name).await {
                     Ok(answer) => break answer["id"].as_i64().context("the submission's answer has no id")?,
@@ -89,6 +103,10 @@ impl Scorer {
                         if code == "resource_exhausted" && !self.in_flight.is_empty() =>
                     {
                         self.record_finished(Wait::UntilEnded).await?;
+                    }
+                    Err(e) if transient(&e) && started.elapsed() < PATIENCE => {
+                        eprintln!("{entry}: the server cannot take the submission now ({e}); trying again");
+                        tokio::time::sleep(WAIT_POLL).await;
                     }
                     Err(e) => return Err(anyhow::Error::new(e).context(format!("submitting {entry}"))),
                 }
@@ -146,7 +164,7 @@ impl Scorer {
         }
         let id = read_id(&self.state.submission_file(entry, "id")).context("an in-flight entry without its id")?;
         loop {
-            let submission = self.client.submission(id).await?;
+            let submission = self.submission(id).await?;
             if !matches!(submission["state"].as_str(), Some("queued" | "running")) {
                 crate::write_atomically(&json, serde_json::to_string_pretty(&submission)?.as_bytes())?;
                 return Ok(true);
@@ -155,6 +173,20 @@ impl Scorer {
                 return Ok(false);
             }
             tokio::time::sleep(WAIT_POLL).await;
+        }
+    }
+
+    /// A submission as the server shows it, asked again while the server answers "not now" (within `PATIENCE`).
+    async fn submission(&self, id: i64) -> Result<serde_json::Value, ClientError> {
+        let started = std::time::Instant::now();
+        loop {
+            match self.client.submission(id).await {
+                Err(e) if transient(&e) && started.elapsed() < PATIENCE => {
+                    eprintln!("submission {id}: the server cannot answer now ({e}); asking again");
+                    tokio::time::sleep(WAIT_POLL).await;
+                }
+                answer => return answer,
+            }
         }
     }
 
