@@ -36,7 +36,7 @@ rounds=${1:-2}
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
 echo "building the release dsrl-admin and dsrl-sim-worker" >&2
-cargo build --release --locked -p dsrl-pipeline -p dsrl-sim --bins >&2
+cargo build --release --locked -p dsrl-admin -p dsrl-sim --bins >&2
 bin=${CARGO_TARGET_DIR:-target}/release
 mkdir -p bench/out
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-acting-bench.XXXXXX")

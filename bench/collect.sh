@@ -18,7 +18,7 @@ source bench/lib.sh
 scale=${1:-1}
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
-cargo build --release --locked -p dsrl-pipeline -p dsrl-sim --bins >&2
+cargo build --release --locked -p dsrl-admin -p dsrl-sim --bins >&2
 bin=${CARGO_TARGET_DIR:-target}/release
 admin=${DSRL_ADMIN:-$bin/dsrl-admin}
 mkdir -p bench/out

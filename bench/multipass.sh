@@ -27,7 +27,7 @@ fi
 sim/setup.sh >&2
 export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
 echo "building the release dsrl-train, dsrl-admin and dsrl-sim-worker" >&2
-cargo build --release --locked -p dsrl-train -p dsrl-pipeline -p dsrl-sim --bins >&2
+cargo build --release --locked -p dsrl-train -p dsrl-admin -p dsrl-sim --bins >&2
 bin=${CARGO_TARGET_DIR:-target}/release
 source bench/lib.sh  # the load is read after the build
 task=OfflineBallRun-v0

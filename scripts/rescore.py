@@ -32,7 +32,7 @@ import tempfile
 import time
 import urllib.request
 
-# The reference results' method names and the sweep's folder names for them (dsrl-admin reference: pipeline/src/reference/plan.rs).
+# The reference results' method names and the sweep's folder names for them (dsrl-admin reference: pipeline/reference/src/plan.rs).
 FOLDERS = {"BC-All": "bc-all", "BC-Safe": "bc-safe", "CDT": "cdt", "BCQ-Lag": "bcql", "BEAR-Lag": "bearl",
            "CPQ": "cpq", "COptiDICE": "coptidice", "CAPS": "caps",
            "FISOR": "fisor", "LSPC": "lspc"}

@@ -16,7 +16,6 @@ pub mod hosted;
 pub mod identities;
 pub mod import_dsrl;
 pub mod recipe;
-pub mod reference;
 #[cfg(test)]
 mod typed_numbers;
 
@@ -24,7 +23,7 @@ use std::path::Path;
 
 /// Writes `bytes` to `path` under a temporary name, then renames it: a run killed mid-write leaves the old file or
 /// none, never a truncated one that a resumed run would read as its state.
-pub(crate) fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let mut partial = path.as_os_str().to_owned();
     partial.push(".partial");
     std::fs::write(&partial, bytes)?;

@@ -601,7 +601,7 @@ fn lock(state: &Path) -> anyhow::Result<std::fs::File> {
 }
 
 /// Now in UTC, to the second.
-pub(crate) fn now_rfc3339() -> String {
+pub fn now_rfc3339() -> String {
     time::OffsetDateTime::now_utc()
         .replace_nanosecond(0)
         .ok()

@@ -10,8 +10,8 @@ use std::process::Stdio;
 
 use tokio::process::{Child, Command};
 
-use super::plan::Method;
-use super::state::{EntryKey, StateDir};
+use crate::plan::Method;
+use crate::state::{EntryKey, StateDir};
 
 /// One model to train.
 #[derive(Debug, Clone)]

@@ -27,8 +27,8 @@ use dsrl_client::cache::{Cache, FetchOptions};
 use dsrl_suite::Catalog;
 use tokio::signal::unix::{SignalKind, signal};
 
-use crate::full::now_rfc3339;
-use crate::identities::Identities;
+use dsrl_pipeline::full::now_rfc3339;
+use dsrl_pipeline::identities::Identities;
 use plan::{Dataset, Phase, Plan};
 use scoring::{Scorer, Wait};
 use state::{EntryKey, StateDir};
@@ -423,7 +423,7 @@ async fn host_full_builds(work: &Work, options: &Options, server: &server::Priva
     let tasks: Vec<String> = work.tasks.iter().map(|(t, _)| t.clone()).collect();
     for task in &tasks {
         anyhow::ensure!(
-            crate::full::finished(&options.full_builds.join(task), task)?,
+            dsrl_pipeline::full::finished(&options.full_builds.join(task), task)?,
             "{task} has no finished full build under {} (dsrl-admin build {task})",
             options.full_builds.display()
         );
@@ -433,10 +433,10 @@ async fn host_full_builds(work: &Work, options: &Options, server: &server::Priva
         tasks.join(" "),
         options.full_builds.display()
     );
-    let build = crate::full::BuildOptions {
-        plan: options.repo.join(crate::full::plan::PLAN_PATH),
+    let build = dsrl_pipeline::full::BuildOptions {
+        plan: options.repo.join(dsrl_pipeline::full::plan::PLAN_PATH),
         recipes: options.repo.join("data/recipes"),
-        records: options.repo.join(crate::full::record::RECORDS_DIR),
+        records: options.repo.join(dsrl_pipeline::full::record::RECORDS_DIR),
         root: options.full_builds.clone(),
         tasks,
         jobs: 1,
@@ -446,11 +446,11 @@ async fn host_full_builds(work: &Work, options: &Options, server: &server::Priva
         token: Some(server.admin_token.clone()),
         progress: false,
     };
-    let outcomes = crate::full::build(&build).await?;
+    let outcomes = dsrl_pipeline::full::build(&build).await?;
     let failed: Vec<String> = outcomes
         .iter()
         .filter(|o| !o.ok() || o.uploaded.is_none())
-        .map(crate::full::describe)
+        .map(dsrl_pipeline::full::describe)
         .collect();
     anyhow::ensure!(
         failed.is_empty(),

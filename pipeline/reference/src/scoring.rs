@@ -10,7 +10,7 @@ use anyhow::Context;
 use dsrl_client::api::Client;
 use dsrl_client::error::ClientError;
 
-use super::state::{EntryKey, StateDir, newer};
+use crate::state::{EntryKey, StateDir, newer};
 
 /// A scoring that failed for the service's sake (a simulator worker that stopped answering on an overloaded
 /// machine fails a job after its attempts) is submitted again this many times at most.
@@ -111,7 +111,7 @@ impl Scorer {
                     Err(e) => return Err(anyhow::Error::new(e).context(format!("submitting {entry}"))),
                 }
             };
-            crate::write_atomically(&id_file, id.to_string().as_bytes())?;
+            dsrl_pipeline::write_atomically(&id_file, id.to_string().as_bytes())?;
             eprintln!("{entry} submitted as {id}");
         }
         self.in_flight.push(entry.clone());
@@ -166,7 +166,7 @@ impl Scorer {
         loop {
             let submission = self.submission(id).await?;
             if !matches!(submission["state"].as_str(), Some("queued" | "running")) {
-                crate::write_atomically(&json, serde_json::to_string_pretty(&submission)?.as_bytes())?;
+                dsrl_pipeline::write_atomically(&json, serde_json::to_string_pretty(&submission)?.as_bytes())?;
                 return Ok(true);
             }
             if wait == Wait::Look {
@@ -215,7 +215,7 @@ impl Scorer {
             .unwrap_or(0)
             + 1;
         anyhow::ensure!(tries <= RETRIES, "giving up on {entry} after {tries} failed scorings");
-        crate::write_atomically(&retries_file, tries.to_string().as_bytes())?;
+        dsrl_pipeline::write_atomically(&retries_file, tries.to_string().as_bytes())?;
         self.state.forget_submission(entry)?;
         Ok(true)
     }

@@ -61,7 +61,7 @@ impl PrivateServer {
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(log);
-        let mut child = super::training::spawn_supervised(&mut command)
+        let mut child = crate::training::spawn_supervised(&mut command)
             .with_context(|| format!("starting {}", binary.display()))?;
         let mut stdout = child.stdout.take().context("the server's stdout")?;
         // "dsrl-server listening on URL", its first line once it listens.
@@ -114,6 +114,6 @@ async fn user_token(url: &str, state: &Path, admin_token: &str) -> anyhow::Resul
         .as_str()
         .context("the server's new user has no token")?
         .to_owned();
-    crate::write_atomically(&path, token.as_bytes())?;
+    dsrl_pipeline::write_atomically(&path, token.as_bytes())?;
     Ok(token)
 }

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::plan::Method;
+use crate::plan::Method;
 
 /// One entry of the table: a method trained with a seed on a task.
 #[derive(Debug, Clone, PartialEq, Eq)]

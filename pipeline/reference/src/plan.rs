@@ -268,7 +268,7 @@ mod tests {
 
     #[test]
     fn the_committed_plan_reads_and_expands_its_groups() {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
         let plan = Plan::load(&root.join(PLAN_PATH)).unwrap();
         let catalog = Catalog::embedded().unwrap();
         let first = &plan.phases[0].runs;

@@ -222,7 +222,7 @@ struct ReferenceArgs {
     /// Phases of the plan to run, in this order (e.g. 1 2 full); --list shows them.
     phases: Vec<String>,
     /// The plan.
-    #[arg(long, default_value = dsrl_pipeline::reference::plan::PLAN_PATH)]
+    #[arg(long, default_value = dsrl_reference::plan::PLAN_PATH)]
     plan: PathBuf,
     /// Print the plan's phases and exit.
     #[arg(long)]
@@ -268,7 +268,7 @@ struct ReferenceArgs {
 }
 
 async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
-    let plan = dsrl_pipeline::reference::plan::Plan::load(&args.plan)?;
+    let plan = dsrl_reference::plan::Plan::load(&args.plan)?;
     if args.list || args.phases.is_empty() {
         for phase in &plan.phases {
             println!("{:<15} {}", phase.name, phase.about);
@@ -285,7 +285,7 @@ async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
         let beside = std::env::current_exe().ok().and_then(|e| Some(e.parent()?.join(name)));
         beside.filter(|p| p.is_file()).unwrap_or_else(|| PathBuf::from(name))
     };
-    let options = dsrl_pipeline::reference::Options {
+    let options = dsrl_reference::Options {
         plan: args.plan,
         phases: args.phases,
         tasks: args.tasks,
@@ -304,7 +304,7 @@ async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
         server_binary: sibling("dsrl-server", "DSRL_SERVER_BIN"),
         repo: std::env::current_dir()?,
     };
-    dsrl_pipeline::reference::run(&options).await
+    dsrl_reference::run(&options).await
 }
 
 #[derive(clap::Args, Debug)]
