@@ -163,8 +163,9 @@ fn cpu_seconds(pid: u32) -> Option<f64> {
 /// (`AWAKE_TICK`), the request ends as `Overdue::Clock`. Where the process's CPU time cannot be read, the clock
 /// alone is the budget, as the checkpoint's.
 ///
-/// The process's CPU time is first read at the first clock look (`AWAKE_TICK`): a request shorter than that costs
-/// no read, and the time before the first read is charged in full (at most a tick more than the process used).
+/// The process's CPU time is read when the request is sent and at each clock look: the request is charged what the
+/// process used in between, never the evaluator's own waiting (a starved evaluator may look tens of seconds late,
+/// and charging that wait as CPU once failed a checkpoint for the machine's sake).
 async fn within_budget<F: std::future::Future>(
     pid: Option<u32>,
     limit: std::time::Duration,
@@ -173,13 +174,11 @@ async fn within_budget<F: std::future::Future>(
     tokio::pin!(call);
     let started = tokio::time::Instant::now();
     let limit_seconds = limit.as_secs_f64();
-    // (CPU seconds at the first look, wall seconds before it)
-    let mut first_look: Option<(f64, f64)> = None;
-    let mut readable = pid.is_some();
-    let cpu_used = |first: Option<(f64, f64)>| -> Option<f64> {
-        let (cpu_then, before) = first?;
-        Some(cpu_seconds(pid?)? - cpu_then + before)
-    };
+    // The process's CPU seconds when the request is sent: what it uses from here on is the request's.
+    let cpu_at_start = pid.and_then(cpu_seconds);
+    let mut readable = cpu_at_start.is_some();
+    let cpu_used = || -> Option<f64> { Some(cpu_seconds(pid?)? - cpu_at_start?) };
+    let mut looked = false;
     let mut awake = std::time::Duration::ZERO;
     let mut last = started;
     loop {
@@ -187,8 +186,9 @@ async fn within_budget<F: std::future::Future>(
         let left = clock_limit.saturating_sub(awake);
         match tokio::time::timeout(left.min(AWAKE_TICK), &mut call).await {
             Ok(output) => {
-                // A request that ended between two looks is held to the budget too.
-                if let Some(used) = cpu_used(first_look).filter(|&used| used > limit_seconds) {
+                // A request that ended between two looks is held to the budget too (one shorter than a look
+                // costs no second read).
+                if let Some(used) = cpu_used().filter(|&used| looked && used > limit_seconds) {
                     return Err(Overdue::Cpu(used));
                 }
                 return Ok(output);
@@ -198,13 +198,10 @@ async fn within_budget<F: std::future::Future>(
                 let gap = now - last;
                 last = now;
                 awake += if gap > SUSPENDED_AFTER { AWAKE_TICK } else { gap };
-                if first_look.is_none() && readable {
-                    match pid.and_then(cpu_seconds) {
-                        Some(cpu) => first_look = Some((cpu, (now - started).as_secs_f64())),
-                        None => readable = false,
-                    }
-                }
-                if let Some(used) = cpu_used(first_look).filter(|&used| used > limit_seconds) {
+                looked = true;
+                let used = if readable { cpu_used() } else { None };
+                readable = used.is_some();
+                if let Some(used) = used.filter(|&used| used > limit_seconds) {
                     return Err(Overdue::Cpu(used));
                 }
                 let clock_limit = if readable { limit * CLOCK_FACTOR } else { limit };
@@ -602,6 +599,16 @@ mod tests {
         let overdue = within_budget(idle.id(), limit, std::future::pending::<()>()).await;
         assert_eq!(overdue, Err(Overdue::Clock));
         assert!(started.elapsed() >= limit * CLOCK_FACTOR, "{:?}", started.elapsed());
+
+        // An evaluator blocked past the budget (the thread that polls the request does not run) while the policy
+        // process sleeps: the wait is the machine's, not the policy's CPU, so the request is answered.
+        let blocked = within_budget(idle.id(), limit, async {
+            std::thread::sleep(limit * 2);
+            tokio::task::yield_now().await;
+            8
+        })
+        .await;
+        assert_eq!(blocked, Ok(8));
 
         // An answer within the budget is an answer; without a process to read, the clock is the budget.
         let answer = within_budget(idle.id(), limit, async { 7 }).await;
