@@ -188,7 +188,7 @@ async fn within_budget<F: std::future::Future>(
             Ok(output) => {
                 // A request that ended between two looks is held to the budget too (one shorter than a look
                 // costs no second read).
-                if let Some(used) = cpu_used().filter(|&used| looked && used > limit_seconds) {
+                if let Some(used) = looked.then(cpu_used).flatten().filter(|&used| used > limit_seconds) {
                     return Err(Overdue::Cpu(used));
                 }
                 return Ok(output);
