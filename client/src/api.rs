@@ -638,6 +638,14 @@ impl Client {
         self.get_json(&format!("/v1/submissions/{id}")).await
     }
 
+    /// `GET /v1/submissions/{id}?wait=SECONDS`: the submission once it has ended, or after `wait_seconds` (at most
+    /// 60) as it is then. One request replaces polling: the server watches the state and answers within ~20 ms of
+    /// the end.
+    pub async fn submission_when_ended(&self, id: i64, wait_seconds: u32) -> Result<serde_json::Value, ClientError> {
+        self.get_json(&format!("/v1/submissions/{id}?wait={wait_seconds}"))
+            .await
+    }
+
     /// `GET /v1/submissions/{id}/episodes/{threshold}/{episode}/replay.json`: `Some(replay)` once made, `None`
     /// while it is queued (the request queues it).
     pub async fn episode_replay(

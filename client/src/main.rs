@@ -659,14 +659,16 @@ async fn watch_episode(
     Ok(exit::OK)
 }
 
+/// Waits for the submission to end: each request asks the server to answer when it ends or after a few seconds
+/// (then the spinner shows its progress and the next request waits again).
 async fn wait_for_submission(client: &Client, id: i64, quiet: bool) -> Result<serde_json::Value, ClientError> {
     let spinner = if quiet {
         ProgressBar::hidden()
     } else {
         ProgressBar::new_spinner()
     };
+    let mut submission = client.submission(id).await?;
     loop {
-        let submission = client.submission(id).await?;
         let state = submission["state"].as_str().unwrap_or_default().to_owned();
         if ENDED.contains(&state.as_str()) {
             spinner.finish_and_clear();
@@ -674,9 +676,12 @@ async fn wait_for_submission(client: &Client, id: i64, quiet: bool) -> Result<se
         }
         spinner.set_message(format!("submission {id}: {state} (attempt {})", submission["attempts"]));
         spinner.tick();
-        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+        submission = client.submission_when_ended(id, WAIT_SECONDS).await?;
     }
 }
+
+/// How long one `--wait` request lets the server hold it (the spinner's update period).
+const WAIT_SECONDS: u32 = 5;
 
 fn number(value: &serde_json::Value) -> String {
     value.as_f64().map_or_else(|| "–".to_owned(), |x| format!("{x:.3}"))

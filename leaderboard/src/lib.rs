@@ -29,6 +29,13 @@ pub const SCORER_BUILD: &str = concat!(
     ")"
 );
 
+/// The states a submission does not leave.
+pub const ENDED_STATES: [&str; 3] = ["finished", "failed", "cancelled"];
+/// The longest a request may wait for a submission to end (`GET /v1/submissions/{id}?wait=SECONDS`).
+pub const MAX_WAIT_SECONDS: u32 = 60;
+/// How often a waiting request looks at the submission's state.
+const WAIT_LOOK_EVERY: std::time::Duration = std::time::Duration::from_millis(20);
+
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
@@ -82,6 +89,9 @@ pub struct Leaderboard {
     pub evaluators: supervision::Evaluators,
     /// Wakes this process's evaluators when one of their jobs may have been cancelled.
     pub(crate) cancelled: tokio::sync::Notify,
+    /// Set when the server begins to shut down: requests waiting for a submission to end answer at once, so they
+    /// do not hold the graceful shutdown for their whole wait.
+    closing: tokio::sync::watch::Sender<bool>,
     /// Replays of scored episodes to watch: the queue, the renderer's state and counters (`renders`).
     pub renders: renders::Renders,
 }
@@ -381,6 +391,7 @@ impl Leaderboard {
             seed_intervals: Mutex::new(HashMap::new()),
             evaluators: supervision::Evaluators::default(),
             cancelled: tokio::sync::Notify::new(),
+            closing: tokio::sync::watch::Sender::new(false),
             renders: renders::Renders::default(),
             db,
             store,
@@ -540,6 +551,32 @@ impl Leaderboard {
                 tracing::warn!(%path, error = %e, "removing a refused submission's object");
             }
         }
+    }
+
+    /// Waits until the submission has ended (finished, failed or cancelled) or `at_most` has passed, whichever
+    /// comes first; the caller then reads its view. It looks at the state alone every 20 ms: the evaluator that
+    /// ends it may be another process (a scaled-out evaluator writing to the same database), so the database is
+    /// the one place to watch, and a client waiting here instead of polling the full view costs the server
+    /// next to nothing while the submission is scored.
+    pub async fn wait_until_ended(&self, id: i64, at_most: std::time::Duration) -> Result<(), ApiError> {
+        let deadline = tokio::time::Instant::now() + at_most;
+        let mut closing = self.closing.subscribe();
+        loop {
+            let state = queue::state(&self.db, id).await?;
+            if ENDED_STATES.contains(&state.as_str()) || tokio::time::Instant::now() >= deadline || *closing.borrow() {
+                return Ok(());
+            }
+            let next_look = deadline.min(tokio::time::Instant::now() + WAIT_LOOK_EVERY);
+            tokio::select! {
+                _ = tokio::time::sleep_until(next_look) => {}
+                _ = closing.changed() => {}
+            }
+        }
+    }
+
+    /// The server is shutting down: requests waiting in [`Self::wait_until_ended`] answer now.
+    pub fn close_waits(&self) {
+        self.closing.send_replace(true);
     }
 
     /// Cancels a queued or running submission: its submitter's (`Canceller::User`) or, for the admin, any.

@@ -662,6 +662,16 @@ pub async fn get(db: &Db, id: i64) -> Result<SubmissionRow, ApiError> {
     submission_row(&row)
 }
 
+/// A submission's state alone (`queued`, `running`, `finished`, `failed`, `cancelled`): the one-column read a
+/// waiting request repeats, far cheaper than the full view.
+pub async fn state(db: &Db, id: i64) -> Result<String, ApiError> {
+    sqlx::query_scalar("SELECT state FROM submissions WHERE id = $1")
+        .bind(id)
+        .fetch_optional(db.pool())
+        .await?
+        .ok_or_else(|| ApiError::NotFound(format!("no submission {id}")))
+}
+
 /// The finished submissions that stand on the leaderboard: per (user, name, task) the latest one.
 pub async fn standing(db: &Db) -> Result<Vec<SubmissionRow>, ApiError> {
     let rows = sqlx::query(AssertSqlSafe(format!(

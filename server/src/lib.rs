@@ -242,8 +242,12 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let state = build_state(&config, Converter::InProcess).await?;
+    let leaderboard = state.leaderboard.clone();
     axum::serve(listener, app(state))
-        .with_graceful_shutdown(shutdown)
+        .with_graceful_shutdown(async move {
+            shutdown.await;
+            leaderboard.close_waits();
+        })
         .await?;
     Ok(())
 }

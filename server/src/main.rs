@@ -128,8 +128,13 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     let state = dsrl_server::build_state(&config, converter).await?;
     tracing::info!(%addr, data_dir = %config.server.data_dir.display(), "serving");
     println!("dsrl-server listening on http://{addr}");
+    let leaderboard = state.leaderboard.clone();
     axum::serve(listener, dsrl_server::app(state))
-        .with_graceful_shutdown(dsrl_service::shutdown_signal())
+        .with_graceful_shutdown(async move {
+            dsrl_service::shutdown_signal().await;
+            // Requests waiting for a submission to end answer now instead of holding the shutdown.
+            leaderboard.close_waits();
+        })
         .await?;
     tracing::info!("stopped");
     Ok(())

@@ -369,6 +369,32 @@ fn submissions_are_checked_deduped_and_held_to_quotas() {
     assert_eq!(status["state"], "queued");
     let board = get_json(&format!("{url}/v1/leaderboard?task={TASK}"));
     assert_eq!(board["tasks"][0]["entries"].as_array().unwrap().len(), 0);
+
+    // A request waiting for a submission that cannot end here does not hold the server's shutdown: on SIGTERM it
+    // answers with the state at once (it would otherwise be held for its whole 60 s, and the server with it).
+    let waiting = {
+        let url = format!("{url}/v1/submissions/{first_id}?wait=60");
+        std::thread::spawn(move || {
+            let asked = std::time::Instant::now();
+            (get_json(&url), asked.elapsed())
+        })
+    };
+    std::thread::sleep(Duration::from_secs(2));
+    assert!(
+        !waiting.is_finished(),
+        "the waiting request answered before the shutdown"
+    );
+    let term = Command::new("kill")
+        .args(["-TERM", &env.server.pid().to_string()])
+        .status()
+        .unwrap();
+    assert!(term.success());
+    let (answer, held) = waiting.join().unwrap();
+    assert_eq!(answer["state"], "queued", "{answer}");
+    assert!(
+        held < Duration::from_secs(20),
+        "the waiting request held the shutdown for {held:?}"
+    );
 }
 
 /// The same service over gRPC: tokens in metadata, the same dedupe and the same errors as REST.
@@ -413,12 +439,41 @@ fn grpc_submissions(url: &str, token: &str, bc_all: &Path, first_id: i64) {
             .get_submission(pb::GetSubmissionRequest {
                 id: first_id,
                 episodes: true,
+                wait_seconds: 0,
             })
             .await
             .unwrap()
             .into_inner();
         assert_eq!(submission.state, "queued");
         assert_eq!(submission.name, "BC-All");
+        // A waiting request on a submission that does not end (no workers here) is held for its wait, then
+        // answered with the state; a wait past 60 s is refused.
+        let asked = std::time::Instant::now();
+        let waited = grpc
+            .get_submission(pb::GetSubmissionRequest {
+                id: first_id,
+                episodes: false,
+                wait_seconds: 1,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(waited.state, "queued");
+        assert!(
+            asked.elapsed() >= Duration::from_millis(950),
+            "held only {:?}",
+            asked.elapsed()
+        );
+        let err = grpc
+            .get_submission(pb::GetSubmissionRequest {
+                id: first_id,
+                episodes: false,
+                wait_seconds: 61,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err:?}");
+        assert!(err.message().contains("from 0 to 60"), "{err:?}");
         let board = grpc
             .get_leaderboard(pb::GetLeaderboardRequest {
                 task: Some(TASK.into()),
@@ -464,6 +519,69 @@ pub(crate) fn scoring_env(lease_seconds: &str) -> Env {
     )
 }
 
+/// `GET /v1/submissions/{id}?wait=SECONDS` (what `--wait` and the Python package send): while the submission is
+/// scored each request is held for its whole wait, the request in flight when it ends answers within a second of
+/// the end (a plain poll every 100 ms beside it sees the end), an ended submission answers at once, and a wait
+/// outside 0-60 s is refused with the reason.
+fn answers_waiting_requests_when_the_submission_ends(env: &Env, id: i64) {
+    let url = format!("{}/v1/submissions/{id}", env.server.url);
+    let ended = |v: &serde_json::Value| ["finished", "failed", "cancelled"].contains(&v["state"].as_str().unwrap());
+    let waiter = {
+        let url = url.clone();
+        std::thread::spawn(move || {
+            let mut held = Vec::new();
+            loop {
+                let asked = std::time::Instant::now();
+                let answer = get_json(&format!("{url}?wait=5"));
+                if ["finished", "failed", "cancelled"].contains(&answer["state"].as_str().unwrap()) {
+                    return (answer, held, std::time::Instant::now());
+                }
+                held.push(asked.elapsed());
+            }
+        })
+    };
+    let seen_ended = loop {
+        let done = waiter.is_finished();
+        if ended(&get_json(&url)) {
+            break std::time::Instant::now();
+        }
+        assert!(!done, "the waiting request answered before the submission ended");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let (answer, held, answered) = waiter.join().unwrap();
+    assert_eq!(answer["state"], "finished", "{answer}");
+    assert!(
+        held.iter().all(|d| *d >= Duration::from_millis(4_900)),
+        "a waiting request was not held: {held:?}"
+    );
+    assert!(
+        answered <= seen_ended + Duration::from_secs(1),
+        "the waiting request answered {:?} after a plain poll saw the end",
+        answered.saturating_duration_since(seen_ended)
+    );
+    let asked = std::time::Instant::now();
+    assert_eq!(get_json(&format!("{url}?wait=60"))["state"], "finished");
+    assert!(
+        asked.elapsed() < Duration::from_secs(5),
+        "an ended submission was held {:?}",
+        asked.elapsed()
+    );
+    for bad in ["61", "-1", "soon"] {
+        let (status, body) = block_on({
+            let url = format!("{url}?wait={bad}");
+            async move {
+                let r = reqwest::get(&url).await.unwrap();
+                (r.status().as_u16(), r.text().await.unwrap())
+            }
+        });
+        assert_eq!(status, 400, "wait={bad}: {body}");
+        assert!(
+            body.contains("whole number of seconds from 0 to 60"),
+            "wait={bad}: {body}"
+        );
+    }
+}
+
 #[test]
 fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator() {
     let models = tempfile::tempdir().unwrap();
@@ -493,6 +611,7 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
         .ok()
         .json();
         assert_eq!(cdt["checkpoints"][0]["architecture"], "cdt");
+        answers_waiting_requests_when_the_submission_ends(&env, all["id"].as_i64().unwrap());
         let mut finished = Vec::new();
         for s in [&all, &safe, &cdt] {
             let run = client(&env, &alice, &["--json", "status", &s["id"].to_string(), "--wait"]).ok();

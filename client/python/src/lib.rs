@@ -264,12 +264,20 @@ fn ingest(
     serde_json::to_string(&result?).map_err(|e| PyException::new_err(e.to_string()))
 }
 
-/// A submission's state and scores, as JSON.
+/// A submission's state and scores, as JSON; with `wait_seconds` (at most 60) the server answers once it has
+/// ended or when that time has passed.
 #[pyfunction]
-#[pyo3(signature = (id, server = None))]
-fn submission(py: Python<'_>, id: i64, server: Option<&str>) -> PyResult<String> {
+#[pyo3(signature = (id, server = None, wait_seconds = 0))]
+fn submission(py: Python<'_>, id: i64, server: Option<&str>, wait_seconds: u32) -> PyResult<String> {
     let client = client(py, server, None)?;
-    block_on(py, async { client.submission(id).await }).map(|v| v.to_string())
+    block_on(py, async {
+        if wait_seconds == 0 {
+            client.submission(id).await
+        } else {
+            client.submission_when_ended(id, wait_seconds).await
+        }
+    })
+    .map(|v| v.to_string())
 }
 
 /// A scored episode's replay as JSON (its seed, returns, length and every step's reward and cost), or `None` while

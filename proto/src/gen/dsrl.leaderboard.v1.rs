@@ -27,6 +27,10 @@ pub struct GetSubmissionRequest {
     /// Also return every evaluated episode.
     #[prost(bool, tag = "2")]
     pub episodes: bool,
+    /// Answer once the submission has ended (finished, failed or cancelled), or after this many seconds (at most 60;
+    /// 0: at once) with its state then. INVALID_ARGUMENT above 60.
+    #[prost(uint32, tag = "3")]
+    pub wait_seconds: u32,
 }
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]

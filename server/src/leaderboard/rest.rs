@@ -140,18 +140,43 @@ fn submission_id(id: &str) -> Result<i64, ApiError> {
         .map_err(|_| ApiError::InvalidArgument(format!("{id:?} is not a submission id (a number)")))
 }
 
-/// `GET /v1/submissions/{id}`: state, reason, scores and every episode.
+#[derive(Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct SubmissionQuery {
+    /// Answer once the submission has ended (finished, failed or cancelled), or after this many seconds (at most
+    /// 60) with its state then: a client waits for its score with one request instead of polling.
+    wait: Option<String>,
+}
+
+/// `GET /v1/submissions/{id}[?wait=SECONDS]`: state, reason, scores and every episode.
 #[utoipa::path(get, path = "/v1/submissions/{id}", tag = "leaderboard",
-    params(("id" = String, Path, description = "Submission id (a number)")),
+    params(("id" = String, Path, description = "Submission id (a number)"), SubmissionQuery),
     responses(
         (status = 200, body = SubmissionView),
-        (status = 400, description = "Not a submission id"),
+        (status = 400, description = "Not a submission id, or a wait that is not 0-60 seconds"),
         (status = 404, description = "No such submission")))]
 pub async fn get_submission(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    Query(query): Query<SubmissionQuery>,
 ) -> Result<impl IntoResponse, ApiError> {
-    Ok(Json(state.leaderboard.view(submission_id(&id)?).await?))
+    let id = submission_id(&id)?;
+    if let Some(wait) = query.wait.as_deref() {
+        let seconds = wait_seconds(wait)?;
+        state
+            .leaderboard
+            .wait_until_ended(id, std::time::Duration::from_secs(seconds.into()))
+            .await?;
+    }
+    Ok(Json(state.leaderboard.view(id).await?))
+}
+
+/// `?wait=SECONDS`: a whole number of seconds up to the leaderboard's limit.
+pub fn wait_seconds(text: &str) -> Result<u32, ApiError> {
+    let max = crate::leaderboard::MAX_WAIT_SECONDS;
+    text.parse::<u32>().ok().filter(|s| *s <= max).ok_or_else(|| {
+        ApiError::InvalidArgument(format!("wait={text:?}: give a whole number of seconds from 0 to {max}"))
+    })
 }
 
 /// `GET /v1/submissions/{id}/episodes.csv`: every scored episode of a submission as CSV.

@@ -6,10 +6,12 @@ import time
 from . import _native
 
 
-def submit(folder, *, task, name, token=None, server=None, wait=False, timeout=3600.0, poll=2.0):
+def submit(folder, *, task, name, token=None, server=None, wait=False, timeout=3600.0, poll=5.0):
     """Uploads `folder` (one `policy.json` + `policy.safetensors`, or one per `threshold-K/`) as a submission of
-    `name` for `task`. token: default `$DSRL_TOKEN`. Returns the submission (dict); with `wait=True`, polls until
-    it is finished, failed or cancelled and returns that. Raises `DsrlError` (duplicate, quota, invalid files...)."""
+    `name` for `task`. token: default `$DSRL_TOKEN`. Returns the submission (dict); with `wait=True`, waits until
+    it is finished, failed or cancelled (at most `timeout` seconds) and returns that: each request asks the server
+    to answer when the submission ends or after `poll` seconds (1-60). Raises `DsrlError` (duplicate, quota,
+    invalid files...)."""
     token = token or os.environ.get("DSRL_TOKEN")
     if not token:
         raise ValueError("submitting needs a user token: pass token= or set DSRL_TOKEN")
@@ -20,8 +22,9 @@ def submit(folder, *, task, name, token=None, server=None, wait=False, timeout=3
     while submission.get("state") not in ("finished", "failed", "cancelled"):
         if time.monotonic() > deadline:
             raise TimeoutError(f"submission {submission['id']} is still {submission.get('state')} after {timeout} s")
-        time.sleep(poll)
-        submission = json.loads(_native.submission(int(submission["id"]), server))
+        left = deadline - time.monotonic()
+        wait_seconds = max(1, min(60, int(poll), int(left) + 1))
+        submission = json.loads(_native.submission(int(submission["id"]), server, wait_seconds))
     return submission
 
 
