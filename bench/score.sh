@@ -3,7 +3,7 @@
 # on OfflineBallCircle-v0 (SafetyBallCircle-v0, 200-step episodes), side by side in one run:
 #   - dsrl: a release dsrl-server with two local simulator workers (one per core) scores a BC-All checkpoint
 #     submitted with `dsrl-client submit --wait`; timed from the submit call until the submission reads `finished`
-#     (the server answers the waiting request within ~20 ms of the end), so it includes the upload, the checks, the
+#     (the evaluator that ends it wakes the waiting request), so it includes the upload, the checks, the
 #     queue and storing all 60 episodes;
 #   - reference: a sequential in-process Python loop like OSRL's evaluation (tests/parity/evaluate_in_python.py:
 #     one env, one episode after another, NumPy forward pass per step, one BLAS thread as the workers use) playing
@@ -68,7 +68,7 @@ for round in $(seq "$rounds"); do
   python3 -c "import json,sys; c=json.load(open('$work/policy/bc-all/policy.json')); c['architecture']['max_action']=1.0-$round*1e-9; json.dump(c, open('$dir/policy.json','w'))"
   before=$(cpu_snapshot)
   start=$(date +%s.%N)
-  # `--wait` holds one request open until the server sees the submission end (it looks at the state every 20 ms),
+  # `--wait` holds one request open until the server sees the submission end (its evaluator wakes the request),
   # so timing takes next to no CPU from the two cores it measures; polling the full view did not: starting a curl
   # and a python3 per poll, or the server assembling the view each time, took a share of them.
   "$bin/dsrl-client" --json submit "$dir" --task $task --name "bench-$round" --wait > "$dir/submission.json"

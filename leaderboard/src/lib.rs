@@ -33,8 +33,9 @@ pub const SCORER_BUILD: &str = concat!(
 pub const ENDED_STATES: [&str; 3] = ["finished", "failed", "cancelled"];
 /// The longest a request may wait for a submission to end (`GET /v1/submissions/{id}?wait=SECONDS`).
 pub const MAX_WAIT_SECONDS: u32 = 60;
-/// How often a waiting request looks at the submission's state.
-const WAIT_LOOK_EVERY: std::time::Duration = std::time::Duration::from_millis(20);
+/// How often a waiting request looks at the submission's state in the database when nothing in this process woke it:
+/// the submission may be scored by an evaluator of another server sharing the database.
+const WAIT_LOOK_EVERY: std::time::Duration = std::time::Duration::from_millis(250);
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -89,6 +90,8 @@ pub struct Leaderboard {
     pub evaluators: supervision::Evaluators,
     /// Wakes this process's evaluators when one of their jobs may have been cancelled.
     pub(crate) cancelled: tokio::sync::Notify,
+    /// Wakes requests waiting for a submission to end when this process's evaluators or a cancel end one.
+    pub(crate) ended: tokio::sync::Notify,
     /// Set when the server begins to shut down: requests waiting for a submission to end answer at once, so they
     /// do not hold the graceful shutdown for their whole wait.
     closing: tokio::sync::watch::Sender<bool>,
@@ -391,6 +394,7 @@ impl Leaderboard {
             seed_intervals: Mutex::new(HashMap::new()),
             evaluators: supervision::Evaluators::default(),
             cancelled: tokio::sync::Notify::new(),
+            ended: tokio::sync::Notify::new(),
             closing: tokio::sync::watch::Sender::new(false),
             renders: renders::Renders::default(),
             db,
@@ -554,14 +558,18 @@ impl Leaderboard {
     }
 
     /// Waits until the submission has ended (finished, failed or cancelled) or `at_most` has passed, whichever
-    /// comes first; the caller then reads its view. It looks at the state alone every 20 ms: the evaluator that
-    /// ends it may be another process (a scaled-out evaluator writing to the same database), so the database is
-    /// the one place to watch, and a client waiting here instead of polling the full view costs the server
-    /// next to nothing while the submission is scored.
+    /// comes first; the caller then reads its view. It reads the state alone, when this process's evaluators or a
+    /// cancel end a submission and every `WAIT_LOOK_EVERY` besides (an evaluator of another server sharing the
+    /// database may end it), so a client waiting here instead of polling the full view costs the server next to
+    /// nothing while the submission is scored.
     pub async fn wait_until_ended(&self, id: i64, at_most: std::time::Duration) -> Result<(), ApiError> {
         let deadline = tokio::time::Instant::now() + at_most;
         let mut closing = self.closing.subscribe();
         loop {
+            // Registered before the state is read, so an end between the read and the sleep still wakes it.
+            let ended = self.ended.notified();
+            tokio::pin!(ended);
+            ended.as_mut().enable();
             let state = queue::state(&self.db, id).await?;
             if ENDED_STATES.contains(&state.as_str()) || tokio::time::Instant::now() >= deadline || *closing.borrow() {
                 return Ok(());
@@ -569,6 +577,7 @@ impl Leaderboard {
             let next_look = deadline.min(tokio::time::Instant::now() + WAIT_LOOK_EVERY);
             tokio::select! {
                 _ = tokio::time::sleep_until(next_look) => {}
+                _ = &mut ended => {}
                 _ = closing.changed() => {}
             }
         }
@@ -582,6 +591,7 @@ impl Leaderboard {
     /// Cancels a queued or running submission: its submitter's (`Canceller::User`) or, for the admin, any.
     pub async fn cancel(&self, by: queue::Canceller, id: i64) -> Result<SubmissionView, ApiError> {
         queue::cancel(&self.db, id, by).await?;
+        self.ended.notify_waiters();
         // An evaluator of this process scoring it stops at once (others within a second).
         self.cancelled.notify_waiters();
         self.view(id).await

@@ -165,6 +165,8 @@ async fn evaluator(leaderboard: Arc<Leaderboard>, index: usize, owner: String) {
         if let Err(e) = stored {
             tracing::error!(id = job.id, error = %e, "recording an evaluation result");
         }
+        // Requests waiting for this submission to end look at it now.
+        leaderboard.ended.notify_waiters();
         leaderboard.evaluators.idle(index);
     }
 }
