@@ -639,8 +639,8 @@ impl Client {
     }
 
     /// `GET /v1/submissions/{id}?wait=SECONDS`: the submission once it has ended, or after `wait_seconds` (at most
-    /// 60) as it is then. One request replaces polling: the server watches the state and answers within ~20 ms of
-    /// the end.
+    /// 60) as it is then. One request replaces polling: the evaluator that ends the submission wakes the waiting
+    /// request.
     pub async fn submission_when_ended(&self, id: i64, wait_seconds: u32) -> Result<serde_json::Value, ClientError> {
         self.get_json(&format!("/v1/submissions/{id}?wait={wait_seconds}"))
             .await

@@ -33,6 +33,12 @@ pub const SCORER_BUILD: &str = concat!(
 pub const ENDED_STATES: [&str; 3] = ["finished", "failed", "cancelled"];
 /// The longest a request may wait for a submission to end (`GET /v1/submissions/{id}?wait=SECONDS`).
 pub const MAX_WAIT_SECONDS: u32 = 60;
+/// The answer to a `wait` that is not a whole number of seconds up to `MAX_WAIT_SECONDS` (`given`: as asked).
+pub fn bad_wait(given: &str) -> ApiError {
+    ApiError::InvalidArgument(format!(
+        "wait={given:?}: give a whole number of seconds from 0 to {MAX_WAIT_SECONDS}"
+    ))
+}
 /// How often a waiting request looks at the submission's state in the database when nothing in this process woke it:
 /// the submission may be scored by an evaluator of another server sharing the database.
 const WAIT_LOOK_EVERY: std::time::Duration = std::time::Duration::from_millis(250);
@@ -557,13 +563,16 @@ impl Leaderboard {
         }
     }
 
-    /// Waits until the submission has ended (finished, failed or cancelled) or `at_most` has passed, whichever
-    /// comes first; the caller then reads its view. It reads the state alone, when this process's evaluators or a
-    /// cancel end a submission and every `WAIT_LOOK_EVERY` besides (an evaluator of another server sharing the
-    /// database may end it), so a client waiting here instead of polling the full view costs the server next to
-    /// nothing while the submission is scored.
-    pub async fn wait_until_ended(&self, id: i64, at_most: std::time::Duration) -> Result<(), ApiError> {
-        let deadline = tokio::time::Instant::now() + at_most;
+    /// Waits until the submission has ended (finished, failed or cancelled) or `seconds` (at most
+    /// `MAX_WAIT_SECONDS`) have passed, whichever comes first; the caller then reads its view. It reads the state
+    /// alone, when this process's evaluators or a cancel end a submission and every `WAIT_LOOK_EVERY` besides (an
+    /// evaluator of another server sharing the database may end it), so a client waiting here instead of polling
+    /// the full view costs the server next to nothing while the submission is scored.
+    pub async fn wait_until_ended(&self, id: i64, seconds: u32) -> Result<(), ApiError> {
+        if seconds > MAX_WAIT_SECONDS {
+            return Err(bad_wait(&seconds.to_string()));
+        }
+        let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(seconds.into());
         let mut closing = self.closing.subscribe();
         loop {
             // Registered before the state is read, so an end between the read and the sleep still wakes it.

@@ -242,12 +242,22 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let state = build_state(&config, Converter::InProcess).await?;
+    serve_until(listener, state, shutdown).await?;
+    Ok(())
+}
+
+/// Serves `state` on `listener` until `shutdown` completes, then finishes the requests in flight. Requests waiting
+/// for a submission to end answer at once then, instead of holding the shutdown for their whole wait.
+pub async fn serve_until(
+    listener: tokio::net::TcpListener,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
     let leaderboard = state.leaderboard.clone();
     axum::serve(listener, app(state))
         .with_graceful_shutdown(async move {
             shutdown.await;
             leaderboard.close_waits();
         })
-        .await?;
-    Ok(())
+        .await
 }

@@ -128,14 +128,7 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     let state = dsrl_server::build_state(&config, converter).await?;
     tracing::info!(%addr, data_dir = %config.server.data_dir.display(), "serving");
     println!("dsrl-server listening on http://{addr}");
-    let leaderboard = state.leaderboard.clone();
-    axum::serve(listener, dsrl_server::app(state))
-        .with_graceful_shutdown(async move {
-            dsrl_service::shutdown_signal().await;
-            // Requests waiting for a submission to end answer now instead of holding the shutdown.
-            leaderboard.close_waits();
-        })
-        .await?;
+    dsrl_server::serve_until(listener, state, dsrl_service::shutdown_signal()).await?;
     tracing::info!("stopped");
     Ok(())
 }

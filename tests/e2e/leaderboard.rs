@@ -435,43 +435,25 @@ fn grpc_submissions(url: &str, token: &str, bc_all: &Path, first_id: i64) {
             .unwrap_err();
         assert_eq!(err.code(), tonic::Code::InvalidArgument);
         assert!(err.message().contains("policy.safetensors is missing"), "{err:?}");
-        let submission = grpc
-            .get_submission(pb::GetSubmissionRequest {
-                id: first_id,
-                episodes: true,
-                wait_seconds: 0,
-            })
-            .await
-            .unwrap()
-            .into_inner();
+        let get = |episodes, wait_seconds| pb::GetSubmissionRequest {
+            id: first_id,
+            episodes,
+            wait_seconds,
+        };
+        let submission = grpc.get_submission(get(true, 0)).await.unwrap().into_inner();
         assert_eq!(submission.state, "queued");
         assert_eq!(submission.name, "BC-All");
         // A waiting request on a submission that does not end (no workers here) is held for its wait, then
         // answered with the state; a wait past 60 s is refused.
         let asked = std::time::Instant::now();
-        let waited = grpc
-            .get_submission(pb::GetSubmissionRequest {
-                id: first_id,
-                episodes: false,
-                wait_seconds: 1,
-            })
-            .await
-            .unwrap()
-            .into_inner();
+        let waited = grpc.get_submission(get(false, 1)).await.unwrap().into_inner();
         assert_eq!(waited.state, "queued");
         assert!(
             asked.elapsed() >= Duration::from_millis(950),
             "held only {:?}",
             asked.elapsed()
         );
-        let err = grpc
-            .get_submission(pb::GetSubmissionRequest {
-                id: first_id,
-                episodes: false,
-                wait_seconds: 61,
-            })
-            .await
-            .unwrap_err();
+        let err = grpc.get_submission(get(false, 61)).await.unwrap_err();
         assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err:?}");
         assert!(err.message().contains("from 0 to 60"), "{err:?}");
         let board = grpc
@@ -533,7 +515,7 @@ fn answers_waiting_requests_when_the_submission_ends(env: &Env, id: i64) {
             loop {
                 let asked = std::time::Instant::now();
                 let answer = get_json(&format!("{url}?wait=60"));
-                if ["finished", "failed", "cancelled"].contains(&answer["state"].as_str().unwrap()) {
+                if ended(&answer) {
                     return (answer, held, std::time::Instant::now());
                 }
                 held.push(asked.elapsed());

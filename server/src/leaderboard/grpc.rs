@@ -271,9 +271,10 @@ impl LeaderboardService for LeaderboardGrpc {
     ) -> Result<Response<pb::Submission>, Status> {
         let request = request.into_inner();
         if request.wait_seconds > 0 {
-            let seconds = crate::leaderboard::rest::wait_seconds(&request.wait_seconds.to_string())?;
-            let at_most = std::time::Duration::from_secs(seconds.into());
-            self.state.leaderboard.wait_until_ended(request.id, at_most).await?;
+            self.state
+                .leaderboard
+                .wait_until_ended(request.id, request.wait_seconds)
+                .await?;
         }
         let view = self.state.leaderboard.view(request.id).await?;
         Ok(Response::new(submission(view, request.episodes)))

@@ -162,21 +162,10 @@ pub async fn get_submission(
 ) -> Result<impl IntoResponse, ApiError> {
     let id = submission_id(&id)?;
     if let Some(wait) = query.wait.as_deref() {
-        let seconds = wait_seconds(wait)?;
-        state
-            .leaderboard
-            .wait_until_ended(id, std::time::Duration::from_secs(seconds.into()))
-            .await?;
+        let seconds = wait.parse().map_err(|_| crate::leaderboard::bad_wait(wait))?;
+        state.leaderboard.wait_until_ended(id, seconds).await?;
     }
     Ok(Json(state.leaderboard.view(id).await?))
-}
-
-/// `?wait=SECONDS`: a whole number of seconds up to the leaderboard's limit.
-pub fn wait_seconds(text: &str) -> Result<u32, ApiError> {
-    let max = crate::leaderboard::MAX_WAIT_SECONDS;
-    text.parse::<u32>().ok().filter(|s| *s <= max).ok_or_else(|| {
-        ApiError::InvalidArgument(format!("wait={text:?}: give a whole number of seconds from 0 to {max}"))
-    })
 }
 
 /// `GET /v1/submissions/{id}/episodes.csv`: every scored episode of a submission as CSV.
