@@ -173,8 +173,29 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         if options.record {
             for p in &progress {
                 let path = dsrl_pipeline::full::progress_path(&options.records, &p.task);
+                // A record made from a state folder that got further (on another machine, before this one's state
+                // was lost) stays: a fresh state folder must not erase measured numbers.
+                let recorded: Option<dsrl_pipeline::full::Progress> =
+                    std::fs::read(&path).ok().and_then(|b| serde_json::from_slice(&b).ok());
                 if p.state == "finished" {
                     let _ = std::fs::remove_file(&path);
+                } else if let Some(mut r) = recorded.filter(|r| r.done > p.done) {
+                    eprintln!(
+                        "{}: kept {} ({} {} done there, {} here)",
+                        p.task,
+                        path.display(),
+                        r.done,
+                        r.unit,
+                        p.done
+                    );
+                    // What it lacks and this state measured: the CPU cost per unit, applied to what it has left.
+                    if r.cpu_seconds_per_unit.is_none()
+                        && let Some(c) = p.cpu_seconds_per_unit
+                    {
+                        r.cpu_seconds_per_unit = Some(c);
+                        r.remaining_core_hours = p.remaining_core_hours_for(r.planned.saturating_sub(r.done));
+                        std::fs::write(&path, [serde_json::to_vec_pretty(&r)?, b"\n".to_vec()].concat())?;
+                    }
                 } else {
                     std::fs::create_dir_all(&options.records)?;
                     let mut bytes = serde_json::to_vec_pretty(p)?;
@@ -188,7 +209,7 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         } else {
             for p in &progress {
                 println!(
-                    "{:42} {:11} {:>10} of {:>10} {}{}",
+                    "{:42} {:11} {:>10} of {:>10} {}{}{}",
                     p.task,
                     p.state,
                     p.done,
@@ -196,6 +217,9 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
                     p.unit,
                     p.remaining_hours
                         .map(|h| format!(", {h} h left at {} {}/s", p.rate_per_second.unwrap_or(0.0), p.unit))
+                        .unwrap_or_default(),
+                    p.remaining_core_hours
+                        .map(|h| format!(", {h} core-hours left"))
                         .unwrap_or_default()
                 );
             }

@@ -359,11 +359,31 @@ pub struct Progress {
     pub rate_per_second: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub remaining_hours: Option<f64>,
+    /// CPU seconds of the build's whole process tree per unit done (`compute.json`, where every unit done was
+    /// counted), and the core-hours the rest would take at that cost. Unlike the rate above, this does not depend on
+    /// what else the machine ran meanwhile (a build at the lowest priority beside other work takes longer, not more
+    /// CPU), so it is the budget that closes the gap: on N free cores, about core-hours / N hours.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpu_seconds_per_unit: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub remaining_core_hours: Option<f64>,
     /// The compute counted so far, where the build was run by `dsrl-admin build`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub compute: Option<compute::Compute>,
     /// The CPU the rate was measured on.
     pub cpu: String,
+}
+
+/// Core-hours for `units` at `cpu_seconds_per_unit`, to a tenth.
+fn core_hours(units: u64, cpu_seconds_per_unit: f64) -> f64 {
+    (units as f64 * cpu_seconds_per_unit / 3600.0 * 10.0).round() / 10.0
+}
+
+impl Progress {
+    /// The core-hours `units` more would take at this build's measured CPU cost, where it has one.
+    pub fn remaining_core_hours_for(&self, units: u64) -> Option<f64> {
+        self.cpu_seconds_per_unit.map(|c| core_hours(units, c))
+    }
 }
 
 /// Each task's state under `root`, in the plan's order.
@@ -411,6 +431,12 @@ pub fn status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
             (None, None) => (0, 0, "steps", None),
         };
         let done = if finished { planned.max(done) } else { done };
+        // Only where the CPU count covers every unit done: a build begun before its CPU time was measured says so
+        // in the note, and its CPU per unit would be too low.
+        let cpu_per_unit = compute
+            .as_ref()
+            .filter(|c| c.note.is_empty() && c.cpu_seconds > 0.0 && done > 0 && !finished)
+            .map(|c| c.cpu_seconds / done as f64);
         out.push(Progress {
             task,
             state: if finished {
@@ -428,6 +454,8 @@ pub fn status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
             remaining_hours: rate
                 .filter(|r| *r > 0.0 && !finished)
                 .map(|r| ((planned.saturating_sub(done)) as f64 / r / 3600.0 * 10.0).round() / 10.0),
+            cpu_seconds_per_unit: cpu_per_unit.map(|c| (c * 1e4).round() / 1e4),
+            remaining_core_hours: cpu_per_unit.map(|c| core_hours(planned.saturating_sub(done), c)),
             compute,
             cpu: compute::cpu_name(),
         });

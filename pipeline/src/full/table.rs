@@ -123,10 +123,13 @@ pub fn sections(
         "| task | trajectories (paper's) | transitions | reward return | cost return | misses of the bar | version | \
          budget | code | wall | CPU | machine |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
-    let mut gaps =
-        String::from("| task | state | done of planned | measured rate | left at that rate |\n|---|---|---|---|---|\n");
+    let mut gaps = String::from(
+        "| task | state | done of planned | measured rate | left at that rate | CPU per unit | left, in core-hours |\n\
+         |---|---|---|---|---|---|---|\n",
+    );
     let mut csv = String::from(
-        "task,state,trajectories,paper_trajectories,misses,done,planned,unit,rate_per_second,remaining_hours\n",
+        "task,state,trajectories,paper_trajectories,misses,done,planned,unit,rate_per_second,remaining_hours,\
+         cpu_seconds_per_unit,remaining_core_hours\n",
     );
     let (mut built, mut at_paper, mut whole_bar, mut trajectories) = (0, 0, 0, 0u64);
     for task_id in &order {
@@ -176,7 +179,7 @@ pub fn sections(
             );
             let _ = writeln!(
                 csv,
-                "{},built,{},{paper},{},,,,,",
+                "{},built,{},{paper},{},,,,,,,",
                 task.id,
                 r.trajectories,
                 misses.join(";")
@@ -201,22 +204,32 @@ pub fn sections(
             Some(p) => (p.state.clone(), p.done, p.rate_per_second, p.remaining_hours),
             None => ("not started".to_owned(), 0, None, None),
         };
+        let cpu_per_unit = progress.as_ref().and_then(|p| p.cpu_seconds_per_unit);
+        let core_hours = progress.as_ref().and_then(|p| p.remaining_core_hours);
+        let text = |x: Option<f64>| x.map_or(String::new(), |x| x.to_string());
         let _ = writeln!(
             gaps,
-            "| {} | {state} | {done} of {planned} {unit} | {} | {} |",
+            "| {} | {state} | {done} of {planned} {unit} | {} | {} | {} | {} |",
             task.id,
             rate.map_or("–".to_owned(), |r| format!(
                 "{r} {unit}/s ({})",
                 progress.as_ref().map_or("", |p| p.cpu.as_str())
             )),
             left.map_or("–".to_owned(), |h| format!("{h} h")),
+            cpu_per_unit.map_or("–".to_owned(), |c| format!(
+                "{c} CPU s/{}",
+                unit.trim_end_matches('s')
+            )),
+            core_hours.map_or("–".to_owned(), |h| format!("{h}")),
         );
         let _ = writeln!(
             csv,
-            "{},{state},,{paper},,{done},{planned},{unit},{},{}",
+            "{},{state},,{paper},,{done},{planned},{unit},{},{},{},{}",
             task.id,
-            rate.map_or(String::new(), |r| r.to_string()),
-            left.map_or(String::new(), |h| h.to_string()),
+            text(rate),
+            text(left),
+            text(cpu_per_unit),
+            text(core_hours),
         );
     }
     let total_paper: u64 = catalog.tasks().iter().map(|t| u64::from(t.paper_trajectories)).sum();
