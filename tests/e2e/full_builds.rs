@@ -15,6 +15,25 @@ fn fixtures() -> PathBuf {
     dsrl_e2e::repo_root().join("tests/e2e/fixtures")
 }
 
+/// The committed identity of the tiny build for this CPU's matrix kernels: a build's bytes depend on them (the same
+/// code gives another, equally valid build with AVX-512 kernels than with AVX2 ones; data/README.md), so there is
+/// one per kind of CPU this project's machines have. `full/` holds the AVX2 one, `full-avx512/` the other; a new
+/// kind is added with `dsrl-admin build --plan tests/e2e/fixtures/full_builds.toml --workers 1 --record --records
+/// tests/e2e/fixtures/full-<kind> OfflineBallRun-v0` after checking the build on a known kind still matches.
+fn committed_records() -> PathBuf {
+    let kernels = dsrl_pipeline::full::compute::kernels();
+    let dir = fixtures().join(match kernels {
+        "AVX2" => "full".to_owned(),
+        other => format!("full-{}", other.to_lowercase().replace('-', "")),
+    });
+    assert!(
+        dir.join(format!("{TASK}.json")).exists(),
+        "no committed identity of the tiny build for {kernels} kernels: {} is missing",
+        dir.display()
+    );
+    dir
+}
+
 /// `dsrl-admin build TASK` with the tiny plan, its records in `records` and its state under `root`.
 fn build(root: &Path, records: &Path, extra: &[&str]) -> Command {
     let mut cmd = Command::new(dsrl_e2e::bin("dsrl-admin"));
@@ -38,21 +57,21 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     let starters = crate::dsrl_download::starters(dir.path(), &[TASK]);
     let env = Env::with(&["--starter-datasets", s(&starters)], &[]);
     let committed: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(fixtures().join("full").join(format!("{TASK}.json"))).unwrap()).unwrap();
+        serde_json::from_slice(&std::fs::read(committed_records().join(format!("{TASK}.json"))).unwrap()).unwrap();
     let version = committed["version"].as_str().unwrap().to_owned();
 
     // Killed once the first save exists (the build is a child of the command: it goes with it), then resumed.
     let root = dir.path().join("root");
     let state = root.join(TASK);
     crate::kill_once_saved(
-        build(&root, &fixtures().join("full"), &[]),
+        build(&root, &committed_records(), &[]),
         &state.join("expert/ckpt-000002/state.json"),
         &state.join("record"),
     );
     let token = env.server.token();
     let outcomes = crate::admin_json(build(
         &root,
-        &fixtures().join("full"),
+        &committed_records(),
         &["--server", &env.server.url, "--token", &token],
     ));
     let outcome = &outcomes[0];
@@ -91,7 +110,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
         serde_json::to_vec(&record).unwrap(),
     )
     .unwrap();
-    let episodes = std::fs::read_to_string(fixtures().join("full").join(format!("{TASK}.episodes.csv"))).unwrap();
+    let episodes = std::fs::read_to_string(committed_records().join(format!("{TASK}.episodes.csv"))).unwrap();
     let mut lines: Vec<String> = episodes.lines().map(str::to_owned).collect();
     let mut fields: Vec<String> = lines[3].split(',').map(str::to_owned).collect();
     fields[2] = "12345.5".into();

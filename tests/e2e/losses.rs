@@ -49,13 +49,16 @@ fn fisor_and_lspc_losses_equal_a_numpy_computation_of_their_formulas() {
     };
     let mut fisor = FisorLearner::new(fisor_settings.clone(), &data).unwrap();
     // The weights from the networks (their target copies are still the same weights). A fresh feasibility pair
-    // answers about the same everywhere: its output biases are moved to the medians, so the batch has infeasible
-    // rows, feasible safe ones and feasible unsafe ones (weight 0), which the script counts.
+    // answers about the same everywhere: its output biases are moved to the middle of the batch's values, so the
+    // batch has infeasible rows, feasible safe ones and feasible unsafe ones (weight 0), which the script counts.
+    // The middle between the two central values, not the median itself: a shift by the median puts that row's value
+    // at 0, on the boundary the weights branch on, where f32 here and f64 in NumPy may fall on different sides
+    // (they did, on a CPU whose matrix kernels round differently).
     let input = dsrl_policy::offline::concat(&obs, &act).unwrap();
     let median = |t: &Tensor| {
         let mut v = t.to_vec1::<f32>().unwrap();
         v.sort_by(f32::total_cmp);
-        v[v.len() / 2]
+        (v[v.len() / 2 - 1] + v[v.len() / 2]) / 2.0
     };
     let shift = |vars: Vec<(String, dsrl_policy::Var)>, by: f32| {
         for (name, var) in vars {
@@ -68,6 +71,16 @@ fn fisor_and_lspc_losses_equal_a_numpy_computation_of_their_formulas() {
     let vc = |fisor: &FisorLearner| fisor.cost_v.forward(&obs).unwrap().squeeze(1).unwrap();
     shift(fisor.cost_q.named_vars(), median(&qc(&fisor)));
     shift(fisor.cost_v.named_vars(), median(&vc(&fisor)));
+    // No row may sit near the boundary, or the comparison would test rounding, not the formula.
+    for (what, values) in [("Q_h", qc(&fisor)), ("V_h", vc(&fisor))] {
+        let nearest = values
+            .to_vec1::<f32>()
+            .unwrap()
+            .iter()
+            .map(|x| x.abs())
+            .fold(f32::INFINITY, f32::min);
+        assert!(nearest > 1e-5, "a row's {what} is {nearest} from the boundary");
+    }
     let weights = {
         let q = dsrl_policy::offline::Ensemble::min(&fisor.reward_q.values(&input).unwrap()).unwrap();
         let v = fisor.reward_v.forward(&obs).unwrap().squeeze(1).unwrap();

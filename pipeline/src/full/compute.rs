@@ -26,7 +26,23 @@ pub struct Compute {
     pub note: String,
 }
 
-/// The machine's CPU, as records name it: `AMD EPYC 9B14 (2 cores)`.
+/// The matrix kernels candle's gemm picks on this CPU at run time (`AVX-512`, `AVX2` with FMA, or the
+/// architecture's baseline): kernels that add in another order round differently, so they decide a build's bytes
+/// (data/README.md). Two CPUs with one model name can differ here (an "AMD EPYC" with AVX-512 and one without).
+pub fn kernels() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            return "AVX-512";
+        }
+        if std::arch::is_x86_feature_detected!("fma") {
+            return "AVX2";
+        }
+    }
+    "baseline"
+}
+
+/// The machine's CPU, as records name it: `AMD EPYC 9B14 (2 cores, AVX-512 kernels)`.
 pub fn cpu_name() -> String {
     let model = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
@@ -38,7 +54,7 @@ pub fn cpu_name() -> String {
         })
         .unwrap_or_else(|| std::env::consts::ARCH.to_owned());
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    format!("{model} ({cores} cores)")
+    format!("{model} ({cores} cores, {} kernels)", kernels())
 }
 
 /// CPU seconds of the process `root` and all its descendants, read from `/proc`: each process's own user and

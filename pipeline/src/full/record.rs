@@ -137,6 +137,18 @@ pub fn differences(
     );
     compare("code", built.code_version.clone(), committed.code_version.clone());
     compare("CPU", built.compute.cpu.clone(), committed.compute.cpu.clone());
+    if built.compute.cpu != committed.compute.cpu {
+        lines.push(format!(
+            "a CPU with other matrix kernels gives another build, equally valid (data/README.md: what a version id \
+             depends on); this one uses {} kernels{}",
+            super::compute::kernels(),
+            if committed.compute.cpu.contains("kernels") {
+                ""
+            } else {
+                ", and the committed record does not name its CPU's"
+            }
+        ));
+    }
     match built_episodes.iter().zip(committed_episodes).find(|(a, b)| a != b) {
         Some((a, b)) => lines.push(format!(
             "first differing episode: {} (length {}, reward {}, cost {} here; length {}, reward {}, cost {} committed)",

@@ -132,6 +132,8 @@ pub fn sections(
          cpu_seconds_per_unit,remaining_core_hours\n",
     );
     let (mut built, mut at_paper, mut whole_bar, mut trajectories) = (0, 0, 0, 0u64);
+    // The gaps' measured CPU cost, summed (core-hours), and the gaps without one.
+    let (mut gap_core_hours, mut costed, mut uncosted) = (0.0f64, 0, 0);
     for task_id in &order {
         let task = catalog.get(task_id)?;
         let paper = u64::from(task.paper_trajectories);
@@ -207,6 +209,13 @@ pub fn sections(
         let cpu_per_unit = progress.as_ref().and_then(|p| p.cpu_seconds_per_unit);
         let core_hours = progress.as_ref().and_then(|p| p.remaining_core_hours);
         let text = |x: Option<f64>| x.map_or(String::new(), |x| x.to_string());
+        match core_hours {
+            Some(h) => {
+                gap_core_hours += h;
+                costed += 1;
+            }
+            None => uncosted += 1,
+        }
         let _ = writeln!(
             gaps,
             "| {} | {state} | {done} of {planned} {unit} | {} | {} | {} | {} |",
@@ -239,6 +248,17 @@ pub fn sections(
          {total_paper}.\n",
         order.len()
     );
+    let summary = match (costed, uncosted) {
+        (0, _) => summary,
+        (_, 0) => format!(
+            "{summary}\nWhat the {costed} other builds still need, at the CPU cost each measured: \
+             **{gap_core_hours:.0} core-hours** (the gaps table below, per task).\n"
+        ),
+        _ => format!(
+            "{summary}\nWhat {costed} of the other builds still need, at the CPU cost each measured: \
+             **{gap_core_hours:.0} core-hours**; {uncosted} have no measured cost yet (`scripts/measure-gaps.sh`).\n"
+        ),
+    };
     let sections = BTreeMap::from([
         ("full-summary".to_owned(), summary),
         ("full-builds".to_owned(), builds),
