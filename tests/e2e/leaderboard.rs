@@ -702,6 +702,8 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
             404
         );
         watch_an_episode(&env, &finished[0]);
+        let mlp = crate::make_policy(&models.path().join("python-mlp"), TASK, "target-cost-mlp", 7);
+        python_submits_and_waits(&env, &bob, &mlp);
         finished.swap_remove(0)
     };
 
@@ -728,6 +730,45 @@ fn bc_entries_are_scored_with_held_seeds_ranked_and_survive_a_killed_evaluator()
     assert_eq!(done["episodes"], reference["episodes"]);
     assert_eq!(done["normalized_reward"], reference["normalized_reward"]);
     assert_eq!(done["normalized_cost"], reference["normalized_cost"]);
+}
+
+/// The Python package's `submit(..., wait=True)`: it returns the submission once scoring has ended, as the server
+/// shows it. With `poll=60` each of its requests is held up to 60 s, so it returns within seconds of the end only
+/// because the evaluator that ends the submission wakes the held request; were the request held out, it would
+/// return up to a minute late (a late return shows here unless the end fell in a hold's last seconds).
+fn python_submits_and_waits(env: &Env, token: &str, dir: &Path) {
+    let script = format!(
+        "import json, time, dsrl_client\n\
+         s = dsrl_client.submit({:?}, task={TASK:?}, name='MLP-from-Python', token={token:?}, server={:?}, \
+         wait=True, poll=60)\n\
+         returned = time.time()\n\
+         from datetime import datetime\n\
+         ended = datetime.fromisoformat(s['finished_at'].replace('Z', '+00:00')).timestamp()\n\
+         print(json.dumps({{'submission': s, 'lag': returned - ended}}))\n",
+        s(dir),
+        env.server.url
+    );
+    let out = std::process::Command::new(dsrl_e2e::python())
+        .args(["-c", &script])
+        .env("PYTHONPATH", crate::python_package::installed_wheel())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    let printed: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
+    let returned = &printed["submission"];
+    assert_eq!(returned["state"], "finished", "{returned}");
+    assert_eq!(returned["episodes"].as_array().unwrap().len(), 60, "{returned}");
+    let id = returned["id"].as_i64().unwrap();
+    let view = get_json(&format!("{}/v1/submissions/{id}", env.server.url));
+    assert_eq!(returned["episodes"], view["episodes"]);
+    assert_eq!(returned["normalized_reward"], view["normalized_reward"]);
+    // From the end the server recorded (whole seconds: one more second of slack) to the call's return.
+    let lag = printed["lag"].as_f64().unwrap();
+    assert!(
+        (0.0..6.0).contains(&lag),
+        "submit(wait=True) returned {lag:.1} s after the submission finished"
+    );
 }
 
 /// A scored episode is played again and drawn on request: the replay is the table's episode (the same returns and
