@@ -8,6 +8,7 @@
 pub mod api;
 pub mod cache;
 pub mod error;
+pub mod output;
 
 pub use api::Client;
 pub use cache::{Cache, FetchOptions, FetchOutcome, OutputFormat};

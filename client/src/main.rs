@@ -6,27 +6,9 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dsrl_client::api::{DEFAULT_SERVER, IngestOptions};
 use dsrl_client::error::exit;
+use dsrl_client::out;
 use dsrl_client::{Cache, Client, ClientError, FetchOptions};
 use indicatif::ProgressBar;
-
-/// `println!` that ends the process quietly (exit 141, as a shell reports SIGPIPE) when stdout is a closed pipe,
-/// e.g. `dsrl-client list | head`.
-macro_rules! out {
-    ($($arg:tt)*) => {
-        emit(format_args!($($arg)*))
-    };
-}
-
-fn emit(args: std::fmt::Arguments<'_>) {
-    use std::io::Write;
-    if let Err(e) = writeln!(std::io::stdout().lock(), "{args}") {
-        if e.kind() == std::io::ErrorKind::BrokenPipe {
-            std::process::exit(141);
-        }
-        eprintln!("dsrl-client: writing to stdout: {e}");
-        std::process::exit(exit::FAILURE as i32);
-    }
-}
 
 const EXIT_CODES: &str = "\
 Exit codes:

@@ -6,6 +6,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use dsrl_client::api::Client;
 use dsrl_client::cache::{Cache, FetchOptions};
+use dsrl_client::out;
 use dsrl_policy::Device;
 use dsrl_policy::checkpoint::Conditioning;
 use dsrl_suite::Catalog;
@@ -336,7 +337,7 @@ impl Trained {
 
     /// The closing line of a trained model written to `dir`.
     fn report(&self, name: &str, steps: u64, dir: &std::path::Path) {
-        println!(
+        out!(
             "{name}: {steps} steps in {:.0} s ({}) -> {}",
             self.seconds,
             self.summary(),
@@ -447,7 +448,7 @@ fn submit(server: &str, dir: &std::path::Path, task: &str, name: &str) -> anyhow
     anyhow::ensure!(token.is_some(), "--submit needs a user token in $DSRL_TOKEN");
     let submission = tokio::runtime::Runtime::new()?
         .block_on(async { Client::new(server)?.with_token(token).submit(dir, task, name).await })?;
-    println!("submitted {} as {name}: submission {}", dir.display(), submission["id"]);
+    out!("submitted {} as {name}: submission {}", dir.display(), submission["id"]);
     Ok(())
 }
 
@@ -806,7 +807,7 @@ fn reference_entry(
             dsrl_train::reference::reproduce(model, method, results)?
         }
     };
-    println!(
+    out!(
         "{} {} seed {}: {} episodes under protocol {}, checkpoints {} trained by {} -> {}",
         entry.task,
         entry.method,
@@ -894,7 +895,7 @@ fn train_bc(mode: Mode, data: DataArgs) -> anyhow::Result<()> {
         learner
             .write(&dir, task.id.as_str(), &settings.hidden_sizes, conditioning, training)
             .with_context(|| format!("writing {}", dir.display()))?;
-        println!(
+        out!(
             "{name}: {kept} episodes, {steps} steps in {seconds:.0} s, final MSE {loss:.5} -> {}",
             dir.display()
         );

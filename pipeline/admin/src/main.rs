@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 use dsrl_client::api::{Client, IngestOptions};
+use dsrl_client::out;
 use dsrl_pipeline::build::Run;
 use dsrl_pipeline::recipe::Recipe;
 use dsrl_simulators::SimulatorsConfig;
@@ -205,10 +206,10 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
             }
         }
         if args.json {
-            println!("{}", serde_json::to_string_pretty(&progress)?);
+            out!("{}", serde_json::to_string_pretty(&progress)?);
         } else {
             for p in &progress {
-                println!(
+                out!(
                     "{:42} {:11} {:>10} of {:>10} {}{}{}",
                     p.task,
                     p.state,
@@ -228,7 +229,7 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
     }
     let outcomes = dsrl_pipeline::full::build(&options).await?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&outcomes)?);
+        out!("{}", serde_json::to_string_pretty(&outcomes)?);
     }
     let failed: Vec<&str> = outcomes.iter().filter(|o| !o.ok()).map(|o| o.task.as_str()).collect();
     anyhow::ensure!(
@@ -295,7 +296,7 @@ async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
     let plan = dsrl_reference::plan::Plan::load(&args.plan)?;
     if args.list || args.phases.is_empty() {
         for phase in &plan.phases {
-            println!("{:<15} {}", phase.name, phase.about);
+            out!("{:<15} {}", phase.name, phase.about);
         }
         anyhow::ensure!(args.list, "name the phases to run (the plan's are above)");
         return Ok(());
@@ -363,9 +364,9 @@ fn compact(args: CompactArgs) -> anyhow::Result<()> {
     };
     let done = dsrl_pipeline::compact::rewrite(task, &args.files, &out, args.parts)?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&done)?);
+        out!("{}", serde_json::to_string_pretty(&done)?);
     } else {
-        println!(
+        out!(
             "{}: {} episodes, version {} kept; {} bytes -> {} bytes in {} file(s) under {}",
             task.id,
             done.episodes,
@@ -587,11 +588,11 @@ async fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
         }
     }
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        out!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!("{}: {} episodes per play (seeds {seed}..)", task.id, args.episodes);
+        out!("{}: {} episodes per play (seeds {seed}..)", task.id, args.episodes);
         for t in report["thresholds"].as_array().expect("built above") {
-            println!(
+            out!(
                 "  threshold {}: mean reward return {:.1}, mean cost return {:.1}, normalized reward {:.3}, \
                  normalized cost {:.3}{}",
                 t["cost_threshold"],
@@ -669,10 +670,10 @@ async fn import_dsrl(
     let options = dsrl_pipeline::import_dsrl::ImportOptions { tag, latest };
     let report = dsrl_pipeline::import_dsrl::import(&client, dir, &options).await?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        out!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         for r in &report {
-            println!(
+            out!(
                 "{}: {} {}{}",
                 r.file,
                 r.outcome,
@@ -805,9 +806,9 @@ async fn collect(args: CollectArgs) -> anyhow::Result<()> {
         report["ingested"] = serde_json::json!({ "created": ingested.created, "manifest_url": ingested.manifest_url });
     }
     if json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        out!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!(
+        out!(
             "{task}: {} episodes ({} collected) -> {} (version {})",
             built.converted.episode_index.len(),
             built.collected,
@@ -815,7 +816,7 @@ async fn collect(args: CollectArgs) -> anyhow::Result<()> {
             built.converted.version
         );
         if let Some(url) = report.get("ingested").and_then(|i| i["manifest_url"].as_str()) {
-            println!("ingested: {url}");
+            out!("ingested: {url}");
         }
     }
     Ok(())
