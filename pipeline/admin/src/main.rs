@@ -195,6 +195,17 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
                     {
                         r.cpu_seconds_per_unit = Some(c);
                         r.remaining_core_hours = p.remaining_core_hours_for(r.planned.saturating_sub(r.done));
+                        if let Some(compute) = r.compute.as_mut() {
+                            let said = format!(
+                                "the CPU cost per unit was measured on {} over the first {} {} of a fresh start",
+                                p.cpu, p.done, p.unit
+                            );
+                            compute.note = [compute.note.as_str(), said.as_str()]
+                                .into_iter()
+                                .filter(|n| !n.is_empty())
+                                .collect::<Vec<_>>()
+                                .join("; ");
+                        }
                         std::fs::write(&path, [serde_json::to_vec_pretty(&r)?, b"\n".to_vec()].concat())?;
                     }
                 } else {
