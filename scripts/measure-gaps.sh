@@ -1,82 +1,115 @@
 #!/usr/bin/env bash
 # Measures what each unbuilt full build would cost, so that every task without a committed full build has a gap
-# with numbers (data/full_build_gaps.csv: the rate, and the core-hours the rest would take). For each task of the
-# plan that has no committed full build and has not been measured yet, it starts the task's real build
-# (`dsrl-admin build`, resumable: this is the first part of that build, not a separate probe), lets it run until its
-# state shows at least MIN_STEPS environment steps (expert recipes) or MIN_EPISODES episodes (MetaDrive's IDM
-# sweeps), or MAX_MINUTES have passed, stops it, and at the end records every unfinished task's numbers with
-# `dsrl-admin build --status --record` and regenerates the documents (`dsrl-admin docs`).
+# with numbers (data/full_build_gaps.csv: the CPU seconds per step or episode, and the core-hours the rest takes).
+# For each task of the plan that has no committed full build and no measured cost yet, it runs a trial of the task's
+# build: the same recipe, plan and code (`dsrl-admin build`) in a state folder of its own, with the expert saving
+# (and so logging) every 2 collects instead of every 20, until its state shows at least MIN_STEPS environment steps
+# (expert recipes) or MIN_EPISODES episodes (MetaDrive's IDM sweeps, whose log is each setting of 20 episodes), or
+# MAX_MINUTES have passed. It then stops the trial and writes the task's record, `data/full/<task>.progress.json`:
+# not started, with the trial's CPU seconds per unit and the core-hours the whole build takes at that cost (a task
+# with a committed partial build keeps its record and gains the cost). At the end it regenerates the documents
+# (`dsrl-admin docs`). The trial's state is not kept as the build's: `dsrl-admin build` starts the task afresh.
 #
-# The CPU per unit comes from the build's process-tree CPU time, which does not depend on what else the machine
-# runs, so this may run at the lowest priority beside other work (it does: a session of its own, nice 19); the wall
-# rate it also records does depend on that.
+# The CPU cost comes from the process tree's CPU time, which does not depend on what else the machine runs, so the
+# trials run at the lowest priority beside other work (a session of their own, nice 19). It includes the start of
+# the trial's simulator workers and the expert's first update, a small share of a trial of the default length
+# (MIN_STEPS 200,000) but a large one of a short trial: the CPU per unit would come out too high.
 #
-#   scripts/measure-gaps.sh                                   # every unbuilt task not measured yet
+#   scripts/measure-gaps.sh                                   # every unbuilt task without a measured cost
 #   scripts/measure-gaps.sh OfflinePointPush1Gymnasium-v0     # these tasks (measured again)
-#   MIN_STEPS=60000 MAX_MINUTES=30 scripts/measure-gaps.sh    # longer measurements
+#   MIN_STEPS=400000 MAX_MINUTES=30 scripts/measure-gaps.sh   # longer trials
 #
-# State: ${DSRL_FULL_ROOT:-~/.dsrl/full}/<task>/ (a later `dsrl-admin build TASK` continues from it); log:
-# <root>/measure.log. Run it from the repository root's scripts folder's parent (it cds there itself).
+# Trials' state: ${DSRL_FULL_ROOT:-~/.dsrl/full}/trials/<task>/; log: <root>/measure.log.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=${DSRL_FULL_ROOT:-$HOME/.dsrl/full}
+trials=$root/trials
 admin=${DSRL_ADMIN:-$(command -v dsrl-admin || echo "${CARGO_TARGET_DIR:-target}/release/dsrl-admin")}
-min_steps=${MIN_STEPS:-40000}
+min_steps=${MIN_STEPS:-200000}
 min_episodes=${MIN_EPISODES:-20}
-max_minutes=${MAX_MINUTES:-20}
+max_minutes=${MAX_MINUTES:-15}
 [ -x "$admin" ] || { echo "no dsrl-admin at $admin: run scripts/serve.sh (or cargo build --release) first" >&2; exit 1; }
 for n in "$min_steps" "$min_episodes" "$max_minutes"; do
   [[ $n =~ ^[1-9][0-9]*$ ]] || { echo "MIN_STEPS, MIN_EPISODES and MAX_MINUTES must be positive integers" >&2; exit 2; }
 done
-mkdir -p "$root"
+mkdir -p "$trials"
 
-# The tasks: those named, or every task of the plan without a committed record or a committed measurement.
+# The trials' plan: the committed one with every expert saving every 2 collects.
+plan=$trials/full_builds.toml
+python3 - data/full_builds.toml data/recipes "$plan" <<'EOF'
+import os, re, sys
+source, recipes, out = sys.argv[1:]
+lines, task = [], None
+for line in open(source).read().splitlines():
+    if re.match(r"expert\.checkpoint_every_collects\s*=", line):
+        continue
+    lines.append(line)
+    header = re.match(r"\[(Offline[^\]]+)\]$", line)
+    if header:
+        task = header.group(1)
+        with open(os.path.join(recipes, task + ".toml")) as f:
+            if re.search(r"^\[expert\]", f.read(), re.M):
+                lines.append("expert.checkpoint_every_collects = 2")
+open(out, "w").write("\n".join(lines) + "\n")
+EOF
+
+# The tasks: those named, or every task of the plan without a committed record or a measured cost.
 if [ $# -gt 0 ]; then
   tasks=("$@")
-  "$admin" build --root "$root" --status "${tasks[@]}" > /dev/null  # fails on an unknown task, before any work
+  "$admin" build --plan "$plan" --root "$trials" --status "${tasks[@]}" > /dev/null  # an unknown task fails here
 else
-  mapfile -t tasks < <("$admin" build --root "$root" --status --json | python3 -c '
+  mapfile -t tasks < <("$admin" build --plan "$plan" --root "$trials" --status --json | python3 -c '
 import json, os, sys
 for p in json.load(sys.stdin):
     task = p["task"]
-    if os.path.exists(f"data/full/{task}.json") or p["state"] == "finished":
+    if os.path.exists(f"data/full/{task}.json"):
         continue
     recorded = f"data/full/{task}.progress.json"
-    if os.path.exists(recorded) and json.load(open(recorded)).get("remaining_core_hours") is not None:
+    if os.path.exists(recorded) and json.load(open(recorded)).get("cpu_seconds_per_unit") is not None:
         continue
     print(task)')
 fi
 echo "measuring ${#tasks[@]} task(s): ${tasks[*]:-none}" >&2
 
-# Units done so far by one task's build, from `--status --json`.
+# A trial's status, as `--status --json` gives it (one task).
+status() { "$admin" build --plan "$plan" --root "$trials" --status --json "$1"; }
+# `--status TASK` also lists the builds TASK starts from (a warm start): the units of TASK's own.
 done_units() {
-  "$admin" build --root "$root" --status --json "$1" | python3 -c '
+  status "$1" | python3 -c '
 import json, sys
-p = json.load(sys.stdin)[0]
-print(p["done"], p["unit"])'
+p = next(p for p in json.load(sys.stdin) if p["task"] == sys.argv[1])
+print(p["done"], p["unit"])' "$1"
 }
+# The unfinished builds a task's build starts from (its warm start's chain), which a trial would have to run whole.
+sources() { status "$1" | python3 -c 'import json, sys; print(" ".join(p["task"] for p in json.load(sys.stdin) if p["task"] != sys.argv[1]))' "$1"; }
 
 for task in "${tasks[@]}"; do
-  read -r start unit < <(done_units "$task")
-  [ "$unit" = steps ] && goal=$((start + min_steps)) || goal=$((start + min_episodes))
-  echo "$(date -u +%FT%TZ) $task: building from $start $unit until $goal $unit or $max_minutes min" | tee -a "$root/measure.log" >&2
-  # setsid: a session (so an autogroup) of its own, whose nice is 19: the build takes only what is left idle.
-  setsid bash -c 'echo 19 > /proc/self/autogroup 2>/dev/null || true; exec nice -n 19 "$0" build --root "$1" --json "$2"' \
-    "$admin" "$root" "$task" >> "$root/measure.log" 2>&1 < /dev/null &
+  from=$(sources "$task")
+  if [ -n "$from" ]; then
+    echo "$task starts from the finished build of $from: a trial would build that whole first; not measured" |
+      tee -a "$root/measure.log" >&2
+    continue
+  fi
+  rm -rf "${trials:?}/$task"
+  read -r _ unit < <(done_units "$task")
+  [ "$unit" = steps ] && goal=$min_steps || goal=$min_episodes
+  echo "$(date -u +%FT%TZ) $task: a trial until $goal $unit or $max_minutes min" | tee -a "$root/measure.log" >&2
+  # setsid: a session (so an autogroup) of its own, whose nice is 19: the trial takes only what is left idle.
+  setsid bash -c 'echo 19 > /proc/self/autogroup 2>/dev/null || true; exec nice -n 19 "$0" build --plan "$1" --root "$2" --json "$3"' \
+    "$admin" "$plan" "$trials" "$task" >> "$root/measure.log" 2>&1 < /dev/null &
   pid=$!
   deadline=$((SECONDS + 60 * max_minutes))
   while kill -0 "$pid" 2>/dev/null && [ "$SECONDS" -lt "$deadline" ]; do
-    sleep 20
+    sleep 10
     read -r now _ < <(done_units "$task")
     [ "$now" -ge "$goal" ] && break
   done
-  # The build and its workers stop with it (they die with their parent); the state folder keeps what was done.
+  # The build and its workers stop with it (they die with their parent).
   kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
   wait "$pid" 2>/dev/null || true
-  read -r now _ < <(done_units "$task")
-  echo "$(date -u +%FT%TZ) $task: stopped at $now $unit" | tee -a "$root/measure.log" >&2
+  # The record (scripts/measure_gaps_record.py): the trial's CPU cost, applied to what the build has left.
+  status "$task" | python3 scripts/measure_gaps_record.py "$task" 2>&1 | tee -a "$root/measure.log" >&2
 done
 
-[ ${#tasks[@]} -eq 0 ] || "$admin" build --root "$root" --status --record "${tasks[@]}"
 "$admin" docs
 echo "recorded: data/full/<task>.progress.json, data/full_build_gaps.csv, data/README.md" >&2

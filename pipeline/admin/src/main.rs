@@ -175,12 +175,15 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
             for p in &progress {
                 let path = dsrl_pipeline::full::progress_path(&options.records, &p.task);
                 // A record made from a state folder that got further (on another machine, before this one's state
-                // was lost) stays: a fresh state folder must not erase measured numbers.
+                // was lost), or as far with a measured cost (scripts/measure-gaps.sh), stays: a fresh state folder
+                // must not erase measured numbers.
                 let recorded: Option<dsrl_pipeline::full::Progress> =
                     std::fs::read(&path).ok().and_then(|b| serde_json::from_slice(&b).ok());
                 if p.state == "finished" {
                     let _ = std::fs::remove_file(&path);
-                } else if let Some(mut r) = recorded.filter(|r| r.done > p.done) {
+                } else if let Some(mut r) =
+                    recorded.filter(|r| r.done > p.done || (r.done == p.done && p.cpu_seconds_per_unit.is_none()))
+                {
                     eprintln!(
                         "{}: kept {} ({} {} done there, {} here)",
                         p.task,

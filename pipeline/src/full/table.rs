@@ -194,6 +194,11 @@ pub fn sections(
             .transpose()
             .map_err(|e| anyhow::anyhow!("{task_id}.progress.json: {e}"))?;
         let recipe = plan.recipe(task_id, &recipes)?;
+        let warm_start = recipe
+            .expert
+            .as_ref()
+            .and_then(|e| e.warm_start.as_ref())
+            .map(|w| w.task.clone());
         let (planned, unit) = match (&recipe.expert, &recipe.idm_sweep) {
             (Some(e), _) => (e.budget_steps, "steps"),
             (None, Some(s)) => (
@@ -229,7 +234,12 @@ pub fn sections(
                 "{c} CPU s/{}",
                 unit.trim_end_matches('s')
             )),
-            core_hours.map_or("–".to_owned(), |h| format!("{h}")),
+            match (core_hours, &warm_start) {
+                (Some(h), _) => format!("{h}"),
+                // A trial of this build would first have to build its source whole (scripts/measure-gaps.sh).
+                (None, Some(source)) => format!("– (starts from {source}'s finished build)"),
+                (None, None) => "– (not measured yet: `scripts/measure-gaps.sh`)".to_owned(),
+            },
         );
         let _ = writeln!(
             csv,
@@ -256,7 +266,8 @@ pub fn sections(
         ),
         _ => format!(
             "{summary}\nWhat {costed} of the other builds still need, at the CPU cost each measured: \
-             **{gap_core_hours:.0} core-hours**; {uncosted} have no measured cost yet (`scripts/measure-gaps.sh`).\n"
+             **{gap_core_hours:.0} core-hours**; {uncosted} {} no measured cost yet (the table says why).\n",
+            if uncosted == 1 { "has" } else { "have" }
         ),
     };
     let sections = BTreeMap::from([
