@@ -748,13 +748,7 @@ fn python_submits_and_waits(env: &Env, token: &str, dir: &Path) {
         s(dir),
         env.server.url
     );
-    let out = std::process::Command::new(dsrl_e2e::python())
-        .args(["-c", &script])
-        .env("PYTHONPATH", crate::python_package::installed_wheel())
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    let text = crate::python_package::run_script(&script);
     let printed: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
     let returned = &printed["submission"];
     assert_eq!(returned["state"], "finished", "{returned}");
@@ -940,13 +934,7 @@ fn watch_an_episode(env: &Env, done: &serde_json::Value) {
         env.server.url,
         env.server.url
     );
-    let out = std::process::Command::new(dsrl_e2e::python())
-        .args(["-c", &script])
-        .env("PYTHONPATH", crate::python_package::installed_wheel())
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    let text = crate::python_package::run_script(&script);
     let from_python: serde_json::Value = serde_json::from_str(text.lines().next().unwrap()).unwrap();
     assert_eq!(from_python, replay);
     assert_eq!(std::fs::read(&python_gif).unwrap(), gif);

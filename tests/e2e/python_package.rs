@@ -29,6 +29,19 @@ pub(crate) fn installed_wheel() -> &'static Path {
     &built_wheel().1
 }
 
+/// Runs `script` in `.venv`'s Python with the installed wheel on its path; its standard output, once it has exited
+/// successfully (otherwise the test fails showing both outputs).
+pub(crate) fn run_script(script: &str) -> String {
+    let out = Command::new(dsrl_e2e::python())
+        .args(["-c", script])
+        .env("PYTHONPATH", installed_wheel())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    text
+}
+
 /// The wheel file and the `site` folder it was unpacked into, built once per test process.
 fn built_wheel() -> &'static (PathBuf, PathBuf) {
     static WHEEL: OnceLock<(tempfile::TempDir, (PathBuf, PathBuf))> = OnceLock::new();
