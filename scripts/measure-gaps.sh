@@ -5,7 +5,8 @@
 # build: the same recipe, plan and code (`dsrl-admin build`) in a state folder of its own, with the expert saving
 # (and so logging) every 2 collects instead of every 20, until its state shows at least MIN_STEPS environment steps
 # (expert recipes) or MIN_EPISODES episodes (MetaDrive's IDM sweeps, whose log is each setting of 20 episodes), or
-# MAX_MINUTES have passed. It then stops the trial and writes the task's record, `data/full/<task>.progress.json`:
+# has used MIN_CPU_SECONDS of CPU with a save made (enough for a fair figure on an expensive task), or MAX_MINUTES
+# have passed. It then stops the trial and writes the task's record, `data/full/<task>.progress.json`:
 # not started, with the trial's CPU seconds per unit and the core-hours the whole build takes at that cost (a task
 # with a committed partial build keeps its record and gains the cost). At the end it regenerates the documents
 # (`dsrl-admin docs`). The trial's state is not kept as the build's: `dsrl-admin build` starts the task afresh.
@@ -13,7 +14,7 @@
 # The CPU cost comes from the process tree's CPU time, which does not depend on what else the machine runs, so the
 # trials run at the lowest priority beside other work (a session of their own, nice 19). It includes the start of
 # the trial's simulator workers and the expert's first update, a small share of a trial of the default length
-# (MIN_STEPS 200,000) but a large one of a short trial: the CPU per unit would come out too high.
+# (MIN_STEPS 200,000 or MIN_CPU_SECONDS 300) but a large one of a short trial: the CPU per unit would be too high.
 #
 #   scripts/measure-gaps.sh                                   # every unbuilt task without a measured cost
 #   scripts/measure-gaps.sh OfflinePointPush1Gymnasium-v0     # these tasks (measured again)
@@ -27,10 +28,12 @@ trials=$root/trials
 admin=${DSRL_ADMIN:-$(command -v dsrl-admin || echo "${CARGO_TARGET_DIR:-target}/release/dsrl-admin")}
 min_steps=${MIN_STEPS:-200000}
 min_episodes=${MIN_EPISODES:-20}
+min_cpu_seconds=${MIN_CPU_SECONDS:-300}
 max_minutes=${MAX_MINUTES:-15}
 [ -x "$admin" ] || { echo "no dsrl-admin at $admin: run scripts/serve.sh (or cargo build --release) first" >&2; exit 1; }
-for n in "$min_steps" "$min_episodes" "$max_minutes"; do
-  [[ $n =~ ^[1-9][0-9]*$ ]] || { echo "MIN_STEPS, MIN_EPISODES and MAX_MINUTES must be positive integers" >&2; exit 2; }
+for n in "$min_steps" "$min_episodes" "$min_cpu_seconds" "$max_minutes"; do
+  [[ $n =~ ^[1-9][0-9]*$ ]] ||
+    { echo "MIN_STEPS, MIN_EPISODES, MIN_CPU_SECONDS and MAX_MINUTES must be positive integers" >&2; exit 2; }
 done
 mkdir -p "$trials"
 
@@ -78,7 +81,7 @@ done_units() {
   status "$1" | python3 -c '
 import json, sys
 p = next(p for p in json.load(sys.stdin) if p["task"] == sys.argv[1])
-print(p["done"], p["unit"])' "$1"
+print(p["done"], p["unit"], int((p.get("compute") or {}).get("cpu_seconds", 0)))' "$1"
 }
 # The unfinished builds a task's build starts from (its warm start's chain), which a trial would have to run whole.
 sources() { status "$1" | python3 -c 'import json, sys; print(" ".join(p["task"] for p in json.load(sys.stdin) if p["task"] != sys.argv[1]))' "$1"; }
@@ -91,18 +94,21 @@ for task in "${tasks[@]}"; do
     continue
   fi
   rm -rf "${trials:?}/$task"
-  read -r _ unit < <(done_units "$task")
+  read -r _ unit _ < <(done_units "$task")
   [ "$unit" = steps ] && goal=$min_steps || goal=$min_episodes
-  echo "$(date -u +%FT%TZ) $task: a trial until $goal $unit or $max_minutes min" | tee -a "$root/measure.log" >&2
+  echo "$(date -u +%FT%TZ) $task: a trial until $goal $unit, $min_cpu_seconds CPU s or $max_minutes min" | tee -a "$root/measure.log" >&2
   # setsid: a session (so an autogroup) of its own, whose nice is 19: the trial takes only what is left idle.
   setsid bash -c 'echo 19 > /proc/self/autogroup 2>/dev/null || true; exec nice -n 19 "$0" build --plan "$1" --root "$2" --json "$3"' \
     "$admin" "$plan" "$trials" "$task" >> "$root/measure.log" 2>&1 < /dev/null &
   pid=$!
-  deadline=$((SECONDS + 60 * max_minutes))
+  deadline=$((SECONDS + 60 * max_minutes)) saved=0
   while kill -0 "$pid" 2>/dev/null && [ "$SECONDS" -lt "$deadline" ]; do
-    sleep 10
-    read -r now _ < <(done_units "$task")
+    sleep 5
+    read -r now _ cpu < <(done_units "$task")
     [ "$now" -ge "$goal" ] && break
+    # Only just after a save: the CPU count runs on between saves, the units done do not.
+    [ "$unit" = steps ] && [ "$now" -gt "$saved" ] && [ "$cpu" -ge "$min_cpu_seconds" ] && break
+    saved=$now
   done
   # The build and its workers stop with it (they die with their parent).
   kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
