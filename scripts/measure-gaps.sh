@@ -3,9 +3,8 @@
 # with numbers (data/full_build_gaps.csv: the CPU seconds per step or episode, and the core-hours the rest takes).
 # For each task of the plan that has no committed full build and no measured cost yet, it runs a trial of the task's
 # build: the same recipe, plan and code (`dsrl-admin build`) in a state folder of its own, with the expert saving
-# (and so logging) every 2 collects instead of every 20, until it has used MIN_CPU_SECONDS of CPU (expert recipes:
-# stopped just after a save) or its state shows MIN_EPISODES episodes (MetaDrive's IDM sweeps, whose log is each
-# setting of 20 episodes), or MAX_MINUTES have passed. It then stops the trial and writes the task's record, `data/full/<task>.progress.json`:
+# (and so logging) every 2 collects instead of every 20, until it has used MIN_CPU_SECONDS of CPU, stopped just after
+# a save (an expert's every 2 collects, a MetaDrive sweep's every setting of 20 episodes), or MAX_MINUTES have passed. It then stops the trial and writes the task's record, `data/full/<task>.progress.json`:
 # not started, with the trial's CPU seconds per unit and the core-hours the whole build takes at that cost (a task
 # with a committed partial build keeps its record and gains the cost). At the end it regenerates the documents
 # (`dsrl-admin docs`). The trial's state is not kept as the build's: `dsrl-admin build` starts the task afresh.
@@ -25,13 +24,12 @@ cd "$(dirname "$0")/.."
 root=${DSRL_FULL_ROOT:-$HOME/.dsrl/full}
 trials=$root/trials
 admin=${DSRL_ADMIN:-$(command -v dsrl-admin || echo "${CARGO_TARGET_DIR:-target}/release/dsrl-admin")}
-min_episodes=${MIN_EPISODES:-20}
 min_cpu_seconds=${MIN_CPU_SECONDS:-300}
 max_minutes=${MAX_MINUTES:-15}
 [ -x "$admin" ] || { echo "no dsrl-admin at $admin: run scripts/serve.sh (or cargo build --release) first" >&2; exit 1; }
-for n in "$min_episodes" "$min_cpu_seconds" "$max_minutes"; do
+for n in "$min_cpu_seconds" "$max_minutes"; do
   [[ $n =~ ^[1-9][0-9]*$ ]] ||
-    { echo "MIN_EPISODES, MIN_CPU_SECONDS and MAX_MINUTES must be positive integers" >&2; exit 2; }
+    { echo "MIN_CPU_SECONDS and MAX_MINUTES must be positive integers" >&2; exit 2; }
 done
 mkdir -p "$trials"
 
@@ -92,8 +90,7 @@ for task in "${tasks[@]}"; do
     continue
   fi
   rm -rf "${trials:?}/$task"
-  read -r _ unit _ < <(done_units "$task")
-  echo "$(date -u +%FT%TZ) $task: a trial until $min_cpu_seconds CPU s (or $min_episodes episodes) or $max_minutes min" | tee -a "$root/measure.log" >&2
+  echo "$(date -u +%FT%TZ) $task: a trial until $min_cpu_seconds CPU s or $max_minutes min" | tee -a "$root/measure.log" >&2
   # setsid: a session (so an autogroup) of its own, whose nice is 19: the trial takes only what is left idle.
   setsid bash -c 'echo 19 > /proc/self/autogroup 2>/dev/null || true; exec nice -n 19 "$0" build --plan "$1" --root "$2" --json "$3"' \
     "$admin" "$plan" "$trials" "$task" >> "$root/measure.log" 2>&1 < /dev/null &
@@ -102,9 +99,8 @@ for task in "${tasks[@]}"; do
   while kill -0 "$pid" 2>/dev/null && [ "$SECONDS" -lt "$deadline" ]; do
     sleep 5
     read -r now _ cpu < <(done_units "$task")
-    [ "$unit" = episodes ] && [ "$now" -ge "$min_episodes" ] && break
     # Only just after a save: the CPU count runs on between saves, the units done do not.
-    [ "$unit" = steps ] && [ "$now" -gt "$saved" ] && [ "$cpu" -ge "$min_cpu_seconds" ] && break
+    [ "$now" -gt "$saved" ] && [ "$cpu" -ge "$min_cpu_seconds" ] && break
     saved=$now
   done
   # The build and its workers stop with it (they die with their parent).
