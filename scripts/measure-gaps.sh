@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
-# Measures what each unbuilt full build would cost, so that every task without a committed full build has a gap
-# with numbers (data/full_build_gaps.csv: the CPU seconds per step or episode, and the core-hours the rest takes).
-# For each task of the plan that has no committed full build and no measured cost yet, it runs a trial of the task's
-# build: the same recipe, plan and code (`dsrl-admin build`) in a state folder of its own, with the expert saving
-# (and so logging) every 2 collects instead of every 20, until it has used MIN_CPU_SECONDS of CPU, stopped just after
-# a save (an expert's every 2 collects, a MetaDrive sweep's every setting of 20 episodes), or MAX_MINUTES have passed. It then stops the trial and writes the task's record, `data/full/<task>.progress.json`:
-# not started, with the trial's CPU seconds per unit and the core-hours the whole build takes at that cost (a task
-# with a committed partial build keeps its record and gains the cost). At the end it regenerates the documents
-# (`dsrl-admin docs`). The trial's state is not kept as the build's: `dsrl-admin build` starts the task afresh.
+# Measures what each unbuilt full build would cost, so that every task without a committed full build has a gap with
+# numbers (data/full_build_gaps.csv: the CPU seconds per step or episode, and the core-hours the rest takes). For each
+# task of the plan that has no committed full build and no measured cost yet, it runs a trial of the task's build: the
+# same recipe, plan and code (`dsrl-admin build`) in a state folder of its own, with the expert saving (and so logging)
+# every 2 collects instead of every 20, until it has used MIN_CPU_SECONDS of CPU, stopped just after a save (an expert's
+# every 2 collects, a MetaDrive sweep's every setting of 20 episodes), or MAX_MINUTES have passed. It then stops the
+# trial and writes the task's record, `data/full/<task>.progress.json`: not started, with the trial's CPU seconds per
+# unit and the core-hours the whole build takes at that cost (a task with a committed partial build keeps its record and
+# gains the cost). At the end it regenerates the documents (`dsrl-admin docs`). The trial's state is not kept as the
+# build's: `dsrl-admin build` starts the task afresh.
 #
 # The CPU cost comes from the process tree's CPU time, which does not depend on what else the machine runs, so the
 # trials run at the lowest priority beside other work (a session of their own, nice 19). It includes the start of

@@ -1,7 +1,7 @@
 """Writes a gap's measured CPU cost into its committed record, `data/full/<task>.progress.json`, from a trial build's
-`dsrl-admin build --status --json TASK` (on standard input; TASK the first argument): see scripts/measure-gaps.sh. A task without a
-record (or with one that did nothing) gets "not started" with the cost applied to its whole budget; a committed
-partial build keeps its record and gains the cost, applied to what it has left. The keys are in the order
+`dsrl-admin build --status --json TASK` (on standard input; TASK the first argument): see scripts/measure-gaps.sh. A
+task without a record (or with one that did nothing) gets "not started" with the cost applied to its whole budget; a
+committed partial build keeps its record and gains the cost, applied to what it has left. The keys are in the order
 `dsrl-admin build --status --record` writes them."""
 import json
 import os
