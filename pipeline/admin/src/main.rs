@@ -142,9 +142,10 @@ struct BuildArgs {
     server: Option<String>,
     #[arg(long, env = "DSRL_ADMIN_TOKEN", hide_env_values = true)]
     token: Option<String>,
-    /// Print where each task's build stands (finished, partial with its measured rate and the hours left, not
-    /// started) instead of building; with --record, write the unfinished ones' numbers beside the records
-    /// (`<task>.progress.json`).
+    /// Print where each task's build stands instead of building: finished (here, in --root), committed (built
+    /// elsewhere: its record is committed, this root holds no build), partial (with its measured rate, CPU cost and
+    /// what the rest takes; a committed gap record that got further stands for it), or not started. With --record,
+    /// write the unfinished ones' numbers beside the records (`<task>.progress.json`).
     #[arg(long)]
     status: bool,
     /// Print the outcomes as JSON (and no progress bars).
@@ -174,43 +175,8 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         if options.record {
             for p in &progress {
                 let path = dsrl_pipeline::full::progress_path(&options.records, &p.task);
-                // A record made from a state folder that got further (on another machine, before this one's state
-                // was lost), or as far with a measured cost (scripts/measure-gaps.sh), stays: a fresh state folder
-                // must not erase measured numbers.
-                let recorded: Option<dsrl_pipeline::full::Progress> =
-                    std::fs::read(&path).ok().and_then(|b| serde_json::from_slice(&b).ok());
-                if p.state == "finished" {
+                if p.state == "finished" || p.state == "committed" {
                     let _ = std::fs::remove_file(&path);
-                } else if let Some(mut r) =
-                    recorded.filter(|r| r.done > p.done || (r.done == p.done && p.cpu_seconds_per_unit.is_none()))
-                {
-                    eprintln!(
-                        "{}: kept {} ({} {} done there, {} here)",
-                        p.task,
-                        path.display(),
-                        r.done,
-                        r.unit,
-                        p.done
-                    );
-                    // What it lacks and this state measured: the CPU cost per unit, applied to what it has left.
-                    if r.cpu_seconds_per_unit.is_none()
-                        && let Some(c) = p.cpu_seconds_per_unit
-                    {
-                        r.cpu_seconds_per_unit = Some(c);
-                        r.remaining_core_hours = p.remaining_core_hours_for(r.planned.saturating_sub(r.done));
-                        if let Some(compute) = r.compute.as_mut() {
-                            let said = format!(
-                                "the CPU cost per unit was measured on {} over the first {} {} of a fresh start",
-                                p.cpu, p.done, p.unit
-                            );
-                            compute.note = [compute.note.as_str(), said.as_str()]
-                                .into_iter()
-                                .filter(|n| !n.is_empty())
-                                .collect::<Vec<_>>()
-                                .join("; ");
-                        }
-                        std::fs::write(&path, [serde_json::to_vec_pretty(&r)?, b"\n".to_vec()].concat())?;
-                    }
                 } else {
                     std::fs::create_dir_all(&options.records)?;
                     let mut bytes = serde_json::to_vec_pretty(p)?;
@@ -233,9 +199,13 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
                     p.remaining_hours
                         .map(|h| format!(", {h} h left at {} {}/s", p.rate_per_second.unwrap_or(0.0), p.unit))
                         .unwrap_or_default(),
-                    p.remaining_core_hours
-                        .map(|h| format!(", {h} core-hours left"))
-                        .unwrap_or_default()
+                    if p.state == "committed" {
+                        " (its record is committed; this root holds no build)".to_owned()
+                    } else {
+                        p.remaining_core_hours
+                            .map(|h| format!(", {h} core-hours left"))
+                            .unwrap_or_default()
+                    }
                 );
             }
         }

@@ -315,6 +315,13 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
     };
     if options.record {
         record::write(&options.records, &built, &episodes)?;
+        // A finished build has no gap left: its gap record goes.
+        match std::fs::remove_file(progress_path(&options.records, task)) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                anyhow::bail!("removing {}: {e}", progress_path(&options.records, task).display())
+            }
+            _ => {}
+        }
         outcome.recorded = true;
     }
     if let Some(client) = client {
@@ -341,13 +348,16 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
     Ok(outcome)
 }
 
-/// Where a task's full build stands, from its state folder: finished, partial (with what it has done, at what
-/// measured rate, and what is left), or not started. `dsrl-admin build --status` prints these; with `--record` the
-/// unfinished ones are kept beside the records as `<task>.progress.json`, the measured numbers of a gap.
+/// Where a task's full build stands: finished (in the state folder), committed (the records hold its finished
+/// build, made elsewhere; this root holds none), partial (with what it has done, at what measured rate, and what is
+/// left), or not started. A committed gap record (`<task>.progress.json`) that got further than the state folder,
+/// or as far with a measured cost, stands for the task (`keep_recorded`). `dsrl-admin build --status` prints these;
+/// with `--record` the unfinished ones are kept beside the records as `<task>.progress.json`, the measured numbers
+/// of a gap.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Progress {
     pub task: String,
-    /// `finished`, `partial` or `not started`.
+    /// `finished`, `committed`, `partial` or `not started`.
     pub state: String,
     /// Environment steps (expert recipes) or episodes (IDM sweeps) done, of those planned.
     pub done: u64,
@@ -386,8 +396,80 @@ impl Progress {
     }
 }
 
-/// Each task's state under `root`, in the plan's order.
+/// Each task's state, in the plan's order: its state folder under the root, else its committed build record, else
+/// the better of its state folder and its committed gap record.
 pub fn status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
+    let mut out = Vec::new();
+    for local in local_status(options)? {
+        let committed_build = record::record_path(&options.records, &local.task).exists();
+        out.push(if local.state == "finished" {
+            local
+        } else if committed_build {
+            Progress {
+                state: "committed".into(),
+                done: local.planned,
+                rate_per_second: None,
+                remaining_hours: None,
+                cpu_seconds_per_unit: None,
+                remaining_core_hours: None,
+                compute: None,
+                ..local
+            }
+        } else {
+            let path = progress_path(&options.records, &local.task);
+            let recorded = match std::fs::read(&path) {
+                Ok(bytes) => Some(
+                    serde_json::from_slice::<Progress>(&bytes)
+                        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
+                ),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+                Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
+            };
+            keep_recorded(local, recorded)
+        });
+    }
+    Ok(out)
+}
+
+/// Which numbers stand for an unfinished build: the committed gap record where it got further than the state folder
+/// (on another machine, before this one's state was lost) or as far with a measured cost (`scripts/measure-gaps.sh`),
+/// else the state folder's. A fresh state folder must not erase measured numbers; a kept record takes the CPU cost
+/// this state folder measured where it has none, applied to what it has left.
+pub fn keep_recorded(local: Progress, recorded: Option<Progress>) -> Progress {
+    let Some(mut kept) =
+        recorded.filter(|r| r.done > local.done || (r.done == local.done && local.cpu_seconds_per_unit.is_none()))
+    else {
+        return local;
+    };
+    tracing::info!(
+        task = %local.task,
+        "the committed gap record stands: {} {} done there, {} here",
+        kept.done,
+        kept.unit,
+        local.done
+    );
+    if kept.cpu_seconds_per_unit.is_none()
+        && let Some(c) = local.cpu_seconds_per_unit
+    {
+        kept.cpu_seconds_per_unit = Some(c);
+        kept.remaining_core_hours = local.remaining_core_hours_for(kept.planned.saturating_sub(kept.done));
+        if let Some(compute) = kept.compute.as_mut() {
+            let said = format!(
+                "the CPU cost per unit was measured on {} over the first {} {} of a fresh start",
+                local.cpu, local.done, local.unit
+            );
+            compute.note = [compute.note.as_str(), said.as_str()]
+                .into_iter()
+                .filter(|n| !n.is_empty())
+                .collect::<Vec<_>>()
+                .join("; ");
+        }
+    }
+    kept
+}
+
+/// Each task's state in its state folder under `root` alone, in the plan's order.
+fn local_status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
     let plan = Plan::load(&options.plan)?;
     let mut out = Vec::new();
     for task in plan.order(&options.tasks, &options.recipes)? {
@@ -642,4 +724,88 @@ fn report(line: &ChildReport) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{}", serde_json::to_string(line).expect("serializable"));
     let _ = out.flush();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn progress(task: &str, done: u64, cost: Option<f64>) -> Progress {
+        Progress {
+            task: task.into(),
+            state: if done > 0 { "partial" } else { "not started" }.into(),
+            done,
+            planned: 1_000_000,
+            unit: "steps".into(),
+            rate_per_second: None,
+            remaining_hours: None,
+            cpu_seconds_per_unit: cost,
+            remaining_core_hours: cost.map(|c| core_hours(1_000_000 - done, c)),
+            compute: None,
+            cpu: "test CPU".into(),
+        }
+    }
+
+    #[test]
+    fn a_gap_record_that_got_further_stands_and_takes_the_fresh_cost() {
+        // The record got further elsewhere and has no cost; the fresh state measured one: both are kept.
+        let kept = keep_recorded(progress("t", 1000, Some(0.0036)), Some(progress("t", 500_000, None)));
+        assert_eq!(kept.done, 500_000);
+        assert_eq!(kept.cpu_seconds_per_unit, Some(0.0036));
+        assert_eq!(
+            kept.remaining_core_hours,
+            Some(0.5),
+            "500,000 steps at 0.0036 CPU s = 0.5 core-hours"
+        );
+        // As far with a cost (a trial) against a state folder without one: the record stands.
+        let kept = keep_recorded(progress("t", 0, None), Some(progress("t", 0, Some(0.01))));
+        assert_eq!(kept.cpu_seconds_per_unit, Some(0.01));
+        // The state folder got further: it stands.
+        let local = keep_recorded(progress("t", 600_000, None), Some(progress("t", 500_000, Some(0.01))));
+        assert_eq!((local.done, local.cpu_seconds_per_unit), (600_000, None));
+        assert_eq!(keep_recorded(progress("t", 5, None), None).done, 5);
+    }
+
+    #[test]
+    fn status_names_a_build_committed_from_elsewhere_and_a_kept_gap_record() {
+        let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let records = tempfile::tempdir().unwrap();
+        let root = tempfile::tempdir().unwrap();
+        let built = "OfflineBallRun-v0";
+        let gap = "OfflineCarRun-v0";
+        for file in [
+            record::record_path(records.path(), built),
+            record::episodes_path(records.path(), built),
+        ] {
+            std::fs::copy(repo.join("data/full").join(file.file_name().unwrap()), &file).unwrap();
+        }
+        let recorded = Progress {
+            planned: 1_000_000,
+            ..progress(gap, 250_000, Some(0.002))
+        };
+        std::fs::write(
+            progress_path(records.path(), gap),
+            serde_json::to_vec(&recorded).unwrap(),
+        )
+        .unwrap();
+        let options = BuildOptions {
+            plan: repo.join("data/full_builds.toml"),
+            recipes: repo.join("data/recipes"),
+            records: records.path().to_owned(),
+            root: root.path().to_owned(),
+            tasks: vec![built.into(), gap.into(), "OfflineDroneRun-v0".into()],
+            jobs: 1,
+            workers: 1,
+            record: false,
+            server: None,
+            token: None,
+            progress: false,
+        };
+        let status = status(&options).unwrap();
+        let by_task = |t: &str| status.iter().find(|p| p.task == t).unwrap();
+        assert_eq!(by_task(built).state, "committed");
+        assert_eq!(by_task(built).done, by_task(built).planned);
+        assert_eq!((by_task(gap).state.as_str(), by_task(gap).done), ("partial", 250_000));
+        assert_eq!(by_task("OfflineDroneRun-v0").state, "not started");
+    }
 }

@@ -134,6 +134,10 @@ pub fn sections(
     let (mut built, mut at_paper, mut whole_bar, mut trajectories) = (0, 0, 0, 0u64);
     // The gaps' measured CPU cost, summed (core-hours), and the gaps without one.
     let (mut gap_core_hours, mut costed, mut uncosted) = (0.0f64, 0, 0);
+    // Each task's measured CPU seconds per step, for a warm start's estimate (the plan orders a source first), and
+    // the estimates of the gaps that have no measured cost of their own.
+    let mut cost_per_step: BTreeMap<&str, f64> = BTreeMap::new();
+    let (mut estimated_core_hours, mut estimated) = (0.0f64, Vec::new());
     for task_id in &order {
         let task = catalog.get(task_id)?;
         let paper = u64::from(task.paper_trajectories);
@@ -152,6 +156,12 @@ pub fn sections(
             }
             if misses.is_empty() {
                 whole_bar += 1;
+            }
+            if let Some(steps) = r.budget.get("budget_steps").and_then(|s| s.as_f64())
+                && r.compute.note.is_empty()
+                && r.compute.cpu_seconds > 0.0
+            {
+                cost_per_step.insert(task_id, r.compute.cpu_seconds / steps);
             }
             let budget = match (r.budget.get("budget_steps"), r.budget.get("episodes_per_setting")) {
                 (Some(steps), _) => format!("{:.1}M steps", steps.as_f64().unwrap_or(0.0) / 1e6),
@@ -214,12 +224,26 @@ pub fn sections(
         let cpu_per_unit = progress.as_ref().and_then(|p| p.cpu_seconds_per_unit);
         let core_hours = progress.as_ref().and_then(|p| p.remaining_core_hours);
         let text = |x: Option<f64>| x.map_or(String::new(), |x| x.to_string());
-        match core_hours {
-            Some(h) => {
+        if let (Some(c), "steps") = (cpu_per_unit, unit) {
+            cost_per_step.insert(task_id, c);
+        }
+        // A warm-started build without a trial of its own (a trial would first build its source whole): its
+        // source's measured cost per step over its own planned steps, shown as an estimate and summed apart.
+        let source_estimate = warm_start
+            .as_ref()
+            .and_then(|source| cost_per_step.get(source.as_str()))
+            .filter(|_| core_hours.is_none() && unit == "steps")
+            .map(|c| super::core_hours(planned.saturating_sub(done), *c));
+        match (core_hours, source_estimate) {
+            (Some(h), _) => {
                 gap_core_hours += h;
                 costed += 1;
             }
-            None => uncosted += 1,
+            (None, Some(h)) => {
+                estimated_core_hours += h;
+                estimated.push(task_id.clone());
+            }
+            (None, None) => uncosted += 1,
         }
         let _ = writeln!(
             gaps,
@@ -237,7 +261,12 @@ pub fn sections(
             match (core_hours, &warm_start) {
                 (Some(h), _) => format!("{h}"),
                 // A trial of this build would first have to build its source whole (scripts/measure-gaps.sh).
-                (None, Some(source)) => format!("– (starts from {source}'s finished build)"),
+                (None, Some(source)) => match source_estimate {
+                    Some(h) => format!(
+                        "~{h}, estimated at {source}'s CPU cost per step (it starts from {source}'s finished build)"
+                    ),
+                    None => format!("– (starts from {source}'s finished build)"),
+                },
                 (None, None) => "– (not measured yet: `scripts/measure-gaps.sh`)".to_owned(),
             },
         );
@@ -258,7 +287,8 @@ pub fn sections(
          {total_paper}.\n",
         order.len()
     );
-    let summary = match (costed, uncosted) {
+    let without_cost = uncosted + estimated.len();
+    let summary = match (costed, without_cost) {
         (0, _) => summary,
         (_, 0) => format!(
             "{summary}\nWhat the {costed} other builds still need, at the CPU cost each measured: \
@@ -266,9 +296,19 @@ pub fn sections(
         ),
         _ => format!(
             "{summary}\nWhat {costed} of the other builds still need, at the CPU cost each measured: \
-             **{gap_core_hours:.0} core-hours**; {uncosted} {} no measured cost yet (the table says why).\n",
-            if uncosted == 1 { "has" } else { "have" }
+             **{gap_core_hours:.0} core-hours**; {without_cost} {} no measured cost of {} own (the table says why).\n",
+            if without_cost == 1 { "has" } else { "have" },
+            if without_cost == 1 { "its" } else { "their" },
         ),
+    };
+    let summary = if estimated.is_empty() {
+        summary
+    } else {
+        format!(
+            "{summary}Estimated at the measured CPU cost per step of the build each starts from, {} would need about \
+             **{estimated_core_hours:.1} core-hours** more (that build comes first).\n",
+            estimated.join(" and "),
+        )
     };
     let sections = BTreeMap::from([
         ("full-summary".to_owned(), summary),
