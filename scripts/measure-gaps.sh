@@ -71,8 +71,9 @@ for p in json.load(sys.stdin):
 fi
 echo "measuring ${#tasks[@]} task(s): ${tasks[*]:-none}" >&2
 
-# A trial's status, as `--status --json` gives it (one task).
-status() { "$admin" build --plan "$plan" --root "$trials" --status --json "$1"; }
+# A trial's status, as `--status --json` gives it (one task): the trial's own numbers, so against a records folder
+# that holds nothing (the committed records would otherwise stand for a task whose record got further).
+status() { "$admin" build --plan "$plan" --root "$trials" --records "$trials/no-records" --status --json "$1"; }
 # `--status TASK` also lists the builds TASK starts from (a warm start): the units of TASK's own.
 done_units() {
   status "$1" | python3 -c '
