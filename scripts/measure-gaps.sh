@@ -71,9 +71,9 @@ for p in json.load(sys.stdin):
 fi
 echo "measuring ${#tasks[@]} task(s): ${tasks[*]:-none}" >&2
 
-# A trial's status, as `--status --json` gives it (one task): the trial's own numbers, so against a records folder
-# that holds nothing (the committed records would otherwise stand for a task whose record got further).
-status() { "$admin" build --plan "$plan" --root "$trials" --records "$trials/no-records" --status --json "$1"; }
+# A trial's status, as `--status --trial --json` gives it (one task): the trial's own numbers, not the committed
+# records'.
+status() { "$admin" build --plan "$plan" --root "$trials" --status --trial --json "$1"; }
 # `--status TASK` also lists the builds TASK starts from (a warm start): the units of TASK's own.
 done_units() {
   status "$1" | python3 -c '
@@ -108,8 +108,8 @@ for task in "${tasks[@]}"; do
   # The build and its workers stop with it (they die with their parent).
   kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
   wait "$pid" 2>/dev/null || true
-  # The record (scripts/measure_gaps_record.py): the trial's CPU cost, applied to what the build has left.
-  status "$task" | python3 scripts/measure_gaps_record.py "$task" 2>&1 | tee -a "$root/measure.log" >&2
+  # The record: the trial's CPU cost, applied to what the build has left.
+  "$admin" build --plan "$plan" --root "$trials" --status --trial --record "$task" 2>&1 | tee -a "$root/measure.log" >&2
 done
 
 "$admin" docs

@@ -148,6 +148,11 @@ struct BuildArgs {
     /// write the unfinished ones' numbers beside the records (`<task>.progress.json`).
     #[arg(long)]
     status: bool,
+    /// With --status: --root holds trial builds (scripts/measure-gaps.sh), whose own numbers are printed (not the
+    /// committed records'); with --record, only each trial's measured CPU cost goes into the task's committed gap
+    /// record (one that says "not started" where there is none), since a trial's state is not the build's.
+    #[arg(long, requires = "status")]
+    trial: bool,
     /// Print the outcomes as JSON (and no progress bars).
     #[arg(long)]
     json: bool,
@@ -170,6 +175,44 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         token: args.token,
         progress: !args.json,
     };
+    if args.status && args.trial {
+        let trials = dsrl_pipeline::full::local_status(&options)?;
+        if options.record {
+            // `--status TASK` also lists the builds TASK starts from; only the named tasks' trials are recorded.
+            for trial in trials
+                .iter()
+                .filter(|t| options.tasks.is_empty() || options.tasks.contains(&t.task))
+            {
+                let path = dsrl_pipeline::full::progress_path(&options.records, &trial.task);
+                let recorded: Option<dsrl_pipeline::full::Progress> = match std::fs::read(&path) {
+                    Ok(bytes) => {
+                        Some(serde_json::from_slice(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?)
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+                    Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
+                };
+                match dsrl_pipeline::full::trial_record(trial, recorded) {
+                    Some(record) => {
+                        std::fs::create_dir_all(&options.records)?;
+                        std::fs::write(&path, [serde_json::to_vec_pretty(&record)?, b"\n".to_vec()].concat())?;
+                        eprintln!(
+                            "{}: {} CPU s per {}, {} core-hours left",
+                            trial.task,
+                            record.cpu_seconds_per_unit.unwrap_or_default(),
+                            trial.unit.trim_end_matches('s'),
+                            record.remaining_core_hours.unwrap_or_default()
+                        );
+                    }
+                    None => eprintln!(
+                        "{}: the trial did {} {}, too few to measure; nothing recorded",
+                        trial.task, trial.done, trial.unit
+                    ),
+                }
+            }
+        }
+        print_status(&trials, args.json)?;
+        return Ok(());
+    }
     if args.status {
         let progress = dsrl_pipeline::full::status(&options)?;
         if options.record {
@@ -185,30 +228,7 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
                 }
             }
         }
-        if args.json {
-            out!("{}", serde_json::to_string_pretty(&progress)?);
-        } else {
-            for p in &progress {
-                out!(
-                    "{:42} {:11} {:>10} of {:>10} {}{}{}",
-                    p.task,
-                    p.state,
-                    p.done,
-                    p.planned,
-                    p.unit,
-                    p.remaining_hours
-                        .map(|h| format!(", {h} h left at {} {}/s", p.rate_per_second.unwrap_or(0.0), p.unit))
-                        .unwrap_or_default(),
-                    if p.state == "committed" {
-                        " (its record is committed; this root holds no build)".to_owned()
-                    } else {
-                        p.remaining_core_hours
-                            .map(|h| format!(", {h} core-hours left"))
-                            .unwrap_or_default()
-                    }
-                );
-            }
-        }
+        print_status(&progress, args.json)?;
         return Ok(());
     }
     let outcomes = dsrl_pipeline::full::build(&options).await?;
@@ -223,6 +243,35 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         outcomes.len(),
         failed.join(", ")
     );
+    Ok(())
+}
+
+/// `dsrl-admin build --status`'s output: a line per task, or the whole as JSON.
+fn print_status(progress: &[dsrl_pipeline::full::Progress], json: bool) -> anyhow::Result<()> {
+    if json {
+        out!("{}", serde_json::to_string_pretty(&progress)?);
+    } else {
+        for p in progress {
+            out!(
+                "{:42} {:11} {:>10} of {:>10} {}{}{}",
+                p.task,
+                p.state,
+                p.done,
+                p.planned,
+                p.unit,
+                p.remaining_hours
+                    .map(|h| format!(", {h} h left at {} {}/s", p.rate_per_second.unwrap_or(0.0), p.unit))
+                    .unwrap_or_default(),
+                if p.state == "committed" {
+                    " (its record is committed; this root holds no build)".to_owned()
+                } else {
+                    p.remaining_core_hours
+                        .map(|h| format!(", {h} core-hours left"))
+                        .unwrap_or_default()
+                }
+            );
+        }
+    }
     Ok(())
 }
 

@@ -458,18 +458,64 @@ pub fn keep_recorded(local: Progress, recorded: Option<Progress>) -> Progress {
                 "the CPU cost per unit was measured on {} over the first {} {} of a fresh start",
                 local.cpu, local.done, local.unit
             );
-            compute.note = [compute.note.as_str(), said.as_str()]
-                .into_iter()
-                .filter(|n| !n.is_empty())
-                .collect::<Vec<_>>()
-                .join("; ");
+            compute.note = add_note(&compute.note, &said);
         }
     }
     kept
 }
 
-/// Each task's state in its state folder under `root` alone, in the plan's order.
-fn local_status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
+/// `note` with `said` added (`; ` between them), unless it says it already: recording twice adds nothing.
+fn add_note(note: &str, said: &str) -> String {
+    if note.split("; ").any(|n| n == said) {
+        return note.to_owned();
+    }
+    [note, said]
+        .into_iter()
+        .filter(|n| !n.is_empty())
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// A gap record that takes a trial build's measured CPU cost (`scripts/measure-gaps.sh` runs the trials): the
+/// committed record where it did something, with the trial's cost applied to what it has left; else a record that
+/// says "not started", with the cost applied to the whole budget. The trial's progress is not the build's (its state
+/// is not kept), so only its cost goes in. `None` where the trial did too little to have a cost.
+pub fn trial_record(trial: &Progress, recorded: Option<Progress>) -> Option<Progress> {
+    let cost = trial.cpu_seconds_per_unit?;
+    let said = format!(
+        "the CPU cost per unit was measured on {} by a trial of the build's first {} {} (not kept)",
+        trial.cpu, trial.done, trial.unit
+    );
+    let mut record = match recorded.filter(|r| r.done > 0) {
+        Some(mut r) => {
+            let compute = r.compute.get_or_insert_with(|| compute::Compute {
+                cpu: trial.cpu.clone(),
+                ..Default::default()
+            });
+            compute.note = add_note(&compute.note, &said);
+            r
+        }
+        None => Progress {
+            task: trial.task.clone(),
+            state: "not started".into(),
+            done: 0,
+            planned: trial.planned,
+            unit: trial.unit.clone(),
+            rate_per_second: None,
+            remaining_hours: None,
+            cpu_seconds_per_unit: None,
+            remaining_core_hours: None,
+            compute: trial.compute.clone().map(|c| compute::Compute { note: said, ..c }),
+            cpu: trial.cpu.clone(),
+        },
+    };
+    record.cpu_seconds_per_unit = Some(cost);
+    record.remaining_core_hours = Some(core_hours(record.planned.saturating_sub(record.done), cost));
+    Some(record)
+}
+
+/// Each task's state in its state folder under `root` alone, in the plan's order (`--status --trial`).
+pub fn local_status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
     let plan = Plan::load(&options.plan)?;
     let mut out = Vec::new();
     for task in plan.order(&options.tasks, &options.recipes)? {
@@ -764,6 +810,37 @@ mod tests {
         let local = keep_recorded(progress("t", 600_000, None), Some(progress("t", 500_000, Some(0.01))));
         assert_eq!((local.done, local.cpu_seconds_per_unit), (600_000, None));
         assert_eq!(keep_recorded(progress("t", 5, None), None).done, 5);
+    }
+
+    #[test]
+    fn a_trial_gives_a_gap_record_its_cost_and_nothing_else() {
+        let trial = Progress {
+            compute: Some(compute::Compute {
+                cpu_seconds: 300.0,
+                cpu: "test CPU".into(),
+                ..Default::default()
+            }),
+            ..progress("t", 100_000, Some(0.003))
+        };
+        // No record: "not started", the cost over the whole budget (1,000,000 steps at 0.003 s = 0.8 core-hours).
+        let fresh = trial_record(&trial, None).unwrap();
+        assert_eq!((fresh.state.as_str(), fresh.done), ("not started", 0));
+        assert_eq!(fresh.remaining_core_hours, Some(0.8));
+        assert!(
+            fresh
+                .compute
+                .unwrap()
+                .note
+                .contains("a trial of the build's first 100000 steps")
+        );
+        // A committed partial build keeps its progress and gains the cost over what it has left.
+        let partial = trial_record(&trial, Some(progress("t", 400_000, None))).unwrap();
+        assert_eq!((partial.done, partial.remaining_core_hours), (400_000, Some(0.5)));
+        // Too little done to have a cost: nothing to record.
+        assert!(trial_record(&progress("t", 0, None), None).is_none());
+        // Recorded twice, the record says it once.
+        let again = trial_record(&trial, Some(partial.clone())).unwrap();
+        assert_eq!(again.compute.unwrap().note, partial.compute.unwrap().note);
     }
 
     #[test]
