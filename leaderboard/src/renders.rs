@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::Leaderboard;
 use crate::queue;
+use crate::supervision::RendererState;
 
 /// Frame sides in pixels: enough to see the agent and what it touches, ~10 KB a frame in a GIF.
 pub const FRAME_SIDE: u32 = 128;
@@ -88,22 +89,6 @@ pub enum ReplayState {
         ahead: usize,
     },
     Failed(String),
-}
-
-/// The renderer as `/healthz` shows it.
-#[derive(Debug, Clone, Default, Serialize, utoipa::ToSchema)]
-pub struct RendererState {
-    /// Running now: false between a panic and its restart.
-    pub running: bool,
-    /// The episode being replayed (`submission/threshold-index/episode`).
-    pub replaying: Option<String>,
-    pub queued: usize,
-    pub rendered: u64,
-    pub failed: u64,
-    /// Replays dropped (and queued again) because scoring needed the machine.
-    pub yielded: u64,
-    pub restarts: u32,
-    pub last_error: Option<String>,
 }
 
 /// The replay queue, its failures and its counters.

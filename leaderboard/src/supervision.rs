@@ -130,5 +130,21 @@ pub struct Health {
     pub evaluators_configured: u32,
     pub evaluators: Vec<EvaluatorState>,
     /// The replays of scored episodes (`renders`): informational, never a reason for `degraded`.
-    pub renderer: crate::renders::RendererState,
+    pub renderer: RendererState,
+}
+
+/// The renderer as `/healthz` shows it.
+#[derive(Debug, Clone, Default, Serialize, utoipa::ToSchema)]
+pub struct RendererState {
+    /// Running now: false between a panic and its restart.
+    pub running: bool,
+    /// The episode being replayed (`submission/threshold-index/episode`).
+    pub replaying: Option<String>,
+    pub queued: usize,
+    pub rendered: u64,
+    pub failed: u64,
+    /// Replays dropped (and queued again) because scoring needed the machine.
+    pub yielded: u64,
+    pub restarts: u32,
+    pub last_error: Option<String>,
 }
