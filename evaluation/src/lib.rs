@@ -98,6 +98,16 @@ pub fn scoring_digest(root: &std::path::Path, changed: Option<FileChange>) -> st
         hasher.update(&bytes);
     }
     let lock = std::fs::read_to_string(root.join("Cargo.lock"))?;
+    let manifest = std::fs::read_to_string(root.join("Cargo.toml"))?;
+    hasher.update(scoring_dependencies(&lock, &manifest).as_bytes());
+    Ok(hex::encode(hasher.finalize()))
+}
+
+/// What the digest takes of the dependencies: per scoring dependency, the versions `Cargo.lock` locks and the line
+/// that declares it in the workspace's `Cargo.toml` (its features: gemm's `x86-v4` would pick other kernels on an
+/// AVX-512 machine, and so other episodes), or that none does.
+pub fn scoring_dependencies(lock: &str, manifest: &str) -> String {
+    let mut out = String::new();
     for dependency in SCORING_DEPENDENCIES {
         // `[[package]]` blocks: `name = "x"` followed by `version = "y"`.
         let mut versions: Vec<&str> = lock
@@ -106,9 +116,24 @@ pub fn scoring_digest(root: &std::path::Path, changed: Option<FileChange>) -> st
             .filter_map(|block| block.lines().find_map(|l| l.strip_prefix("version = ")))
             .collect();
         versions.sort_unstable();
-        hasher.update(format!("{dependency} {}\n", versions.join(",")).as_bytes());
+        let declared: Vec<&str> = manifest
+            .lines()
+            .filter(|l| {
+                l.strip_prefix(dependency)
+                    .is_some_and(|rest| rest.trim_start().starts_with('=') || rest.starts_with('.'))
+            })
+            .collect();
+        out.push_str(&format!(
+            "{dependency} {}\n{}\n",
+            versions.join(","),
+            if declared.is_empty() {
+                "undeclared".to_owned()
+            } else {
+                declared.join("\n")
+            }
+        ));
     }
-    Ok(hex::encode(hasher.finalize()))
+    out
 }
 
 /// The simulator pins as the protocol version covers them: the pinned requirements and constraints of the worker's
@@ -203,5 +228,33 @@ mod tests {
             assert_ne!(changed, base, "a change to {file} went unseen");
         }
         assert!(files.len() > 30, "{files:?}");
+    }
+
+    /// A dependency's features are in the digest: turning on gemm's AVX-512 kernels, or changing candle's
+    /// declaration, changes what it takes of the dependencies.
+    #[test]
+    fn a_scoring_dependencys_declared_features_are_in_the_digest() {
+        let root = workspace();
+        let lock = std::fs::read_to_string(root.join("Cargo.lock")).unwrap();
+        let manifest = std::fs::read_to_string(root.join("Cargo.toml")).unwrap();
+        let base = scoring_dependencies(&lock, &manifest);
+        assert!(base.contains("gemm \"0.19.0\"\nundeclared\n"), "{base}");
+        assert!(
+            base.contains("candle-core \"0.11.1\"\ncandle-core = \"0.11.1\"\n"),
+            "{base}"
+        );
+        let with_avx512 = manifest.replace(
+            "candle-core = \"0.11.1\"\n",
+            "candle-core = \"0.11.1\"\ngemm = { version = \"0.19\", features = [\"x86-v4\"] }\n",
+        );
+        assert_ne!(scoring_dependencies(&lock, &with_avx512), base);
+        let other_candle = manifest.replace(
+            "candle-core = \"0.11.1\"",
+            "candle-core = { version = \"0.11.1\", features = [\"mkl\"] }",
+        );
+        assert_ne!(scoring_dependencies(&lock, &other_candle), base);
+        // A dependency whose name begins another's (candle-core-x) is not taken for it.
+        let lookalike = format!("{manifest}\ncandle-core-extras = \"1\"\n");
+        assert_eq!(scoring_dependencies(&lock, &lookalike), base);
     }
 }

@@ -15,23 +15,16 @@ fn fixtures() -> PathBuf {
     dsrl_e2e::repo_root().join("tests/e2e/fixtures")
 }
 
-/// The committed identity of the tiny build for this CPU's matrix kernels: a build's bytes depend on them (the same
-/// code gives another, equally valid build with AVX-512 kernels than with AVX2 ones; data/README.md), so there is
-/// one per kind of CPU this project's machines have. `full/` holds the AVX2 one, `full-avx512/` the other; a new
-/// kind is added with `dsrl-admin build --plan tests/e2e/fixtures/full_builds.toml --workers 1 --record --records
-/// tests/e2e/fixtures/full-<kind> OfflineBallRun-v0` after checking the build on a known kind still matches.
+/// The committed identity of the tiny build. A build's bytes depend on the CPU's matrix kernels (data/README.md);
+/// gemm is built without its AVX-512 ones, so AVX2 and AVX-512 machines run the same (AVX2, FMA) kernels and build
+/// the same bytes: one identity holds on both (checked on each kind). A CPU without FMA would need one of its own.
 fn committed_records() -> PathBuf {
     let kernels = dsrl_pipeline::full::compute::kernels();
-    let dir = fixtures().join(match kernels {
-        "AVX2" => "full".to_owned(),
-        other => format!("full-{}", other.to_lowercase().replace('-', "")),
-    });
-    assert!(
-        dir.join(format!("{TASK}.json")).exists(),
-        "no committed identity of the tiny build for {kernels} kernels: {} is missing",
-        dir.display()
+    assert_eq!(
+        kernels, "AVX2",
+        "the tiny build's committed identity (fixtures/full/) was made with AVX2 kernels; this CPU runs {kernels} ones"
     );
-    dir
+    fixtures().join("full")
 }
 
 /// `dsrl-admin build TASK` with the tiny plan, its records in `records` and its state under `root`.

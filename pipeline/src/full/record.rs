@@ -138,16 +138,22 @@ pub fn differences(
     compare("code", built.code_version.clone(), committed.code_version.clone());
     compare("CPU", built.compute.cpu.clone(), committed.compute.cpu.clone());
     if built.compute.cpu != committed.compute.cpu {
-        lines.push(format!(
-            "a CPU with other matrix kernels gives another build, equally valid (data/README.md: what a version id \
-             depends on); this one uses {} kernels{}",
-            super::compute::kernels(),
-            if committed.compute.cpu.contains("kernels") {
-                ""
-            } else {
-                ", and the committed record does not name its CPU's"
-            }
-        ));
+        // Which kernels the committed build ran on, where its record names them (`... AVX2 kernels)`).
+        let here = super::compute::kernels();
+        let theirs = ["AVX-512", "AVX2", "baseline"]
+            .into_iter()
+            .find(|k| committed.compute.cpu.contains(&format!("{k} kernels")));
+        match theirs {
+            Some(theirs) if theirs != here => lines.push(format!(
+                "the committed build ran on {theirs} matrix kernels, this one on {here}: kernels that add in another \
+                 order give another build, equally valid (data/README.md: what a version id depends on)"
+            )),
+            Some(_) => {}
+            None => lines.push(format!(
+                "the committed record does not name its CPU's matrix kernels; this build ran on {here} (other kernels \
+                 give another build, equally valid: data/README.md, what a version id depends on)"
+            )),
+        }
     }
     match built_episodes.iter().zip(committed_episodes).find(|(a, b)| a != b) {
         Some((a, b)) => lines.push(format!(
