@@ -396,6 +396,7 @@ fn plan_work(
                             steps,
                             batch: run.batch_size,
                             device,
+                            dataset_version: version.clone(),
                         });
                     }
                     work.entries.push(entry);

@@ -1,5 +1,7 @@
 //! Where a phase keeps its work, so that a killed run resumes: the models `dsrl-train` wrote, a marker per
-//! finished model naming its budget, and per entry the submission made for it and its final answer.
+//! finished model naming its budget, and per entry the submission made for it and its final answer. A marker counts
+//! only while the model's checkpoint names the dataset version the phase trains on (`trained_on`): a task whose data
+//! was built again has its models trained again.
 //!
 //! ```text
 //! <state>/policies/<task>/seed-<s>/<method>/...                  dsrl-train's output (--reproduce: reproduced/policies)
@@ -65,6 +67,18 @@ impl StateDir {
             ".trained-{}-{threshold}-steps-{steps}-batch-{batch}",
             entry.method.key()
         ))
+    }
+
+    /// The dataset version a finished model trained on, as its checkpoint's training record names it
+    /// (`<model>/policy.json`, or `<model>/threshold-<K>/policy.json` for a per-threshold method's); `None` where
+    /// there is no readable record.
+    pub fn trained_on(&self, entry: &EntryKey, threshold: Option<f64>) -> Option<String> {
+        let mut dir = self.model_dir(entry);
+        if let Some(t) = threshold {
+            dir = dir.join(format!("threshold-{t}"));
+        }
+        let config: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("policy.json")).ok()?).ok()?;
+        config["training"]["dataset_version"].as_str().map(str::to_owned)
     }
 
     /// The markers of one model at any budget (removed before its new marker is written).

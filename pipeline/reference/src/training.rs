@@ -23,6 +23,8 @@ pub struct Model {
     pub batch: Option<usize>,
     /// `cuda:N`, or the CPU.
     pub device: Option<String>,
+    /// The dataset version the phase trains on (the task's starter or committed full build).
+    pub dataset_version: String,
 }
 
 impl Model {
@@ -58,6 +60,13 @@ impl Model {
 
     pub fn marker(&self, state: &StateDir) -> PathBuf {
         state.marker(&self.entry, self.threshold, self.steps, self.batch)
+    }
+
+    /// Trained at this budget and on this dataset version: a model trained on another version of the task's data
+    /// (a full build recorded again, a starter cut again) is stale whatever its marker says.
+    pub fn is_trained(&self, state: &StateDir) -> bool {
+        self.marker(state).exists()
+            && state.trained_on(&self.entry, self.threshold).as_deref() == Some(self.dataset_version.as_str())
     }
 }
 
@@ -132,9 +141,17 @@ impl Pool {
         }
         while self.failed.is_empty() && self.running.len() < self.jobs {
             let Some(model) = self.waiting.pop_front() else { break };
-            if model.marker(&self.state).exists() {
+            if model.is_trained(&self.state) {
                 self.trained += 1;
                 continue;
+            }
+            if model.marker(&self.state).exists() {
+                eprintln!(
+                    "{} was trained on another dataset version than {}: trained again",
+                    model.entry,
+                    &model.dataset_version[..12.min(model.dataset_version.len())]
+                );
+                self.state.remove_markers(&model.entry, model.threshold)?;
             }
             let mut command = model.command(&self.train, &self.server, &self.state);
             let child = spawn_supervised(&mut command)
@@ -152,12 +169,9 @@ impl Pool {
     }
 }
 
-/// Whether every model of `method` for `entry` has its marker.
+/// Whether every model of `method` for `entry` is trained, at its budget and on its dataset version.
 pub fn trained(models: &[Model], entry: &EntryKey, state: &StateDir) -> bool {
-    models
-        .iter()
-        .filter(|m| &m.entry == entry)
-        .all(|m| m.marker(state).exists())
+    models.iter().filter(|m| &m.entry == entry).all(|m| m.is_trained(state))
 }
 
 /// The models of an entry: one per threshold, or one.
@@ -166,5 +180,40 @@ pub fn models_of(method: Method, thresholds: &[f64]) -> Vec<Option<f64>> {
         thresholds.iter().map(|&t| Some(t)).collect()
     } else {
         vec![None]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_model_trained_on_another_dataset_version_is_not_trained() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = StateDir::new(dir.path().to_owned(), false);
+        let model = Model {
+            entry: EntryKey {
+                task: "OfflineBallRun-v0".into(),
+                seed: 0,
+                method: Method::BcSafe,
+            },
+            threshold: Some(20.0),
+            steps: 100,
+            batch: None,
+            device: None,
+            dataset_version: "a".repeat(64),
+        };
+        let checkpoint = state.model_dir(&model.entry).join("threshold-20");
+        std::fs::create_dir_all(&checkpoint).unwrap();
+        let record = |version: &str| serde_json::json!({"training": {"dataset_version": version}}).to_string();
+        std::fs::write(checkpoint.join("policy.json"), record(&"a".repeat(64))).unwrap();
+        assert!(!model.is_trained(&state), "no marker yet");
+        std::fs::write(model.marker(&state), b"").unwrap();
+        assert!(model.is_trained(&state));
+        assert!(trained(std::slice::from_ref(&model), &model.entry, &state));
+        // The task's data was built again: the same marker, another version.
+        std::fs::write(checkpoint.join("policy.json"), record(&"b".repeat(64))).unwrap();
+        assert!(!model.is_trained(&state));
+        assert!(!trained(std::slice::from_ref(&model), &model.entry, &state));
     }
 }
