@@ -349,7 +349,7 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
 }
 
 /// Where a task's full build stands: finished (in the state folder), committed (the records hold its finished
-/// build, made elsewhere; this root holds none), partial (with what it has done, at what measured rate, and what is
+/// build, made elsewhere; this root holds none of it), partial (with what it has done, at what measured rate, and what is
 /// left), or not started. A committed gap record (`<task>.progress.json`) that got further than the state folder,
 /// or as far with a measured cost, stands for the task (`keep_recorded`). `dsrl-admin build --status` prints these;
 /// with `--record` the unfinished ones are kept beside the records as `<task>.progress.json`, the measured numbers
@@ -404,7 +404,7 @@ pub fn status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
         let committed_build = record::record_path(&options.records, &local.task).exists();
         out.push(if local.state == "finished" {
             local
-        } else if committed_build {
+        } else if committed_build && local.done == 0 {
             Progress {
                 state: "committed".into(),
                 done: local.planned,
@@ -878,11 +878,19 @@ mod tests {
             token: None,
             progress: false,
         };
-        let status = status(&options).unwrap();
-        let by_task = |t: &str| status.iter().find(|p| p.task == t).unwrap();
+        let listed = status(&options).unwrap();
+        let by_task = |t: &str| listed.iter().find(|p| p.task == t).unwrap();
+        let status_of =
+            |options: &BuildOptions, t: &str| status(options).unwrap().into_iter().find(|p| p.task == t).unwrap();
         assert_eq!(by_task(built).state, "committed");
         assert_eq!(by_task(built).done, by_task(built).planned);
         assert_eq!((by_task(gap).state.as_str(), by_task(gap).done), ("partial", 250_000));
         assert_eq!(by_task("OfflineDroneRun-v0").state, "not started");
+        // A committed build being built again here shows how far it got.
+        let expert = root.path().join(built).join("expert");
+        std::fs::create_dir_all(&expert).unwrap();
+        std::fs::write(expert.join("training.csv"), "collect,steps\n1,4000\n").unwrap();
+        let again = status_of(&options, built);
+        assert_eq!((again.state.as_str(), again.done), ("partial", 4000));
     }
 }
