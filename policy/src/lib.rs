@@ -79,3 +79,17 @@ pub unsafe fn pin_candle_threads() {
         unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
     }
 }
+
+/// The matrix kernels candle's gemm runs on this CPU: `AVX2` (with FMA), or the architecture's `baseline`. Kernels
+/// that add in another order round differently, so they decide the bits of a trained network, an expert's dataset
+/// and a played episode. gemm is built without its AVX-512 kernels (the workspace's Cargo.toml), so an AVX-512
+/// machine runs the AVX2 ones too; records made before that say `AVX-512` where they ran on one.
+pub fn matrix_kernels() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("fma") {
+            return "AVX2";
+        }
+    }
+    "baseline"
+}

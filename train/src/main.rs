@@ -393,8 +393,9 @@ fn thread_cpu_seconds() -> f64 {
     }
 }
 
-/// The CPU this process trains on, as training records name it: its model name and whether it has AVX-512 (what
-/// moves the CPU seconds per step most between machines); None where `/proc/cpuinfo` does not say.
+/// The CPU this process trains on, as training records name it: its model name, whether it has AVX-512, and the
+/// matrix kernels candle runs on it (which decide the checkpoint's bits; before gemm's AVX-512 kernels were turned
+/// off, records said only "AVX-512: yes", and those ran them); None where `/proc/cpuinfo` does not say.
 fn cpu_model() -> Option<String> {
     let info = std::fs::read_to_string("/proc/cpuinfo").ok()?;
     let field = |key: &str| {
@@ -405,9 +406,10 @@ fn cpu_model() -> Option<String> {
     };
     let avx512 = field("flags").is_some_and(|f| f.split_whitespace().any(|f| f == "avx512f"));
     Some(format!(
-        "{}, AVX-512: {}",
+        "{}, AVX-512: {}, {} kernels",
         field("model name")?,
-        if avx512 { "yes" } else { "no" }
+        if avx512 { "yes" } else { "no" },
+        dsrl_policy::matrix_kernels()
     ))
 }
 

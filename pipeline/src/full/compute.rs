@@ -26,18 +26,9 @@ pub struct Compute {
     pub note: String,
 }
 
-/// The matrix kernels candle's gemm runs on this CPU (`AVX2` with FMA, or the architecture's baseline): kernels that
-/// add in another order round differently, so they decide a build's bytes (data/README.md). gemm is built without its
-/// AVX-512 kernels (the workspace's Cargo.toml), so an AVX-512 machine runs the AVX2 ones and builds what an AVX2
-/// machine builds; records made before that say `AVX-512 kernels` where they ran on one.
+/// The matrix kernels candle's gemm runs on this CPU, which decide a build's bytes (data/README.md).
 pub fn kernels() -> &'static str {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("fma") {
-            return "AVX2";
-        }
-    }
-    "baseline"
+    dsrl_policy::matrix_kernels()
 }
 
 /// The machine's CPU, as records name it: `AMD EPYC 9B14 (2 cores, AVX2 kernels)`.
