@@ -3,9 +3,10 @@
 
 include!("../suite/build-support/commit.rs");
 
-/// `dsrl_evaluation::SCORING_PATH` and `SCORING_DEPENDENCIES` (through Cargo.lock), relative to this crate; the
-/// test `the_scorer_build_watches_the_scoring_path` holds the two lists together.
-const SCORING_SOURCES: [&str; 15] = [
+/// `dsrl_evaluation::SCORING_PATH` and `SCORING_DEPENDENCIES` (their versions in Cargo.lock, their declarations in
+/// the workspace's Cargo.toml), relative to this crate; the test `the_scorer_build_watches_the_scoring_path` holds
+/// the two lists together.
+const SCORING_SOURCES: [&str; 16] = [
     "src",
     "../policy/src",
     "../evaluation/src",
@@ -21,6 +22,7 @@ const SCORING_SOURCES: [&str; 15] = [
     "../simulators/src",
     "../sim/python/requirements.txt",
     "../Cargo.lock",
+    "../Cargo.toml",
 ];
 
 fn main() {
