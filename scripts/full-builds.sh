@@ -7,7 +7,8 @@
 #
 #   scripts/full-builds.sh                         # every task, in the plan's order
 #   scripts/full-builds.sh --jobs 2 OfflineBallRun-v0 OfflineCarRun-v0
-#   tail -f ~/.dsrl/full/build.log                 # one line per finished task; per-task logs in <root>/logs/
+#   tail -f ~/.dsrl/full/build.log                 # progress every 5 minutes, a line per finished task;
+#                                                  # per-task logs in <root>/logs/
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=${DSRL_FULL_ROOT:-$HOME/.dsrl/full}

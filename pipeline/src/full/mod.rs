@@ -227,6 +227,9 @@ fn own_binary() -> std::io::Result<std::path::PathBuf> {
     }
 }
 
+/// How often a build whose bar is hidden prints a line of its progress instead.
+const PLAIN_PROGRESS_EVERY: Duration = Duration::from_secs(300);
+
 /// Runs `dsrl-admin build-task` for `task` and follows its reports on `bar`; its log goes to `<root>/logs/`.
 async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> anyhow::Result<()> {
     let log_path = options.root.join("logs").join(format!("{task}.log"));
@@ -263,12 +266,22 @@ async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> any
     let mut child = command.spawn()?;
     let stdout = child.stdout.take().expect("piped");
     let mut lines = tokio::io::BufReader::new(stdout).lines();
+    // Where no bar is drawn (a log file, --json), a plain line now and then says how far the build is.
+    let mut said = std::time::Instant::now();
     while let Some(line) = lines.next_line().await? {
         match serde_json::from_str::<ChildReport>(&line) {
             Ok(ChildReport::Progress { position, length, unit }) => {
                 bar.set_length(length);
                 bar.set_position(position);
                 bar.set_message(format!("{task} ({unit})"));
+                if bar.is_hidden() && said.elapsed() >= PLAIN_PROGRESS_EVERY && length > 0 {
+                    said = std::time::Instant::now();
+                    eprintln!(
+                        "{} {task}: {position} of {length} {unit} ({:.0}%)",
+                        now_rfc3339(),
+                        100.0 * position as f64 / length as f64
+                    );
+                }
             }
             Ok(ChildReport::Finished { .. }) => {}
             Err(_) => tracing::debug!(task, line, "unexpected line from a build"),
