@@ -303,6 +303,10 @@ struct ReferenceArgs {
     /// Where the full builds are (dsrl-admin build's --root; default ~/.dsrl/full).
     #[arg(long)]
     full_builds: Option<PathBuf>,
+    /// Full-build phases only: only the tasks whose full build is finished under --full-builds (the others are
+    /// named and left out, where without it they stop the run), so the phases can follow the builds as they land.
+    #[arg(long, conflicts_with = "tasks")]
+    built_here: bool,
     /// Train, submit nothing.
     #[arg(long)]
     train_only: bool,
@@ -352,6 +356,7 @@ async fn reference(args: ReferenceArgs) -> anyhow::Result<()> {
         state: args.state,
         results: args.results,
         full_builds: args.full_builds.unwrap_or_else(|| home.join(".dsrl/full")),
+        built_here: args.built_here,
         train_only: args.train_only,
         reproduce: args.reproduce,
         gpus: args.gpus,

@@ -55,6 +55,8 @@ pub struct Options {
     pub results: Option<PathBuf>,
     /// Where the full builds are (`dsrl-admin build --root`).
     pub full_builds: PathBuf,
+    /// Full-build phases take only the tasks whose build is finished under `full_builds`.
+    pub built_here: bool,
     /// Train, submit nothing.
     pub train_only: bool,
     /// Train the recorded entries again from scratch and compare their checkpoints with the scored ones.
@@ -77,6 +79,10 @@ pub async fn run(options: &Options) -> anyhow::Result<()> {
     let phases = plan.phases(&options.phases)?;
     anyhow::ensure!(options.jobs >= 1, "--jobs must be at least 1");
     anyhow::ensure!(options.evaluators >= 1, "--evaluators must be at least 1");
+    anyhow::ensure!(
+        !options.built_here || phases.iter().all(|p| p.dataset == Dataset::FullBuild),
+        "--built-here chooses among full builds: name full-build phases only"
+    );
     let catalog = Catalog::embedded()?;
     for task in &options.tasks {
         catalog.get(task)?;
@@ -341,6 +347,7 @@ fn plan_work(
         tasks: Vec::new(),
     };
     let mut without_build: Vec<String> = Vec::new();
+    let mut not_built_here: Vec<String> = Vec::new();
     let mut dealt = 0u32;
     for run in &phase.runs {
         let tasks = run
@@ -358,6 +365,10 @@ fn plan_work(
                 without_build.push(task_id);
                 continue;
             };
+            if options.built_here && !dsrl_pipeline::full::finished(&options.full_builds.join(&task_id), &task_id)? {
+                not_built_here.push(task_id);
+                continue;
+            }
             let task = catalog.get(&task_id)?;
             let before = work.models.len();
             for &seed in &run.seeds {
@@ -406,6 +417,15 @@ fn plan_work(
                 work.tasks.push((task_id, version));
             }
         }
+    }
+    if !not_built_here.is_empty() {
+        eprintln!(
+            "phase {}: {} task(s) have a committed full build that is not finished under {}, left out (--built-here): {}",
+            phase.name,
+            not_built_here.len(),
+            options.full_builds.display(),
+            not_built_here.join(" ")
+        );
     }
     if !without_build.is_empty() {
         eprintln!(
