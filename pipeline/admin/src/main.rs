@@ -183,18 +183,10 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
                 .iter()
                 .filter(|t| options.tasks.is_empty() || options.tasks.contains(&t.task))
             {
-                let path = dsrl_pipeline::full::progress_path(&options.records, &trial.task);
-                let recorded: Option<dsrl_pipeline::full::Progress> = match std::fs::read(&path) {
-                    Ok(bytes) => {
-                        Some(serde_json::from_slice(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?)
-                    }
-                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-                    Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
-                };
+                let recorded = dsrl_pipeline::full::read_progress(&options.records, &trial.task)?;
                 match dsrl_pipeline::full::trial_record(trial, recorded) {
                     Some(record) => {
-                        std::fs::create_dir_all(&options.records)?;
-                        std::fs::write(&path, [serde_json::to_vec_pretty(&record)?, b"\n".to_vec()].concat())?;
+                        dsrl_pipeline::full::write_progress(&options.records, &record)?;
                         eprintln!(
                             "{}: {} CPU s per {}, {} core-hours left",
                             trial.task,
@@ -217,14 +209,10 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         let progress = dsrl_pipeline::full::status(&options)?;
         if options.record {
             for p in &progress {
-                let path = dsrl_pipeline::full::progress_path(&options.records, &p.task);
                 if p.state == "finished" || p.state == "committed" {
-                    let _ = std::fs::remove_file(&path);
+                    dsrl_pipeline::full::remove_progress(&options.records, &p.task)?;
                 } else {
-                    std::fs::create_dir_all(&options.records)?;
-                    let mut bytes = serde_json::to_vec_pretty(p)?;
-                    bytes.push(b'\n');
-                    std::fs::write(&path, bytes)?;
+                    dsrl_pipeline::full::write_progress(&options.records, p)?;
                 }
             }
         }

@@ -329,12 +329,7 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
     if options.record {
         record::write(&options.records, &built, &episodes)?;
         // A finished build has no gap left: its gap record goes.
-        match std::fs::remove_file(progress_path(&options.records, task)) {
-            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                anyhow::bail!("removing {}: {e}", progress_path(&options.records, task).display())
-            }
-            _ => {}
-        }
+        remove_progress(&options.records, task)?;
         outcome.recorded = true;
     }
     if let Some(client) = client {
@@ -429,15 +424,7 @@ pub fn status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
                 ..local
             }
         } else {
-            let path = progress_path(&options.records, &local.task);
-            let recorded = match std::fs::read(&path) {
-                Ok(bytes) => Some(
-                    serde_json::from_slice::<Progress>(&bytes)
-                        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
-                ),
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-                Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
-            };
+            let recorded = read_progress(&options.records, &local.task)?;
             keep_recorded(local, recorded)
         });
     }
@@ -607,6 +594,36 @@ pub fn local_status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
 /// `<records>/<task>.progress.json`: an unfinished build's measured numbers, committed as the record of its gap.
 pub fn progress_path(records: &Path, task: &str) -> PathBuf {
     records.join(format!("{task}.progress.json"))
+}
+
+/// A task's committed gap record, `None` when it has none.
+pub fn read_progress(records: &Path, task: &str) -> anyhow::Result<Option<Progress>> {
+    let path = progress_path(records, task);
+    match std::fs::read(&path) {
+        Ok(bytes) => Ok(Some(
+            serde_json::from_slice(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
+        )),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
+    }
+}
+
+/// Writes a task's gap record (whole: a temporary name, then a rename).
+pub fn write_progress(records: &Path, progress: &Progress) -> anyhow::Result<()> {
+    std::fs::create_dir_all(records)?;
+    let mut bytes = serde_json::to_vec_pretty(progress)?;
+    bytes.push(b'\n');
+    crate::write_atomically(&progress_path(records, &progress.task), &bytes)?;
+    Ok(())
+}
+
+/// Removes a task's gap record (a finished build has no gap), where there is one.
+pub fn remove_progress(records: &Path, task: &str) -> anyhow::Result<()> {
+    let path = progress_path(records, task);
+    match std::fs::remove_file(&path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => anyhow::bail!("removing {}: {e}", path.display()),
+        _ => Ok(()),
+    }
 }
 
 /// What `build-task` is given: one task's full build in its state folder.

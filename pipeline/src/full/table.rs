@@ -9,7 +9,6 @@ use std::path::Path;
 
 use dsrl_suite::{Catalog, EpisodeSummary};
 
-use super::Progress;
 use super::plan::{PLAN_PATH, Plan};
 use super::record::{self, BuildRecord, EpisodeLine, RECORDS_DIR};
 
@@ -198,11 +197,7 @@ pub fn sections(
             );
             continue;
         }
-        let progress: Option<Progress> = std::fs::read(super::progress_path(&root.join(RECORDS_DIR), task_id))
-            .ok()
-            .map(|b| serde_json::from_slice(&b))
-            .transpose()
-            .map_err(|e| anyhow::anyhow!("{task_id}.progress.json: {e}"))?;
+        let progress = super::read_progress(&root.join(RECORDS_DIR), task_id)?;
         let recipe = plan.recipe(task_id, &recipes)?;
         let warm_start = recipe
             .expert
