@@ -388,7 +388,7 @@ pub struct Progress {
     /// The compute counted so far, where the build was run by `dsrl-admin build`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub compute: Option<compute::Compute>,
-    /// The CPU the rate was measured on.
+    /// The CPU the rate was measured on: the one the build's compute names, else this machine's.
     pub cpu: String,
 }
 
@@ -584,8 +584,11 @@ pub fn local_status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
                 .map(|r| ((planned.saturating_sub(done)) as f64 / r / 3600.0 * 10.0).round() / 10.0),
             cpu_seconds_per_unit: cpu_per_unit.map(|c| (c * 1e4).round() / 1e4),
             remaining_core_hours: cpu_per_unit.map(|c| core_hours(planned.saturating_sub(done), c)),
+            cpu: compute
+                .as_ref()
+                .filter(|c| !c.cpu.is_empty())
+                .map_or_else(compute::cpu_name, |c| c.cpu.clone()),
             compute,
-            cpu: compute::cpu_name(),
         });
     }
     Ok(out)
@@ -922,5 +925,16 @@ mod tests {
         std::fs::write(expert.join("training.csv"), "collect,steps\n1,4000\n").unwrap();
         let again = status_of(&options, built);
         assert_eq!((again.state.as_str(), again.done), ("partial", 4000));
+        // The CPU its numbers were measured on is the one its compute names, not the machine reading them.
+        let measured = compute::Compute {
+            cpu: "the CPU that ran it".into(),
+            ..Default::default()
+        };
+        std::fs::write(
+            root.path().join(built).join("compute.json"),
+            serde_json::to_vec(&measured).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(status_of(&options, built).cpu, "the CPU that ran it");
     }
 }
