@@ -19,7 +19,7 @@ fn fixtures() -> PathBuf {
 /// gemm is built without its AVX-512 ones, so AVX2 and AVX-512 machines run the same (AVX2, FMA) kernels and build
 /// the same bytes: one identity holds on both (checked on each kind). A CPU without FMA would need one of its own.
 fn committed_records() -> PathBuf {
-    let kernels = dsrl_pipeline::full::compute::kernels();
+    let kernels = dsrl_policy::matrix_kernels();
     assert_eq!(
         kernels, "AVX2",
         "the tiny build's committed identity (fixtures/full/) was made with AVX2 kernels; this CPU runs {kernels} ones"

@@ -26,11 +26,6 @@ pub struct Compute {
     pub note: String,
 }
 
-/// The matrix kernels candle's gemm runs on this CPU, which decide a build's bytes (data/README.md).
-pub fn kernels() -> &'static str {
-    dsrl_policy::matrix_kernels()
-}
-
 /// The machine's CPU, as records name it: `AMD EPYC 9B14 (2 cores, AVX2 kernels)`.
 pub fn cpu_name() -> String {
     let model = std::fs::read_to_string("/proc/cpuinfo")
@@ -43,7 +38,7 @@ pub fn cpu_name() -> String {
         })
         .unwrap_or_else(|| std::env::consts::ARCH.to_owned());
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    format!("{model} ({cores} cores, {} kernels)", kernels())
+    format!("{model} ({cores} cores, {} kernels)", dsrl_policy::matrix_kernels())
 }
 
 /// CPU seconds of the process `root` and all its descendants, read from `/proc`: each process's own user and

@@ -139,7 +139,7 @@ pub fn differences(
     compare("CPU", built.compute.cpu.clone(), committed.compute.cpu.clone());
     if built.compute.cpu != committed.compute.cpu {
         // Which kernels the committed build ran on, where its record names them (`... AVX2 kernels)`).
-        let here = super::compute::kernels();
+        let here = dsrl_policy::matrix_kernels();
         let theirs = ["AVX-512", "AVX2", "baseline"]
             .into_iter()
             .find(|k| committed.compute.cpu.contains(&format!("{k} kernels")));
