@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::EvaluationError;
 use crate::inference::{Player, PolicySource};
-use dsrl_simulators::{PooledSession, Reply, SimulatorPool, split_in_two};
+use dsrl_simulators::{PooledSession, Reply, SimulatorPool, StepResult, split_in_two};
 
 /// One evaluated episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -185,23 +185,11 @@ async fn play_group(
         })
     });
     let mut sessions = futures::future::try_join_all(opens).await?;
-    let obs_dim = sessions[0].spec().obs_dim as usize;
-    let mut obs: Vec<f32> = sessions
+    let mut episodes = Episodes::new(seeds, k, sessions[0].spec().obs_dim as usize);
+    episodes.obs = sessions
         .iter()
         .flat_map(|s| s.initial_observations().iter().copied())
         .collect();
-    let mut scores: Vec<EpisodeScore> = seeds
-        .iter()
-        .map(|&seed| EpisodeScore {
-            seed,
-            reward_return: 0.0,
-            cost_return: 0.0,
-            length: 0,
-        })
-        .collect();
-    // The episode (index into `seeds`) each environment is playing; the next seed to hand out.
-    let mut playing: Vec<usize> = (0..k).collect();
-    let mut next = k;
     // Each group's environments still playing, and those it is resetting.
     let mut active: Vec<Vec<u32>> = groups;
     let mut resetting: Vec<Vec<u32>> = vec![Vec::new(); active.len()];
@@ -209,15 +197,14 @@ async fn play_group(
     // The requests in flight, oldest first: (group, what was asked).
     let mut in_flight = std::collections::VecDeque::new();
     for (g, slots) in active.iter().enumerate() {
-        if let Some(w) = watcher.as_deref()
-            && let Some(&i) = slots.iter().find(|&&i| playing[i as usize] == w.episode)
-        {
+        if let Some(i) = episodes.watched_among(slots, watcher.as_deref()) {
+            let w = watcher.as_deref().expect("an environment is watched");
             sessions[g]
                 .send_render(&local(g, &[i]), w.options.width, w.options.height)
                 .await?;
             in_flight.push_back((g, Asked::Render));
         }
-        send_actions(&mut sessions[g], &mut rollout, slots, &local(g, slots), &obs, obs_dim).await?;
+        send_actions(&mut sessions[g], &mut rollout, &episodes, slots, &local(g, slots)).await?;
         in_flight.push_back((g, Asked::Step));
     }
     while let Some((g, asked)) = in_flight.pop_front() {
@@ -229,51 +216,18 @@ async fn play_group(
                 w.frames.push(frames.frames);
                 if w.ended {
                     // The watched episode is over and drawn: the rest of the group does not matter to it.
-                    return Ok(scores);
+                    return Ok(episodes.scores);
                 }
             }
             (Reply::Step(step), Asked::Step) => {
-                let mut still = Vec::with_capacity(active[g].len());
-                let mut reset_seeds = Vec::new();
-                // The watched environment, when this step should be drawn (before its next request is sent).
-                let mut draw = None;
                 rollout.observe(&active[g], &step.rewards, &step.costs).await?;
-                for (row, &i) in active[g].iter().enumerate() {
-                    let score = &mut scores[playing[i as usize]];
-                    // Sums in f64 of the f32 values the datasets store, as the normalization constants were computed.
-                    score.reward_return += f64::from(step.rewards[row] as f32);
-                    score.cost_return += f64::from(step.costs[row] as f32);
-                    score.length += 1;
-                    let length = score.length;
-                    if let Some(w) = watcher.as_deref_mut()
-                        && playing[i as usize] == w.episode
-                    {
-                        w.rewards.push(step.rewards[row]);
-                        w.costs.push(step.costs[row]);
-                        w.ended = step.terminated[row] || step.truncated[row];
-                        if w.ended || length.is_multiple_of(w.options.stride) {
-                            w.frame_steps.push(length);
-                            draw = Some(i);
-                        }
-                    }
-                    obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
-                        .copy_from_slice(&step.observations[row * obs_dim..(row + 1) * obs_dim]);
-                    let ended = step.terminated[row] || step.truncated[row];
-                    if ended {
-                        progress.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    }
-                    if !ended {
-                        still.push(i);
-                    } else if next < seeds.len() {
-                        playing[i as usize] = next;
-                        resetting[g].push(i);
-                        reset_seeds.push(seeds[next]);
-                        rollout.start_episode(i as usize, seeds[next]).await?;
-                        next += 1;
-                    }
+                let stepped = episodes.record_step(&active[g], &step, progress, watcher.as_deref_mut());
+                // The rollout hears of the new episodes in the order the environments stand in the group.
+                for &(i, seed) in &stepped.restarted {
+                    rollout.start_episode(i as usize, seed).await?;
                 }
-                active[g] = still;
-                if let (Some(i), Some(w)) = (draw, watcher.as_deref()) {
+                active[g] = stepped.still;
+                if let (Some(i), Some(w)) = (stepped.draw, watcher.as_deref()) {
                     sessions[g]
                         .send_render(&local(g, &[i]), w.options.width, w.options.height)
                         .await?;
@@ -282,25 +236,23 @@ async fn play_group(
                         continue;
                     }
                 }
-                if !resetting[g].is_empty() {
+                if !stepped.restarted.is_empty() {
                     // The group's next step waits for these observations; the other group keeps the workers busy.
-                    sessions[g].send_reset(&local(g, &resetting[g]), &reset_seeds).await?;
+                    let (envs, reset_seeds): (Vec<u32>, Vec<u64>) = stepped.restarted.into_iter().unzip();
+                    sessions[g].send_reset(&local(g, &envs), &reset_seeds).await?;
+                    resetting[g] = envs;
                     in_flight.push_back((g, Asked::Reset));
                 } else if !active[g].is_empty() {
                     let slots = local(g, &active[g]);
-                    send_actions(&mut sessions[g], &mut rollout, &active[g], &slots, &obs, obs_dim).await?;
+                    send_actions(&mut sessions[g], &mut rollout, &episodes, &active[g], &slots).await?;
                     in_flight.push_back((g, Asked::Step));
                 }
             }
             (Reply::Reset { observations, .. }, Asked::Reset) => {
                 let reset = std::mem::take(&mut resetting[g]);
-                for (row, &i) in reset.iter().enumerate() {
-                    obs[i as usize * obs_dim..(i as usize + 1) * obs_dim]
-                        .copy_from_slice(&observations[row * obs_dim..(row + 1) * obs_dim]);
-                }
-                if let Some(w) = watcher.as_deref()
-                    && let Some(&i) = reset.iter().find(|&&i| playing[i as usize] == w.episode)
-                {
+                episodes.set_observations(&reset, &observations);
+                if let Some(i) = episodes.watched_among(&reset, watcher.as_deref()) {
+                    let w = watcher.as_deref().expect("an environment is watched");
                     sessions[g]
                         .send_render(&local(g, &[i]), w.options.width, w.options.height)
                         .await?;
@@ -309,7 +261,7 @@ async fn play_group(
                 active[g].extend(reset);
                 active[g].sort_unstable();
                 let slots = local(g, &active[g]);
-                send_actions(&mut sessions[g], &mut rollout, &active[g], &slots, &obs, obs_dim).await?;
+                send_actions(&mut sessions[g], &mut rollout, &episodes, &active[g], &slots).await?;
                 in_flight.push_back((g, Asked::Step));
             }
             _ => {
@@ -323,24 +275,134 @@ async fn play_group(
     for session in sessions {
         session.close().await?;
     }
-    Ok(scores)
+    Ok(episodes.scores)
 }
 
-/// The policy's actions for environments `slots` (from their rows of `obs`), sent as their group's next step to
+/// The episodes of one [`play_group`] as they stand between replies: the returns so far, the episode (index into
+/// the seeds) each environment is playing, the next seed to hand out, and each environment's last observation
+/// (`obs_dim` values a row, environments in their global order).
+struct Episodes<'s> {
+    seeds: &'s [u64],
+    scores: Vec<EpisodeScore>,
+    playing: Vec<usize>,
+    next: usize,
+    obs: Vec<f32>,
+    obs_dim: usize,
+}
+
+/// What one step did to a group's environments, in the order they stand in the group.
+struct Stepped {
+    /// Those whose episode goes on.
+    still: Vec<u32>,
+    /// Those whose episode ended and that start another: each with the seed it was handed.
+    restarted: Vec<(u32, u64)>,
+    /// The watched environment, when this step is to be drawn (before its next request is sent).
+    draw: Option<u32>,
+}
+
+impl<'s> Episodes<'s> {
+    /// Environment `i` of the first `envs` starts with seed `i`.
+    fn new(seeds: &'s [u64], envs: usize, obs_dim: usize) -> Episodes<'s> {
+        Episodes {
+            seeds,
+            scores: seeds
+                .iter()
+                .map(|&seed| EpisodeScore {
+                    seed,
+                    reward_return: 0.0,
+                    cost_return: 0.0,
+                    length: 0,
+                })
+                .collect(),
+            playing: (0..envs).collect(),
+            next: envs,
+            obs: Vec::new(),
+            obs_dim,
+        }
+    }
+
+    /// The environment among `envs` that plays the watched episode, if any.
+    fn watched_among(&self, envs: &[u32], watcher: Option<&Watcher>) -> Option<u32> {
+        let w = watcher?;
+        envs.iter().copied().find(|&i| self.playing[i as usize] == w.episode)
+    }
+
+    /// Rows of `observations` (in the order of `envs`) become those environments' last observations.
+    fn set_observations(&mut self, envs: &[u32], observations: &[f32]) {
+        let d = self.obs_dim;
+        for (row, &i) in envs.iter().enumerate() {
+            self.obs[i as usize * d..(i as usize + 1) * d].copy_from_slice(&observations[row * d..(row + 1) * d]);
+        }
+    }
+
+    /// The last observations of `envs`, row after row: what the policy acts on.
+    fn observations_of(&self, envs: &[u32]) -> Vec<f32> {
+        let d = self.obs_dim;
+        envs.iter()
+            .flat_map(|&i| self.obs[i as usize * d..(i as usize + 1) * d].iter().copied())
+            .collect()
+    }
+
+    /// Adds a step of `envs` (rows of `step` in their order) to their episodes' returns and keeps their
+    /// observations; each environment whose episode ended takes the next unplayed seed, while there is one. The
+    /// watched episode's rewards and costs are recorded, and whether this step is to be drawn.
+    fn record_step(
+        &mut self,
+        envs: &[u32],
+        step: &StepResult,
+        progress: &std::sync::atomic::AtomicU32,
+        mut watcher: Option<&mut Watcher>,
+    ) -> Stepped {
+        let mut stepped = Stepped {
+            still: Vec::with_capacity(envs.len()),
+            restarted: Vec::new(),
+            draw: None,
+        };
+        self.set_observations(envs, &step.observations);
+        for (row, &i) in envs.iter().enumerate() {
+            let score = &mut self.scores[self.playing[i as usize]];
+            // Sums in f64 of the f32 values the datasets store, as the normalization constants were computed.
+            score.reward_return += f64::from(step.rewards[row] as f32);
+            score.cost_return += f64::from(step.costs[row] as f32);
+            score.length += 1;
+            let length = score.length;
+            let ended = step.terminated[row] || step.truncated[row];
+            if let Some(w) = watcher.as_deref_mut()
+                && self.playing[i as usize] == w.episode
+            {
+                w.rewards.push(step.rewards[row]);
+                w.costs.push(step.costs[row]);
+                w.ended = ended;
+                if w.ended || length.is_multiple_of(w.options.stride) {
+                    w.frame_steps.push(length);
+                    stepped.draw = Some(i);
+                }
+            }
+            if ended {
+                progress.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            if !ended {
+                stepped.still.push(i);
+            } else if self.next < self.seeds.len() {
+                self.playing[i as usize] = self.next;
+                stepped.restarted.push((i, self.seeds[self.next]));
+                self.next += 1;
+            }
+        }
+        stepped
+    }
+}
+
+/// The policy's actions for environments `envs` (from their last observations), sent as their group's next step to
 /// its session, where they are `local`.
 async fn send_actions(
     session: &mut PooledSession,
     rollout: &mut Player<'_>,
-    slots: &[u32],
+    episodes: &Episodes<'_>,
+    envs: &[u32],
     local: &[u32],
-    obs: &[f32],
-    obs_dim: usize,
 ) -> Result<(), EvaluationError> {
-    let batch: Vec<f32> = slots
-        .iter()
-        .flat_map(|&i| obs[i as usize * obs_dim..(i as usize + 1) * obs_dim].iter().copied())
-        .collect();
-    let actions = rollout.act(slots, &batch).await?;
+    let actions = rollout.act(envs, &episodes.observations_of(envs)).await?;
     session.send_step(local, &actions).await
 }
 
