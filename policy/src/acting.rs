@@ -14,9 +14,7 @@ use candle_core::{Device, Tensor};
 use crate::bcq::{self, BcqActor, BcqShape};
 use crate::caps::{CapsNetworks, CapsShape, per_step_limit};
 use crate::cdt::{self, Cdt, CdtContext, CdtShape};
-use crate::checkpoint::{
-    Architecture, CONFIG_FILE, Conditioning, DiffusionSampler, MAX_SAMPLER_CANDIDATES, MAX_SAMPLER_STEPS, PolicyConfig,
-};
+use crate::checkpoint::{Architecture, CONFIG_FILE, Conditioning, DiffusionSampler, PolicyConfig};
 use crate::diffusion::{DiffusionPolicy, DiffusionShape, NoiseNet, Sampler, Schedule};
 use crate::gaussian::GaussianActor;
 use crate::latent::{LatentPolicy, LatentShape, LatentSource};
@@ -63,9 +61,10 @@ fn format_error(message: impl Into<String>) -> PolicyError {
 }
 
 impl Network {
-    /// Builds the declared architecture; `input_dim` is what the network reads (the observation, and the cost
-    /// threshold after it for `target_cost` conditioning).
+    /// Builds the declared architecture, its constants checked first; `input_dim` is what the network reads (the
+    /// observation, and the cost threshold after it for `target_cost` conditioning).
     fn load(config: &PolicyConfig, input_dim: usize, tensors: &HashMap<String, Tensor>) -> Result<Network> {
+        config.architecture.check_constants()?;
         let act_dim = config.act_dim;
         let mut w = Weights::new(tensors);
         let (network, training_only): (Network, &[&str]) = match &config.architecture {
@@ -126,11 +125,6 @@ impl Network {
                 phi,
                 max_action,
             } => {
-                if *latent_dim == 0 || *latent_dim > 1 << 16 || !phi.is_finite() || *phi < 0.0 {
-                    return Err(format_error(
-                        "bcq_actor: latent_dim must be in 1..=65536 and phi finite and >= 0",
-                    ));
-                }
                 let shape = BcqShape {
                     input_dim,
                     act_dim,
@@ -152,9 +146,6 @@ impl Network {
                 cost_scale,
                 cost_transform,
             } => {
-                if !(reward_scale.is_finite() && cost_scale.is_finite()) {
-                    return Err(format_error("cdt: reward_scale and cost_scale must be finite"));
-                }
                 let shape = CdtShape {
                     obs_dim: input_dim,
                     act_dim,
@@ -181,11 +172,6 @@ impl Network {
                 episode_len,
                 cost_scale,
             } => {
-                if !(gamma.is_finite() && (0.0..=1.0).contains(gamma) && cost_scale.is_finite() && *episode_len > 0) {
-                    return Err(format_error(
-                        "caps: gamma must be in [0, 1], cost_scale finite and episode_len positive",
-                    ));
-                }
                 let shape = CapsShape {
                     obs_dim: input_dim,
                     act_dim,
@@ -222,23 +208,6 @@ impl Network {
                         choice,
                     },
             } => {
-                let constants_ok = (1..=MAX_SAMPLER_STEPS).contains(steps)
-                    && (1..=MAX_SAMPLER_CANDIDATES).contains(candidates)
-                    && (1..=16).contains(critic_members)
-                    && beta_min.is_finite()
-                    && beta_max.is_finite()
-                    && *beta_min >= 0.0
-                    && beta_max >= beta_min
-                    && temperature.is_finite()
-                    && *temperature >= 0.0
-                    && max_action.is_finite();
-                if !constants_ok {
-                    return Err(format_error(format!(
-                        "diffusion: steps must be in 1..={MAX_SAMPLER_STEPS}, candidates in \
-                         1..={MAX_SAMPLER_CANDIDATES}, critic_members in 1..=16, 0 <= beta_min <= beta_max, \
-                         temperature >= 0 and every constant finite"
-                    )));
-                }
                 let shape = DiffusionShape {
                     obs_dim: input_dim,
                     act_dim,
@@ -282,11 +251,6 @@ impl Network {
                 latent,
                 max_action,
             } => {
-                if *latent_dim == 0 || *latent_dim > 1 << 16 || !(max_latent.is_finite() && *max_latent > 0.0) {
-                    return Err(format_error(
-                        "latent_policy: latent_dim must be in 1..=65536 and max_latent positive and finite",
-                    ));
-                }
                 let shape = LatentShape {
                     obs_dim: input_dim,
                     act_dim,

@@ -267,6 +267,90 @@ impl Architecture {
     }
 }
 
+impl Architecture {
+    /// Refuses declared constants no network can act with (a zero latent size, a discount outside [0, 1], a
+    /// sampler of no steps, a scale that is not finite), naming the architecture and what each constant must be.
+    /// Sizes are bounded by [`Architecture::check_step_cost`] and the weights' shapes.
+    pub fn check_constants(&self) -> Result<()> {
+        let refuse = |message: String| Err(PolicyError::Format(message));
+        match self {
+            Architecture::GaussianMlp { .. }
+            | Architecture::MlpActor { .. }
+            | Architecture::SquashedGaussianMlp { .. } => Ok(()),
+            Architecture::BcqActor { latent_dim, phi, .. } => {
+                if *latent_dim == 0 || *latent_dim > 1 << 16 || !phi.is_finite() || *phi < 0.0 {
+                    return refuse("bcq_actor: latent_dim must be in 1..=65536 and phi finite and >= 0".into());
+                }
+                Ok(())
+            }
+            Architecture::Cdt {
+                reward_scale,
+                cost_scale,
+                ..
+            } => {
+                if !(reward_scale.is_finite() && cost_scale.is_finite()) {
+                    return refuse("cdt: reward_scale and cost_scale must be finite".into());
+                }
+                Ok(())
+            }
+            Architecture::Caps {
+                gamma,
+                episode_len,
+                cost_scale,
+                ..
+            } => {
+                if !(gamma.is_finite() && (0.0..=1.0).contains(gamma) && cost_scale.is_finite() && *episode_len > 0) {
+                    return refuse("caps: gamma must be in [0, 1], cost_scale finite and episode_len positive".into());
+                }
+                Ok(())
+            }
+            Architecture::Diffusion {
+                critic_members,
+                max_action,
+                sampler:
+                    DiffusionSampler::Ddpm {
+                        steps,
+                        beta_min,
+                        beta_max,
+                        temperature,
+                        candidates,
+                        ..
+                    },
+                ..
+            } => {
+                let constants_ok = (1..=MAX_SAMPLER_STEPS).contains(steps)
+                    && (1..=MAX_SAMPLER_CANDIDATES).contains(candidates)
+                    && (1..=16).contains(critic_members)
+                    && beta_min.is_finite()
+                    && beta_max.is_finite()
+                    && *beta_min >= 0.0
+                    && beta_max >= beta_min
+                    && temperature.is_finite()
+                    && *temperature >= 0.0
+                    && max_action.is_finite();
+                if !constants_ok {
+                    return refuse(format!(
+                        "diffusion: steps must be in 1..={MAX_SAMPLER_STEPS}, candidates in \
+                         1..={MAX_SAMPLER_CANDIDATES}, critic_members in 1..=16, 0 <= beta_min <= beta_max, \
+                         temperature >= 0 and every constant finite"
+                    ));
+                }
+                Ok(())
+            }
+            Architecture::LatentPolicy {
+                latent_dim, max_latent, ..
+            } => {
+                if *latent_dim == 0 || *latent_dim > 1 << 16 || !(max_latent.is_finite() && *max_latent > 0.0) {
+                    return refuse(
+                        "latent_policy: latent_dim must be in 1..=65536 and max_latent positive and finite".into(),
+                    );
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
 /// What one action costs one environment, computed from the declared sizes alone (before any weight is read).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StepCost {
@@ -745,6 +829,112 @@ mod tests {
             cost_scale: 1.0,
             cost_transform: true,
         }
+    }
+
+    #[test]
+    fn declared_constants_no_network_can_act_with_are_refused_by_name() {
+        // Each architecture as a policy.json declares it, with sound constants; then one constant made unusable
+        // (infinity included, which JSON cannot carry but a config built in code can).
+        let declared = [
+            r#"{"name":"bcq_actor","hidden_sizes":[8],"activation":"tanh","decoder_hidden_sizes":[8],
+                "latent_dim":4,"phi":0.05,"max_action":1.0}"#,
+            r#"{"name":"cdt","embedding_dim":8,"num_layers":1,"num_heads":1,"seq_len":2,"episode_len":10,
+                "max_action":1.0,"reward_scale":0.1,"cost_scale":1.0,"cost_transform":true}"#,
+            r#"{"name":"caps","hidden_sizes":[8],"num_heads":2,"max_action":1.0,"gamma":0.99,"episode_len":10,
+                "cost_scale":1.0}"#,
+            r#"{"name":"diffusion","time_dim":4,"cond_sizes":[8],"hidden_dim":8,"num_blocks":1,"layer_norm":true,
+                "critic_hidden_sizes":[8],"critic_members":2,"max_action":1.0,
+                "sampler":{"kind":"ddpm","steps":5,"beta_min":0.1,"beta_max":10.0,"clip":true,"temperature":0.0,
+                "candidates":4,"choice":"min_cost_q"}}"#,
+            r#"{"name":"latent_policy","hidden_sizes":[8],"decoder_hidden_sizes":[8],"latent_dim":4,
+                "max_latent":0.25,"latent":"prior","max_action":1.0}"#,
+        ];
+        let mut refused = 0;
+        for json in declared {
+            let sound: Architecture = serde_json::from_str(json).unwrap();
+            sound.check_constants().unwrap();
+            let mut breaks: Vec<(&str, Architecture)> = Vec::new();
+            let mut with = |field, change: &dyn Fn(&mut Architecture)| {
+                let mut broken = sound.clone();
+                change(&mut broken);
+                breaks.push((field, broken));
+            };
+            match &sound {
+                Architecture::BcqActor { .. } => {
+                    with("latent_dim", &|a| {
+                        if let Architecture::BcqActor { latent_dim, .. } = a {
+                            *latent_dim = 0
+                        }
+                    });
+                    with("phi", &|a| {
+                        if let Architecture::BcqActor { phi, .. } = a {
+                            *phi = -0.1
+                        }
+                    });
+                }
+                Architecture::Cdt { .. } => {
+                    with("reward_scale", &|a| {
+                        if let Architecture::Cdt { reward_scale, .. } = a {
+                            *reward_scale = f64::INFINITY
+                        }
+                    });
+                    with("cost_scale", &|a| {
+                        if let Architecture::Cdt { cost_scale, .. } = a {
+                            *cost_scale = f64::NAN
+                        }
+                    });
+                }
+                Architecture::Caps { .. } => {
+                    with("gamma", &|a| {
+                        if let Architecture::Caps { gamma, .. } = a {
+                            *gamma = 1.5
+                        }
+                    });
+                    with("episode_len", &|a| {
+                        if let Architecture::Caps { episode_len, .. } = a {
+                            *episode_len = 0
+                        }
+                    });
+                }
+                Architecture::Diffusion { .. } => {
+                    let sampler = |a: &mut Architecture, f: &dyn Fn(&mut usize, &mut f64)| {
+                        if let Architecture::Diffusion {
+                            sampler: DiffusionSampler::Ddpm { steps, beta_min, .. },
+                            ..
+                        } = a
+                        {
+                            f(steps, beta_min)
+                        }
+                    };
+                    with("steps", &|a| sampler(a, &|steps, _| *steps = 0));
+                    with("beta_min", &|a| sampler(a, &|_, beta_min| *beta_min = 20.0));
+                    with("critic_members", &|a| {
+                        if let Architecture::Diffusion { critic_members, .. } = a {
+                            *critic_members = 17
+                        }
+                    });
+                }
+                Architecture::LatentPolicy { .. } => {
+                    with("max_latent", &|a| {
+                        if let Architecture::LatentPolicy { max_latent, .. } = a {
+                            *max_latent = -1.0
+                        }
+                    });
+                }
+                other => panic!("{} has no constants to break", other.name()),
+            }
+            for (field, broken) in breaks {
+                let err = broken.check_constants().unwrap_err().to_string();
+                assert!(err.contains(sound.name()) && err.contains(field), "{field}: {err}");
+                refused += 1;
+            }
+        }
+        assert_eq!(refused, 10);
+        // Sizes and activations alone: nothing to refuse.
+        let mlp: Architecture =
+            serde_json::from_str(r#"{"name":"mlp_actor","hidden_sizes":[],"activation":"relu","max_action":1.0}"#)
+                .unwrap();
+        mlp.check_constants().unwrap();
     }
 
     #[test]
