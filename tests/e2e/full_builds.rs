@@ -123,4 +123,29 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     );
     assert!(details.contains("first differing episode: 2 "), "{details}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("differ from their committed identity"));
+
+    // Recorded where a gap record with a measured cost stands: the record keeps the gap's estimate of the whole
+    // build, and the gap record goes; recorded again, the estimate stays.
+    let records = dir.path().join("records");
+    std::fs::create_dir_all(&records).unwrap();
+    let gap = serde_json::json!({
+        "task": TASK, "state": "partial", "done": 100, "planned": 300, "unit": "steps",
+        "cpu_seconds_per_unit": 120.0, "remaining_core_hours": 6.7, "cpu": "a trial's CPU",
+    });
+    let gap_path = records.join(format!("{TASK}.progress.json"));
+    std::fs::write(&gap_path, serde_json::to_vec(&gap).unwrap()).unwrap();
+    let read_estimate = || {
+        let record: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(records.join(format!("{TASK}.json"))).unwrap()).unwrap();
+        record["estimate"].clone()
+    };
+    let expected = serde_json::json!({
+        "cpu_seconds_per_unit": 120.0, "unit": "steps", "planned": 300, "core_hours": 10.0, "cpu": "a trial's CPU",
+    });
+    for (run, check) in [(1, "no committed record"), (2, "matches")] {
+        let outcomes = crate::admin_json(build(&root, &records, &["--record"]));
+        assert_eq!(outcomes[0]["check"], check, "run {run}: {:#}", outcomes[0]);
+        assert_eq!(read_estimate(), expected, "run {run}");
+        assert!(!gap_path.exists(), "a recorded build keeps no gap record");
+    }
 }

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 use tokio::io::AsyncBufReadExt;
 
 use self::plan::Plan;
-use self::record::{BuildRecord, EpisodeLine};
+use self::record::{BuildRecord, EpisodeLine, Estimate};
 use crate::build::Run;
 
 /// The tag a server gives an uploaded full build (besides `latest`).
@@ -304,12 +304,21 @@ async fn run_child(options: &BuildOptions, task: &str, bar: &ProgressBar) -> any
 /// build (`--server`).
 async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> anyhow::Result<Outcome> {
     let state = options.root.join(task);
-    let (built, episodes) = state_record(&state, task)?
+    let (mut built, episodes) = state_record(&state, task)?
         .ok_or_else(|| anyhow::anyhow!("the build finished without its record in {}", state.display()))?;
-    let (check, details) = match record::read(&options.records, task)? {
+    let committed = record::read(&options.records, task)?;
+    // What the gap record estimated this build would cost; a rebuild keeps the estimate its committed record has.
+    built.estimate = match read_progress(&options.records, task)?
+        .as_ref()
+        .and_then(Estimate::of_gap)
+    {
+        Some(estimate) => Some(estimate),
+        None => committed.as_ref().and_then(|(c, _)| c.estimate.clone()),
+    };
+    let (check, details) = match &committed {
         None => ("no committed record".to_owned(), Vec::new()),
         Some((committed, committed_episodes)) => {
-            let differences = record::differences(&built, &episodes, &committed, &committed_episodes);
+            let differences = record::differences(&built, &episodes, committed, committed_episodes);
             if differences.is_empty() {
                 ("matches".to_owned(), Vec::new())
             } else {
@@ -760,6 +769,7 @@ pub async fn build_task(args: &TaskBuild) -> anyhow::Result<()> {
             _ => serde_json::json!({}),
         },
         finished_at: now_rfc3339(),
+        estimate: None,
     };
     record::write(&args.state.join("record"), &record, &episodes)?;
     report(&ChildReport::Finished {

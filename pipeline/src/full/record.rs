@@ -43,6 +43,38 @@ pub struct BuildRecord {
     pub time_split: serde_json::Value,
     /// When the build finished (RFC 3339, UTC).
     pub finished_at: String,
+    /// What the task's gap record estimated the whole build would cost before it was built, where it had a
+    /// measured cost: kept so the gaps' budgets can be held against what builds then cost (`data/README.md`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimate: Option<Estimate>,
+}
+
+/// A gap record's estimate of a whole build: its measured CPU cost per unit (a trial's or a partial build's) times
+/// the units the recipe plans.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Estimate {
+    pub cpu_seconds_per_unit: f64,
+    /// `steps` or `episodes`.
+    pub unit: String,
+    pub planned: u64,
+    /// `cpu_seconds_per_unit × planned`, in core-hours to a tenth.
+    pub core_hours: f64,
+    /// The CPU the cost was measured on.
+    pub cpu: String,
+}
+
+impl Estimate {
+    /// The estimate a gap record makes, where it measured a cost.
+    pub fn of_gap(gap: &super::Progress) -> Option<Estimate> {
+        let cost = gap.cpu_seconds_per_unit?;
+        Some(Estimate {
+            cpu_seconds_per_unit: cost,
+            unit: gap.unit.clone(),
+            planned: gap.planned,
+            core_hours: gap.remaining_core_hours_for(gap.planned)?,
+            cpu: gap.cpu.clone(),
+        })
+    }
 }
 
 /// One line of `<task>.episodes.csv`.
@@ -199,6 +231,7 @@ mod tests {
             compute: super::super::compute::Compute::default(),
             time_split: serde_json::json!({}),
             finished_at: "2026-11-28T00:00:00Z".into(),
+            estimate: None,
         }
     }
 

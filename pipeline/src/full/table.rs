@@ -108,7 +108,56 @@ fn time_split(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> Str
     out
 }
 
-/// The sections (`full-summary`, `full-builds`, `full-gaps`, `full-time-split`) and the text of
+/// The builds whose gap record had a measured cost when they were recorded: the estimate beside what the build
+/// then cost (its compute's CPU seconds, every run counted), and the two summed. Empty of rows until such a build
+/// is committed.
+fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> String {
+    let mut out = String::from(
+        "| task | estimated CPU per unit (measured on) | planned | estimated core-hours | measured core-hours | \
+         measured / estimated |\n|---|---|---|---|---|---|\n",
+    );
+    let (mut estimated, mut measured, mut n) = (0.0f64, 0.0f64, 0);
+    for task in catalog.tasks() {
+        let Some(c) = committed.get(task.id.as_str()) else {
+            continue;
+        };
+        let Some(e) = &c.record.estimate else {
+            continue;
+        };
+        let cost = c.record.compute.cpu_seconds / 3600.0;
+        estimated += e.core_hours;
+        measured += cost;
+        n += 1;
+        let _ = writeln!(
+            out,
+            "| {} | {} CPU s/{} ({}) | {} {} | {} | {cost:.2} | {} |",
+            task.id,
+            e.cpu_seconds_per_unit,
+            e.unit.trim_end_matches('s'),
+            e.cpu,
+            e.planned,
+            e.unit,
+            e.core_hours,
+            if e.core_hours > 0.0 {
+                format!("{:.2}", cost / e.core_hours)
+            } else {
+                "–".to_owned()
+            },
+        );
+    }
+    if n == 0 {
+        return "No committed build had a gap record with a measured cost when it was recorded.\n".to_owned();
+    }
+    let _ = writeln!(
+        out,
+        "\nOver these {n} builds the gaps estimated **{estimated:.1} core-hours** and the builds took \
+         **{measured:.1}** ({:.2} of the estimate).",
+        measured / estimated
+    );
+    out
+}
+
+/// The sections (`full-summary`, `full-builds`, `full-gaps`, `full-estimates`, `full-time-split`) and the text of
 /// `data/full_build_gaps.csv`.
 pub fn sections(
     catalog: &Catalog,
@@ -309,7 +358,82 @@ pub fn sections(
         ("full-summary".to_owned(), summary),
         ("full-builds".to_owned(), builds),
         ("full-gaps".to_owned(), gaps),
+        ("full-estimates".to_owned(), estimates(catalog, committed)),
         ("full-time-split".to_owned(), time_split(catalog, committed)),
     ]);
     Ok((sections, csv))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn committed(task: &str, cpu_seconds: f64, estimate: Option<serde_json::Value>) -> Committed {
+        let mut record = serde_json::json!({
+            "task": task, "version": "0".repeat(64), "file_name": "f.parquet", "bytes": 1, "trajectories": 0,
+            "transitions": 0, "reward_return": [0.0, 0.0], "cost_return": [0.0, 0.0], "paper_trajectories": 1,
+            "recipe": "r", "plan": {}, "seed": 0, "budget": {}, "episodes_collected": 0, "episodes_after_buffer": 0,
+            "code_version": "c", "finished_at": "t",
+            "compute": {"wall_seconds": 1.0, "cpu_seconds": cpu_seconds, "runs": 1, "workers": 2, "cpu": "x"},
+        });
+        if let Some(e) = estimate {
+            record["estimate"] = e;
+        }
+        Committed {
+            record: serde_json::from_value(record).unwrap(),
+            episodes: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn each_estimate_stands_beside_what_its_build_cost_and_the_sums_say_how_good_they_were() {
+        let catalog = Catalog::embedded().unwrap();
+        let estimate = |per_unit: f64, planned: u64, core_hours: f64| {
+            serde_json::json!({"cpu_seconds_per_unit": per_unit, "unit": "steps", "planned": planned,
+                               "core_hours": core_hours, "cpu": "AMD EPYC (2 cores)"})
+        };
+        let mut builds = BTreeMap::new();
+        assert!(estimates(&catalog, &builds).starts_with("No committed build"));
+        // 0.0007 CPU s a step over 3M steps: 0.6 core-hours estimated; 1440 CPU s (0.4 core-hours) measured.
+        builds.insert(
+            "OfflineWalker2dVelocityGymnasium-v1".to_owned(),
+            committed(
+                "OfflineWalker2dVelocityGymnasium-v1",
+                1440.0,
+                Some(estimate(0.0007, 3_000_000, 0.6)),
+            ),
+        );
+        // 1.0 core-hour estimated, 2.0 measured.
+        builds.insert(
+            "OfflineCarCircle2Gymnasium-v0".to_owned(),
+            committed(
+                "OfflineCarCircle2Gymnasium-v0",
+                7200.0,
+                Some(estimate(0.0012, 3_000_000, 1.0)),
+            ),
+        );
+        // No estimate: not in the table.
+        builds.insert(
+            "OfflineBallRun-v0".to_owned(),
+            committed("OfflineBallRun-v0", 100.0, None),
+        );
+        let text = estimates(&catalog, &builds);
+        assert!(
+            text.contains(
+                "| OfflineWalker2dVelocityGymnasium-v1 | 0.0007 CPU s/step (AMD EPYC (2 cores)) | 3000000 steps | 0.6 \
+                 | 0.40 | 0.67 |"
+            ),
+            "{text}"
+        );
+        assert!(
+            text.contains("| OfflineCarCircle2Gymnasium-v0 | 0.0012 CPU s/step"),
+            "{text}"
+        );
+        assert!(text.contains("| 1 | 2.00 | 2.00 |"), "{text}");
+        assert!(!text.contains("BallRun"), "{text}");
+        assert!(
+            text.contains("Over these 2 builds the gaps estimated **1.6 core-hours** and the builds took **2.4** (1.50 of the estimate)"),
+            "{text}"
+        );
+    }
 }
