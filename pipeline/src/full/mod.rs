@@ -401,6 +401,16 @@ pub struct Progress {
     pub cpu: String,
 }
 
+/// `x` rounded to three significant digits: a CPU cost per step is a few ten-thousandths of a second, which four
+/// decimals would have cut to one digit (0.000265 to 0.0003, a 13% error in every budget made from it).
+fn three_significant_digits(x: f64) -> f64 {
+    if x == 0.0 || !x.is_finite() {
+        return x;
+    }
+    let scale = 10f64.powi(2 - x.abs().log10().floor() as i32);
+    (x * scale).round() / scale
+}
+
 /// Core-hours for `units` at `cpu_seconds_per_unit`, to a tenth.
 fn core_hours(units: u64, cpu_seconds_per_unit: f64) -> f64 {
     (units as f64 * cpu_seconds_per_unit / 3600.0 * 10.0).round() / 10.0
@@ -591,7 +601,7 @@ pub fn local_status(options: &BuildOptions) -> anyhow::Result<Vec<Progress>> {
             remaining_hours: rate
                 .filter(|r| *r > 0.0 && !finished)
                 .map(|r| ((planned.saturating_sub(done)) as f64 / r / 3600.0 * 10.0).round() / 10.0),
-            cpu_seconds_per_unit: cpu_per_unit.map(|c| (c * 1e4).round() / 1e4),
+            cpu_seconds_per_unit: cpu_per_unit.map(three_significant_digits),
             remaining_core_hours: cpu_per_unit.map(|c| core_hours(planned.saturating_sub(done), c)),
             cpu: compute
                 .as_ref()
@@ -818,6 +828,13 @@ fn report(line: &ChildReport) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cpu_cost_keeps_three_significant_digits() {
+        assert_eq!(three_significant_digits(0.000265_4), 0.000265);
+        assert_eq!(three_significant_digits(10.4487), 10.4);
+        assert_eq!(three_significant_digits(0.0), 0.0);
+    }
 
     fn progress(task: &str, done: u64, cost: Option<f64>) -> Progress {
         Progress {
