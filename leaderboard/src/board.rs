@@ -197,7 +197,7 @@ impl Leaderboard {
                 let (name, (reward_interval, cost_interval), covers, training_seeds) = if members.len() == 1 {
                     (
                         row.name.clone(),
-                        self.intervals(t, row.id).await?,
+                        self.intervals(t, vec![row.id]).await?,
                         EPISODES_ONLY,
                         Vec::new(),
                     )
@@ -223,7 +223,7 @@ impl Leaderboard {
                         .collect();
                     (
                         format!("{} (seeds {})", record.label(), seeds.join(", ")),
-                        self.seed_intervals(t, ids).await?,
+                        self.intervals(t, ids).await?,
                         SEEDS_AND_EPISODES,
                         runs,
                     )
@@ -281,36 +281,11 @@ impl Leaderboard {
         })
     }
 
-    /// A finished submission's bootstrap intervals over its episodes, computed once.
-    async fn intervals(&self, task: &Task, id: i64) -> Result<(Interval, Interval), ApiError> {
-        if let Some(found) = self.intervals.lock().map_err(ApiError::internal)?.get(&id) {
-            return Ok(found.clone());
-        }
-        let episodes = queue::episodes(&self.db, id).await?;
-        let owned = task.clone();
-        let computed = tokio::task::spawn_blocking(move || {
-            entry_interval(
-                &owned,
-                &episodes,
-                BOOTSTRAP_RESAMPLES,
-                BOOTSTRAP_CONFIDENCE,
-                BOOTSTRAP_SEED,
-            )
-        })
-        .await
-        .map_err(ApiError::internal)?
-        .ok_or_else(|| ApiError::Internal(format!("finished submission {id} has no episodes")))?;
-        self.intervals
-            .lock()
-            .map_err(ApiError::internal)?
-            .insert(id, computed.clone());
-        Ok(computed)
-    }
-
-    /// The bootstrap intervals over a method's training seeds (`ids`, their submissions) and their episodes,
-    /// computed once.
-    async fn seed_intervals(&self, task: &Task, ids: Vec<i64>) -> Result<(Interval, Interval), ApiError> {
-        if let Some(found) = self.seed_intervals.lock().map_err(ApiError::internal)?.get(&ids) {
+    /// The bootstrap intervals of one finished submission (`ids` = its id: over its episodes) or of a method's
+    /// training seeds (their submissions: over the seeds, then each seed's episodes, `seeds_interval`), computed
+    /// once: a finished submission's episodes never change.
+    async fn intervals(&self, task: &Task, ids: Vec<i64>) -> Result<(Interval, Interval), ApiError> {
+        if let Some(found) = self.intervals.lock().map_err(ApiError::internal)?.get(&ids) {
             return Ok(found.clone());
         }
         let mut seeds = Vec::with_capacity(ids.len());
@@ -319,18 +294,16 @@ impl Leaderboard {
         }
         let owned = task.clone();
         let computed = tokio::task::spawn_blocking(move || {
-            seeds_interval(
-                &owned,
-                &seeds,
-                BOOTSTRAP_RESAMPLES,
-                BOOTSTRAP_CONFIDENCE,
-                BOOTSTRAP_SEED,
-            )
+            let (n, confidence, seed) = (BOOTSTRAP_RESAMPLES, BOOTSTRAP_CONFIDENCE, BOOTSTRAP_SEED);
+            match seeds.as_slice() {
+                [episodes] => entry_interval(&owned, episodes, n, confidence, seed),
+                _ => seeds_interval(&owned, &seeds, n, confidence, seed),
+            }
         })
         .await
         .map_err(ApiError::internal)?
-        .ok_or_else(|| ApiError::Internal(format!("finished submissions {ids:?} have a seed without episodes")))?;
-        self.seed_intervals
+        .ok_or_else(|| ApiError::Internal(format!("finished submissions {ids:?}: one has no episodes")))?;
+        self.intervals
             .lock()
             .map_err(ApiError::internal)?
             .insert(ids, computed.clone());

@@ -90,10 +90,9 @@ pub struct Leaderboard {
     pub paper: PaperResults,
     /// What methods beyond the paper publish for the tasks (FISOR's table), shown beside their reference entries.
     pub published: PublishedResults,
-    /// Each finished submission's per-task bootstrap intervals (its episodes never change once finished).
-    intervals: Mutex<HashMap<i64, (Interval, Interval)>>,
-    /// The same over a method's training seeds, by the seeds' submission ids (`seeds_interval`).
-    seed_intervals: Mutex<HashMap<Vec<i64>, (Interval, Interval)>>,
+    /// The per-task bootstrap intervals of each finished submission, and of each method's training seeds, by their
+    /// submission ids (a finished submission's episodes never change).
+    intervals: Mutex<HashMap<Vec<i64>, (Interval, Interval)>>,
     /// What this process's evaluators are doing (`runner`), for `/healthz`, `/metrics` and the views.
     pub evaluators: supervision::Evaluators,
     /// Wakes this process's evaluators when one of their jobs may have been cancelled.
@@ -279,7 +278,6 @@ impl Leaderboard {
             paper,
             published,
             intervals: Mutex::new(HashMap::new()),
-            seed_intervals: Mutex::new(HashMap::new()),
             evaluators: supervision::Evaluators::default(),
             cancelled: tokio::sync::Notify::new(),
             ended: tokio::sync::Notify::new(),
