@@ -124,6 +124,42 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     assert!(details.contains("first differing episode: 2 "), "{details}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("differ from their committed identity"));
 
+    // The build's child killed mid-way (a worker or the machine failing under it): the parent starts it again, it
+    // resumes from its last save and ends at the same identity, and the outcome says what happened.
+    let root = dir.path().join("retried");
+    let state = root.join(TASK);
+    let parent = build(&root, &committed_records(), &[])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    assert!(
+        dsrl_e2e::wait_for(std::time::Duration::from_secs(300), || state
+            .join("expert/ckpt-000002/state.json")
+            .exists()),
+        "the build never saved"
+    );
+    let child = child_building(&state).expect("the build's child process");
+    assert!(
+        !state.join("record").exists(),
+        "the build finished before its child could be killed"
+    );
+    std::process::Command::new("kill")
+        .args(["-KILL", &child.to_string()])
+        .status()
+        .unwrap();
+    let out = parent.wait_with_output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let outcomes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(outcomes[0]["check"], "matches", "{:#}", outcomes[0]);
+    assert_eq!(outcomes[0]["version"], version.as_str());
+    let retried = outcomes[0]["retried_after"].as_array().unwrap();
+    assert_eq!(retried.len(), 1, "{:#}", outcomes[0]);
+    assert!(
+        retried[0].as_str().unwrap().contains("the build stopped"),
+        "{retried:?}"
+    );
+
     // Recorded where a gap record with a measured cost stands: the record keeps the gap's estimate of the whole
     // build, and the gap record goes; recorded again, the estimate stays.
     let records = dir.path().join("records");
@@ -148,4 +184,18 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
         assert_eq!(read_estimate(), expected, "run {run}");
         assert!(!gap_path.exists(), "a recorded build keeps no gap record");
     }
+}
+
+/// The pid of the `dsrl-admin build-task` process building into `state`, from /proc.
+fn child_building(state: &Path) -> Option<u32> {
+    let wanted = state.to_string_lossy().into_owned();
+    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
+        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+        let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+        let args: Vec<String> = cmdline
+            .split(|&b| b == 0)
+            .map(|a| String::from_utf8_lossy(a).into_owned())
+            .collect();
+        (args.iter().any(|a| a == "build-task") && args.contains(&wanted)).then_some(pid)
+    })
 }

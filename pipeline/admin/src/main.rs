@@ -133,6 +133,10 @@ struct BuildArgs {
     /// Simulator workers per task (default: the cores shared among the jobs, at least 1).
     #[arg(long)]
     workers: Option<u32>,
+    /// Start a task's build again this many times after it stops with an error (a simulator worker that died or
+    /// did not answer in time, the machine suspended): each retry resumes from the task's last save.
+    #[arg(long, default_value_t = 2)]
+    retries: u32,
     /// Write each finished build's record into --records (how the committed identities are made on purpose).
     #[arg(long)]
     record: bool,
@@ -170,6 +174,7 @@ async fn build(args: BuildArgs) -> anyhow::Result<()> {
         tasks: args.tasks,
         workers: args.workers.unwrap_or_else(|| (cores() / args.jobs as u32).max(1)),
         jobs: args.jobs,
+        retries: args.retries,
         record: args.record,
         server: args.server,
         token: args.token,

@@ -462,6 +462,8 @@ async fn host_full_builds(work: &Work, options: &Options, server: &server::Priva
         tasks,
         jobs: 1,
         workers: 1,
+        // The builds it hosts are finished: their children only check and upload.
+        retries: 0,
         record: false,
         server: Some(server.url.clone()),
         token: Some(server.admin_token.clone()),

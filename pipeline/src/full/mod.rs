@@ -41,6 +41,8 @@ pub struct BuildOptions {
     pub tasks: Vec<String>,
     pub jobs: usize,
     pub workers: u32,
+    /// How many times a task whose child fails is started again (it resumes from its state folder).
+    pub retries: u32,
     pub record: bool,
     pub server: Option<String>,
     pub token: Option<String>,
@@ -61,6 +63,9 @@ pub struct Outcome {
     pub recorded: bool,
     /// The server's manifest URL of the upload (`--server`).
     pub uploaded: Option<String>,
+    /// Why each earlier run of the task's build stopped, where it had to be started again (`--retries`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub retried_after: Vec<String>,
 }
 
 impl Outcome {
@@ -147,6 +152,7 @@ pub async fn build(options: &BuildOptions) -> anyhow::Result<Vec<Outcome>> {
                             details: vec![format!("its warm start's source, {source}, did not build")],
                             recorded: false,
                             uploaded: None,
+                            retried_after: Vec::new(),
                         });
                         continue;
                     }
@@ -162,16 +168,29 @@ pub async fn build(options: &BuildOptions) -> anyhow::Result<Vec<Outcome>> {
             bar.set_message(task.clone());
             let options = options.clone();
             running.spawn(async move {
-                let result = run_child(&options, &task, &bar).await;
+                let mut retried_after = Vec::new();
+                let result = loop {
+                    match run_child(&options, &task, &bar).await {
+                        Err(e) if retried_after.len() < options.retries as usize => {
+                            // A transient stop (a worker that died or timed out, a suspended machine) costs only
+                            // what the child did since its last save: the next run resumes from there.
+                            tracing::warn!(task = %task, error = %format!("{e:#}"), "the build stopped; starting it again");
+                            bar.println(format!("{task}: the build stopped ({e:#}); starting it again"));
+                            retried_after.push(format!("{e:#}"));
+                            tokio::time::sleep(RETRY_PAUSE).await;
+                        }
+                        other => break other,
+                    }
+                };
                 bar.finish();
-                (task, result)
+                (task, result, retried_after)
             });
         }
         let Some(done) = running.join_next().await else {
             break;
         };
-        let (task, result) = done?;
-        let outcome = match result {
+        let (task, result, retried_after) = done?;
+        let mut outcome = match result {
             Ok(()) => settle(options, &task, client.as_ref()).await,
             Err(e) => Err(e),
         }
@@ -183,7 +202,9 @@ pub async fn build(options: &BuildOptions) -> anyhow::Result<Vec<Outcome>> {
             details: vec![format!("{e:#}")],
             recorded: false,
             uploaded: None,
+            retried_after: Vec::new(),
         });
+        outcome.retried_after = retried_after;
         multi.suspend(|| eprintln!("{}", describe(&outcome)));
         outcomes.push(outcome);
     }
@@ -206,6 +227,12 @@ pub fn describe(outcome: &Outcome) -> String {
         line.push_str("\n  ");
         line.push_str(detail);
     }
+    for (i, why) in outcome.retried_after.iter().enumerate() {
+        line.push_str(&format!(
+            "\n  run {} stopped and the build was started again: {why}",
+            i + 1
+        ));
+    }
     if outcome.recorded {
         line.push_str("\n  record written");
     }
@@ -226,6 +253,9 @@ fn own_binary() -> std::io::Result<std::path::PathBuf> {
         std::env::current_exe()
     }
 }
+
+/// How long a failed task's build waits before it is started again (a worker's port and processes go first).
+const RETRY_PAUSE: Duration = Duration::from_secs(5);
 
 /// How often a build whose bar is hidden prints a line of its progress instead.
 const PLAIN_PROGRESS_EVERY: Duration = Duration::from_secs(300);
@@ -334,6 +364,7 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
         details,
         recorded: false,
         uploaded: None,
+        retried_after: Vec::new(),
     };
     if options.record {
         record::write(&options.records, &built, &episodes)?;
@@ -933,6 +964,7 @@ mod tests {
             tasks: vec![built.into(), gap.into(), "OfflineDroneRun-v0".into()],
             jobs: 1,
             workers: 1,
+            retries: 0,
             record: false,
             server: None,
             token: None,
