@@ -111,7 +111,7 @@ fn time_split(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> Str
 /// The builds whose gap record had a measured cost when they were recorded: the estimate beside what the build
 /// then cost (its compute's CPU seconds, every run counted), and the two summed. Empty of rows until such a build
 /// is committed.
-fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> String {
+fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (String, Option<f64>) {
     let mut out = String::from(
         "| task | estimated CPU per unit (measured on) | planned | estimated core-hours | measured core-hours | \
          measured / estimated |\n|---|---|---|---|---|---|\n",
@@ -146,15 +146,18 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> Stri
         );
     }
     if n == 0 {
-        return "No committed build had a gap record with a measured cost when it was recorded.\n".to_owned();
+        return (
+            "No committed build had a gap record with a measured cost when it was recorded.\n".to_owned(),
+            None,
+        );
     }
+    let ratio = measured / estimated;
     let _ = writeln!(
         out,
         "\nOver these {n} builds the gaps estimated **{estimated:.1} core-hours** and the builds took \
-         **{measured:.1}** ({:.2} of the estimate).",
-        measured / estimated
+         **{measured:.1}** ({ratio:.2} of the estimate)."
     );
-    out
+    (out, Some(ratio))
 }
 
 /// The sections (`full-summary`, `full-builds`, `full-gaps`, `full-estimates`, `full-time-split`) and the text of
@@ -354,11 +357,19 @@ pub fn sections(
             estimated.join(" and "),
         )
     };
+    let (estimates, ratio) = estimates(catalog, committed);
+    let summary = match ratio {
+        Some(ratio) if costed > 0 => format!(
+            "{summary}The builds recorded so far took {ratio:.2} of the core-hours their gap records had estimated \
+             (the estimates' table below).\n"
+        ),
+        _ => summary,
+    };
     let sections = BTreeMap::from([
         ("full-summary".to_owned(), summary),
         ("full-builds".to_owned(), builds),
         ("full-gaps".to_owned(), gaps),
-        ("full-estimates".to_owned(), estimates(catalog, committed)),
+        ("full-estimates".to_owned(), estimates),
         ("full-time-split".to_owned(), time_split(catalog, committed)),
     ]);
     Ok((sections, csv))
@@ -393,7 +404,8 @@ mod tests {
                                "core_hours": core_hours, "cpu": "AMD EPYC (2 cores)"})
         };
         let mut builds = BTreeMap::new();
-        assert!(estimates(&catalog, &builds).starts_with("No committed build"));
+        assert_eq!(estimates(&catalog, &builds).1, None);
+        assert!(estimates(&catalog, &builds).0.starts_with("No committed build"));
         // 0.0007 CPU s a step over 3M steps: 0.6 core-hours estimated; 1440 CPU s (0.4 core-hours) measured.
         builds.insert(
             "OfflineWalker2dVelocityGymnasium-v1".to_owned(),
@@ -417,7 +429,8 @@ mod tests {
             "OfflineBallRun-v0".to_owned(),
             committed("OfflineBallRun-v0", 100.0, None),
         );
-        let text = estimates(&catalog, &builds);
+        let (text, ratio) = estimates(&catalog, &builds);
+        assert!((ratio.unwrap() - 1.5).abs() < 1e-12, "{ratio:?}");
         assert!(
             text.contains(
                 "| OfflineWalker2dVelocityGymnasium-v1 | 0.0007 CPU s/step (AMD EPYC (2 cores)) | 3000000 steps | 0.6 \
