@@ -139,7 +139,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
             .exists()),
         "the build never saved"
     );
-    let child = child_building(&state).expect("the build's child process");
+    let child = crate::process_running("build-task", &state).expect("the build's child process");
     assert!(
         !state.join("record").exists(),
         "the build finished before its child could be killed"
@@ -184,18 +184,4 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
         assert_eq!(read_estimate(), expected, "run {run}");
         assert!(!gap_path.exists(), "a recorded build keeps no gap record");
     }
-}
-
-/// The pid of the `dsrl-admin build-task` process building into `state`, from /proc.
-fn child_building(state: &Path) -> Option<u32> {
-    let wanted = state.to_string_lossy().into_owned();
-    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
-        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
-        let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
-        let args: Vec<String> = cmdline
-            .split(|&b| b == 0)
-            .map(|a| String::from_utf8_lossy(a).into_owned())
-            .collect();
-        (args.iter().any(|a| a == "build-task") && args.contains(&wanted)).then_some(pid)
-    })
 }

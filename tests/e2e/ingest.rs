@@ -388,18 +388,9 @@ fn a_killed_ingest_leaves_no_visible_version() {
     assert_eq!(versions(&env, task).len(), 1);
 }
 
-/// The pid of a `dsrl-server convert` child working under `data_dir`, if one is running (Linux /proc).
+/// The pid of a `dsrl-server convert` child working under `data_dir`, if one is running.
 fn converter_pid(data_dir: &std::path::Path) -> Option<u32> {
-    let needle = data_dir.to_string_lossy().into_owned();
-    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
-        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
-        let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
-        let args: Vec<String> = cmdline
-            .split(|&b| b == 0)
-            .map(|a| String::from_utf8_lossy(a).into_owned())
-            .collect();
-        (args.iter().any(|a| a == "convert") && args.iter().any(|a| a.contains(&needle))).then_some(pid)
-    })
+    crate::process_running("convert", data_dir)
 }
 
 /// Uploads are parsed in a child process: when it dies (here SIGKILL, in real life a crash in libhdf5 or the

@@ -147,6 +147,21 @@ pub fn kill_once_saved(mut cmd: std::process::Command, saved: &Path, unfinished:
     assert!(!unfinished.exists(), "the run finished before it could be killed");
 }
 
+/// The pid of a running process with the argument `subcommand` and an argument that contains `path` (Linux /proc):
+/// a child process a test is about to kill, found by what it works on.
+pub fn process_running(subcommand: &str, path: &Path) -> Option<u32> {
+    let needle = path.to_string_lossy().into_owned();
+    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
+        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+        let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+        let args: Vec<String> = cmdline
+            .split(|&b| b == 0)
+            .map(|a| String::from_utf8_lossy(a).into_owned())
+            .collect();
+        (args.iter().any(|a| a == subcommand) && args.iter().any(|a| a.contains(&needle))).then_some(pid)
+    })
+}
+
 /// `dsrl-admin collect --task TASK --json` from `recipe` into `state`, with `extra` flags, kept off any server.
 pub fn admin_collect(task: &str, recipe: &Path, state: &Path, extra: &[&str]) -> std::process::Command {
     let mut cmd = admin_collect_default_recipe(task, state);
