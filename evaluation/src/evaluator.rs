@@ -185,11 +185,11 @@ async fn play_group(
         })
     });
     let mut sessions = futures::future::try_join_all(opens).await?;
-    let mut episodes = Episodes::new(seeds, k, sessions[0].spec().obs_dim as usize);
-    episodes.obs = sessions
+    let first_observations = sessions
         .iter()
         .flat_map(|s| s.initial_observations().iter().copied())
         .collect();
+    let mut episodes = Episodes::new(seeds, k, sessions[0].spec().obs_dim as usize, first_observations);
     // Each group's environments still playing, and those it is resetting.
     let mut active: Vec<Vec<u32>> = groups;
     let mut resetting: Vec<Vec<u32>> = vec![Vec::new(); active.len()];
@@ -301,8 +301,8 @@ struct Stepped {
 }
 
 impl<'s> Episodes<'s> {
-    /// Environment `i` of the first `envs` starts with seed `i`.
-    fn new(seeds: &'s [u64], envs: usize, obs_dim: usize) -> Episodes<'s> {
+    /// Environment `i` of the first `envs` starts with seed `i`, from row `i` of `obs`.
+    fn new(seeds: &'s [u64], envs: usize, obs_dim: usize, obs: Vec<f32>) -> Episodes<'s> {
         Episodes {
             seeds,
             scores: seeds
@@ -316,7 +316,7 @@ impl<'s> Episodes<'s> {
                 .collect(),
             playing: (0..envs).collect(),
             next: envs,
-            obs: Vec::new(),
+            obs,
             obs_dim,
         }
     }

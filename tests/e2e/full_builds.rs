@@ -144,10 +144,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
         !state.join("record").exists(),
         "the build finished before its child could be killed"
     );
-    std::process::Command::new("kill")
-        .args(["-KILL", &child.to_string()])
-        .status()
-        .unwrap();
+    crate::kill_hard(child);
     let out = parent.wait_with_output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let outcomes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();

@@ -388,11 +388,6 @@ fn a_killed_ingest_leaves_no_visible_version() {
     assert_eq!(versions(&env, task).len(), 1);
 }
 
-/// The pid of a `dsrl-server convert` child working under `data_dir`, if one is running.
-fn converter_pid(data_dir: &std::path::Path) -> Option<u32> {
-    crate::process_running("convert", data_dir)
-}
-
 /// Uploads are parsed in a child process: when it dies (here SIGKILL, in real life a crash in libhdf5 or the
 /// memory limit), that one request fails with a clear 400 and the server carries on.
 #[test]
@@ -411,16 +406,12 @@ fn a_dying_converter_fails_only_its_own_request() {
     let mut pid = None;
     assert!(
         wait_for(Duration::from_secs(60), || {
-            pid = converter_pid(&env.server.data_dir);
+            pid = crate::process_running("convert", &env.server.data_dir);
             pid.is_some()
         }),
         "no converter process appeared"
     );
-    let killed = std::process::Command::new("kill")
-        .args(["-9", &pid.unwrap().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    crate::kill_hard(pid.unwrap());
     let out = child.wait_with_output().unwrap();
     assert_eq!(out.status.code(), Some(6), "{out:?}");
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -482,7 +473,7 @@ fn a_converter_exits_when_its_parent_goes_away() {
     let mut pid = None;
     assert!(
         wait_for(Duration::from_secs(60), || {
-            pid = converter_pid(&env.server.data_dir);
+            pid = crate::process_running("convert", &env.server.data_dir);
             pid.is_some()
         }),
         "no converter process appeared"
@@ -494,7 +485,7 @@ fn a_converter_exits_when_its_parent_goes_away() {
             pid.unwrap()
         ))
         .exists()
-            || converter_pid(&env.server.data_dir).is_none()),
+            || crate::process_running("convert", &env.server.data_dir).is_none()),
         "the converter outlived the server"
     );
     let _ = ingest.wait();

@@ -147,6 +147,15 @@ pub fn kill_once_saved(mut cmd: std::process::Command, saved: &Path, unfinished:
     assert!(!unfinished.exists(), "the run finished before it could be killed");
 }
 
+/// Sends SIGKILL to `pid`, which must exist.
+pub fn kill_hard(pid: u32) {
+    let status = std::process::Command::new("kill")
+        .args(["-9", &pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success(), "kill -9 {pid}");
+}
+
 /// The pid of a running process with the argument `subcommand` and an argument that contains `path` (Linux /proc):
 /// a child process a test is about to kill, found by what it works on.
 pub fn process_running(subcommand: &str, path: &Path) -> Option<u32> {

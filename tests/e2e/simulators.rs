@@ -13,14 +13,6 @@ fn worker_binary() -> String {
     dsrl_e2e::bin("dsrl-sim-worker").display().to_string()
 }
 
-fn kill(pid: u32) {
-    let status = std::process::Command::new("kill")
-        .args(["-9", &pid.to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-}
-
 fn alive(pid: u32) -> bool {
     // A killed child stays a zombie until reaped; count those as gone.
     std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|stat| !stat.contains(") Z "))
@@ -101,7 +93,7 @@ fn the_server_supervises_its_workers_and_takes_them_down_with_it() {
     assert!(first["max_envs"].as_u64().unwrap() > 0);
     let pid = first["pid"].as_u64().unwrap() as u32;
 
-    kill(pid);
+    crate::kill_hard(pid);
     let replaced = dsrl_e2e::wait_for(Duration::from_secs(120), || {
         let s = status(&env);
         s["healthy"] == true && s["restarts"] == 1 && s["pid"].as_u64() != Some(u64::from(pid))
@@ -133,7 +125,7 @@ async fn sessions_fail_fast_when_their_worker_dies_and_the_pool_recovers() {
     );
     session.step(&[], &[0.0; 4]).await.unwrap();
 
-    kill(pool.workers()[0].pid.unwrap());
+    crate::kill_hard(pool.workers()[0].pid.unwrap());
     let started = std::time::Instant::now();
     let err = session
         .step(&[], &[0.0; 4])

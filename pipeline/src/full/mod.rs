@@ -174,9 +174,11 @@ pub async fn build(options: &BuildOptions) -> anyhow::Result<Vec<Outcome>> {
                         Err(e) if retried_after.len() < options.retries as usize => {
                             // A transient stop (a worker that died or timed out, a suspended machine) costs only
                             // what the child did since its last save: the next run resumes from there.
-                            tracing::warn!(task = %task, error = %format!("{e:#}"), "the build stopped; starting it again");
-                            bar.println(format!("{task}: the build stopped ({e:#}); starting it again"));
-                            retried_after.push(format!("{e:#}"));
+                            let why = format!("{e:#}");
+                            bar.suspend(
+                                || tracing::warn!(task = %task, error = %why, "the build stopped; starting it again"),
+                            );
+                            retried_after.push(why);
                             tokio::time::sleep(RETRY_PAUSE).await;
                         }
                         other => break other,
@@ -338,13 +340,10 @@ async fn settle(options: &BuildOptions, task: &str, client: Option<&Client>) -> 
         .ok_or_else(|| anyhow::anyhow!("the build finished without its record in {}", state.display()))?;
     let committed = record::read(&options.records, task)?;
     // What the gap record estimated this build would cost; a rebuild keeps the estimate its committed record has.
-    built.estimate = match read_progress(&options.records, task)?
+    built.estimate = read_progress(&options.records, task)?
         .as_ref()
         .and_then(Estimate::of_gap)
-    {
-        Some(estimate) => Some(estimate),
-        None => committed.as_ref().and_then(|(c, _)| c.estimate.clone()),
-    };
+        .or_else(|| committed.as_ref().and_then(|(c, _)| c.estimate.clone()));
     let (check, details) = match &committed {
         None => ("no committed record".to_owned(), Vec::new()),
         Some((committed, committed_episodes)) => {
