@@ -110,6 +110,13 @@ fn entries_count(n: usize) -> String {
     }
 }
 
+/// What an entry was trained on: "starter", "full build", or "uncommitted dataset" when its version is neither.
+fn dataset_label(identities: &crate::identities::Identities, e: &ReferenceEntry) -> &'static str {
+    identities
+        .kind(&e.task, &e.dataset_version)
+        .map_or("uncommitted dataset", |k| k.label())
+}
+
 /// The reference sections: the agreement with the paper, every entry with its interval and the paper's row, and
 /// every entry's compute.
 pub fn reference_sections(
@@ -119,11 +126,7 @@ pub fn reference_sections(
     protocol_version: &str,
     identities: &crate::identities::Identities,
 ) -> BTreeMap<String, String> {
-    let dataset = |e: &ReferenceEntry| {
-        identities
-            .kind(&e.task, &e.dataset_version)
-            .map_or("uncommitted dataset", |k| k.label())
-    };
+    let dataset = |e: &ReferenceEntry| dataset_label(identities, e);
     let current: Vec<&ReferenceEntry> = entries
         .iter()
         .filter(|e| e.protocol_version == protocol_version)
@@ -601,6 +604,29 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
         Err(e) => return Err(anyhow::anyhow!("{}: {e}", full_path.display())),
     };
+    // The full-build entries' agreement, on its own: the same figure, baselines and goal as the starters', over
+    // the cells the full builds cover so far.
+    let full_current: Vec<&ReferenceEntry> = full_entries
+        .iter()
+        .filter(|e| e.protocol_version == protocol.version)
+        .collect();
+    let full_cells = agreement(
+        &catalog,
+        &paper,
+        &scored_entries(&full_entries, &catalog, &protocol.version),
+    );
+    let dataset = |e: &ReferenceEntry| dataset_label(&identities, e);
+    all.insert(
+        "reference-full-agreement".to_owned(),
+        agreement_section(
+            &catalog,
+            &full_current,
+            full_entries.len() - full_current.len(),
+            &full_cells,
+            &protocol.version,
+            &dataset,
+        ),
+    );
     all.insert(
         "reference-data-attribution".to_owned(),
         data_attribution_section(
