@@ -160,7 +160,7 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
     (out, Some(ratio))
 }
 
-/// The sections (`full-summary`, `full-builds`, `full-gaps`, `full-estimates`, `full-time-split`) and the text of
+/// The sections (`full-summary`, `full-builds`, `full-misses`, `full-gaps`, `full-estimates`, `full-time-split`) and the text of
 /// `data/full_build_gaps.csv`.
 pub fn sections(
     catalog: &Catalog,
@@ -174,6 +174,8 @@ pub fn sections(
         "| task | trajectories (paper's) | transitions | reward return | cost return | misses of the bar | version | \
          budget | code | wall | CPU | machine |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
+    // What each committed build misses of the bar, with the numbers measured on it.
+    let mut missed = String::from("| task | misses | measured on the full build |\n|---|---|---|\n");
     let mut gaps = String::from(
         "| task | state | done of planned | measured rate | left at that rate | CPU per unit | left, in core-hours |\n\
          |---|---|---|---|---|---|---|\n",
@@ -196,14 +198,20 @@ pub fn sections(
             let r = &c.record;
             built += 1;
             trajectories += r.trajectories;
-            let mut misses: Vec<String> = crate::hosted::bar(task, &summaries(&c.episodes))
-                .into_keys()
-                .map(str::to_owned)
-                .collect();
+            let bar = crate::hosted::bar(task, &summaries(&c.episodes));
+            let mut misses: Vec<String> = bar.keys().map(|k| (*k).to_owned()).collect();
             if r.trajectories < paper {
                 misses.insert(0, "the paper's count".into());
+                let _ = writeln!(
+                    missed,
+                    "| {} | the paper's count | {} trajectories of the paper's {paper} |",
+                    task.id, r.trajectories
+                );
             } else {
                 at_paper += 1;
+            }
+            for (kind, why) in &bar {
+                let _ = writeln!(missed, "| {} | {kind} | {why} |", task.id);
             }
             if misses.is_empty() {
                 whole_bar += 1;
@@ -368,6 +376,7 @@ pub fn sections(
     let sections = BTreeMap::from([
         ("full-summary".to_owned(), summary),
         ("full-builds".to_owned(), builds),
+        ("full-misses".to_owned(), missed),
         ("full-gaps".to_owned(), gaps),
         ("full-estimates".to_owned(), estimates),
         ("full-time-split".to_owned(), time_split(catalog, committed)),
@@ -447,6 +456,32 @@ mod tests {
         assert!(
             text.contains("Over these 2 builds the gaps estimated **1.6 core-hours** and the builds took **2.4** (1.50 of the estimate)"),
             "{text}"
+        );
+    }
+
+    #[test]
+    fn a_build_that_misses_the_bar_shows_what_was_measured_on_it() {
+        let catalog = Catalog::embedded().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        // A build of no trajectories: short of the paper's 940 and of every part of the bar that counts them.
+        let builds = BTreeMap::from([(
+            "OfflineBallRun-v0".to_owned(),
+            committed("OfflineBallRun-v0", 100.0, None),
+        )]);
+        let (sections, _) = sections(&catalog, &root, &builds).unwrap();
+        let missed = &sections["full-misses"];
+        assert!(
+            missed.contains("| OfflineBallRun-v0 | the paper's count | 0 trajectories of the paper's 940 |"),
+            "{missed}"
+        );
+        assert!(
+            missed.contains("| OfflineBallRun-v0 | trajectories | 0 trajectories (the bar: "),
+            "{missed}"
+        );
+        // A build meeting everything has no row: none here but BallRun's.
+        assert!(
+            missed.lines().skip(2).all(|l| l.starts_with("| OfflineBallRun-v0 |")),
+            "{missed}"
         );
     }
 }
