@@ -111,12 +111,17 @@ fn time_split(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> Str
 /// The builds whose gap record had a measured cost when they were recorded: the estimate beside what the build
 /// then cost (its compute's CPU seconds, every run counted), and the two summed. Empty of rows until such a build
 /// is committed.
-fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (String, Option<f64>) {
+/// The ratio over all of them, and each family's (`bullet`, `safety-gymnasium`, `metadrive`: how many builds,
+/// measured over estimated), since a family's trials measure its builds' cost alike (a MetaDrive trial plays the
+/// sweep's first settings only).
+fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (String, Option<f64>, FamilyRatios) {
     let mut out = String::from(
         "| task | estimated CPU per unit (measured on) | planned | estimated core-hours | measured core-hours | \
          measured / estimated |\n|---|---|---|---|---|---|\n",
     );
     let (mut estimated, mut measured, mut n) = (0.0f64, 0.0f64, 0);
+    // Per family: builds, estimated and measured core-hours.
+    let mut families: BTreeMap<&'static str, (usize, f64, f64)> = BTreeMap::new();
     for task in catalog.tasks() {
         let Some(c) = committed.get(task.id.as_str()) else {
             continue;
@@ -128,6 +133,10 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
         estimated += e.core_hours;
         measured += cost;
         n += 1;
+        let family = families.entry(task.family.suite()).or_default();
+        family.0 += 1;
+        family.1 += e.core_hours;
+        family.2 += cost;
         let _ = writeln!(
             out,
             "| {} | {} CPU s/{} ({}) | {} {} | {} | {cost:.2} | {} |",
@@ -149,6 +158,7 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
         return (
             "No committed build had a gap record with a measured cost when it was recorded.\n".to_owned(),
             None,
+            BTreeMap::new(),
         );
     }
     let ratio = measured / estimated;
@@ -157,8 +167,21 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
         "\nOver these {n} builds the gaps estimated **{estimated:.1} core-hours** and the builds took \
          **{measured:.1}** ({ratio:.2} of the estimate)."
     );
-    (out, Some(ratio))
+    let ratios: FamilyRatios = families
+        .into_iter()
+        .filter(|(_, (_, e, _))| *e > 0.0)
+        .map(|(family, (n, e, m))| (family, (n, m / e)))
+        .collect();
+    let per_family: Vec<String> = ratios
+        .iter()
+        .map(|(family, (n, r))| format!("{family} {r:.2} ({n} {})", if *n == 1 { "build" } else { "builds" }))
+        .collect();
+    let _ = writeln!(out, "Per family, measured over estimated: {}.", per_family.join("; "));
+    (out, Some(ratio), ratios)
 }
+
+/// Per family: how many recorded builds had an estimate, and their measured core-hours over the estimated.
+type FamilyRatios = BTreeMap<&'static str, (usize, f64)>;
 
 /// The sections (`full-summary`, `full-builds`, `full-misses`, `full-gaps`, `full-estimates`, `full-time-split`) and the text of
 /// `data/full_build_gaps.csv`.
@@ -187,6 +210,8 @@ pub fn sections(
     let (mut built, mut at_paper, mut whole_bar, mut trajectories) = (0, 0, 0, 0u64);
     // The gaps' measured CPU cost, summed (core-hours), and the gaps without one.
     let (mut gap_core_hours, mut costed, mut uncosted) = (0.0f64, 0, 0);
+    // Each measured gap's core-hours with its family, to scale by how the family's estimates held up.
+    let mut gap_by_family: Vec<(&'static str, f64)> = Vec::new();
     // Each task's measured CPU seconds per step, for a warm start's estimate (the plan orders a source first), and
     // the estimates of the gaps that have no measured cost of their own.
     let mut cost_per_step: BTreeMap<&str, f64> = BTreeMap::new();
@@ -293,6 +318,7 @@ pub fn sections(
             (Some(h), _) => {
                 gap_core_hours += h;
                 costed += 1;
+                gap_by_family.push((task.family.suite(), h));
             }
             (None, Some(h)) => {
                 estimated_core_hours += h;
@@ -365,12 +391,20 @@ pub fn sections(
             estimated.join(" and "),
         )
     };
-    let (estimates, ratio) = estimates(catalog, committed);
+    let (estimates, ratio, family_ratios) = estimates(catalog, committed);
     let summary = match ratio {
-        Some(ratio) if costed > 0 => format!(
-            "{summary}The builds recorded so far took {ratio:.2} of the core-hours their gap records had estimated \
-             (the estimates' table below).\n"
-        ),
+        Some(ratio) if costed > 0 => {
+            // Each gap at its family's ratio (the overall one where its family has no recorded build yet).
+            let scaled: f64 = gap_by_family
+                .iter()
+                .map(|(family, h)| h * family_ratios.get(family).map_or(ratio, |(_, r)| *r))
+                .sum();
+            format!(
+                "{summary}The builds recorded so far took {ratio:.2} of the core-hours their gap records had \
+                 estimated (per family in the estimates' table below); each measured gap scaled by its family's \
+                 ratio, the {costed} would need about **{scaled:.0} core-hours**.\n"
+            )
+        }
         _ => summary,
     };
     let sections = BTreeMap::from([
@@ -414,6 +448,7 @@ mod tests {
         };
         let mut builds = BTreeMap::new();
         assert_eq!(estimates(&catalog, &builds).1, None);
+        assert!(estimates(&catalog, &builds).2.is_empty());
         assert!(estimates(&catalog, &builds).0.starts_with("No committed build"));
         // 0.0007 CPU s a step over 3M steps: 0.6 core-hours estimated; 1440 CPU s (0.4 core-hours) measured.
         builds.insert(
@@ -438,7 +473,16 @@ mod tests {
             "OfflineBallRun-v0".to_owned(),
             committed("OfflineBallRun-v0", 100.0, None),
         );
-        let (text, ratio) = estimates(&catalog, &builds);
+        let (text, ratio, families) = estimates(&catalog, &builds);
+        // Walker2dVelocity is safety-gymnasium (0.4 of 0.6), CarCircle2 too (2.0 of 1.0): one family, 2.4 of 1.6.
+        assert_eq!(families.len(), 1, "{families:?}");
+        let (n, r) = families["safety-gymnasium"];
+        assert_eq!(n, 2);
+        assert!((r - 1.5).abs() < 1e-12, "{r}");
+        assert!(
+            text.contains("Per family, measured over estimated: safety-gymnasium 1.50 (2 builds)."),
+            "{text}"
+        );
         assert!((ratio.unwrap() - 1.5).abs() < 1e-12, "{ratio:?}");
         assert!(
             text.contains(
@@ -460,6 +504,37 @@ mod tests {
     }
 
     #[test]
+    fn the_remaining_budget_is_scaled_by_how_each_familys_estimates_held_up() {
+        let catalog = Catalog::embedded().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        // One MetaDrive build that took twice its estimate: every family's ratio is then 2 (MetaDrive's own, the
+        // overall one for the others), so the scaled budget is twice the measured gaps' sum.
+        let estimate = serde_json::json!({"cpu_seconds_per_unit": 3.6, "unit": "episodes", "planned": 1000,
+                                          "core_hours": 1.0, "cpu": "x"});
+        let builds = BTreeMap::from([(
+            "OfflineMetadrive-mediumdense-v0".to_owned(),
+            committed("OfflineMetadrive-mediumdense-v0", 7200.0, Some(estimate)),
+        )]);
+        let (sections, csv) = sections(&catalog, &root, &builds).unwrap();
+        let gaps: f64 = csv
+            .lines()
+            .skip(1)
+            .filter_map(|line| line.rsplit(',').next()?.parse::<f64>().ok())
+            .sum();
+        assert!(gaps > 0.0, "{csv}");
+        let summary = &sections["full-summary"];
+        assert!(
+            summary.contains(&format!("would need about **{:.0} core-hours**", 2.0 * gaps)),
+            "{summary} (gaps {gaps})"
+        );
+        assert!(
+            sections["full-estimates"].contains("Per family, measured over estimated: metadrive 2.00 (1 build)."),
+            "{}",
+            sections["full-estimates"]
+        );
+    }
+
+    #[test]
     fn a_build_that_misses_the_bar_shows_what_was_measured_on_it() {
         let catalog = Catalog::embedded().unwrap();
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
@@ -477,6 +552,12 @@ mod tests {
         assert!(
             missed.contains("| OfflineBallRun-v0 | trajectories | 0 trajectories (the bar: "),
             "{missed}"
+        );
+        // No build with an estimate: no ratio, so no scaled budget.
+        assert!(
+            !sections["full-summary"].contains("scaled"),
+            "{}",
+            sections["full-summary"]
         );
         // A build meeting everything has no row: none here but BallRun's.
         assert!(
