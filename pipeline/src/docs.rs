@@ -117,6 +117,21 @@ fn dataset_label(identities: &crate::identities::Identities, e: &ReferenceEntry)
         .map_or("uncommitted dataset", |k| k.label())
 }
 
+/// The entries of `protocol_version` and their (task, method) cells against the paper's rows.
+fn current_and_cells<'e>(
+    catalog: &Catalog,
+    paper: &PaperResults,
+    entries: &'e [ReferenceEntry],
+    protocol_version: &str,
+) -> (Vec<&'e ReferenceEntry>, Vec<Agreement>) {
+    let current = entries
+        .iter()
+        .filter(|e| e.protocol_version == protocol_version)
+        .collect();
+    let cells = agreement(catalog, paper, &scored_entries(entries, catalog, protocol_version));
+    (current, cells)
+}
+
 /// The reference sections: the agreement with the paper, every entry with its interval and the paper's row, and
 /// every entry's compute.
 pub fn reference_sections(
@@ -127,11 +142,7 @@ pub fn reference_sections(
     identities: &crate::identities::Identities,
 ) -> BTreeMap<String, String> {
     let dataset = |e: &ReferenceEntry| dataset_label(identities, e);
-    let current: Vec<&ReferenceEntry> = entries
-        .iter()
-        .filter(|e| e.protocol_version == protocol_version)
-        .collect();
-    let cells = agreement(catalog, paper, &scored_entries(entries, catalog, protocol_version));
+    let (current, cells) = current_and_cells(catalog, paper, entries, protocol_version);
     let others = entries.len() - current.len();
     let (rows, cell_rows) = entry_rows(catalog, paper, &current, &cells);
     BTreeMap::from([
@@ -606,15 +617,7 @@ pub fn sections(root: &Path) -> anyhow::Result<(BTreeMap<String, String>, BTreeM
     };
     // The full-build entries' agreement, on its own: the same figure, baselines and goal as the starters', over
     // the cells the full builds cover so far.
-    let full_current: Vec<&ReferenceEntry> = full_entries
-        .iter()
-        .filter(|e| e.protocol_version == protocol.version)
-        .collect();
-    let full_cells = agreement(
-        &catalog,
-        &paper,
-        &scored_entries(&full_entries, &catalog, &protocol.version),
-    );
+    let (full_current, full_cells) = current_and_cells(&catalog, &paper, &full_entries, &protocol.version);
     let dataset = |e: &ReferenceEntry| dataset_label(&identities, e);
     all.insert(
         "reference-full-agreement".to_owned(),

@@ -119,7 +119,6 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
         "| task | estimated CPU per unit (measured on) | planned | estimated core-hours | measured core-hours | \
          measured / estimated |\n|---|---|---|---|---|---|\n",
     );
-    let (mut estimated, mut measured, mut n) = (0.0f64, 0.0f64, 0);
     // Per family: builds, estimated and measured core-hours.
     let mut families: BTreeMap<&'static str, (usize, f64, f64)> = BTreeMap::new();
     for task in catalog.tasks() {
@@ -130,9 +129,6 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
             continue;
         };
         let cost = c.record.compute.cpu_seconds / 3600.0;
-        estimated += e.core_hours;
-        measured += cost;
-        n += 1;
         let family = families.entry(task.family.suite()).or_default();
         family.0 += 1;
         family.1 += e.core_hours;
@@ -154,6 +150,11 @@ fn estimates(catalog: &Catalog, committed: &BTreeMap<String, Committed>) -> (Str
             },
         );
     }
+    let (n, estimated, measured) = families
+        .values()
+        .fold((0, 0.0f64, 0.0f64), |(n, e, m), (builds, fe, fm)| {
+            (n + builds, e + fe, m + fm)
+        });
     if n == 0 {
         return (
             "No committed build had a gap record with a measured cost when it was recorded.\n".to_owned(),
@@ -208,10 +209,9 @@ pub fn sections(
          cpu_seconds_per_unit,remaining_core_hours\n",
     );
     let (mut built, mut at_paper, mut whole_bar, mut trajectories) = (0, 0, 0, 0u64);
-    // The gaps' measured CPU cost, summed (core-hours), and the gaps without one.
-    let (mut gap_core_hours, mut costed, mut uncosted) = (0.0f64, 0, 0);
-    // Each measured gap's core-hours with its family, to scale by how the family's estimates held up.
-    let mut gap_by_family: Vec<(&'static str, f64)> = Vec::new();
+    // Each measured gap's CPU cost (core-hours) with its family, to scale by how the family's estimates held up,
+    // and the gaps without one.
+    let (mut gap_by_family, mut uncosted): (Vec<(&'static str, f64)>, usize) = (Vec::new(), 0);
     // Each task's measured CPU seconds per step, for a warm start's estimate (the plan orders a source first), and
     // the estimates of the gaps that have no measured cost of their own.
     let mut cost_per_step: BTreeMap<&str, f64> = BTreeMap::new();
@@ -315,11 +315,7 @@ pub fn sections(
             .filter(|_| core_hours.is_none() && unit == "steps")
             .map(|c| super::core_hours(planned.saturating_sub(done), *c));
         match (core_hours, source_estimate) {
-            (Some(h), _) => {
-                gap_core_hours += h;
-                costed += 1;
-                gap_by_family.push((task.family.suite(), h));
-            }
+            (Some(h), _) => gap_by_family.push((task.family.suite(), h)),
             (None, Some(h)) => {
                 estimated_core_hours += h;
                 estimated.push(task_id.clone());
@@ -368,6 +364,8 @@ pub fn sections(
          {total_paper}.\n",
         order.len()
     );
+    let costed = gap_by_family.len();
+    let gap_core_hours: f64 = gap_by_family.iter().map(|(_, h)| h).sum();
     let without_cost = uncosted + estimated.len();
     let summary = match (costed, without_cost) {
         (0, _) => summary,
