@@ -19,6 +19,9 @@
 #   scripts/measure-gaps.sh OfflinePointPush1Gymnasium-v0     # these tasks (measured again)
 #   MIN_CPU_SECONDS=900 MAX_MINUTES=30 scripts/measure-gaps.sh  # longer trials
 #
+# A task whose recipe warm-starts from another build (PointPush2 from PointPush1) is measured only once that build is
+# finished in the builds' root: its trial starts from it, as the real build would. Before, it is left unmeasured.
+#
 # Trials' state: ${DSRL_FULL_ROOT:-~/.dsrl/full}/trials/<task>/; log: <root>/measure.log.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -84,7 +87,21 @@ print(p["done"], p["unit"], int((p.get("compute") or {}).get("cpu_seconds", 0)))
 # The unfinished builds a task's build starts from (its warm start's chain), which a trial would have to run whole.
 sources() { status "$1" | python3 -c 'import json, sys; print(" ".join(p["task"] for p in json.load(sys.stdin) if p["task"] != sys.argv[1]))' "$1"; }
 
+# The build a task's recipe warm-starts from (its `[expert.warm_start]` task), or nothing.
+warm_source() {
+  python3 -c '
+import sys, tomllib
+expert = tomllib.load(open(sys.argv[1], "rb")).get("expert", {})
+print(expert.get("warm_start", {}).get("task", ""))' "data/recipes/$1.toml"
+}
+
 for task in "${tasks[@]}"; do
+  # A warm start's source finished in the builds' own root is the one the real build would start from: the trial
+  # starts from it too (a link; the trial writes only into its own task's folder).
+  source_task=$(warm_source "$task")
+  if [ -n "$source_task" ] && [ -d "$root/$source_task" ] && [ ! -e "$trials/$source_task" ]; then
+    ln -s "$root/$source_task" "$trials/$source_task"
+  fi
   from=$(sources "$task")
   if [ -n "$from" ]; then
     echo "$task starts from the finished build of $from: a trial would build that whole first; not measured" |
