@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Follows the full builds with their reference entries: for each named task in turn, waits until its full build is
+# finished under the builds' root (${DSRL_FULL_ROOT:-~/.dsrl/full}, as `dsrl-admin build --status` says), then runs
+# `dsrl-admin reference <phases> --built-here --task <task>` (by default the phases `full` and `full-seeds` of
+# data/reference/plan.toml: BC-All and BC-Safe, training seeds 0-2), which writes each scored entry into
+# data/reference/full_builds.jsonl. At the end it regenerates the documents (`dsrl-admin docs`). Like
+# scripts/full-builds.sh it runs in the background, in a session of its own at the lowest priority (its autogroup
+# gets nice 19), so builds, trainings and the rest of the machine's work share the cores in that order of need.
+# Resumable: run it again after a kill and each task's reference continues from its state folder
+# (~/.dsrl/reference-full); entries the results file holds are not trained again.
+#
+#   scripts/full-builds.sh --record A B          # the builds, one after the other
+#   scripts/full-references.sh A B               # the entries on each, as soon as its build is finished
+#   PHASES="full-six" scripts/full-references.sh OfflineBallRun-v0
+#   tail -f ~/.dsrl/reference-full/follow.log
+#
+# It trains with the release binaries beside dsrl-admin (DSRL_TRAIN, DSRL_SERVER_BIN to choose others). Commit the
+# results file and the regenerated documents with explicit paths when it is done (CONTRIBUTING.md).
+set -euo pipefail
+self=$(realpath "$0")
+cd "$(dirname "$self")/.."
+root=${DSRL_FULL_ROOT:-$HOME/.dsrl/full}
+admin=${DSRL_ADMIN:-$(command -v dsrl-admin || echo "${CARGO_TARGET_DIR:-target}/release/dsrl-admin")}
+log_dir=$HOME/.dsrl/reference-full
+read -r -a phases <<< "${PHASES:-full full-seeds}"
+
+# The loop itself, run by the copy of this script started in the background below.
+if [ "${1:-}" = "--follow" ]; then
+  shift
+  for task in "$@"; do
+    echo "$(date -u +%FT%TZ) $task: waiting for its full build under $root"
+    until "$admin" build --root "$root" --status --json "$task" | python3 -c '
+import json, sys
+sys.exit(0 if any(p["task"] == sys.argv[1] and p["state"] == "finished" for p in json.load(sys.stdin)) else 1)' "$task"
+    do
+      sleep 60
+    done
+    echo "$(date -u +%FT%TZ) $task: reference phases ${phases[*]}"
+    # One reference run at a time (flock): the phases share a private server in one state folder.
+    if ! flock "$log_dir/reference.lock" "$admin" reference "${phases[@]}" --built-here --full-builds "$root" --task "$task"; then
+      echo "$(date -u +%FT%TZ) $task: the reference phases stopped with an error (above); run the script again to resume"
+    fi
+  done
+  "$admin" docs
+  echo "$(date -u +%FT%TZ) done: commit data/reference/full_builds.jsonl and the regenerated documents"
+  exit 0
+fi
+
+[ $# -gt 0 ] || { echo "usage: scripts/full-references.sh TASK... (see the header of this script)" >&2; exit 2; }
+[ -x "$admin" ] || { echo "no dsrl-admin at $admin: run scripts/serve.sh (or cargo build --release) first" >&2; exit 1; }
+bin_dir=$(dirname "$(realpath "$admin")")
+export DSRL_TRAIN=${DSRL_TRAIN:-$bin_dir/dsrl-train} DSRL_SERVER_BIN=${DSRL_SERVER_BIN:-$bin_dir/dsrl-server}
+for b in "$DSRL_TRAIN" "$DSRL_SERVER_BIN"; do
+  [ -x "$b" ] || { echo "no $b: build the release binaries (scripts/serve.sh) or set DSRL_TRAIN/DSRL_SERVER_BIN" >&2; exit 1; }
+done
+# Every task and phase is checked before anything waits: an unknown name fails now, not hours later.
+"$admin" build --root "$root" --status "$@" > /dev/null
+for phase in "${phases[@]}"; do
+  "$admin" reference --list | grep -q "^$phase " || { echo "no phase $phase in data/reference/plan.toml" >&2; exit 2; }
+done
+mkdir -p "$log_dir"
+export DSRL_ADMIN=$admin DSRL_FULL_ROOT=$root
+# setsid: a new session, so a new autogroup; the child sets that autogroup's nice before it execs the loop.
+setsid bash -c 'echo 19 > /proc/self/autogroup 2>/dev/null || true; exec nice -n 19 "$0" --follow "$@"' \
+  "$self" "$@" >> "$log_dir/follow.log" 2>&1 < /dev/null &
+echo "following the builds in the background (pid $!); log: $log_dir/follow.log" >&2
