@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Follows the full builds with their reference entries: for each named task in turn, waits until its full build is
 # finished under the builds' root (${DSRL_FULL_ROOT:-~/.dsrl/full}, as `dsrl-admin build --status` says), then runs
-# `dsrl-admin reference <phases> --built-here --task <task>` (by default the phases `full` and `full-seeds` of
+# `dsrl-admin reference <phases> --task <task>` (by default the phases `full` and `full-seeds` of
 # data/reference/plan.toml: BC-All and BC-Safe, training seeds 0-2), which writes each scored entry into
 # data/reference/full_builds.jsonl. At the end it regenerates the documents (`dsrl-admin docs`). Like
 # scripts/full-builds.sh it runs in the background, in a session of its own at the lowest priority (its autogroup
@@ -37,7 +37,7 @@ sys.exit(0 if any(p["task"] == sys.argv[1] and p["state"] == "finished" for p in
     done
     echo "$(date -u +%FT%TZ) $task: reference phases ${phases[*]}"
     # One reference run at a time (flock): the phases share a private server in one state folder.
-    if ! flock "$log_dir/reference.lock" "$admin" reference "${phases[@]}" --built-here --full-builds "$root" --task "$task"; then
+    if ! flock "$log_dir/reference.lock" "$admin" reference "${phases[@]}" --full-builds "$root" --task "$task"; then
       echo "$(date -u +%FT%TZ) $task: the reference phases stopped with an error (above); run the script again to resume"
     fi
   done

@@ -85,7 +85,11 @@ p = next(p for p in json.load(sys.stdin) if p["task"] == sys.argv[1])
 print(p["done"], p["unit"], int((p.get("compute") or {}).get("cpu_seconds", 0)))' "$1"
 }
 # The unfinished builds a task's build starts from (its warm start's chain), which a trial would have to run whole.
-sources() { status "$1" | python3 -c 'import json, sys; print(" ".join(p["task"] for p in json.load(sys.stdin) if p["task"] != sys.argv[1]))' "$1"; }
+sources() {
+  status "$1" | python3 -c '
+import json, sys
+print(" ".join(p["task"] for p in json.load(sys.stdin) if p["task"] != sys.argv[1] and p["state"] != "finished"))' "$1"
+}
 
 # The build a task's recipe warm-starts from (its `[expert.warm_start]` task), or nothing.
 warm_source() {
