@@ -91,21 +91,15 @@ import json, sys
 print(" ".join(p["task"] for p in json.load(sys.stdin) if p["task"] != sys.argv[1] and p["state"] != "finished"))' "$1"
 }
 
-# The build a task's recipe warm-starts from (its `[expert.warm_start]` task), or nothing.
-warm_source() {
-  python3 -c '
-import sys, tomllib
-expert = tomllib.load(open(sys.argv[1], "rb")).get("expert", {})
-print(expert.get("warm_start", {}).get("task", ""))' "data/recipes/$1.toml"
-}
-
 for task in "${tasks[@]}"; do
-  # A warm start's source finished in the builds' own root is the one the real build would start from: the trial
-  # starts from it too (a link; the trial writes only into its own task's folder).
-  source_task=$(warm_source "$task")
-  if [ -n "$source_task" ] && [ -d "$root/$source_task" ] && [ ! -e "$trials/$source_task" ]; then
-    ln -s "$root/$source_task" "$trials/$source_task"
-  fi
+  # A warm start's source built in the builds' own root is the one the real build would start from: the trial
+  # starts from it too (a link; the trial writes only into its own task's folder, and a source still unfinished
+  # there is named below and not measured from).
+  for source_task in $(sources "$task"); do
+    if [ -d "$root/$source_task" ] && [ ! -e "$trials/$source_task" ]; then
+      ln -s "$root/$source_task" "$trials/$source_task"
+    fi
+  done
   from=$(sources "$task")
   if [ -n "$from" ]; then
     echo "$task starts from the finished build of $from: a trial would build that whole first; not measured" |

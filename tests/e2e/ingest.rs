@@ -500,7 +500,7 @@ fn an_upload_whose_conversion_outlasts_the_client_timeout_finishes_and_a_retry_c
     let env = Env::new();
     let task = "OfflineMetadrive-hardmean-v0";
     let file = env.path("big.parquet");
-    // 150 MetaDrive episodes (~150 MB): their conversion takes a few seconds on any machine here; 60 had taken
+    // 150 MetaDrive episodes: their conversion takes a few seconds on any machine here; 60 had taken
     // just under the 1 s timeout on an idle AVX-512 machine, and the test below needs the timeout to pass first.
     let made = dsrl_e2e::make_dataset(task, 150, 21, &file);
     let bytes = std::fs::read(&file).unwrap();
