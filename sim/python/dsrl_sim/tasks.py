@@ -33,31 +33,6 @@ def simulator_version(fam):
     return f"{package} {importlib.metadata.version(package)}"
 
 
-_skybox_patched = False
-
-
-def _patch_safety_gymnasium_skybox():
-    """Safety-Gymnasium rebuilds its MuJoCo model at every reset and decodes 24 MB of skybox PNGs each time; a
-    builtin gradient skybox gives bit-identical observations, rewards and costs (only rendered images differ) and
-    cuts a reset from ~1.4 s to ~15 ms."""
-    global _skybox_patched
-    if _skybox_patched:
-        return
-    import safety_gymnasium.world as world
-
-    load = world.yaml.load
-
-    def patched(stream, Loader=None):
-        data = load(stream, Loader=Loader)
-        if isinstance(data, dict) and "skybox" in data.get("textures", {}):
-            data["textures"]["skybox"] = {"@type": "skybox", "@builtin": "gradient", "@rgb1": "0.4 0.6 0.8",
-                                          "@rgb2": "0 0 0", "@width": "32", "@height": "32"}
-        return data
-
-    world.yaml.load = patched
-    _skybox_patched = True
-
-
 _NUMPY_DRAWS = ("uniform", "randint", "rand", "randn", "random", "random_sample", "normal", "choice", "shuffle",
                 "permutation")
 _PYTHON_DRAWS = ("uniform", "random", "randint", "randrange", "choice", "shuffle", "gauss", "sample")
@@ -103,7 +78,9 @@ class Env:
         elif self.family == SAFETY_GYMNASIUM:
             import safety_gymnasium
 
-            _patch_safety_gymnasium_skybox()
+            from . import speedups
+
+            speedups.apply_safety_gymnasium()
             self._env = safety_gymnasium.make(sim_id)
             self.max_episode_steps = self._env.spec.max_episode_steps
         else:

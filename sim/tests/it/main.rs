@@ -7,4 +7,5 @@ mod controller;
 mod determinism;
 mod render;
 mod smoke;
+mod speedups;
 mod support;
