@@ -13,7 +13,15 @@ speed-up may change (the skybox's). `bench/sim_speedups.py` measures what each o
    than the MuJoCo substep) and looks its mocap body up by name. The fast `move` computes the target once, with the
    same NumPy operations, and writes it into every gremlin's mocap row by an index cached per MuJoCo model (the
    model is rebuilt at each reset, and the cache with it).
+3. The layout. Every reset draws the objects' places by rejection sampling, and each candidate is tested against
+   every object placed so far with `np.sqrt(np.sum(np.square(xy - other)))`: three NumPy calls on 2-vectors, some
+   hundred thousand of them per Button reset. The fast `sample_layout` draws the same candidates in the same order
+   (`draw_placement`, the library's own) and tests them with the same IEEE operations on Python floats: an
+   element-wise difference, squares, the sum of two (NumPy adds a 2-vector's elements in order) and a correctly
+   rounded square root, against the threshold summed in the library's order.
 """
+import math
+
 import numpy as np
 
 _applied = False
@@ -28,6 +36,7 @@ def apply_safety_gymnasium():
         return
     import safety_gymnasium.world as world
     from safety_gymnasium.assets.mocaps import gremlins
+    from safety_gymnasium.utils import random_generator
 
     load = world.yaml.load
 
@@ -42,6 +51,9 @@ def apply_safety_gymnasium():
     _replaced.append((gremlins.Gremlins, "move", gremlins.Gremlins.move))
     # Looked up at each call, so a test can swap in a broken version and see `verify` catch it.
     gremlins.Gremlins.move = lambda self: _fast_gremlins_move(self)
+    _replaced.append((random_generator.RandomGenerator, "sample_layout",
+                      random_generator.RandomGenerator.sample_layout))
+    random_generator.RandomGenerator.sample_layout = lambda self: _fast_sample_layout(self)
     _applied = True
 
 
@@ -63,6 +75,31 @@ def _fast_gremlins_move(self):
     positions[rows, 2] = self.size
 
 
+def _fast_sample_layout(self):
+    """`RandomGenerator.sample_layout`: each object in turn, up to 100 candidates, the first one far enough from
+    every object placed before it; False (and no layout) when an object finds none."""
+    margin = self.placements_margin
+    layout = {}
+    # Per placed object: x, y and its keepout plus the margin (the library's threshold adds them first).
+    placed = []
+    for name, (placements, keepout) in self.placements.items():
+        for _ in range(100):
+            xy = self.draw_placement(placements, keepout)
+            x, y = float(xy[0]), float(xy[1])
+            for other_x, other_y, reach in placed:
+                dx, dy = x - other_x, y - other_y
+                if math.sqrt(dx * dx + dy * dy) < reach + keepout:
+                    break
+            else:
+                break
+        else:
+            return False
+        layout[name] = xy
+        placed.append((x, y, self.placements[name][1] + margin))
+    self.layout = layout
+    return True
+
+
 class _LibraryFunctions:
     """Within `with`: the library's own functions in place of the speed-ups."""
 
@@ -77,11 +114,12 @@ class _LibraryFunctions:
         return False
 
 
-def verify(sim_id, steps, seed=0):
+def verify(sim_id, steps, seed=0, episode_steps=None):
     """Plays `steps` steps of `sim_id` (episodes from seeds `seed`, `seed + 1`, ...; uniform random actions from a
-    generator seeded by `seed`) on two envs, stepping one with the library's functions and the other with the
-    speed-ups, and raises AssertionError at the first value that differs in any bit. -> the number of steps and
-    episodes compared."""
+    generator seeded by `seed`; each episode cut after `episode_steps` steps when given, so that a short check
+    crosses many resets) on two envs, stepping one with the library's functions and the other with the speed-ups,
+    and raises AssertionError at the first value that differs in any bit: outputs, the layout drawn at each reset,
+    the physics state after each step. -> the number of steps and episodes compared."""
     from . import tasks
 
     fast = tasks.make_env(sim_id)  # installs the speed-ups
@@ -93,9 +131,15 @@ def verify(sim_id, steps, seed=0):
         with _LibraryFunctions():
             expected = library.reset(episode)
         _same(sim_id, f"reset {episode}", expected, fast.reset(episode))
+        expected_layout, layout = _layout(library), _layout(fast)
+        if list(expected_layout) != list(layout):
+            raise AssertionError(f"{sim_id}: reset {episode}: the layouts place {list(layout)}, not "
+                                 f"{list(expected_layout)}")
+        for name in layout:
+            _same(sim_id, f"reset {episode} layout {name}", expected_layout[name], layout[name])
         episodes += 1
-        done = False
-        while not done and compared < steps:
+        done, played = False, 0
+        while not done and compared < steps and played != episode_steps:
             action = actions.uniform(-1.0, 1.0, fast.act_dim)
             with _LibraryFunctions():
                 expected = library.step(action)
@@ -109,6 +153,7 @@ def verify(sim_id, steps, seed=0):
                 _same(sim_id, f"episode {episode} step {compared} {what}", _physics(library, what),
                       _physics(fast, what))
             compared += 1
+            played += 1
             done = got[3] or got[4]
         episode += 1
     fast.close()
@@ -121,8 +166,17 @@ def verify(sim_id, steps, seed=0):
 _STATE = ("qpos", "qvel", "mocap_pos", "mocap_quat", "ctrl", "act", "time", "qacc_warmstart")
 
 
+def _layout(env):
+    """The places the env's last reset drew (none for a task without a layout)."""
+    info = getattr(getattr(env._env.unwrapped, "task", None), "world_info", None)
+    return dict(getattr(info, "layout", None) or {})
+
+
 def _physics(env, what):
-    return getattr(env._env.unwrapped.task.data, what)
+    """One field of the env's MuJoCo data (the navigation tasks' builder holds it in its task, the velocity tasks'
+    env itself)."""
+    unwrapped = env._env.unwrapped
+    return getattr(getattr(unwrapped, "task", unwrapped).data, what)
 
 
 def _same(sim_id, where, expected, got):

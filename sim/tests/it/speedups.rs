@@ -1,10 +1,12 @@
-//! The speed-ups the worker applies to the simulators' own Python (`sim/python/dsrl_sim/speedups.py`) change no
-//! episode: `speedups.verify` steps each Button task (the tasks with gremlins) with and without them and compares
-//! every output and the whole physics state bit for bit. A speed-up that is off in the last bit of one coordinate
-//! must be caught, so the comparison can fail.
+//! The speed-ups the worker applies to Safety-Gymnasium's own Python (`sim/python/dsrl_sim/speedups.py`) change no
+//! episode: `speedups.verify` steps every Safety-Gymnasium task of the catalog with and without them and compares
+//! the outputs, the layout each reset draws and the whole physics state, bit for bit. Speed-ups that are off in the
+//! last bit of one coordinate, or that draw another layout, must be caught, so the comparison can fail.
 
 use std::path::PathBuf;
 use std::process::Command;
+
+use dsrl_suite::catalog::{Catalog, Family};
 
 /// Runs `code` in the simulators' Python with `dsrl_sim` importable; -> (exit success, stdout + stderr).
 fn simulator_python(code: &str) -> (bool, String) {
@@ -29,21 +31,46 @@ fn simulator_python(code: &str) -> (bool, String) {
 }
 
 #[test]
-fn the_speedups_leave_every_button_task_bit_identical() {
+fn the_speedups_leave_every_safety_gymnasium_task_bit_identical() {
+    let catalog = Catalog::embedded().unwrap();
+    let tasks: Vec<String> = catalog
+        .tasks()
+        .iter()
+        .filter(|t| matches!(t.family, Family::SafetyGymNavigation | Family::SafetyGymVelocity))
+        .map(|t| format!("'{}'", t.simulator_env_id))
+        .collect();
+    assert_eq!(tasks.len(), 21);
+    // Episodes cut after 40 steps: at least five resets a task, each drawing a layout (the Button tasks' draw the most).
+    let (ok, out) = simulator_python(&format!(
+        "from dsrl_sim import speedups\n\
+         for task in [{}]:\n    \
+             steps, episodes = speedups.verify(task, 200, seed=7, episode_steps=40)\n    \
+             print(task, steps, episodes)\n",
+        tasks.join(", ")
+    ));
+    assert!(ok, "the speed-ups changed an episode:\n{out}");
+    // (A velocity task's episode may also end early, when its agent falls: more episodes, never fewer.)
+    let checked = out
+        .lines()
+        .filter(|l| {
+            let fields: Vec<&str> = l.split(' ').collect();
+            fields.len() == 3 && fields[1] == "200" && fields[2].parse::<u32>().is_ok_and(|e| e >= 5)
+        })
+        .count();
+    assert_eq!(checked, 21, "{out}");
+    // Whole Button episodes too: the gremlins move at every substep, and the cached mocap rows follow the model
+    // rebuilt at the reset after a full episode.
     let (ok, out) = simulator_python(
         "from dsrl_sim import speedups\n\
-         for task in ['SafetyPointButton1-v0', 'SafetyPointButton2-v0', 'SafetyCarButton1-v0', \
-         'SafetyCarButton2-v0']:\n    \
-             steps, episodes = speedups.verify(task, 1100, seed=7)\n    \
-             print(task, steps, episodes)\n",
+         for task in ['SafetyPointButton2-v0', 'SafetyCarButton1-v0']:\n    \
+             print(task, *speedups.verify(task, 1100, seed=3))\n",
     );
     assert!(ok, "the speed-ups changed an episode:\n{out}");
-    // 1,100 steps cross an episode's end (1,000 steps), so the cached mocap rows are rebuilt with the model.
-    assert_eq!(out.lines().filter(|l| l.ends_with(" 1100 2")).count(), 4, "{out}");
+    assert_eq!(out.lines().filter(|l| l.ends_with(" 1100 2")).count(), 2, "{out}");
 }
 
 #[test]
-fn a_speedup_off_in_the_last_bit_is_caught() {
+fn speedups_off_in_the_last_bit_are_caught() {
     let (ok, out) = simulator_python(
         "from dsrl_sim import speedups\n\
          fast = speedups._fast_gremlins_move\n\
@@ -58,4 +85,14 @@ fn a_speedup_off_in_the_last_bit_is_caught() {
         out.contains("AssertionError: SafetyPointButton1-v0: episode 0 step 0"),
         "{out}"
     );
+
+    // A layout test that compares squared distances (no square root) decides some candidates otherwise.
+    let (ok, out) = simulator_python(
+        "import math\n\
+         from dsrl_sim import speedups\n\
+         speedups.math = type('squared', (), {'sqrt': staticmethod(lambda x: x)})\n\
+         speedups.verify('SafetyPointGoal1-v0', 200, episode_steps=20)\n",
+    );
+    assert!(!ok, "a layout drawn with another distance went unnoticed:\n{out}");
+    assert!(out.contains("AssertionError: SafetyPointGoal1-v0: reset"), "{out}");
 }
