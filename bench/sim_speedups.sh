@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Benchmark: CPU microseconds per env step of the Safety-Gymnasium tasks the speed-ups touch (the Button tasks,
-# with gremlins) and one they do not (PointGoal2), with the library's own functions and with dsrl_sim's speed-ups,
+# Benchmark: CPU microseconds per env step of the Safety-Gymnasium tasks without a full build (the level-2 and Button
+# tasks, which the speed-ups touch most) and one they do not touch (HopperVelocity, a control for the measurement's
+# noise), with the library's own functions and with dsrl_sim's speed-ups,
 # side by side in one process (bench/sim_speedups.py). Prints a Markdown table (bench/out/sim_speedups.md, and into
 # BENCHMARKS.md at the default size).
 # Usage: bench/sim_speedups.sh [STEPS=2000] [ROUNDS=3]
@@ -18,7 +19,8 @@ out=bench/out/sim_speedups.md
   echo "| task | env steps (per block x blocks) | library's functions, CPU µs/step (median) | dsrl_sim's speed-ups, CPU µs/step (median) | speed-up | same episodes |"
   echo "|---|---|---|---|---|---|"
   PYTHONWARNINGS=ignore .venv-sim/bin/python bench/sim_speedups.py --steps "$steps" --rounds "$rounds" \
-    SafetyPointButton1-v0 SafetyPointButton2-v0 SafetyCarButton1-v0 SafetyCarButton2-v0 SafetyPointGoal2-v0
+    SafetyPointButton1-v0 SafetyPointButton2-v0 SafetyCarButton1-v0 SafetyCarButton2-v0 SafetyPointGoal2-v0 \
+    SafetyCarGoal2-v0 SafetyPointPush2-v0 SafetyCarPush1-v0 SafetyCarPush2-v0 SafetyHopperVelocity-v1
 } > "$out"
 cat "$out"
 if [ "$steps" = 2000 ] && [ "$rounds" = 3 ]; then bench_section sim_speedups.sh "$out"; fi

@@ -19,12 +19,22 @@ speed-up may change (the skybox's). `bench/sim_speedups.py` measures what each o
    (`draw_placement`, the library's own) and tests them with the same IEEE operations on Python floats: an
    element-wise difference, squares, the sum of two (NumPy adds a 2-vector's elements in order) and a correctly
    rounded square root, against the threshold summed in the library's order.
+4. Contact costs (vases, pillars, gremlins, buttons). After every step each of these walks the step's contacts (a
+   few dozen with the vases of a level-2 task) and looks both geoms' names up through MuJoCo's named accessor to
+   count the contacts between the agent and one of its geoms. The fast `cal_cost` counts the same contacts from the
+   contact arrays and a per-model list of geom names, then adds the cost once per counted contact, as the loop does
+   (the same additions in the same order). The vases' displacement and velocity costs stay the library's own.
+5. The pseudo-lidar (every observation: one lidar per observed kind of object, over each object's position).
+   The library reads the agent's position and rotation from MuJoCo once per object; they cannot change within an
+   observation, so the fast one reads them once per lidar and does the rest with the library's own operations.
 """
 import math
 
 import numpy as np
 
 _applied = False
+# The library's functions a speed-up still calls, by "Class.method".
+_library = {}
 # The library's functions the speed-ups replace, for `verify`: (owner, attribute name, the library's function).
 _replaced = []
 
@@ -35,7 +45,10 @@ def apply_safety_gymnasium():
     if _applied:
         return
     import safety_gymnasium.world as world
+    from safety_gymnasium.assets.free_geoms import vases
+    from safety_gymnasium.assets.geoms import buttons, pillars
     from safety_gymnasium.assets.mocaps import gremlins
+    from safety_gymnasium.bases import base_task
     from safety_gymnasium.utils import random_generator
 
     load = world.yaml.load
@@ -54,6 +67,14 @@ def apply_safety_gymnasium():
     _replaced.append((random_generator.RandomGenerator, "sample_layout",
                       random_generator.RandomGenerator.sample_layout))
     random_generator.RandomGenerator.sample_layout = lambda self: _fast_sample_layout(self)
+    for owner, fast in ((vases.Vases, _fast_vases_cost), (pillars.Pillars, _fast_pillars_cost),
+                        (gremlins.Gremlins, _fast_gremlins_cost), (buttons.Buttons, _fast_buttons_cost)):
+        _replaced.append((owner, "cal_cost", owner.cal_cost))
+        _library[owner.__name__ + ".cal_cost"] = owner.cal_cost
+        owner.cal_cost = fast
+    _replaced.append((base_task.BaseTask, "_obs_lidar_pseudo", base_task.BaseTask._obs_lidar_pseudo))
+    _library["BaseTask._obs_lidar_pseudo"] = base_task.BaseTask._obs_lidar_pseudo
+    base_task.BaseTask._obs_lidar_pseudo = lambda self, positions: _fast_lidar_pseudo(self, positions)
     _applied = True
 
 
@@ -100,6 +121,112 @@ def _fast_sample_layout(self):
     return True
 
 
+def _fast_lidar_pseudo(self, positions):
+    """`BaseTask._obs_lidar_pseudo`: per position, the egocentric XY vector (`_ego_xy`'s operations), its distance
+    and angle, the bin it falls in and, with aliasing, the two bins beside it, each keeping its largest reading."""
+    conf = self.lidar_conf
+    num_bins = conf.num_bins
+    obs = np.zeros(num_bins)
+    agent_3vec = self.agent.pos
+    agent_mat = self.agent.mat
+    for pos in np.array(positions, ndmin=2):
+        pos = np.asarray(pos)
+        if pos.shape == (3,):
+            pos = pos[:2]
+        assert pos.shape == (2,), f"Bad pos {pos}"
+        ego = np.matmul(np.concatenate([pos, [0]]) - agent_3vec, agent_mat)[:2]
+        z = complex(*ego)
+        dist = np.abs(z)
+        angle = np.angle(z) % (np.pi * 2)
+        bin_size = (np.pi * 2) / num_bins
+        bin = int(angle / bin_size)  # noqa: A001  (the library's name)
+        bin_angle = bin_size * bin
+        if conf.max_dist is None:
+            sensor = np.exp(-conf.exp_gain * dist)
+        else:
+            sensor = max(0, conf.max_dist - dist) / conf.max_dist
+        obs[bin] = max(obs[bin], sensor)
+        if conf.alias:
+            alias = (angle - bin_angle) / bin_size
+            assert 0 <= alias <= 1, f"bad alias {alias}, dist {dist}, angle {angle}, bin {bin}"
+            bin_plus = (bin + 1) % num_bins
+            bin_minus = (bin - 1) % num_bins
+            obs[bin_plus] = max(obs[bin_plus], alias * sensor)
+            obs[bin_minus] = max(obs[bin_minus], (1 - alias) * sensor)
+    return obs
+
+
+def _geom_names(obj):
+    """Each geom's name in the object's current MuJoCo model (cached per model: it is rebuilt at each reset)."""
+    model = obj.engine.model
+    cached = getattr(obj, "_dsrl_geom_names", None)
+    if cached is None or cached[0] is not model:
+        cached = (model, [model.geom(i).name for i in range(model.ngeom)])
+        obj._dsrl_geom_names = cached
+    return cached[1]
+
+
+def _agent_contacts(obj, prefix, exclude=None):
+    """How many of the current contacts the library's loops count: one geom's name starts with `prefix`, one geom
+    is the agent's, and neither is named `exclude`."""
+    data = obj.engine.data
+    ncon = data.ncon
+    if not ncon:
+        return 0
+    names = _geom_names(obj)
+    agent = obj.agent.body_info.geom_names
+    contacts = data.contact
+    counted = 0
+    for a, b in zip(contacts.geom1[:ncon].tolist(), contacts.geom2[:ncon].tolist()):
+        first, second = names[a], names[b]
+        if ((first.startswith(prefix) or second.startswith(prefix)) and (first in agent or second in agent)
+                and first != exclude and second != exclude):
+            counted += 1
+    return counted
+
+
+def _added(cost, times):
+    """0 plus `cost`, `times` times over: the loop's float additions, in its order."""
+    total = 0
+    for _ in range(times):
+        total += cost
+    return total
+
+
+def _fast_pillars_cost(self):
+    if not self.is_constrained:
+        return {}
+    return {"cost_pillars": _added(self.cost, _agent_contacts(self, "pillar"))}
+
+
+def _fast_gremlins_cost(self):
+    if not self.is_constrained:
+        return {}
+    return {"cost_gremlins": _added(self.contact_cost, _agent_contacts(self, "gremlin"))}
+
+
+def _fast_buttons_cost(self):
+    assert self.goal_button is not None, "Please make sure this method can get information about goal button."
+    if not self.is_constrained or self.timer != 0:
+        return {}
+    touched = _agent_contacts(self, "button", exclude=f"button{self.goal_button}")
+    return {"cost_buttons": _added(self.cost, touched)}
+
+
+def _fast_vases_cost(self):
+    """The library's own `cal_cost` with its contact loop switched off (a zero contact cost skips it, leaving the
+    key at 0 in its place among the keys), then the contact cost counted here."""
+    contact_cost = self.contact_cost
+    self.contact_cost = 0
+    try:
+        cost = _library["Vases.cal_cost"](self)
+    finally:
+        self.contact_cost = contact_cost
+    if contact_cost and "cost_vases_contact" in cost:
+        cost["cost_vases_contact"] = _added(contact_cost, _agent_contacts(self, "vase"))
+    return cost
+
+
 class _LibraryFunctions:
     """Within `with`: the library's own functions in place of the speed-ups."""
 
@@ -115,18 +242,21 @@ class _LibraryFunctions:
 
 
 def verify(sim_id, steps, seed=0, episode_steps=None):
-    """Plays `steps` steps of `sim_id` (episodes from seeds `seed`, `seed + 1`, ...; uniform random actions from a
-    generator seeded by `seed`; each episode cut after `episode_steps` steps when given, so that a short check
-    crosses many resets) on two envs, stepping one with the library's functions and the other with the speed-ups,
-    and raises AssertionError at the first value that differs in any bit: outputs, the layout drawn at each reset,
-    the physics state after each step. -> the number of steps and episodes compared."""
+    """Plays `steps` steps of `sim_id` (episodes from seeds `seed`, `seed + 1`, ...; each episode cut after
+    `episode_steps` steps when given, so that a short check crosses many resets) on two envs, stepping one with the
+    library's functions and the other with the speed-ups, and raises AssertionError at the first value that differs
+    in any bit: outputs, the layout drawn at each reset, the physics state after each step, and the replaced
+    readings (contact costs, lidar) against the library's on the sped-up env's state. Each episode heads one
+    way (an action drawn uniformly at its start, held with Gaussian noise of 0.3, clipped; a generator seeded by
+    `seed`): uniform noise alone keeps the agent near its start, where the obstacles' contact costs go unchecked.
+    -> the number of steps, episodes and steps with a cost compared."""
     from . import tasks
 
     fast = tasks.make_env(sim_id)  # installs the speed-ups
     with _LibraryFunctions():
         library = tasks.make_env(sim_id)
     actions = np.random.default_rng(seed)
-    episode, compared, episodes = seed, 0, 0
+    episode, compared, episodes, costly = seed, 0, 0, 0
     while compared < steps:
         with _LibraryFunctions():
             expected = library.reset(episode)
@@ -139,8 +269,9 @@ def verify(sim_id, steps, seed=0, episode_steps=None):
             _same(sim_id, f"reset {episode} layout {name}", expected_layout[name], layout[name])
         episodes += 1
         done, played = False, 0
+        heading = actions.uniform(-1.0, 1.0, fast.act_dim)
         while not done and compared < steps and played != episode_steps:
-            action = actions.uniform(-1.0, 1.0, fast.act_dim)
+            action = np.clip(heading + actions.normal(0.0, 0.3, fast.act_dim), -1.0, 1.0)
             with _LibraryFunctions():
                 expected = library.step(action)
             got = fast.step(action)
@@ -152,18 +283,37 @@ def verify(sim_id, steps, seed=0, episode_steps=None):
             for what in _STATE:
                 _same(sim_id, f"episode {episode} step {compared} {what}", _physics(library, what),
                       _physics(fast, what))
+            _same_readings(sim_id, f"episode {episode} step {compared}", fast)
             compared += 1
             played += 1
+            costly += got[2] > 0
             done = got[3] or got[4]
         episode += 1
     fast.close()
     library.close()
-    return compared, episodes
+    return compared, episodes, int(costly)
 
 
 # What MuJoCo carries from one substep to the next: positions, velocities, the mocap targets, controls, actuator
 # states, the simulated time and the solver's warm start.
 _STATE = ("qpos", "qvel", "mocap_pos", "mocap_quat", "ctrl", "act", "time", "qacc_warmstart")
+
+
+def _same_readings(sim_id, where, env):
+    """The replaced readings against the library's, on the env's state as it is: each obstacle's contact cost (the
+    count itself, which the tasks' indicator costs hide) and lidar (in float64, before the observation's float32)."""
+    task = getattr(env._env.unwrapped, "task", None)
+    for obstacle in getattr(task, "_obstacles", []):
+        library = _library.get(type(obstacle).__name__ + ".cal_cost")
+        if library is not None:
+            expected, got = library(obstacle), type(obstacle).cal_cost(obstacle)
+            if list(expected.items()) != list(got.items()):
+                raise AssertionError(f"{sim_id}: {where}: {type(obstacle).__name__} cost: the speed-ups give {got}, "
+                                     f"the library {expected}")
+        if getattr(obstacle, "is_lidar_observed", False) and task.lidar_conf.type == "pseudo":
+            positions = obstacle.pos
+            _same(sim_id, f"{where} {obstacle.name} lidar", _library["BaseTask._obs_lidar_pseudo"](task, positions),
+                  task._obs_lidar_pseudo(positions))
 
 
 def _layout(env):

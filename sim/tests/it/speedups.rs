@@ -1,7 +1,8 @@
 //! The speed-ups the worker applies to Safety-Gymnasium's own Python (`sim/python/dsrl_sim/speedups.py`) change no
 //! episode: `speedups.verify` steps every Safety-Gymnasium task of the catalog with and without them and compares
-//! the outputs, the layout each reset draws and the whole physics state, bit for bit. Speed-ups that are off in the
-//! last bit of one coordinate, or that draw another layout, must be caught, so the comparison can fail.
+//! the outputs, the layout each reset draws, the whole physics state and the replaced readings (contact costs, lidar),
+//! bit for bit. Speed-ups that are off in the last bit of one coordinate or one lidar reading, draw another layout or
+//! miss a contact must be caught, so the comparison can fail.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -40,11 +41,12 @@ fn the_speedups_leave_every_safety_gymnasium_task_bit_identical() {
         .map(|t| format!("'{}'", t.simulator_env_id))
         .collect();
     assert_eq!(tasks.len(), 21);
-    // Episodes cut after 40 steps: at least five resets a task, each drawing a layout (the Button tasks' draw the most).
+    // Episodes cut after 40 steps: at least five resets a task, each drawing a layout (the Button tasks' draw the
+    // most).
     let (ok, out) = simulator_python(&format!(
         "from dsrl_sim import speedups\n\
          for task in [{}]:\n    \
-             steps, episodes = speedups.verify(task, 200, seed=7, episode_steps=40)\n    \
+             steps, episodes, _ = speedups.verify(task, 200, seed=7, episode_steps=40)\n    \
              print(task, steps, episodes)\n",
         tasks.join(", ")
     ));
@@ -66,11 +68,33 @@ fn the_speedups_leave_every_safety_gymnasium_task_bit_identical() {
              print(task, *speedups.verify(task, 1100, seed=3))\n",
     );
     assert!(ok, "the speed-ups changed an episode:\n{out}");
-    assert_eq!(out.lines().filter(|l| l.ends_with(" 1100 2")).count(), 2, "{out}");
+    assert_eq!(
+        out.lines().filter(|l| l.split(' ').nth(1) == Some("1100")).count(),
+        2,
+        "{out}"
+    );
+    // Episodes that run into the obstacles: these (task, seed) pairs touch pillars, vases, gremlins and buttons
+    // (the test below shows that each pair's contacts reach its cost).
+    let (ok, out) = simulator_python(&format!(
+        "from dsrl_sim import speedups\n\
+         for task, seed, _ in [{CONTACTS}]:\n    \
+             print(task, *speedups.verify(task, 1200, seed=seed, episode_steps=300))\n"
+    ));
+    assert!(ok, "the speed-ups changed an episode:\n{out}");
+    assert_eq!(
+        out.lines().filter(|l| l.split(' ').nth(1) == Some("1200")).count(),
+        4,
+        "{out}"
+    );
 }
 
+/// (simulator id, seed, geom prefix): `verify(id, 1200, seed=seed, episode_steps=300)` has the agent touch a geom
+/// whose name starts with the prefix.
+const CONTACTS: &str = "('SafetyPointPush2-v0', 0, 'pillar'), ('SafetyCarGoal2-v0', 1, 'vase'), \
+                        ('SafetyPointButton1-v0', 0, 'gremlin'), ('SafetyCarButton2-v0', 1, 'button')";
+
 #[test]
-fn speedups_off_in_the_last_bit_are_caught() {
+fn speedups_off_in_one_bit_a_layout_or_a_contact_are_caught() {
     let (ok, out) = simulator_python(
         "from dsrl_sim import speedups\n\
          fast = speedups._fast_gremlins_move\n\
@@ -95,4 +119,40 @@ fn speedups_off_in_the_last_bit_are_caught() {
     );
     assert!(!ok, "a layout drawn with another distance went unnoticed:\n{out}");
     assert!(out.contains("AssertionError: SafetyPointGoal1-v0: reset"), "{out}");
+
+    // A lidar reading one ulp off: caught in float64, where `verify` compares the lidar itself (an observation is
+    // float32 and would mostly hide it).
+    let (ok, out) = simulator_python(
+        "from dsrl_sim import speedups\n\
+         lidar = speedups._fast_lidar_pseudo\n\
+         speedups._fast_lidar_pseudo = lambda task, positions: lidar(task, positions) * (1 + 2**-52)\n\
+         speedups.verify('SafetyPointGoal1-v0', 50)\n",
+    );
+    assert!(!ok, "a lidar reading one ulp off went unnoticed:\n{out}");
+    assert!(
+        out.contains("AssertionError: SafetyPointGoal1-v0: episode 0 step 0 goal lidar"),
+        "{out}"
+    );
+
+    // Contacts not counted: caught in each (task, seed) pair above, once per kind of obstacle, so those runs do
+    // touch every kind (in the step's cost, or first in the obstacle's own cost, which `verify` compares too: the
+    // tasks report costs as indicators, which hide a count that is off but not zero).
+    let (ok, out) = simulator_python(&format!(
+        "from dsrl_sim import speedups\n\
+         count = speedups._agent_contacts\n\
+         for task, seed, missed in [{CONTACTS}]:\n    \
+             speedups._agent_contacts = lambda obj, prefix, exclude=None: \
+         0 if prefix == missed else count(obj, prefix, exclude)\n    \
+             try:\n        \
+                 speedups.verify(task, 1200, seed=seed, episode_steps=300)\n        \
+                 print(task, missed, 'not caught')\n    \
+             except AssertionError as e:\n        \
+                 print(task, missed, 'caught:', str(e)[:100])\n"
+    ));
+    assert!(ok, "{out}");
+    let caught = out
+        .lines()
+        .filter(|l| l.contains(" caught: ") && l.contains("cost: the speed-ups give"))
+        .count();
+    assert_eq!(caught, 4, "missed contacts went unnoticed:\n{out}");
 }
