@@ -4,7 +4,9 @@ Each replaces one library function with one that computes the same numbers in fe
 changes an observation, reward, cost or episode end: `verify` plays a task's episodes twice side by side, once
 with the library's functions and once with these, and compares every value bit for bit (sim/tests/it/speedups.rs
 runs it, and checks that it catches a speed-up that is off in the last bit). Rendered images are the one output a
-speed-up may change (the skybox's). `bench/sim_speedups.py` measures what each one saves.
+speed-up may change (the skybox's). `bench/sim_speedups.py` measures what each one saves. They replace the library's
+classes' methods for the whole process, so a Safety-Gymnasium env made directly in the same process (beside the
+Python package's envs) steps with them too, to the same numbers.
 
 1. The skybox. Safety-Gymnasium rebuilds its MuJoCo model at every reset and decodes 24 MB of skybox PNGs each
    time; a builtin gradient skybox cuts a reset from ~1.4 s to ~15 ms. The skybox is only drawn, never simulated.
