@@ -53,14 +53,14 @@ def main():
         if tasks.family(task) != tasks.SAFETY_GYMNASIUM:
             parser.error(f"{task}: the speed-ups are Safety-Gymnasium's")
         fast = Player(tasks.make_env(task))
-        with speedups._LibraryFunctions():
+        with speedups.LibraryFunctions():
             library = Player(tasks.make_env(task))
         library_s, fast_s = [], []
         for round in range(args.rounds):
             # Each side goes first in every other round, so neither always finds the caches the other left.
             for side in ((0, 1) if round % 2 == 0 else (1, 0)):
                 if side == 0:
-                    with speedups._LibraryFunctions():
+                    with speedups.LibraryFunctions():
                         seconds, expected = library.play(args.steps)
                     library_s.append(seconds)
                 else:

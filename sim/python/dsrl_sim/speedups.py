@@ -229,7 +229,7 @@ def _fast_vases_cost(self):
     return cost
 
 
-class _LibraryFunctions:
+class LibraryFunctions:
     """Within `with`: the library's own functions in place of the speed-ups."""
 
     def __enter__(self):
@@ -255,12 +255,12 @@ def verify(sim_id, steps, seed=0, episode_steps=None):
     from . import tasks
 
     fast = tasks.make_env(sim_id)  # installs the speed-ups
-    with _LibraryFunctions():
+    with LibraryFunctions():
         library = tasks.make_env(sim_id)
     actions = np.random.default_rng(seed)
     episode, compared, episodes, costly = seed, 0, 0, 0
     while compared < steps:
-        with _LibraryFunctions():
+        with LibraryFunctions():
             expected = library.reset(episode)
         _same(sim_id, f"reset {episode}", expected, fast.reset(episode))
         expected_layout, layout = _layout(library), _layout(fast)
@@ -274,7 +274,7 @@ def verify(sim_id, steps, seed=0, episode_steps=None):
         heading = actions.uniform(-1.0, 1.0, fast.act_dim)
         while not done and compared < steps and played != episode_steps:
             action = np.clip(heading + actions.normal(0.0, 0.3, fast.act_dim), -1.0, 1.0)
-            with _LibraryFunctions():
+            with LibraryFunctions():
                 expected = library.step(action)
             got = fast.step(action)
             for what, a, b in zip(("observation", "reward", "cost", "terminated", "truncated", "action"), expected,
