@@ -55,8 +55,11 @@ for b in "$DSRL_TRAIN" "$DSRL_SERVER_BIN"; do
 done
 # Every task and phase is checked before anything waits: an unknown name fails now, not hours later.
 "$admin" build --root "$root" --status "$@" > /dev/null
+# The list is read whole first: `grep -q` in the pipe would stop reading at its match, and under pipefail the
+# writer's broken pipe would fail the check now and then.
+known=$("$admin" reference --list)
 for phase in "${phases[@]}"; do
-  "$admin" reference --list | grep -q "^$phase " || { echo "no phase $phase in data/reference/plan.toml" >&2; exit 2; }
+  grep -q "^$phase " <<< "$known" || { echo "no phase $phase in data/reference/plan.toml" >&2; exit 2; }
 done
 mkdir -p "$log_dir"
 export DSRL_ADMIN=$admin DSRL_FULL_ROOT=$root
