@@ -35,10 +35,19 @@ import math
 import numpy as np
 
 _applied = False
-# The library's functions a speed-up still calls, by "Class.method".
-_library = {}
-# The library's functions the speed-ups replace, for `verify`: (owner, attribute name, the library's function).
-_replaced = []
+# The library's functions the speed-ups replace, by "Class.method": (owner, method name, the library's function). A
+# speed-up that still calls its library function and `verify` read them here.
+_replaced = {}
+
+
+def _replace(owner, name, fast):
+    _replaced[f"{owner.__name__}.{name}"] = (owner, name, getattr(owner, name))
+    setattr(owner, name, fast)
+
+
+def _library(key):
+    """The library's own function for "Class.method"."""
+    return _replaced[key][2]
 
 
 def apply_safety_gymnasium():
@@ -63,20 +72,14 @@ def apply_safety_gymnasium():
         return data
 
     world.yaml.load = gradient_skybox
-    _replaced.append((gremlins.Gremlins, "move", gremlins.Gremlins.move))
-    # Looked up at each call, so a test can swap in a broken version and see `verify` catch it.
-    gremlins.Gremlins.move = lambda self: _fast_gremlins_move(self)
-    _replaced.append((random_generator.RandomGenerator, "sample_layout",
-                      random_generator.RandomGenerator.sample_layout))
-    random_generator.RandomGenerator.sample_layout = lambda self: _fast_sample_layout(self)
+    # The lambdas look the fast function up at each call, so a test can swap in a broken version and see `verify`
+    # catch it (the contact costs' own helper, `_agent_contacts`, is looked up the same way).
+    _replace(gremlins.Gremlins, "move", lambda self: _fast_gremlins_move(self))
+    _replace(random_generator.RandomGenerator, "sample_layout", lambda self: _fast_sample_layout(self))
+    _replace(base_task.BaseTask, "_obs_lidar_pseudo", lambda self, positions: _fast_lidar_pseudo(self, positions))
     for owner, fast in ((vases.Vases, _fast_vases_cost), (pillars.Pillars, _fast_pillars_cost),
                         (gremlins.Gremlins, _fast_gremlins_cost), (buttons.Buttons, _fast_buttons_cost)):
-        _replaced.append((owner, "cal_cost", owner.cal_cost))
-        _library[owner.__name__ + ".cal_cost"] = owner.cal_cost
-        owner.cal_cost = fast
-    _replaced.append((base_task.BaseTask, "_obs_lidar_pseudo", base_task.BaseTask._obs_lidar_pseudo))
-    _library["BaseTask._obs_lidar_pseudo"] = base_task.BaseTask._obs_lidar_pseudo
-    base_task.BaseTask._obs_lidar_pseudo = lambda self, positions: _fast_lidar_pseudo(self, positions)
+        _replace(owner, "cal_cost", fast)
     _applied = True
 
 
@@ -84,7 +87,8 @@ def _fast_gremlins_move(self):
     """`Gremlins.move` with the same arithmetic: target = [sin t, cos t] * travel, then (target, size) for every
     gremlin's mocap position."""
     engine = self.engine
-    target = np.array([np.sin(float(engine.data.time)), np.cos(float(engine.data.time))]) * self.travel
+    phase = float(engine.data.time)
+    target = np.array([np.sin(phase), np.cos(phase)]) * self.travel
     model = engine.model
     cached = getattr(self, "_dsrl_mocap_rows", None)
     if cached is None or cached[0] is not model:
@@ -131,6 +135,7 @@ def _fast_lidar_pseudo(self, positions):
     obs = np.zeros(num_bins)
     agent_3vec = self.agent.pos
     agent_mat = self.agent.mat
+    bin_size = (np.pi * 2) / num_bins
     for pos in np.array(positions, ndmin=2):
         pos = np.asarray(pos)
         if pos.shape == (3,):
@@ -140,7 +145,6 @@ def _fast_lidar_pseudo(self, positions):
         z = complex(*ego)
         dist = np.abs(z)
         angle = np.angle(z) % (np.pi * 2)
-        bin_size = (np.pi * 2) / num_bins
         bin = int(angle / bin_size)  # noqa: A001  (the library's name)
         bin_angle = bin_size * bin
         if conf.max_dist is None:
@@ -221,7 +225,7 @@ def _fast_vases_cost(self):
     contact_cost = self.contact_cost
     self.contact_cost = 0
     try:
-        cost = _library["Vases.cal_cost"](self)
+        cost = _library("Vases.cal_cost")(self)
     finally:
         self.contact_cost = contact_cost
     if contact_cost and "cost_vases_contact" in cost:
@@ -233,8 +237,8 @@ class LibraryFunctions:
     """Within `with`: the library's own functions in place of the speed-ups."""
 
     def __enter__(self):
-        self.fast = [(owner, name, getattr(owner, name)) for owner, name, _ in _replaced]
-        for owner, name, original in _replaced:
+        self.fast = [(owner, name, getattr(owner, name)) for owner, name, _ in _replaced.values()]
+        for owner, name, original in _replaced.values():
             setattr(owner, name, original)
 
     def __exit__(self, *exc):
@@ -306,15 +310,15 @@ def _same_readings(sim_id, where, env):
     count itself, which the tasks' indicator costs hide) and lidar (in float64, before the observation's float32)."""
     task = getattr(env._env.unwrapped, "task", None)
     for obstacle in getattr(task, "_obstacles", []):
-        library = _library.get(type(obstacle).__name__ + ".cal_cost")
-        if library is not None:
-            expected, got = library(obstacle), type(obstacle).cal_cost(obstacle)
+        replaced = _replaced.get(type(obstacle).__name__ + ".cal_cost")
+        if replaced is not None:
+            expected, got = replaced[2](obstacle), type(obstacle).cal_cost(obstacle)
             if list(expected.items()) != list(got.items()):
                 raise AssertionError(f"{sim_id}: {where}: {type(obstacle).__name__} cost: the speed-ups give {got}, "
                                      f"the library {expected}")
         if getattr(obstacle, "is_lidar_observed", False) and task.lidar_conf.type == "pseudo":
             positions = obstacle.pos
-            _same(sim_id, f"{where} {obstacle.name} lidar", _library["BaseTask._obs_lidar_pseudo"](task, positions),
+            _same(sim_id, f"{where} {obstacle.name} lidar", _library("BaseTask._obs_lidar_pseudo")(task, positions),
                   task._obs_lidar_pseudo(positions))
 
 
