@@ -1,5 +1,5 @@
-"""Benchmark: CPU time per env step of Safety-Gymnasium tasks with the library's own functions and with dsrl_sim's
-speed-ups (sim/python/dsrl_sim/speedups.py), side by side in one process: the same seeds and uniform random
+"""Benchmark: CPU time per env step of Safety-Gymnasium and Bullet-Safety-Gym tasks with the library's own functions
+and with dsrl_sim's speed-ups (sim/python/dsrl_sim/speedups.py), side by side in one process: the same seeds and uniform random
 actions, the two envs stepped in alternating blocks (each side first in every other round) so that both see the same
 machine. Each block is checked as it
 is timed: the two envs' outputs must agree bit for bit (`speedups.verify` is the full check, with the physics
@@ -43,15 +43,15 @@ class Player:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("tasks", nargs="+", help="Safety-Gymnasium simulator ids (SafetyPointButton1-v0, ...)")
+    parser.add_argument("tasks", nargs="+", help="Safety-Gymnasium or Bullet-Safety-Gym simulator ids (SafetyPointButton1-v0, ...)")
     parser.add_argument("--steps", type=int, default=2000, help="env steps per block (default 2000)")
     parser.add_argument("--rounds", type=int, default=3, help="blocks per side (default 3); the median is shown")
     args = parser.parse_args()
     if args.steps < 1 or args.rounds < 1:
         parser.error("--steps and --rounds must be at least 1")
     for task in args.tasks:
-        if tasks.family(task) != tasks.SAFETY_GYMNASIUM:
-            parser.error(f"{task}: the speed-ups are Safety-Gymnasium's")
+        if tasks.family(task) not in (tasks.SAFETY_GYMNASIUM, tasks.BULLET):
+            parser.error(f"{task}: the speed-ups are Safety-Gymnasium's and Bullet-Safety-Gym's")
         fast = Player(tasks.make_env(task))
         with speedups.LibraryFunctions():
             library = Player(tasks.make_env(task))

@@ -1,4 +1,4 @@
-"""Faster versions of the pinned simulators' own Python, applied when the first Safety-Gymnasium env is made.
+"""Faster versions of the pinned simulators' own Python, applied when the first env of a family is made.
 
 Each replaces one library function with one that computes the same numbers in fewer Python and NumPy calls. None
 changes an observation, reward, cost or episode end: `verify` plays a task's episodes twice side by side, once
@@ -29,12 +29,25 @@ Python package's envs) steps with them too, to the same numbers.
 5. The pseudo-lidar (every observation: one lidar per observed kind of object, over each object's position).
    The library reads the agent's position and rotation from MuJoCo once per object; they cannot change within an
    observation, so the fast one reads them once per lidar and does the rest with the library's own operations.
+
+Bullet-Safety-Gym (applied when the first Bullet env is made; its physics, pybullet's `stepSimulation`, is a third
+of a BallCircle step, its own Python the rest):
+
+6. The client's function lookup. pybullet_utils' `BulletClient` finds every pybullet function through
+   `__getattr__` at each call: a module lookup, `inspect.isbuiltin` and a new `functools.partial` binding the client
+   id, a dozen times a step. The fast `__getattr__` does the same once per name and keeps the partial on the client
+   (the same function with the same client id), except `disconnect`, which changes the id and drops the kept ones.
+7. A body's and a link's `get_state` (nine times a BallCircle step): `np.concatenate` over four tuples of floats
+   becomes one `np.array` over their concatenation, the same twelve float64 values.
+8. An agent's action clip: `np.clip` becomes `np.minimum(np.maximum(...))`, the same values for the finite actions
+   the library asserts (`np.clip`'s own checks cost more than the two ufuncs).
 """
+import functools
 import math
 
 import numpy as np
 
-_applied = False
+_applied = set()
 # The library's functions the speed-ups replace, by "Class.method": (owner, method name, the library's function). A
 # speed-up that still calls its library function and `verify` read them here.
 _replaced = {}
@@ -52,8 +65,7 @@ def _library(key):
 
 def apply_safety_gymnasium():
     """Installs the Safety-Gymnasium speed-ups (once per process)."""
-    global _applied
-    if _applied:
+    if "safety-gymnasium" in _applied:
         return
     import safety_gymnasium.world as world
     from safety_gymnasium.assets.free_geoms import vases
@@ -80,7 +92,61 @@ def apply_safety_gymnasium():
     for owner, fast in ((vases.Vases, _fast_vases_cost), (pillars.Pillars, _fast_pillars_cost),
                         (gremlins.Gremlins, _fast_gremlins_cost), (buttons.Buttons, _fast_buttons_cost)):
         _replace(owner, "cal_cost", fast)
-    _applied = True
+    _applied.add("safety-gymnasium")
+
+
+def apply_bullet_safety_gym():
+    """Installs the Bullet-Safety-Gym speed-ups (once per process)."""
+    if "bullet-safety-gym" in _applied:
+        return
+    from bullet_safety_gym.envs import bases
+    from pybullet_utils import bullet_client
+
+    _replace(bullet_client.BulletClient, "__getattr__", lambda self, name: _fast_client_getattr(self, name))
+    _replace(bases.Body, "get_state", lambda self: _fast_body_state(self))
+    _replace(bases.Link, "get_state", lambda self: _fast_link_state(self))
+    _replace(bases.Agent, "apply_action", lambda self, action: _fast_agent_clip(self, action))
+    _applied.add("bullet-safety-gym")
+
+
+def _fast_client_getattr(self, name):
+    """`BulletClient.__getattr__`, keeping what it finds: Python calls `__getattr__` only for a name the client's
+    own attributes lack, so a kept partial answers every later lookup directly."""
+    attribute = _library("BulletClient.__getattr__")(self, name)
+    if name == "disconnect":
+        for kept in [k for k, v in vars(self).items() if isinstance(v, functools.partial)]:
+            del self.__dict__[kept]
+    elif isinstance(attribute, functools.partial):
+        self.__dict__[name] = attribute
+    return attribute
+
+
+def _fast_body_state(self):
+    """`Body.get_state`: base position, base velocity, Euler angles, angular velocity."""
+    import pybullet
+
+    xyz, abcd = self.bc.getBasePositionAndOrientation(self.body_id)
+    xyz_dot, rpy_dot = self.bc.getBaseVelocity(self.body_id)
+    return np.array(xyz + xyz_dot + pybullet.getEulerFromQuaternion(abcd) + rpy_dot)
+
+
+def _fast_link_state(self):
+    """`Link.get_state`: the base's state for link -1, the link's world state otherwise."""
+    import pybullet
+
+    if self.index == -1:
+        xyz, abcd = self.bc.getBasePositionAndOrientation(self.body_id)
+        xyz_dot, rpy_dot = self.bc.getBaseVelocity(self.body_id)
+    else:
+        xyz, abcd, _, _, _, _, xyz_dot, rpy_dot = self.bc.getLinkState(self.body_id, self.index,
+                                                                      computeLinkVelocity=1)
+    return np.array(xyz + xyz_dot + pybullet.getEulerFromQuaternion(abcd) + rpy_dot)
+
+
+def _fast_agent_clip(self, action):
+    """`Agent.apply_action` (the base class's: check, then clip into [-1, 1])."""
+    assert np.isfinite(action).all()
+    return np.minimum(np.maximum(action, -1.0), 1.0)
 
 
 def _fast_gremlins_move(self):
@@ -251,13 +317,15 @@ def verify(sim_id, steps, seed=0, episode_steps=None):
     """Plays `steps` steps of `sim_id` (episodes from seeds `seed`, `seed + 1`, ...; each episode cut after
     `episode_steps` steps when given, so that a short check crosses many resets) on two envs, stepping one with the
     library's functions and the other with the speed-ups, and raises AssertionError at the first value that differs
-    in any bit: outputs, the layout drawn at each reset, the physics state after each step, and the replaced
-    readings (contact costs, lidar) against the library's on the sped-up env's state. Each episode heads one
+    in any bit: outputs, the layout drawn at each reset, the physics state after each step (MuJoCo's data, or every
+    pybullet body's), and the replaced readings (contact costs, lidar, Bullet's `get_state`s) against the
+    library's on the sped-up env's state. Each episode heads one
     way (an action drawn uniformly at its start, held with Gaussian noise of 0.3, clipped; a generator seeded by
     `seed`): uniform noise alone keeps the agent near its start, where the obstacles' contact costs go unchecked.
     -> the number of steps, episodes and steps with a cost compared."""
     from . import tasks
 
+    bullet = tasks.family(sim_id) == tasks.BULLET
     fast = tasks.make_env(sim_id)  # installs the speed-ups
     with LibraryFunctions():
         library = tasks.make_env(sim_id)
@@ -286,10 +354,16 @@ def verify(sim_id, steps, seed=0, episode_steps=None):
                 _same(sim_id, f"episode {episode} step {compared} {what}", a, b)
             # The whole physics state too: a difference can stay out of the observations for many steps (the
             # lidar bins positions) and still change a later episode.
-            for what in _STATE:
-                _same(sim_id, f"episode {episode} step {compared} {what}", _physics(library, what),
-                      _physics(fast, what))
-            _same_readings(sim_id, f"episode {episode} step {compared}", fast)
+            if bullet:
+                with LibraryFunctions():
+                    expected = _bullet_physics(library)
+                _same(sim_id, f"episode {episode} step {compared} physics", expected, _bullet_physics(fast))
+                _same_bullet_readings(sim_id, f"episode {episode} step {compared}", fast)
+            else:
+                for what in _STATE:
+                    _same(sim_id, f"episode {episode} step {compared} {what}", _physics(library, what),
+                          _physics(fast, what))
+                _same_readings(sim_id, f"episode {episode} step {compared}", fast)
             compared += 1
             played += 1
             costly += got[2] > 0
@@ -320,6 +394,29 @@ def _same_readings(sim_id, where, env):
             positions = obstacle.pos
             _same(sim_id, f"{where} {obstacle.name} lidar", _library("BaseTask._obs_lidar_pseudo")(task, positions),
                   task._obs_lidar_pseudo(positions))
+
+
+def _bullet_physics(env):
+    """pybullet's state of every body: base position, orientation and velocities, and each joint's position,
+    velocity and applied torque."""
+    bc = env._env.unwrapped.bc
+    values = []
+    for i in range(bc.getNumBodies()):
+        body = bc.getBodyUniqueId(i)
+        for part in bc.getBasePositionAndOrientation(body) + bc.getBaseVelocity(body):
+            values.extend(part)
+        for joint in range(bc.getNumJoints(body)):
+            position, velocity, _, torque = bc.getJointState(body, joint)
+            values.extend((position, velocity, torque))
+    return np.array(values)
+
+
+def _same_bullet_readings(sim_id, where, env):
+    """The replaced `get_state`s against the library's on the env's state as it is: the agent's body and its links."""
+    agent = env._env.unwrapped.agent
+    _same(sim_id, f"{where} agent state", _library("Body.get_state")(agent), agent.get_state())
+    for link in agent.link_list:
+        _same(sim_id, f"{where} link {link.index} state", _library("Link.get_state")(link), link.get_state())
 
 
 def _layout(env):

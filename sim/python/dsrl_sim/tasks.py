@@ -73,6 +73,9 @@ class Env:
             import gymnasium
             import bullet_safety_gym  # noqa: F401  (registers the tasks)
 
+            from . import speedups
+
+            speedups.apply_bullet_safety_gym()
             self._env = gymnasium.make(sim_id)
             self.max_episode_steps = self._env.spec.max_episode_steps
         elif self.family == SAFETY_GYMNASIUM:

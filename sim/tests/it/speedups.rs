@@ -1,8 +1,9 @@
-//! The speed-ups the worker applies to Safety-Gymnasium's own Python (`sim/python/dsrl_sim/speedups.py`) change no
-//! episode: `speedups.verify` steps every Safety-Gymnasium task of the catalog with and without them and compares
-//! the outputs, the layout each reset draws, the whole physics state and the replaced readings (contact costs, lidar),
-//! bit for bit. Speed-ups that are off in the last bit of one coordinate or one lidar reading, draw another layout or
-//! miss a contact must be caught, so the comparison can fail.
+//! The speed-ups the worker applies to Safety-Gymnasium's and Bullet-Safety-Gym's own Python
+//! (`sim/python/dsrl_sim/speedups.py`) change no episode: `speedups.verify` steps every Safety-Gymnasium and
+//! Bullet-Safety-Gym task of the catalog with and without them and compares the outputs, the layout each reset
+//! draws, the whole physics state and the replaced readings (contact costs, lidar, body and link states), bit for
+//! bit. Speed-ups that are off in the last bit of one coordinate or one lidar reading, draw another layout, miss a
+//! contact or clip an action otherwise must be caught, so the comparison can fail.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -155,4 +156,108 @@ fn speedups_off_in_one_bit_a_layout_or_a_contact_are_caught() {
         .filter(|l| l.contains(" caught: ") && l.contains("cost: the speed-ups give"))
         .count();
     assert_eq!(caught, 4, "missed contacts went unnoticed:\n{out}");
+}
+
+#[test]
+fn the_speedups_leave_every_bullet_safety_gym_task_bit_identical() {
+    let catalog = Catalog::embedded().unwrap();
+    let tasks: Vec<String> = catalog
+        .tasks()
+        .iter()
+        .filter(|t| t.family == Family::Bullet)
+        .map(|t| format!("'{}'", t.simulator_env_id))
+        .collect();
+    assert_eq!(tasks.len(), 8);
+    // Episodes cut after 100 steps: several resets a task, and the Drone and Ant agents fall or leave the bounds
+    // within them on some seeds (an early end), which the outputs compare too.
+    let (ok, out) = simulator_python(&format!(
+        "from dsrl_sim import speedups\n\
+         for task in [{}]:\n    \
+             print(task, *speedups.verify(task, 400, seed=5, episode_steps=100))\n",
+        tasks.join(", ")
+    ));
+    assert!(ok, "the speed-ups changed an episode:\n{out}");
+    let checked = out
+        .lines()
+        .filter(|l| {
+            let fields: Vec<&str> = l.split(' ').collect();
+            fields.len() == 4 && fields[1] == "400" && fields[2].parse::<u32>().is_ok_and(|e| e >= 4)
+        })
+        .count();
+    assert_eq!(checked, 8, "{out}");
+}
+
+#[test]
+fn bullet_speedups_off_in_one_bit_or_clipping_otherwise_are_caught() {
+    // A body state one ulp off in its last coordinate (the angular velocity's z, which the Ball's observation
+    // scales by 0.1).
+    let (ok, out) = simulator_python(
+        "import numpy as np\n\
+         from dsrl_sim import speedups\n\
+         state = speedups._fast_body_state\n\
+         def off_by_one_ulp(self):\n    \
+             s = state(self)\n    \
+             s[11] = np.nextafter(s[11], np.inf)\n    \
+             return s\n\
+         speedups._fast_body_state = off_by_one_ulp\n\
+         speedups.verify('SafetyBallCircle-v0', 50)\n",
+    );
+    assert!(!ok, "a body state one ulp off went unnoticed:\n{out}");
+    assert!(
+        out.contains("AssertionError: SafetyBallCircle-v0: reset 0")
+            || out.contains("AssertionError: SafetyBallCircle-v0: episode 0 step 0"),
+        "{out}"
+    );
+
+    // A link state one ulp off (the Car's and the Ant's observations read their links).
+    let (ok, out) = simulator_python(
+        "import numpy as np\n\
+         from dsrl_sim import speedups\n\
+         state = speedups._fast_link_state\n\
+         def off_by_one_ulp(self):\n    \
+             s = state(self)\n    \
+             s[0] = np.nextafter(s[0], np.inf)\n    \
+             return s\n\
+         speedups._fast_link_state = off_by_one_ulp\n\
+         speedups.verify('SafetyCarRun-v0', 50)\n",
+    );
+    assert!(!ok, "a link state one ulp off went unnoticed:\n{out}");
+    assert!(out.contains("AssertionError: SafetyCarRun-v0: "), "{out}");
+
+    // Actions clipped into (-0.999, 0.999) instead of [-1, 1]: `verify`'s actions reach the bounds.
+    let (ok, out) = simulator_python(
+        "import numpy as np\n\
+         from dsrl_sim import speedups\n\
+         speedups._fast_agent_clip = lambda self, action: np.clip(action, -0.999, 0.999)\n\
+         speedups.verify('SafetyBallRun-v0', 200)\n",
+    );
+    assert!(!ok, "actions clipped otherwise went unnoticed:\n{out}");
+    assert!(
+        out.contains("AssertionError: SafetyBallRun-v0: episode 0 step"),
+        "{out}"
+    );
+
+    // A client that keeps its functions past `disconnect`: they would call a simulation that is gone (or, once
+    // its id is reused, another env's).
+    let close = "import functools\n\
+                 from dsrl_sim import tasks\n\
+                 env = tasks.make_env('SafetyBallRun-v0')\n\
+                 env.reset(0)\n\
+                 env.step([0.5, 0.5])\n\
+                 client = env._env.unwrapped.bc\n\
+                 assert isinstance(vars(client).get('stepSimulation'), functools.partial), vars(client)\n\
+                 env.close()\n\
+                 kept = [k for k, v in vars(client).items() if isinstance(v, functools.partial)]\n\
+                 assert not kept, f'kept past disconnect: {kept}'\n";
+    let (ok, out) = simulator_python(close);
+    assert!(ok, "{out}");
+    let (ok, out) = simulator_python(&format!(
+        "from dsrl_sim import speedups\n\
+         lookup = speedups._library\n\
+         speedups._fast_client_getattr = lambda self, name: self.__dict__.setdefault(name, \
+         lookup('BulletClient.__getattr__')(self, name))\n\
+         {close}"
+    ));
+    assert!(!ok, "functions kept past disconnect went unnoticed:\n{out}");
+    assert!(out.contains("kept past disconnect"), "{out}");
 }
