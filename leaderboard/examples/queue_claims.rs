@@ -90,7 +90,7 @@ async fn main() -> anyhow::Result<()> {
                     protocol_version: "bench",
                 };
                 anyhow::ensure!(
-                    queue::finish(&db, job.id, &owner, &scores).await?,
+                    queue::finish(&db, job.id, &owner, &scores, dsrl_leaderboard::SCORER_BUILD).await?,
                     "lost job {}",
                     job.id
                 );

@@ -343,8 +343,9 @@ pub struct Scores<'a> {
     pub protocol_version: &'a str,
 }
 
-/// Stores every episode and the scores, if this evaluator still holds the job; returns whether it did.
-pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Result<bool, ApiError> {
+/// Stores every episode and the scores, with the build that scored them (`crate::scorer_build`), if this evaluator
+/// still holds the job; returns whether it did.
+pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>, scored_by: &str) -> Result<bool, ApiError> {
     let mut tx = db.begin().await?;
     let done = sqlx::query(
         "UPDATE submissions SET state = 'finished', lease_owner = NULL, finished_at = $3, reason = NULL, failure = NULL,
@@ -360,7 +361,7 @@ pub async fn finish(db: &Db, id: i64, owner: &str, result: &Scores<'_>) -> Resul
     .bind(result.protocol_version)
     .bind(now_ms())
     .bind(result.episodes.len() as i64)
-    .bind(crate::SCORER_BUILD)
+    .bind(scored_by)
     .execute(&mut *tx)
     .await?;
     if done.rows_affected() != 1 {
@@ -611,7 +612,7 @@ pub struct SubmissionRow {
     pub episodes_done: u32,
     pub failure: Option<String>,
     pub user_id: i64,
-    /// The build that scored it (`crate::SCORER_BUILD` of the evaluator), where recorded.
+    /// The build that scored it (`crate::scorer_build` of the evaluator), where recorded.
     pub scored_by: Option<String>,
 }
 

@@ -326,7 +326,7 @@ impl Leaderboard {
             frame_height: options.height,
             gif_bytes: gif.len() as u64,
             gif_sha256: hex::encode(<sha2::Sha256 as sha2::Digest>::digest(&gif)),
-            rendered_by: crate::SCORER_BUILD.to_owned(),
+            rendered_by: crate::scorer_build(&self.simulators.workers()),
             rendered_at: dsrl_service::db::now_rfc3339(),
         };
         self.store.put(&key.object("gif"), PutPayload::from(gif)).await?;

@@ -210,13 +210,14 @@ async fn store(leaderboard: &Leaderboard, job: &Job, owner: &str, episodes: &[Ep
     let task = leaderboard.task(&job.task)?;
     let score = dsrl_scoring::leaderboard::entry_score(task, episodes)
         .ok_or_else(|| ApiError::Internal(format!("job {} was scored without episodes", job.id)))?;
+    let scored_by = crate::scorer_build(&leaderboard.simulators.workers());
     let scores = queue::Scores {
         episodes,
         normalized_reward: score.reward,
         normalized_cost: score.cost,
         protocol_version: &leaderboard.protocol.version,
     };
-    queue::finish(&leaderboard.db, job.id, owner, &scores).await
+    queue::finish(&leaderboard.db, job.id, owner, &scores, &scored_by).await
 }
 
 /// A test-only fault, compiled into debug builds alone: a submission named `DSRL_TEST_PANIC_ON_NAME` makes its

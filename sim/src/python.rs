@@ -129,7 +129,11 @@ impl PythonThread {
 pub struct PythonHost {
     batch_class: Py<PyAny>,
     tasks: Py<PyModule>,
+    /// The digest of the `dsrl_sim` package imported (`python_package_digest`), reported by Health.
+    package_digest: String,
 }
+
+include!("../../suite/build-support/python_digest.rs");
 
 /// K environments of one task living in the embedded interpreter (or, for MetaDrive, in its child processes).
 pub struct PyBatch {
@@ -195,10 +199,21 @@ impl PythonHost {
         let tasks = py.import("dsrl_sim.tasks")?;
         tasks.call_method0("quiet")?;
         let batch_class = py.import("dsrl_sim.batch")?.getattr("Batch")?.unbind();
+        // The package as imported (the folder Python found it in), which is what plays every episode.
+        let folder: String = py.import("dsrl_sim")?.getattr("__path__")?.get_item(0)?.extract()?;
+        let package_digest = python_package_digest(Path::new(&folder)).map_err(|e| {
+            pyo3::exceptions::PyRuntimeError::new_err(format!("reading the dsrl_sim package in {folder}: {e}"))
+        })?;
         Ok(PythonHost {
             batch_class,
             tasks: tasks.unbind(),
+            package_digest,
         })
+    }
+
+    /// The digest of the `dsrl_sim` package this worker imported.
+    pub fn package_digest(&self) -> &str {
+        &self.package_digest
     }
 
     /// Builds K environments of `sim_id` (a simulator id) without resetting them.

@@ -600,7 +600,18 @@ impl Simulator for SimulatorService {
             sessions: inner.sessions.load(Ordering::SeqCst),
             envs: inner.envs.load(Ordering::SeqCst),
             max_envs: inner.limits.max_envs,
-            version: concat!("dsrl-sim-worker ", env!("CARGO_PKG_VERSION")).to_owned(),
+            version: worker_version(inner.host.package_digest()),
         }))
     }
+}
+
+/// The version Health reports: the worker's, and the first 12 hex digits of the `dsrl_sim` package it imported
+/// (which the scorer compares with its own, `dsrl_leaderboard::scorer_build`), e.g.
+/// `dsrl-sim-worker 0.1.0 (dsrl_sim 0123456789ab)`.
+pub fn worker_version(package_digest: &str) -> String {
+    format!(
+        "dsrl-sim-worker {} (dsrl_sim {})",
+        env!("CARGO_PKG_VERSION"),
+        &package_digest[..12.min(package_digest.len())]
+    )
 }

@@ -319,6 +319,9 @@ fn the_queue_is_fair_shows_positions_and_counts_and_the_board_downloads_as_data(
         assert_eq!(row, e, "episodes.csv differs from the submission's episodes");
     }
     assert_eq!(view["scored_by"], entries[0]["scored_by"]);
+    // Scored here, by this tree's scorer on workers that imported this tree's simulator Python: the build's own
+    // label, with no mark for Python that differs from it (dsrl_leaderboard::scorer_build).
+    assert_eq!(view["scored_by"], dsrl_leaderboard::SCORER_BUILD, "{view}");
 }
 
 /// The fair order, on a server without workers (nothing is claimed, so the order is seen whole): Alice queues three

@@ -497,7 +497,11 @@ async fn the_queue_keeps_its_guarantees_under_concurrent_evaluators() {
                     normalized_cost: 0.0,
                     protocol_version: "p1.test",
                 };
-                assert!(queue::finish(&db, job.id, &owner, &scores).await.unwrap());
+                assert!(
+                    queue::finish(&db, job.id, &owner, &scores, dsrl_leaderboard::SCORER_BUILD)
+                        .await
+                        .unwrap()
+                );
                 claimed.push(job.id);
             }
             claimed

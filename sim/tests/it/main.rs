@@ -5,6 +5,7 @@ mod all_tasks;
 mod compliance;
 mod controller;
 mod determinism;
+mod package;
 mod render;
 mod smoke;
 mod speedups;
