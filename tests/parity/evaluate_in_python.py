@@ -11,8 +11,13 @@ the evaluator does) and the CDT (OSRL's rollout: one episode, the last seq_len t
 cost-to-go kept in float32), CAPS's switch, the diffusion sampler (DDPM over the candidates, every draw from the
 episode's SplitMix64 in the evaluator's order) and the latent policy. Conditioned policies play at --cost-threshold.
 
+Each episode is played on a new env by default, so that an episode depends on its seed alone. `bench/score.sh` plays
+it as OSRL's evaluation does instead: `--one-env` (one env, reset with each episode's seed) and, for the loop a
+researcher runs on the simulators as published, `--library-code` (dsrl_sim's speed-ups left out,
+sim/python/dsrl_sim/speedups.py).
+
 Usage: .venv-sim/bin/python tests/parity/evaluate_in_python.py POLICY_DIR --sim-id SafetyBallRun-v0 \
-           [--episodes 20] [--seed 1000000] [--cost-threshold 10]
+           [--episodes 20] [--seed 1000000] [--cost-threshold 10] [--one-env] [--library-code]
 """
 import argparse
 import json
@@ -314,13 +319,22 @@ def main():
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=1_000_000)
     p.add_argument("--cost-threshold", type=float, default=None)
+    p.add_argument("--one-env", action="store_true", help="play every episode on one env, as OSRL's evaluation does")
+    p.add_argument("--library-code", action="store_true",
+                   help="the simulators' own Python, without dsrl_sim's speed-ups")
     args = p.parse_args()
     tasks.quiet()
+    if args.library_code:
+        from dsrl_sim import speedups
+
+        speedups.apply_safety_gymnasium = speedups.apply_bullet_safety_gym = lambda: None
     config, new_episode = policy_fn(args.policy, args.cost_threshold)
     episodes = []
+    env = tasks.make_env(args.sim_id) if args.one_env else None
     for i in range(args.episodes):
         seed = args.seed + i
-        env = tasks.make_env(args.sim_id)
+        if not args.one_env:
+            env = tasks.make_env(args.sim_id)
         obs = env.reset(seed)
         act, observe = new_episode(seed)
         reward = cost = 0.0
@@ -334,7 +348,8 @@ def main():
             length += 1
             if terminated or truncated:
                 break
-        env.close()
+        if not args.one_env:
+            env.close()
         episodes.append({"seed": seed, "reward_return": reward, "cost_return": cost, "length": length})
     print(json.dumps({"task": config["task"], "episodes": episodes}))
 
