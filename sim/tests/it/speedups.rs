@@ -187,21 +187,27 @@ fn the_speedups_leave_every_bullet_safety_gym_task_bit_identical() {
     assert_eq!(checked, 8, "{out}");
 }
 
+/// Runs `verify` on `task` with the speed-up `fast` (a `_fast_*_state` of speedups.py) giving a state whose
+/// `index`-th coordinate is one ulp larger; -> (exit success, output).
+fn state_one_ulp_off(fast: &str, index: usize, task: &str) -> (bool, String) {
+    simulator_python(&format!(
+        "import numpy as np\n\
+         from dsrl_sim import speedups\n\
+         state = speedups.{fast}\n\
+         def off_by_one_ulp(self):\n    \
+             s = state(self)\n    \
+             s[{index}] = np.nextafter(s[{index}], np.inf)\n    \
+             return s\n\
+         speedups.{fast} = off_by_one_ulp\n\
+         speedups.verify('{task}', 50)\n"
+    ))
+}
+
 #[test]
 fn bullet_speedups_off_in_one_bit_or_clipping_otherwise_are_caught() {
     // A body state one ulp off in its last coordinate (the angular velocity's z, which the Ball's observation
     // scales by 0.1).
-    let (ok, out) = simulator_python(
-        "import numpy as np\n\
-         from dsrl_sim import speedups\n\
-         state = speedups._fast_body_state\n\
-         def off_by_one_ulp(self):\n    \
-             s = state(self)\n    \
-             s[11] = np.nextafter(s[11], np.inf)\n    \
-             return s\n\
-         speedups._fast_body_state = off_by_one_ulp\n\
-         speedups.verify('SafetyBallCircle-v0', 50)\n",
-    );
+    let (ok, out) = state_one_ulp_off("_fast_body_state", 11, "SafetyBallCircle-v0");
     assert!(!ok, "a body state one ulp off went unnoticed:\n{out}");
     assert!(
         out.contains("AssertionError: SafetyBallCircle-v0: reset 0")
@@ -210,17 +216,7 @@ fn bullet_speedups_off_in_one_bit_or_clipping_otherwise_are_caught() {
     );
 
     // A link state one ulp off (the Car's and the Ant's observations read their links).
-    let (ok, out) = simulator_python(
-        "import numpy as np\n\
-         from dsrl_sim import speedups\n\
-         state = speedups._fast_link_state\n\
-         def off_by_one_ulp(self):\n    \
-             s = state(self)\n    \
-             s[0] = np.nextafter(s[0], np.inf)\n    \
-             return s\n\
-         speedups._fast_link_state = off_by_one_ulp\n\
-         speedups.verify('SafetyCarRun-v0', 50)\n",
-    );
+    let (ok, out) = state_one_ulp_off("_fast_link_state", 0, "SafetyCarRun-v0");
     assert!(!ok, "a link state one ulp off went unnoticed:\n{out}");
     assert!(out.contains("AssertionError: SafetyCarRun-v0: "), "{out}");
 
