@@ -32,35 +32,47 @@ fn simulator_python(code: &str) -> (bool, String) {
     (out.status.success(), text)
 }
 
-#[test]
-fn the_speedups_leave_every_safety_gymnasium_task_bit_identical() {
+/// `speedups.verify(task, steps, seed, episode_steps)` on every catalog task of `families` (`count` of them), each
+/// crossing at least `resets` resets; fails the test on any difference.
+fn verify_every_task(families: &[Family], count: usize, steps: u32, seed: u32, episode_steps: u32, resets: u32) {
     let catalog = Catalog::embedded().unwrap();
     let tasks: Vec<String> = catalog
         .tasks()
         .iter()
-        .filter(|t| matches!(t.family, Family::SafetyGymNavigation | Family::SafetyGymVelocity))
+        .filter(|t| families.contains(&t.family))
         .map(|t| format!("'{}'", t.simulator_env_id))
         .collect();
-    assert_eq!(tasks.len(), 21);
-    // Episodes cut after 40 steps: at least five resets a task, each drawing a layout (the Button tasks' draw the
-    // most).
+    assert_eq!(tasks.len(), count);
     let (ok, out) = simulator_python(&format!(
         "from dsrl_sim import speedups\n\
          for task in [{}]:\n    \
-             steps, episodes, _ = speedups.verify(task, 200, seed=7, episode_steps=40)\n    \
-             print(task, steps, episodes)\n",
+             print(task, *speedups.verify(task, {steps}, seed={seed}, episode_steps={episode_steps}))\n",
         tasks.join(", ")
     ));
     assert!(ok, "the speed-ups changed an episode:\n{out}");
-    // (A velocity task's episode may also end early, when its agent falls: more episodes, never fewer.)
+    // (An episode may also end early, when its agent falls or leaves the bounds: more episodes, never fewer.)
     let checked = out
         .lines()
         .filter(|l| {
             let fields: Vec<&str> = l.split(' ').collect();
-            fields.len() == 3 && fields[1] == "200" && fields[2].parse::<u32>().is_ok_and(|e| e >= 5)
+            fields.len() == 4 && fields[1] == steps.to_string() && fields[2].parse::<u32>().is_ok_and(|e| e >= resets)
         })
         .count();
-    assert_eq!(checked, 21, "{out}");
+    assert_eq!(checked, count, "{out}");
+}
+
+#[test]
+fn the_speedups_leave_every_safety_gymnasium_task_bit_identical() {
+    // Episodes cut after 40 steps: at least five resets a task, each drawing a layout (the Button tasks' draw the
+    // most).
+    verify_every_task(
+        &[Family::SafetyGymNavigation, Family::SafetyGymVelocity],
+        21,
+        200,
+        7,
+        40,
+        5,
+    );
     // Whole Button episodes too: the gremlins move at every substep, and the cached mocap rows follow the model
     // rebuilt at the reset after a full episode.
     let (ok, out) = simulator_python(
@@ -160,31 +172,9 @@ fn speedups_off_in_one_bit_a_layout_or_a_contact_are_caught() {
 
 #[test]
 fn the_speedups_leave_every_bullet_safety_gym_task_bit_identical() {
-    let catalog = Catalog::embedded().unwrap();
-    let tasks: Vec<String> = catalog
-        .tasks()
-        .iter()
-        .filter(|t| t.family == Family::Bullet)
-        .map(|t| format!("'{}'", t.simulator_env_id))
-        .collect();
-    assert_eq!(tasks.len(), 8);
     // Episodes cut after 100 steps: several resets a task, and the Drone and Ant agents fall or leave the bounds
     // within them on some seeds (an early end), which the outputs compare too.
-    let (ok, out) = simulator_python(&format!(
-        "from dsrl_sim import speedups\n\
-         for task in [{}]:\n    \
-             print(task, *speedups.verify(task, 400, seed=5, episode_steps=100))\n",
-        tasks.join(", ")
-    ));
-    assert!(ok, "the speed-ups changed an episode:\n{out}");
-    let checked = out
-        .lines()
-        .filter(|l| {
-            let fields: Vec<&str> = l.split(' ').collect();
-            fields.len() == 4 && fields[1] == "400" && fields[2].parse::<u32>().is_ok_and(|e| e >= 4)
-        })
-        .count();
-    assert_eq!(checked, 8, "{out}");
+    verify_every_task(&[Family::Bullet], 8, 400, 5, 100, 4);
 }
 
 /// Runs `verify` on `task` with the speed-up `fast` (a `_fast_*_state` of speedups.py) giving a state whose
