@@ -3,6 +3,7 @@
 //! code had changed gave another build), so the provenance names the code as well as the recipe.
 
 include!("../suite/build-support/commit.rs");
+include!("../suite/build-support/python_digest.rs");
 
 fn main() {
     // The simulator adapter the workers run and its pins, file by file: the folder itself also holds the
@@ -36,4 +37,9 @@ fn main() {
     ];
     sources.extend(simulator.iter().map(String::as_str));
     record_build_commit(&sources);
+    // The workers import this package at run time; a build played on workers that report another one is not this
+    // commit's (`Run::code_version`).
+    let digest =
+        python_package_digest(std::path::Path::new("../sim/python/dsrl_sim")).expect("read sim/python/dsrl_sim");
+    println!("cargo:rustc-env=DSRL_SIM_PYTHON_DIGEST={digest}");
 }

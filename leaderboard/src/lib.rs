@@ -46,20 +46,11 @@ pub const SIMULATOR_PYTHON: &str = {
 };
 
 /// The build to record with a result played on `workers`: `SCORER_BUILD`, marked `-modified` when a healthy
-/// worker's `dsrl_sim` package is not the one this scorer was built with, or the worker does not say (the workers
-/// load that package at run time, so a binary built at a commit can play episodes with other Python; the result
-/// is then not that commit's). Conservative: any such worker of the pool marks the result, whether or not the job's
-/// sessions were placed on it.
+/// worker's `dsrl_sim` package is not the one this scorer was built with, or the worker does not say
+/// (`dsrl_simulators::label_with_workers_python`). Conservative: any such worker of the pool marks the result,
+/// whether or not the job's sessions were placed on it.
 pub fn scorer_build(workers: &[dsrl_simulators::WorkerStatus]) -> String {
-    let marker = format!("(dsrl_sim {SIMULATOR_PYTHON})");
-    let foreign = workers
-        .iter()
-        .filter(|w| w.healthy)
-        .any(|w| !w.version.as_deref().is_some_and(|v| v.ends_with(&marker)));
-    match SCORER_BUILD.strip_suffix(')') {
-        Some(open) if foreign && !open.ends_with("-modified") => format!("{open}-modified)"),
-        _ => SCORER_BUILD.to_owned(),
-    }
+    dsrl_simulators::label_with_workers_python(SCORER_BUILD, workers, SIMULATOR_PYTHON)
 }
 
 /// The states a submission does not leave.
@@ -844,22 +835,6 @@ mod build_tests {
 
     include!("../../suite/build-support/python_digest.rs");
 
-    fn worker(healthy: bool, version: Option<&str>) -> WorkerStatus {
-        WorkerStatus {
-            name: "w".into(),
-            kind: "local".into(),
-            address: None,
-            pid: None,
-            healthy,
-            sessions: 0,
-            envs: 0,
-            max_envs: 32,
-            version: version.map(str::to_owned),
-            restarts: 0,
-            last_error: None,
-        }
-    }
-
     /// The digest baked at build time is the tree's package (build.rs re-runs when the package changes).
     #[test]
     fn the_baked_python_digest_is_the_trees() {
@@ -867,29 +842,28 @@ mod build_tests {
         assert_eq!(python_package_digest(&tree).unwrap()[..12], *super::SIMULATOR_PYTHON);
     }
 
-    /// A result played where a worker's Python package differs from the build's (or a worker does not say which it
-    /// has) is not the build's commit: it carries `-modified`; unhealthy workers play nothing and do not count.
+    /// The scorer's label is marked by a worker with other Python, and left as built by one with the build's
+    /// (the marking itself: dsrl_simulators' python_package tests).
     #[test]
     fn a_worker_with_other_python_marks_the_scorer_build() {
-        let ours = format!("dsrl-sim-worker 0.1.0 (dsrl_sim {})", super::SIMULATOR_PYTHON);
+        let worker = |version: &str| WorkerStatus {
+            name: "w".into(),
+            kind: "local".into(),
+            address: None,
+            pid: None,
+            healthy: true,
+            sessions: 0,
+            envs: 0,
+            max_envs: 32,
+            version: Some(version.into()),
+            restarts: 0,
+            last_error: None,
+        };
         let build = super::SCORER_BUILD;
-        assert!(
-            build.starts_with("dsrl-leaderboard ") && build.ends_with(')'),
-            "{build}"
-        );
-        let same = super::scorer_build(&[worker(true, Some(&ours)), worker(false, Some("dsrl-sim-worker 0.1.0"))]);
-        assert_eq!(same, build);
-        assert_eq!(super::scorer_build(&[]), build);
-        for other in ["dsrl-sim-worker 0.1.0 (dsrl_sim 000000000000)", "dsrl-sim-worker 0.1.0"] {
-            let marked = super::scorer_build(&[worker(true, Some(&ours)), worker(true, Some(other))]);
-            assert!(marked.ends_with("-modified)"), "{other}: {marked}");
-            assert_eq!(marked.matches("-modified").count(), 1, "{marked}");
-            assert!(
-                marked.starts_with(build.trim_end_matches(')').trim_end_matches("-modified")),
-                "{marked}"
-            );
-        }
-        assert!(super::scorer_build(&[worker(true, None)]).ends_with("-modified)"));
+        let ours = format!("dsrl-sim-worker 0.1.0 (dsrl_sim {})", super::SIMULATOR_PYTHON);
+        assert_eq!(super::scorer_build(&[worker(&ours)]), build);
+        let marked = super::scorer_build(&[worker("dsrl-sim-worker 0.1.0 (dsrl_sim 000000000000)")]);
+        assert!(marked.ends_with("-modified)"), "{marked}");
     }
 
     /// A scoring-path file outside what build.rs watches would let a changed scorer report a clean commit.

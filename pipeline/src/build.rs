@@ -4,6 +4,7 @@
 //! provenance.
 
 use std::collections::BTreeMap;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -23,6 +24,30 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::collect::{Episode, collect_settings};
 use crate::recipe::{Recipe, Setting};
+
+/// This build of the pipeline: the crate's version and the commit it was built from (`-modified` where the sources
+/// that shape the data differed from it: build.rs).
+const CODE: &str = concat!(
+    "dsrl-pipeline ",
+    env!("CARGO_PKG_VERSION"),
+    " (git ",
+    env!("DSRL_BUILD_COMMIT"),
+    ")"
+);
+
+/// The state folder's note of workers that ran other simulator Python than this build's (their versions, a line
+/// each): its presence marks the data's code `-modified`.
+const OTHER_PYTHON: &str = "other-simulator-python";
+
+/// The first 12 hex digits of the digest of the `dsrl_sim` package this build was made with (build.rs).
+fn simulator_python() -> &'static str {
+    &env!("DSRL_SIM_PYTHON_DIGEST")[..12]
+}
+
+/// The code that made the data in `state_dir` (see `Run::code_version`).
+fn code_version(state_dir: &Path) -> String {
+    dsrl_simulators::mark_modified(CODE, state_dir.join(OTHER_PYTHON).exists())
+}
 
 pub struct Run {
     pub recipe: Recipe,
@@ -199,7 +224,29 @@ impl Run {
             "simulator workers did not become healthy: {:?}",
             pool.workers()
         );
+        // Workers whose simulator Python is not this build's: the data is then not this commit's. Noted in the state
+        // folder, so a build resumed later by a clean run still says so (`code_version`).
+        let workers = pool.workers();
+        if dsrl_simulators::label_with_workers_python(CODE, &workers, simulator_python()) != CODE {
+            let versions: Vec<_> = workers.iter().filter_map(|w| w.version.clone()).collect();
+            let note = format!("{}\n", versions.join("\n"));
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(self.state_dir.join(OTHER_PYTHON))?
+                .write_all(note.as_bytes())?;
+            tracing::warn!(
+                ?versions,
+                "the simulator workers run other Python than this build's: its data is marked -modified"
+            );
+        }
         Ok(pool)
+    }
+
+    /// The code that made the data: this crate's version and commit, `-modified` where its sources differed from the
+    /// commit or a run of this build played on workers with other simulator Python (`OTHER_PYTHON`).
+    fn code_version(&self) -> String {
+        code_version(&self.state_dir)
     }
 
     /// The expert recipe: train (or resume) and return what the trajectory buffer kept, in its order.
@@ -480,14 +527,7 @@ impl Run {
                 .unwrap_or_else(|| recipe_name(&self.recipe_path, task)),
             seeds: vec![self.recipe.seed],
             // The commit as well as the version: see build.rs.
-            code_version: concat!(
-                "dsrl-pipeline ",
-                env!("CARGO_PKG_VERSION"),
-                " (git ",
-                env!("DSRL_BUILD_COMMIT"),
-                ")"
-            )
-            .to_owned(),
+            code_version: self.code_version(),
             details,
         };
         // `<file>.provenance.json`: the name the server's starter loader reads beside a dataset.
@@ -558,5 +598,22 @@ mod tests {
         }
         let missing = Setting { index: 4, ..setting };
         assert!(load_setting(&recipe, dir.path(), &missing).unwrap().is_none());
+    }
+
+    /// Data made on workers with other simulator Python (a run noted it in the state folder) is not the commit's:
+    /// its code carries `-modified`, and only then.
+    #[test]
+    fn a_run_on_other_simulator_python_marks_the_code() {
+        let dir = tempfile::tempdir().unwrap();
+        assert_eq!(code_version(dir.path()), CODE);
+        assert!(CODE.starts_with("dsrl-pipeline ") && CODE.contains(" (git "), "{CODE}");
+        std::fs::write(
+            dir.path().join(OTHER_PYTHON),
+            "dsrl-sim-worker 0.1.0 (dsrl_sim 000000000000)\n",
+        )
+        .unwrap();
+        let marked = code_version(dir.path());
+        assert!(marked.ends_with("-modified)"), "{marked}");
+        assert_eq!(marked.matches("-modified").count(), 1, "{marked}");
     }
 }

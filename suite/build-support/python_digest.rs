@@ -1,8 +1,8 @@
-// Shared by the scorer's build script and the simulator worker (`include!`d; see commit.rs for why a build script
-// cannot call a workspace crate): the identity of the `dsrl_sim` Python package, which the workers import from a
-// folder at run time rather than compiling in. The scorer bakes the digest of the tree's package at build time, the
-// worker reports the digest of the package it imported, and a result scored on a worker whose package differs is
-// labelled `-modified` (dsrl_leaderboard::scorer_build).
+// Shared by the scorer's and the data pipeline's build scripts and the simulator worker (`include!`d; see commit.rs
+// for why a build script cannot call a workspace crate): the identity of the `dsrl_sim` Python package, which the
+// workers import from a folder at run time rather than compiling in. The scorer and the pipeline bake the digest of
+// the tree's package at build time, the worker reports the digest of the package it imported, and a result scored
+// or data made on a worker whose package differs is labelled `-modified` (dsrl_simulators::label_with_workers_python).
 
 /// sha256 (lower-case hex) over the package's Python files, `*.py` directly in `folder` in byte order of their
 /// names: each file's name, a NUL byte, its length as 8 little-endian bytes, then its bytes.

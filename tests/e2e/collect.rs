@@ -89,6 +89,9 @@ fn a_killed_collection_resumes_to_the_same_dataset_ingests_with_provenance_and_b
         )),
         "{code_version}"
     );
+    // Its workers ran this tree's simulator Python, so the run noted no other (which would mark the code
+    // `-modified`: pipeline/src/build.rs, `code_version`).
+    assert!(!state.join("other-simulator-python").exists());
 
     // A starter-sized cut of the finished run reuses its settings: nothing is simulated again.
     let starter = env.path("starter");
