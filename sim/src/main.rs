@@ -41,7 +41,10 @@ struct Args {
     inject_fault: Option<String>,
 }
 
-#[tokio::main]
+// One runtime thread: it only moves gRPC messages, while the simulators run on their own Python thread
+// (python.rs). A multi-threaded runtime adds cross-thread wake-ups to every step answer and, on a machine whose
+// cores the evaluator, its policy processes and the other workers share, costs CPU (BENCHMARKS.md, scoring).
+#[tokio::main(flavor = "current_thread")]
 async fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
