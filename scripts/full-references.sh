@@ -14,7 +14,8 @@
 #   PHASES="full-six" scripts/full-references.sh OfflineBallRun-v0
 #   tail -f ~/.dsrl/reference-full/follow.log
 #
-# It trains with the release binaries beside dsrl-admin (DSRL_TRAIN, DSRL_SERVER_BIN to choose others). Commit the
+# It trains with the release binaries beside dsrl-admin (DSRL_TRAIN, DSRL_SERVER_BIN to choose others), copied
+# when it starts (below), so a release build made while it runs does not reach it. Commit the
 # results file and the regenerated documents with explicit paths when it is done (CONTRIBUTING.md).
 set -euo pipefail
 self=$(realpath "$0")
@@ -53,6 +54,21 @@ export DSRL_TRAIN=${DSRL_TRAIN:-$bin_dir/dsrl-train} DSRL_SERVER_BIN=${DSRL_SERV
 for b in "$DSRL_TRAIN" "$DSRL_SERVER_BIN"; do
   [ -x "$b" ] || { echo "no $b: build the release binaries (scripts/serve.sh) or set DSRL_TRAIN/DSRL_SERVER_BIN" >&2; exit 1; }
 done
+# The loop runs copies of the binaries, pinned in a folder named by their digest: it goes on for hours, and a release
+# build made meanwhile would otherwise train one task's models with two builds, which `dsrl-admin reference` refuses
+# to record as one entry. The server starts its simulator workers and policy processes from beside itself, so its
+# dsrl-sim-worker is pinned with it. (Old pins: rm -rf ~/.dsrl/reference-full/bin while nothing runs.)
+worker=$(dirname "$DSRL_SERVER_BIN")/dsrl-sim-worker
+[ -x "$worker" ] || { echo "no $worker beside $DSRL_SERVER_BIN" >&2; exit 1; }
+pin=$log_dir/bin/$(cat "$admin" "$DSRL_TRAIN" "$DSRL_SERVER_BIN" "$worker" | sha256sum | cut -c1-16)
+if [ ! -d "$pin" ]; then
+  mkdir -p "$log_dir/bin" && rm -rf "$pin.partial" && mkdir "$pin.partial"
+  cp "$admin" "$pin.partial/dsrl-admin" && cp "$DSRL_TRAIN" "$pin.partial/dsrl-train"
+  cp "$DSRL_SERVER_BIN" "$pin.partial/dsrl-server" && cp "$worker" "$pin.partial/dsrl-sim-worker"
+  mv "$pin.partial" "$pin"
+fi
+admin=$pin/dsrl-admin DSRL_TRAIN=$pin/dsrl-train DSRL_SERVER_BIN=$pin/dsrl-server
+echo "running the binaries pinned in $pin" >&2
 # Every task and phase is checked before anything waits: an unknown name fails now, not hours later.
 "$admin" build --root "$root" --status "$@" > /dev/null
 # The list is read whole first: `grep -q` in the pipe would stop reading at its match, and under pipefail the

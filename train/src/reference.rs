@@ -87,10 +87,11 @@ impl Model {
         let mut task = None;
         let mut trainings = Vec::new();
         let mut checkpoints = Vec::new();
+        let slots = model_checkpoints(dir)?;
         // Each policy.json is read once, size-limited: its training record here, the whole of it for the digest.
-        for slot in model_checkpoints(dir)? {
+        for slot in &slots {
             let (config, weights) =
-                checkpoint::read_bytes(&slot).with_context(|| format!("reading {}", slot.display()))?;
+                checkpoint::read_bytes(slot).with_context(|| format!("reading {}", slot.display()))?;
             let config_file = slot.join(CONFIG_FILE);
             ensure!(
                 task.get_or_insert_with(|| config.task.clone()) == &config.task,
@@ -108,13 +109,34 @@ impl Model {
             checkpoints.push((config, weights));
         }
         let first = &trainings[0];
-        for m in &trainings {
-            ensure!(
-                (m.steps, m.batch_size, m.seed) == (first.steps, first.batch_size, first.seed)
-                    && m.dataset_version == first.dataset_version
-                    && m.code_commit == first.code_commit,
-                "the models in {} differ in budget, seed, dataset or code",
-                dir.display()
+        let same = |m: &Training| {
+            (m.steps, m.batch_size, m.seed) == (first.steps, first.batch_size, first.seed)
+                && m.dataset_version == first.dataset_version
+                && m.code_commit == first.code_commit
+        };
+        if !trainings.iter().all(same) {
+            // Named per folder, so the reader sees which to train again (typically those of another build,
+            // when a release build was made while a long reference run went on).
+            let each: Vec<String> = slots
+                .iter()
+                .zip(&trainings)
+                .map(|(slot, m)| {
+                    format!(
+                        "{}: {} steps, batch {}, seed {}, dataset {}, code {}",
+                        slot.file_name().unwrap_or_default().to_string_lossy(),
+                        m.steps,
+                        m.batch_size,
+                        m.seed,
+                        m.dataset_version.as_deref().map_or("none", |v| &v[..v.len().min(12)]),
+                        m.code_commit.as_deref().unwrap_or("none"),
+                    )
+                })
+                .collect();
+            bail!(
+                "the models in {} differ in budget, seed, dataset or code ({}); one entry is one training run: \
+                 remove the folders that differ to train them again",
+                dir.display(),
+                each.join("; ")
             );
         }
         let Some(dataset_version) = first.dataset_version.clone() else {
@@ -499,6 +521,34 @@ mod tests {
             first
         );
         assert_eq!(entries_in(&results), vec![entry]);
+    }
+
+    #[test]
+    fn a_model_trained_by_two_builds_is_refused_naming_the_folders() {
+        let dir = tempfile::tempdir().unwrap();
+        let mixed = dir.path().join("mixed");
+        model(&mixed, b"weights");
+        // One threshold trained again by another build, as when a release build lands during a long run.
+        let config = mixed.join("threshold-40").join(CONFIG_FILE);
+        let text = std::fs::read_to_string(&config)
+            .unwrap()
+            .replace("0123456789ab", "fedcba987654");
+        std::fs::write(&config, text).unwrap();
+        let sub = dir.path().join("sub.json");
+        submission(&sub, &digest_of(&mixed));
+        let results = dir.path().join("results.jsonl");
+
+        let refused = record(&mixed, &sub, "BC-Safe", &results).unwrap_err().to_string();
+        assert!(refused.contains("differ in budget, seed, dataset or code"), "{refused}");
+        assert!(
+            refused.contains("threshold-40: 3 steps, batch 16, seed 0, dataset abababababab, code fedcba987654"),
+            "{refused}"
+        );
+        assert!(
+            refused.contains("threshold-10: 3 steps, batch 16, seed 0, dataset abababababab, code 0123456789ab"),
+            "{refused}"
+        );
+        assert!(!results.exists(), "a refused entry writes nothing");
     }
 
     #[test]
