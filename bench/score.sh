@@ -70,6 +70,7 @@ for round in $(seq "$rounds"); do
   cp "$work/policy/bc-all/policy.safetensors" "$dir/"
   python3 -c "import json,sys; c=json.load(open('$work/policy/bc-all/policy.json')); c['architecture']['max_action']=1.0-$round*1e-9; json.dump(c, open('$dir/policy.json','w'))"
   before=$(cpu_snapshot)
+  log_lines=$(wc -l < "$work/server.log")
   start=$(date +%s.%N)
   # `--wait` holds one request open until the server sees the submission end (its evaluator wakes the request),
   # so timing takes next to no CPU from the two cores it measures; polling the full view did not: starting a curl
@@ -80,6 +81,15 @@ for round in $(seq "$rounds"); do
   id=$(python3 -c 'import json,sys; s=json.load(open(sys.argv[1])); print(s["id"]) if s["state"] == "finished" else sys.exit("submission %s %s" % (s["id"], s["state"]))' "$dir/submission.json")
   dsrl_s+=("$(python3 -c "print($end - $start)")")
   evaluated=$(sed -n "s/.*evaluation finished id=$id .*seconds=\([0-9.]*\).*/\1/p" "$work/server.log")
+  # The workers' CPU seconds building this job's environments: each session's, from the workers' log lines (in
+  # the server's log) written since the submission.
+  built=$(tail -n +"$((log_lines + 1))" "$work/server.log" | python3 -c '
+import re, sys
+text = re.sub(r"\x1b\[[0-9;]*m", "", sys.stdin.read())
+found = re.findall(r"session opened.*build_cpu_seconds=([0-9.e-]+)", text)
+if not found:
+    sys.exit("no session opened with build_cpu_seconds in the server log: a worker older than the script?")
+print(sum(float(s) for s in found))')
   # The loops' CPU seconds: each process's, as the parent sees them once it has exited.
   loop() {
     python3 -c '
@@ -103,7 +113,7 @@ print(r.ru_utime + r.ru_stime)
   # processes, and the two loops.
   breakdown+=("$(python3 -c "
 b, a = [float(x) for x in '$before'.split()], [float(x) for x in '$after'.split()]
-print($evaluated, a[2] - b[2], a[4] - b[4], a[0] - b[0], a[1] - b[1], $loop_cpu, $fast_loop_cpu)")")
+print($evaluated, a[2] - b[2], a[4] - b[4], a[0] - b[0], a[1] - b[1], $loop_cpu, $fast_loop_cpu, $built)")")
 done
 steps=$(curl -s "$url/v1/submissions/$id" | python3 -c 'import json,sys; print(sum(e["length"] for e in json.load(sys.stdin)["episodes"]))')
 steps_py=$(python3 -c "import json; print(sum(e['length'] for e in json.load(open('$work/python.json'))['episodes']))")
@@ -122,16 +132,17 @@ rounded() { printf '%.2f ' "$@"; }
   python3 -c "p, f, d = $(median "${python_s[@]}"), $(median "${fast_python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring at 1.8x the sequential loop or faster): %s, %.2fx the speed of the loop on the simulators\' own code; %.2fx the loop with the same speed-ups (medians).' % ('met' if p / d >= 1.8 else '**not met**', p / d, f / d))"
   echo
   echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loops' with their start and imports;"
-  echo "the evaluator's seconds from its log, from claiming the job to storing its episodes):"
+  echo "the evaluator's seconds from its log, from claiming the job to storing its episodes; building envs: the"
+  echo "Python thread's CPU seconds in building the job's environments, from the workers' log, part of their columns):"
   echo
   printf '%s\n' "${breakdown[@]}" | python3 -c '
 import statistics, sys
 rows = [[float(x) for x in line.split()] for line in sys.stdin if line.strip()]
 m = [statistics.median(c) for c in zip(*rows)]
-evaluated, w1, w2, server, policy, loop, fast_loop = m
-print("| dsrl-server: evaluator s | CPU s: worker 1 | CPU s: worker 2 | CPU s: server | CPU s: policy processes | CPU s: all of dsrl | CPU s: the loop, own code | CPU s: the loop, speed-ups |")
-print("|---|---|---|---|---|---|---|---|")
-print("| %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |" % (evaluated, w1, w2, server, policy, w1 + w2 + server + policy, loop, fast_loop))
+evaluated, w1, w2, server, policy, loop, fast_loop, built = m
+print("| dsrl-server: evaluator s | CPU s: worker 1 | CPU s: worker 2 | of the workers\x27: building envs | CPU s: server | CPU s: policy processes | CPU s: all of dsrl | CPU s: the loop, own code | CPU s: the loop, speed-ups |")
+print("|---|---|---|---|---|---|---|---|---|")
+print("| %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |" % (evaluated, w1, w2, built, server, policy, w1 + w2 + server + policy, loop, fast_loop))
 '
 } > bench/out/score.md
 cat bench/out/score.md

@@ -281,6 +281,19 @@ fn controller_dict(py: Python<'_>, controller: Option<Controller>) -> Result<Bou
 }
 
 impl PyBatch {
+    /// CPU seconds the Python thread spent building the environments (`Batch.build_cpu_seconds`; a MetaDrive
+    /// env's own process is not counted).
+    pub fn build_cpu_seconds(&self) -> Result<f64, SimError> {
+        Python::attach(|py| {
+            let seconds = self
+                .batch
+                .bind(py)
+                .getattr("build_cpu_seconds")
+                .and_then(|s| s.extract());
+            seconds.map_err(|e| simulator_error(py, "reading the build's CPU time", e))
+        })
+    }
+
     /// Resets `envs` with one seed each; `switch` changes their driver first (a controlled batch only).
     pub fn reset(&self, envs: &[u32], seeds: &[u64], switch: Option<Controller>) -> Result<Vec<u8>, SimError> {
         Python::attach(|py| {

@@ -236,13 +236,16 @@ async fn run_session(
     let k = seeds.len();
     let host = inner.host.clone();
     let id = sim_id.clone();
-    let (batch, shape, observations) = inner
+    let (batch, shape, observations, build_cpu_seconds) = inner
         .python
         .run(move || {
             let (batch, shape) = host.open(&id, &seeds, auto_reset, controller)?;
             let all: Vec<u32> = (0..k as u32).collect();
-            match batch.reset(&all, &seeds, None) {
-                Ok(observations) => Ok((batch, shape, observations)),
+            match batch
+                .build_cpu_seconds()
+                .and_then(|cpu| Ok((batch.reset(&all, &seeds, None)?, cpu)))
+            {
+                Ok((observations, cpu)) => Ok((batch, shape, observations, cpu)),
                 Err(err) => {
                     batch.close();
                     Err(err)
@@ -260,7 +263,7 @@ async fn run_session(
     let (obs_dim, act_dim) = (shape.obs_dim as usize, shape.act_dim as usize);
     let state = SessionState::new(obs_dim, act_dim, k, auto_reset);
     let observations = tensor(DType::Float32, &[k, obs_dim], observations, 4, "observations")?;
-    tracing::info!(task = %sim_id, envs = k, auto_reset, "session opened");
+    tracing::info!(task = %sim_id, envs = k, auto_reset, build_cpu_seconds, "session opened");
     let opened = Opened {
         spec: Some(spec),
         observations: Some(observations),

@@ -64,6 +64,14 @@ impl Model {
 
     /// Trained at this budget and on this dataset version: a model trained on another version of the task's data
     /// (a full build recorded again, a starter cut again) is stale whatever its marker says.
+    /// The entry, and the threshold where the method trains one model per threshold.
+    fn label(&self) -> String {
+        match self.threshold {
+            Some(t) => format!("{} (threshold {t})", self.entry),
+            None => self.entry.to_string(),
+        }
+    }
+
     pub fn is_trained(&self, state: &StateDir) -> bool {
         self.marker(state).exists()
             && state.trained_on(&self.entry, self.threshold).as_deref() == Some(self.dataset_version.as_str())
@@ -129,10 +137,7 @@ impl Pool {
                         std::fs::write(model.marker(&self.state), b"")?;
                         self.trained += 1;
                     } else {
-                        let what = match model.threshold {
-                            Some(t) => format!("{} (threshold {t})", model.entry),
-                            None => model.entry.to_string(),
-                        };
+                        let what = model.label();
                         eprintln!("{what} failed to train ({status})");
                         self.failed.push(what);
                     }
@@ -146,11 +151,17 @@ impl Pool {
                 continue;
             }
             if model.marker(&self.state).exists() {
-                eprintln!(
-                    "{} was trained on another dataset version than {}: trained again",
-                    model.entry,
-                    &model.dataset_version[..12.min(model.dataset_version.len())]
-                );
+                let version = &model.dataset_version[..12.min(model.dataset_version.len())];
+                match self.state.trained_on(&model.entry, model.threshold) {
+                    Some(_) => eprintln!(
+                        "{} was trained on another dataset version than {version}: trained again",
+                        model.label()
+                    ),
+                    None => eprintln!(
+                        "{}: its checkpoint is gone (marked trained): trained again",
+                        model.label()
+                    ),
+                }
                 self.state.remove_markers(&model.entry, model.threshold)?;
             }
             let mut command = model.command(&self.train, &self.server, &self.state);

@@ -19,6 +19,7 @@ row of `final_obs` the last observation of the finished episode. The k-th automa
 """
 import multiprocessing
 import os
+import time
 
 import numpy as np
 
@@ -78,6 +79,9 @@ class _Remote:
 
 class Batch:
     def __init__(self, sim_id, seeds, auto_reset, controller=None):
+        # CPU time this thread spends building the envs (a MetaDrive env's own process is not counted): the worker
+        # logs it with the session, so a benchmark can tell building from stepping.
+        started = time.thread_time()
         self.sim_id = sim_id
         self.seeds = [int(s) for s in seeds]
         self.auto_reset = bool(auto_reset)
@@ -94,6 +98,7 @@ class Batch:
         first = self.envs[0]
         self.obs_dim, self.act_dim = first.obs_dim, first.act_dim
         self.low, self.high, self.max_episode_steps = first.low, first.high, first.max_episode_steps
+        self.build_cpu_seconds = time.thread_time() - started
 
     def _reset_many(self, indices, seeds, switch=None):
         if self.remote:
