@@ -62,8 +62,6 @@ impl Model {
         state.marker(&self.entry, self.threshold, self.steps, self.batch)
     }
 
-    /// Trained at this budget and on this dataset version: a model trained on another version of the task's data
-    /// (a full build recorded again, a starter cut again) is stale whatever its marker says.
     /// The entry, and the threshold where the method trains one model per threshold.
     fn label(&self) -> String {
         match self.threshold {
@@ -72,6 +70,8 @@ impl Model {
         }
     }
 
+    /// Trained at this budget and on this dataset version: a model trained on another version of the task's data
+    /// (a full build recorded again, a starter cut again) is stale whatever its marker says.
     pub fn is_trained(&self, state: &StateDir) -> bool {
         self.marker(state).exists()
             && state.trained_on(&self.entry, self.threshold).as_deref() == Some(self.dataset_version.as_str())
@@ -151,11 +151,11 @@ impl Pool {
                 continue;
             }
             if model.marker(&self.state).exists() {
-                let version = &model.dataset_version[..12.min(model.dataset_version.len())];
                 match self.state.trained_on(&model.entry, model.threshold) {
                     Some(_) => eprintln!(
-                        "{} was trained on another dataset version than {version}: trained again",
-                        model.label()
+                        "{} was trained on another dataset version than {}: trained again",
+                        model.label(),
+                        &model.dataset_version[..12.min(model.dataset_version.len())]
                     ),
                     None => eprintln!(
                         "{}: its checkpoint is gone (marked trained): trained again",
