@@ -272,6 +272,8 @@ async fn play_group(
             }
         }
     }
+    // The last steps' rewards and costs still wait for a request to go with (see `Player::finish`).
+    rollout.finish().await?;
     for session in sessions {
         session.close().await?;
     }

@@ -12,6 +12,13 @@
 //! - `START` = slot (u32), episode seed (u64);
 //! - `ACT` = n (u32), n slots (u32), observations (f32, row-major) → actions (f32, row-major);
 //! - `OBSERVE` = n (u32), n slots (u32), n rewards (f64), n costs (f64).
+//!
+//! Requests may be pipelined, and answers come in the order of the requests. The parent holds back the requests
+//! whose answers carry nothing (`START`, `OBSERVE`) and writes them with the next `ACT`, in one write; the child
+//! flushes its answers only when it has no further request already read. So a step costs one exchange with the
+//! child, not two: each exchange wakes both processes, and on a machine whose cores the simulator workers share
+//! with the server and its policy processes, every wake-up takes time from the simulators (BENCHMARKS.md,
+//! scoring).
 
 use std::io::{Read, Write};
 use std::path::PathBuf;
@@ -82,7 +89,8 @@ impl<'a> Player<'a> {
                 let mut payload = BytesMut::with_capacity(12);
                 payload.put_u32_le(slot as u32);
                 payload.put_u64_le(seed);
-                child.call(START, &payload).await.map(drop)
+                child.hold(START, &payload);
+                Ok(())
             }
         }
     }
@@ -111,8 +119,18 @@ impl<'a> Player<'a> {
                 put_slots(&mut payload, slots);
                 rewards.iter().for_each(|&x| payload.put_f64_le(x));
                 costs.iter().for_each(|&x| payload.put_f64_le(x));
-                child.call(OBSERVE, &payload).await.map(drop)
+                child.hold(OBSERVE, &payload);
+                Ok(())
             }
+        }
+    }
+
+    /// Sends the requests held back for the next `ACT` and waits for their answers: call it when a rollout ends,
+    /// so that none of them is left unsent (and a failure of one is not lost).
+    pub async fn finish(&mut self) -> Result<(), EvaluationError> {
+        match self {
+            Player::Local(_) => Ok(()),
+            Player::Child(child) => child.send_held().await.map(drop),
         }
     }
 }
@@ -237,9 +255,13 @@ async fn within_budget<F: std::future::Future>(
 pub struct ChildPlayer {
     child: tokio::process::Child,
     stdin: tokio::process::ChildStdin,
-    stdout: tokio::process::ChildStdout,
+    stdout: tokio::io::BufReader<tokio::process::ChildStdout>,
     memory_limit_bytes: u64,
     request_timeout: std::time::Duration,
+    /// Requests written to no pipe yet (whole frames), sent before the next request that waits for its answer.
+    held: BytesMut,
+    /// The ops of the frames in `held`, in order.
+    held_ops: Vec<u8>,
 }
 
 impl ChildPlayer {
@@ -257,13 +279,7 @@ impl ChildPlayer {
             })?;
         let stdin = child.stdin.take().expect("piped");
         let stdout = child.stdout.take().expect("piped");
-        let mut player = ChildPlayer {
-            child,
-            stdin,
-            stdout,
-            memory_limit_bytes: policy.memory_limit_bytes,
-            request_timeout: policy.request_timeout,
-        };
+        let mut player = ChildPlayer::new(child, stdin, stdout, policy.memory_limit_bytes, policy.request_timeout);
         let mut payload = BytesMut::with_capacity(policy.config.len() + policy.weights.len() + 16);
         payload.put_u32_le(policy.config.len() as u32);
         payload.put_slice(&policy.config);
@@ -274,15 +290,55 @@ impl ChildPlayer {
         Ok(player)
     }
 
+    fn new(
+        child: tokio::process::Child,
+        stdin: tokio::process::ChildStdin,
+        stdout: tokio::process::ChildStdout,
+        memory_limit_bytes: u64,
+        request_timeout: std::time::Duration,
+    ) -> ChildPlayer {
+        ChildPlayer {
+            child,
+            stdin,
+            stdout: tokio::io::BufReader::new(stdout),
+            memory_limit_bytes,
+            request_timeout,
+            held: BytesMut::new(),
+            held_ops: Vec::new(),
+        }
+    }
+
+    /// Keeps a request whose answer carries nothing for the next exchange.
+    fn hold(&mut self, op: u8, payload: &[u8]) {
+        self.held.put_u8(op);
+        self.held.put_u32_le(payload.len() as u32);
+        self.held.put_slice(payload);
+        self.held_ops.push(op);
+    }
+
+    /// Sends the held requests and `op` with `payload`, and returns the answer to `op`.
     async fn call(&mut self, op: u8, payload: &[u8]) -> Result<Bytes, EvaluationError> {
-        let what = match op {
+        self.hold(op, payload);
+        self.send_held().await
+    }
+
+    /// Sends the held requests in one write and returns the last one's answer (nothing when none was held). The
+    /// exchange is held to the budget of one request: what a request needs of it is the `ACT` (`START` and
+    /// `OBSERVE` only write down a number or two).
+    async fn send_held(&mut self) -> Result<Bytes, EvaluationError> {
+        let Some(&last) = self.held_ops.last() else {
+            return Ok(Bytes::new());
+        };
+        let what = match last {
             LOAD => "load",
             START => "start",
             ACT => "act",
             _ => "observe",
         };
+        let frames = std::mem::take(&mut self.held).freeze();
+        let ops = std::mem::take(&mut self.held_ops);
         let pid = self.child.id();
-        match within_budget(pid, self.request_timeout, self.exchange(op, payload)).await {
+        match within_budget(pid, self.request_timeout, self.exchange(&frames, ops.len())).await {
             Ok(Ok(Ok(answer))) => Ok(answer),
             // The policy itself failed (a shape it cannot handle, a non-finite action): not worth a retry.
             Ok(Ok(Err(message))) => Err(policy_error(message)),
@@ -358,24 +414,27 @@ impl ChildPlayer {
         EvaluationError::InvalidArgument(format!("the policy process exited ({status}) during a {what} request"))
     }
 
-    async fn exchange(&mut self, op: u8, payload: &[u8]) -> std::io::Result<Result<Bytes, String>> {
-        let mut head = [0u8; 5];
-        head[0] = op;
-        head[1..].copy_from_slice(&(payload.len() as u32).to_le_bytes());
-        self.stdin.write_all(&head).await?;
-        self.stdin.write_all(payload).await?;
+    /// Writes `frames` (`requests` whole requests) and reads as many answers: the last one's, or the first error.
+    async fn exchange(&mut self, frames: &[u8], requests: usize) -> std::io::Result<Result<Bytes, String>> {
+        self.stdin.write_all(frames).await?;
         self.stdin.flush().await?;
-        self.stdout.read_exact(&mut head).await?;
-        let len = u32::from_le_bytes(head[1..].try_into().expect("4 bytes"));
-        if len > MAX_FRAME {
-            return Err(std::io::Error::other("oversized answer"));
+        let mut answer = Ok(Bytes::new());
+        for _ in 0..requests {
+            let mut head = [0u8; 5];
+            self.stdout.read_exact(&mut head).await?;
+            let len = u32::from_le_bytes(head[1..].try_into().expect("4 bytes"));
+            if len > MAX_FRAME {
+                return Err(std::io::Error::other("oversized answer"));
+            }
+            let mut body = vec![0u8; len as usize];
+            self.stdout.read_exact(&mut body).await?;
+            if head[0] != 0 {
+                // The child goes on answering after an error; the evaluation ends with this one.
+                return Ok(Err(String::from_utf8_lossy(&body).into_owned()));
+            }
+            answer = Ok(Bytes::from(body));
         }
-        let mut body = vec![0u8; len as usize];
-        self.stdout.read_exact(&mut body).await?;
-        Ok(match head[0] {
-            0 => Ok(Bytes::from(body)),
-            _ => Err(String::from_utf8_lossy(&body).into_owned()),
-        })
+        Ok(answer)
     }
 }
 
@@ -431,8 +490,20 @@ pub unsafe fn serve_child(memory_limit_bytes: u64) -> std::process::ExitCode {
         libc::setpriority(libc::PRIO_PROCESS, 0, 10);
     }
     crate::limit_memory(memory_limit_bytes);
-    let mut input = std::io::stdin().lock();
-    let mut output = std::io::stdout().lock();
+    // The pipes themselves, buffered here: the parent pipelines requests (see the module's comment), and an answer
+    // is flushed only once no request already read waits behind it. (Rust's own stdout flushes at every newline
+    // byte, which binary answers hold at random.)
+    use std::os::fd::FromRawFd;
+    // SAFETY: descriptors 0 and 1 are this process's standard input and output, open for its whole life;
+    // ManuallyDrop leaves them open when these handles go.
+    let (stdin, stdout) = unsafe {
+        (
+            std::mem::ManuallyDrop::new(std::fs::File::from_raw_fd(0)),
+            std::mem::ManuallyDrop::new(std::fs::File::from_raw_fd(1)),
+        )
+    };
+    let mut input = std::io::BufReader::with_capacity(1 << 16, &*stdin);
+    let mut output = std::io::BufWriter::with_capacity(1 << 16, &*stdout);
     // The first request loads the policy; every later one plays it.
     let Some((op, payload)) = read_frame(&mut input) else {
         return std::process::ExitCode::FAILURE;
@@ -444,23 +515,28 @@ pub unsafe fn serve_child(memory_limit_bytes: u64) -> std::process::ExitCode {
     let (policy, threshold, slots) = match loaded {
         Ok(loaded) => loaded,
         Err(message) => {
-            let _ = reply(&mut output, Err(message));
+            let _ = reply(&mut output, Err(message)).and_then(|()| output.flush());
             return std::process::ExitCode::FAILURE;
         }
     };
     let mut rollout = match policy.rollout(threshold, slots) {
         Ok(rollout) => rollout,
         Err(e) => {
-            let _ = reply(&mut output, Err(e.to_string()));
+            let _ = reply(&mut output, Err(e.to_string())).and_then(|()| output.flush());
             return std::process::ExitCode::FAILURE;
         }
     };
-    if reply(&mut output, Ok(Vec::new())).is_err() {
+    let loaded = reply(&mut output, Ok(Vec::new()));
+    if loaded.and_then(|()| output.flush()).is_err() {
         return std::process::ExitCode::FAILURE;
     }
-    // Until the parent closes the pipe.
+    // Until the parent closes the pipe. An answer waits in the buffer while a request already read follows it.
     while let Some((op, payload)) = read_frame(&mut input) {
-        if reply(&mut output, handle(&mut rollout, op, &payload)).is_err() {
+        let mut answered = reply(&mut output, handle(&mut rollout, op, &payload));
+        if answered.is_ok() && input.buffer().is_empty() {
+            answered = output.flush();
+        }
+        if answered.is_err() {
             return std::process::ExitCode::FAILURE;
         }
     }
@@ -479,6 +555,7 @@ fn read_frame(input: &mut impl Read) -> Option<(u8, Vec<u8>)> {
     Some((head[0], payload))
 }
 
+/// Writes one answer into `output`'s buffer (the caller flushes).
 fn reply(output: &mut impl Write, answer: Result<Vec<u8>, String>) -> std::io::Result<()> {
     let (status, body) = match answer {
         Ok(body) => (0u8, body),
@@ -486,8 +563,7 @@ fn reply(output: &mut impl Write, answer: Result<Vec<u8>, String>) -> std::io::R
     };
     output.write_all(&[status])?;
     output.write_all(&(body.len() as u32).to_le_bytes())?;
-    output.write_all(&body)?;
-    output.flush()
+    output.write_all(&body)
 }
 
 fn decode_load(payload: &[u8]) -> Result<(Policy, f64, usize), String> {
@@ -677,14 +753,43 @@ mod tests {
         tokio::time::sleep(std::time::Duration::from_millis(200)).await;
         // SAFETY: a plain system call on the pid of a child this test owns and has not reaped.
         assert_eq!(unsafe { libc::kill(child.id().unwrap() as i32, signal) }, 0);
-        let mut player = ChildPlayer {
-            child,
-            stdin,
-            stdout,
-            memory_limit_bytes: 64 << 20,
-            request_timeout: std::time::Duration::from_secs(30),
-        };
+        let mut player = ChildPlayer::new(child, stdin, stdout, 64 << 20, std::time::Duration::from_secs(30));
         player.call(ACT, b"observations").await.unwrap_err()
+    }
+
+    /// A stand-in child that writes `answers` (the bytes of whole answers) at once, then reads its input to the end.
+    fn answering(answers: &str) -> ChildPlayer {
+        let mut child = tokio::process::Command::new("sh")
+            .args(["-c", &format!("printf '{answers}'; exec cat > /dev/null")])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap();
+        let (stdin, stdout) = (child.stdin.take().unwrap(), child.stdout.take().unwrap());
+        ChildPlayer::new(child, stdin, stdout, 64 << 20, std::time::Duration::from_secs(30))
+    }
+
+    /// Held requests go with the next call, and their answers are read before its own: the call returns its own
+    /// answer, and an error answered to a held request is the call's error (not lost, not taken for the action).
+    #[tokio::test]
+    async fn held_requests_are_answered_before_the_call_that_sends_them() {
+        // Two answers: an empty one (the held OBSERVE's), then 4 bytes (the ACT's).
+        let mut player = answering(r"\000\000\000\000\000\000\004\000\000\000abcd");
+        player.hold(OBSERVE, &[0; 4]);
+        assert_eq!(&player.call(ACT, &[0; 4]).await.unwrap()[..], b"abcd");
+        assert!(player.held.is_empty() && player.held_ops.is_empty());
+        // The held OBSERVE failed: its message is what the ACT's call returns.
+        let mut player = answering(r"\001\005\000\000\000oops!\000\004\000\000\000abcd");
+        player.hold(OBSERVE, &[0; 4]);
+        let e = player.call(ACT, &[0; 4]).await.unwrap_err();
+        assert!(
+            matches!(&e, EvaluationError::Internal(m) if m.contains("oops!")),
+            "{e:?}"
+        );
+        // Nothing held: finishing sends nothing and waits for nothing.
+        let mut player = answering("");
+        assert!(player.send_held().await.unwrap().is_empty());
     }
 
     #[tokio::test]

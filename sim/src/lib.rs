@@ -6,6 +6,7 @@
 //! `run(listener, config, shutdown)` is the whole worker; `dsrl-sim-worker` wraps it with flags.
 
 pub mod error;
+pub mod memory;
 pub mod python;
 pub mod random_actions;
 pub mod service;

@@ -52,6 +52,7 @@ async fn main() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    dsrl_sim::memory::keep_freed_memory();
     let args = Args::parse();
     if let Some(fault) = &args.inject_fault {
         let n = fault
