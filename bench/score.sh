@@ -62,6 +62,10 @@ for pid in sys.argv[1:]:
     print((int(f[11]) + int(f[12])) / hz, (int(f[13]) + int(f[14])) / hz, end=" ")
 ' "$server_pid" $workers
 }
+# The hypervisor's steal: CPU time this virtual machine was ready to run but not given (field 8 of /proc/stat's
+# "cpu" line, in ticks summed over the cores), so a run on a host busy with other machines says so.
+steal_ticks() { awk '/^cpu /{print $9; exit}' /proc/stat; }
+steal_before=$(steal_ticks) rounds_started=$(date +%s.%N)
 python_s=() fast_python_s=() dsrl_s=() breakdown=()
 for round in $(seq "$rounds"); do
   # A new network each round (max_action differs in the last digit), so the dedupe does not answer from the
@@ -115,6 +119,7 @@ print(r.ru_utime + r.ru_stime)
 b, a = [float(x) for x in '$before'.split()], [float(x) for x in '$after'.split()]
 print($evaluated, a[2] - b[2], a[4] - b[4], a[0] - b[0], a[1] - b[1], $loop_cpu, $fast_loop_cpu, $built)")")
 done
+steal_after=$(steal_ticks) rounds_ended=$(date +%s.%N)
 steps=$(curl -s "$url/v1/submissions/$id" | python3 -c 'import json,sys; print(sum(e["length"] for e in json.load(sys.stdin)["episodes"]))')
 steps_py=$(python3 -c "import json; print(sum(e['length'] for e in json.load(open('$work/python.json'))['episodes']))")
 steps_py_fast=$(python3 -c "import json; print(sum(e['length'] for e in json.load(open('$work/python-fast.json'))['episodes']))")
@@ -130,6 +135,10 @@ rounded() { printf '%.2f ' "$@"; }
   echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | $(rounded "${dsrl_s[@]}")|"
   echo
   python3 -c "p, f, d = $(median "${python_s[@]}"), $(median "${fast_python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring at 1.8x the sequential loop or faster): %s, %.2fx the speed of the loop on the simulators\' own code; %.2fx the loop with the same speed-ups (medians).' % ('met' if p / d >= 1.8 else '**not met**', p / d, f / d))"
+  python3 -c "
+hz, cores = $(getconf CLK_TCK), $(nproc)
+stolen = ($steal_after - $steal_before) / hz / (($rounds_ended - $rounds_started) * cores)
+print('CPU time the hypervisor gave to other machines during the rounds (steal): %.0f%% of the %d cores.' % (100 * stolen, cores))"
   echo
   echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loops' with their start and imports;"
   echo "the evaluator's seconds from its log, from claiming the job to storing its episodes; building envs: the"
