@@ -8,8 +8,6 @@
 //! state of a reused pool thread and deadlocked the worker.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict, PyTuple};
@@ -71,13 +69,10 @@ pub enum Controller {
 
 type Job = Box<dyn FnOnce() + Send>;
 
-/// The worker's Python thread: every Python call is a job run there, in order, or (a step, see
-/// [`PythonThread::run_here_if_idle`]) on the calling thread when nothing waits on the Python thread.
+/// The worker's Python thread: every Python call is a job run there, in order.
 #[derive(Clone)]
 pub struct PythonThread {
     jobs: std::sync::mpsc::Sender<Job>,
-    /// Jobs handed to the Python thread and not yet finished.
-    queued: Arc<AtomicUsize>,
 }
 
 impl PythonThread {
@@ -86,8 +81,6 @@ impl PythonThread {
         let (jobs, queue) = std::sync::mpsc::channel::<Job>();
         let (ready, started) = std::sync::mpsc::channel();
         let paths = paths.clone();
-        let queued = Arc::new(AtomicUsize::new(0));
-        let finished = queued.clone();
         std::thread::Builder::new()
             .name("python".into())
             .spawn(move || {
@@ -104,7 +97,6 @@ impl PythonThread {
                         if std::panic::catch_unwind(std::panic::AssertUnwindSafe(job)).is_err() {
                             tracing::error!("a Python job panicked");
                         }
-                        finished.fetch_sub(1, Ordering::AcqRel);
                     }
                 });
             })
@@ -112,16 +104,17 @@ impl PythonThread {
         let host = started
             .recv()
             .map_err(|_| SimError::Setup("the Python thread died while starting".into()))??;
-        Ok((PythonThread { jobs, queued }, host))
+        Ok((PythonThread { jobs }, host))
     }
 
     /// Runs `f` on the Python thread and waits for its result.
     pub async fn run<T: Send + 'static>(&self, f: impl FnOnce() -> T + Send + 'static) -> Result<T, SimError> {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        self.queue(Box::new(move || {
-            let _ = reply.send(f());
-        }))
-        .map_err(|_| SimError::Setup("the Python thread has stopped".into()))?;
+        self.jobs
+            .send(Box::new(move || {
+                let _ = reply.send(f());
+            }))
+            .map_err(|_| SimError::Setup("the Python thread has stopped".into()))?;
         answer
             .await
             .map_err(|_| SimError::Simulator("a simulator call panicked".into()))
@@ -129,32 +122,7 @@ impl PythonThread {
 
     /// Queues `f` on the Python thread without waiting (closing batches).
     pub fn spawn(&self, f: impl FnOnce() + Send + 'static) {
-        let _ = self.queue(Box::new(f));
-    }
-
-    /// Runs `f` on the calling thread, now, when every job handed to the Python thread has finished (so nothing
-    /// that came before it is still to run, and the GIL is free but for a moment); otherwise queues it behind them.
-    ///
-    /// For a step: a short call. Handing it to the Python thread costs two wake-ups, the Python thread's and the
-    /// caller's on the way back, and on a virtual machine a wake-up across cores is an interrupt to another core;
-    /// a profile of the worker stepping one session found the runtime thread spending a large share of its time in
-    /// that hand-off (BENCHMARKS.md, scoring). The caller is the runtime's one thread, which is blocked meanwhile:
-    /// long calls (building a session's environments, driving whole episodes, drawing frames) stay queued.
-    pub fn run_here_if_idle(&self, f: impl FnOnce() + Send + 'static) {
-        if self.queued.load(Ordering::Acquire) == 0 {
-            if std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).is_err() {
-                tracing::error!("a Python job panicked");
-            }
-        } else {
-            self.spawn(f);
-        }
-    }
-
-    fn queue(&self, job: Job) -> Result<(), std::sync::mpsc::SendError<Job>> {
-        self.queued.fetch_add(1, Ordering::AcqRel);
-        self.jobs.send(job).inspect_err(|_| {
-            self.queued.fetch_sub(1, Ordering::AcqRel);
-        })
+        let _ = self.jobs.send(Box::new(f));
     }
 }
 

@@ -274,10 +274,9 @@ async fn run_session(
     {
         return Ok(());
     }
-    // Requests are answered in order by jobs on the Python thread (a step, when that thread is idle, runs here),
-    // submitted as soon as they arrive: a client that pipelines keeps the simulator busy while earlier answers
-    // travel back. The session's rules are checked inside each job (its state lives with the jobs), and after the
-    // first error no later job runs.
+    // Requests are answered in order by jobs on the Python thread, submitted as soon as they arrive: a client
+    // that pipelines keeps the simulator busy while earlier answers travel back. The session's rules are checked
+    // inside each job (its state lives with the jobs), and after the first error no later job runs.
     let shape = Shape {
         obs_dim,
         act_dim,
@@ -340,8 +339,7 @@ async fn run_session(
                     _ => Ok(None),
                 };
                 let (shared, batch) = (shared.clone(), batch.clone());
-                let step = matches!(kind, session_request::Kind::Step(_));
-                let job = move || {
+                inner.python.spawn(move || {
                     let mut jobs = shared.lock().expect("session state");
                     if jobs.failed {
                         return;
@@ -349,13 +347,7 @@ async fn run_session(
                     let result = switch.and_then(|switch| respond(kind, &mut jobs.state, &batch, shape, switch));
                     jobs.failed = result.is_err();
                     let _ = answer.send(result);
-                };
-                // A step is short: played here when the Python thread has nothing to do (see run_here_if_idle).
-                if step {
-                    inner.python.run_here_if_idle(job);
-                } else {
-                    inner.python.spawn(job);
-                }
+                });
             }
         }
         if pending.send((request.id, answered)).await.is_err() || closing {
