@@ -11,6 +11,8 @@
 #     (--library-code), which is the loop a researcher runs and the goal's reference, and with dsrl_sim's
 #     speed-ups (sim/python/dsrl_sim/speedups.py), which the workers run, so the table shows what the service's
 #     own layout gains apart from the faster simulator code.
+#   - the machine's ceiling for any two-process layout: two of the first loop at once, one per core (a host whose
+#     cores slow each other, as hyperthreads or a busy host do, shows it below 2x).
 # The checkpoint is BC-All trained by dsrl-train on the committed BallCircle starter (2000 steps; its quality does
 # not matter here, only that both sides play the same network). Prints a Markdown table (bench/out/score.md, and into
 # BENCHMARKS.md at 3 rounds with the default sessions) with the machine and whether the goal was met, and a second
@@ -66,7 +68,7 @@ for pid in sys.argv[1:]:
 # "cpu" line, in ticks summed over the cores), so a run on a host busy with other machines says so.
 steal_ticks() { awk '/^cpu /{print $9; exit}' /proc/stat; }
 steal_before=$(steal_ticks) rounds_started=$(date +%s.%N)
-python_s=() fast_python_s=() dsrl_s=() breakdown=()
+python_s=() fast_python_s=() dsrl_s=() pair_s=() breakdown=()
 for round in $(seq "$rounds"); do
   # A new network each round (max_action differs in the last digit), so the dedupe does not answer from the
   # first result; the play is the same.
@@ -113,6 +115,14 @@ print(r.ru_utime + r.ru_stime)
   fast_loop_cpu=$(loop "$work/python-fast.json")
   end=$(date +%s.%N)
   fast_python_s+=("$(python3 -c "print($end - $start)")")
+  # The machine's own ceiling for two processes: two of the first loop at once, one per core. Twice the loop's
+  # episodes in this time is the most any two-process layout could gain here.
+  start=$(date +%s.%N)
+  loop "$work/pair-1.json" --library-code > /dev/null & first=$!
+  loop "$work/pair-2.json" --library-code > /dev/null
+  wait "$first"
+  end=$(date +%s.%N)
+  pair_s+=("$(python3 -c "print($end - $start)")")
   # Per round: the evaluator's own seconds, then CPU seconds of worker 1, worker 2, the server, its policy
   # processes, and the two loops.
   breakdown+=("$(python3 -c "
@@ -133,12 +143,14 @@ rounded() { printf '%.2f ' "$@"; }
   echo "| sequential in-process Python loop (OSRL-style, 1 env), the simulators' own code | $steps_py | $(median "${python_s[@]}") | $(rounded "${python_s[@]}")|"
   echo "| the same loop with dsrl_sim's speed-ups | $steps_py_fast | $(median "${fast_python_s[@]}") | $(rounded "${fast_python_s[@]}")|"
   echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | $(rounded "${dsrl_s[@]}")|"
+  echo "| two of the first loop at once, one per core (each its own $steps_py env-steps) | $((2 * steps_py)) | $(median "${pair_s[@]}") | $(rounded "${pair_s[@]}")|"
   echo
   python3 -c "p, f, d = $(median "${python_s[@]}"), $(median "${fast_python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring at 1.8x the sequential loop or faster): %s, %.2fx the speed of the loop on the simulators\' own code; %.2fx the loop with the same speed-ups (medians).' % ('met' if p / d >= 1.8 else '**not met**', p / d, f / d))"
   python3 -c "
 hz, cores = $(getconf CLK_TCK), $(nproc)
 stolen = ($steal_after - $steal_before) / hz / (($rounds_ended - $rounds_started) * cores)
 print('CPU time the hypervisor gave to other machines during the rounds (steal): %.0f%% of the %d cores.' % (100 * stolen, cores))"
+  python3 -c "p, two = $(median "${python_s[@]}"), $(median "${pair_s[@]}"); print('The machine\'s ceiling for two processes: two loops at once play the episodes of one loop at %.2fx its speed (2.00x: the cores do not slow each other).' % (2 * p / two))"
   echo
   echo "Where the time goes, median over the rounds (CPU seconds from /proc, the loops' with their start and imports;"
   echo "the evaluator's seconds from its log, from claiming the job to storing its episodes; building envs: the"
