@@ -382,7 +382,7 @@ fn report_fetch(outcome: &dsrl_client::cache::FetchOutcome, json: bool) {
         how.push_str(", converted to DSRL HDF5");
     }
     how.push_str(&format!(", {:.2} s", outcome.seconds));
-    eprintln!("{} {} verified ({how})", outcome.task, &outcome.version[..12]);
+    eprintln!("{} {} verified ({how})", outcome.task, dsrl_suite::ids::short_hex(&outcome.version));
     out!("{}", outcome.path.display());
 }
 
@@ -434,7 +434,7 @@ fn print_tasks(tasks: &[dsrl_client::api::TaskEntry]) {
             .versions
             .iter()
             .find(|v| v.tags.iter().any(|tag| tag == "latest"))
-            .map(|v| format!("{} ({} episodes)", &v.version[..12], v.episodes))
+            .map(|v| format!("{} ({} episodes)", dsrl_suite::ids::short_hex(&v.version), v.episodes))
             .unwrap_or_else(|| "-".into());
         out!(
             "{:<40} {:<13} {:>5} {:>4} {:>3} {:>10.2}..{:<9.2} {:>10.2} {:<9} {latest}",

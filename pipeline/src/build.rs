@@ -41,7 +41,7 @@ const OTHER_PYTHON: &str = "other-simulator-python";
 
 /// The first 12 hex digits of the digest of the `dsrl_sim` package this build was made with (build.rs).
 fn simulator_python() -> &'static str {
-    &env!("DSRL_SIM_PYTHON_DIGEST")[..12]
+    dsrl_suite::ids::short_hex(env!("DSRL_SIM_PYTHON_DIGEST"))
 }
 
 /// The code that made the data in `state_dir` (see `Run::code_version`).

@@ -43,6 +43,12 @@ impl FromStr for TaskId {
     }
 }
 
+/// The first 12 digits of a hex digest or commit, the form people read in logs, tables and pages. A shorter
+/// string comes back whole rather than panicking: these are for display, and their inputs are not all checked.
+pub fn short_hex(hex: &str) -> &str {
+    hex.get(..12).unwrap_or(hex)
+}
+
 /// A dataset version: the lowercase hex sha256 of the version's Parquet bytes. Content-addressed, so immutable.
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -58,7 +64,7 @@ impl VersionId {
     }
     /// The first 12 hex digits, for tables meant for people.
     pub fn short(&self) -> &str {
-        &self.0[..12]
+        short_hex(&self.0)
     }
     fn looks_like(s: &str) -> bool {
         s.len() == 64 && s.bytes().all(|b| b.is_ascii_hexdigit())
@@ -179,6 +185,13 @@ mod tests {
         assert_eq!(v.short(), "abababababab");
         assert!("abc".parse::<VersionId>().is_err());
         assert!("g".repeat(64).parse::<VersionId>().is_err());
+    }
+
+    #[test]
+    fn short_hex_takes_twelve_digits_and_keeps_shorter_strings_whole() {
+        assert_eq!(short_hex(&"0123456789ab".repeat(5)), "0123456789ab");
+        assert_eq!(short_hex("abc"), "abc");
+        assert_eq!(short_hex(""), "");
     }
 
     #[test]

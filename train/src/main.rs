@@ -816,7 +816,7 @@ fn reference_entry(
         entry.seed,
         entry.episodes.len(),
         entry.protocol_version,
-        &entry.checkpoint_sha256[..12],
+        dsrl_suite::ids::short_hex(&entry.checkpoint_sha256),
         entry.code_commit,
         results.display()
     );

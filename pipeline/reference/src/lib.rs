@@ -392,7 +392,7 @@ fn plan_work(
                             "{entry} is in {} already ({steps} steps, batch {}, dataset {}); not trained again",
                             results.display(),
                             e.training.batch_size,
-                            &version[..12]
+                            dsrl_suite::ids::short_hex(&version)
                         );
                         continue;
                     }

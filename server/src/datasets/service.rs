@@ -785,7 +785,7 @@ impl Datasets {
         let (task, record) = self.resolve(task, reference).await?;
         let manifest = self.manifest(&record).await?;
         let spec = self.parse_filter(task, filter)?;
-        let short = &record.version[..12];
+        let short = dsrl_suite::ids::short_hex(&record.version);
         let (title, subtitle, points): (String, Option<String>, Vec<Point>) = match &spec {
             None => (
                 format!("{} {short}: {} trajectories", task.id, manifest.episodes),

@@ -155,8 +155,8 @@ pub fn render(board: &Board, queue: &[QueuedJob]) -> String {
         escape(&p.held_seeds),
         p.scorer_revision,
         p.rules,
-        escape(&p.catalog_sha256[..12]),
-        escape(&p.simulator_pins_sha256[..12]),
+        escape(dsrl_suite::ids::short_hex(&p.catalog_sha256)),
+        escape(dsrl_suite::ids::short_hex(&p.simulator_pins_sha256)),
     );
     let _ = write!(
         html,
