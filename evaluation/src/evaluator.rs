@@ -199,9 +199,7 @@ async fn play_group(
     for (g, slots) in active.iter().enumerate() {
         if let Some(i) = episodes.watched_among(slots, watcher.as_deref()) {
             let w = watcher.as_deref().expect("an environment is watched");
-            sessions[g]
-                .send_render(&local(g, &[i]), w.options.width, w.options.height)
-                .await?;
+            ask_frame(&mut sessions[g], local(g, &[i])[0], &w.options).await?;
             in_flight.push_back((g, Asked::Render));
         }
         send_actions(&mut sessions[g], &mut rollout, &episodes, slots, &local(g, slots)).await?;
@@ -228,9 +226,7 @@ async fn play_group(
                 }
                 active[g] = stepped.still;
                 if let (Some(i), Some(w)) = (stepped.draw, watcher.as_deref()) {
-                    sessions[g]
-                        .send_render(&local(g, &[i]), w.options.width, w.options.height)
-                        .await?;
+                    ask_frame(&mut sessions[g], local(g, &[i])[0], &w.options).await?;
                     in_flight.push_back((g, Asked::Render));
                     if w.ended {
                         continue;
@@ -253,9 +249,7 @@ async fn play_group(
                 episodes.set_observations(&reset, &observations);
                 if let Some(i) = episodes.watched_among(&reset, watcher.as_deref()) {
                     let w = watcher.as_deref().expect("an environment is watched");
-                    sessions[g]
-                        .send_render(&local(g, &[i]), w.options.width, w.options.height)
-                        .await?;
+                    ask_frame(&mut sessions[g], local(g, &[i])[0], &w.options).await?;
                     in_flight.push_back((g, Asked::Render));
                 }
                 active[g].extend(reset);
@@ -406,6 +400,13 @@ async fn send_actions(
 ) -> Result<(), EvaluationError> {
     let actions = rollout.act(envs, &episodes.observations_of(envs)).await?;
     session.send_step(local, &actions).await
+}
+
+/// Asks for a frame of the watched environment (`env`, its number in the session) at the replay's size. The
+/// answer comes back in the session's ordered stream, between the step answers around it.
+async fn ask_frame(session: &mut PooledSession, env: u32, options: &WatchOptions) -> Result<(), EvaluationError> {
+    session.send_render(&[env], options.width, options.height).await?;
+    Ok(())
 }
 
 /// What a request in flight of [`play_group`] asked for.
