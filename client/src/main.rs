@@ -382,7 +382,11 @@ fn report_fetch(outcome: &dsrl_client::cache::FetchOutcome, json: bool) {
         how.push_str(", converted to DSRL HDF5");
     }
     how.push_str(&format!(", {:.2} s", outcome.seconds));
-    eprintln!("{} {} verified ({how})", outcome.task, dsrl_suite::ids::short_hex(&outcome.version));
+    eprintln!(
+        "{} {} verified ({how})",
+        outcome.task,
+        dsrl_suite::ids::short_hex(&outcome.version)
+    );
     out!("{}", outcome.path.display());
 }
 
