@@ -3,7 +3,8 @@
 # finished under the builds' root (${DSRL_FULL_ROOT:-~/.dsrl/full}, as `dsrl-admin build --status` says), then runs
 # `dsrl-admin reference <phases> --task <task>` (by default the phases `full` and `full-seeds` of
 # data/reference/plan.toml: BC-All and BC-Safe, training seeds 0-2), which writes each scored entry into
-# data/reference/full_builds.jsonl. At the end it regenerates the documents (`dsrl-admin docs`). Like
+# data/reference/full_builds.jsonl. A task whose build is committed but whose data is not on this machine is skipped,
+# with the rebuild that would bring it here. At the end it regenerates the documents (`dsrl-admin docs`). Like
 # scripts/full-builds.sh it runs in the background, in a session of its own at the lowest priority (its autogroup
 # gets nice 19), so builds, trainings and the rest of the machine's work share the cores in that order of need.
 # Resumable: run it again after a kill and each task's reference continues from its state folder
@@ -30,12 +31,22 @@ if [ "${1:-}" = "--follow" ]; then
   shift
   for task in "$@"; do
     echo "$(date -u +%FT%TZ) $task: waiting for its full build under $root"
-    until "$admin" build --root "$root" --status --json "$task" | python3 -c '
+    # The build's state: finished (go on), committed (its record is in git but its data is not on this machine:
+    # nothing here will finish it, so the task is skipped with what to do), or anything else (wait).
+    state=""
+    until [ "$state" = finished ] || [ "$state" = committed ]; do
+      [ -z "$state" ] || sleep 60
+      state=$("$admin" build --root "$root" --status --json "$task" | python3 -c '
 import json, sys
-sys.exit(0 if any(p["task"] == sys.argv[1] and p["state"] == "finished" for p in json.load(sys.stdin)) else 1)' "$task"
-    do
-      sleep 60
+print(next((p["state"] for p in json.load(sys.stdin) if p["task"] == sys.argv[1]), "unknown"))' "$task") ||
+        state=unknown
     done
+    if [ "$state" = committed ]; then
+      echo "$(date -u +%FT%TZ) $task: skipped: its full build is committed but not under $root; rebuild it" \
+        "(scripts/full-builds.sh $task: the same version while the code that shapes the data is unchanged)" \
+        "and run this script again once the rebuild has started"
+      continue
+    fi
     echo "$(date -u +%FT%TZ) $task: reference phases ${phases[*]}"
     # One reference run at a time (flock): the phases share a private server in one state folder.
     if ! flock "$log_dir/reference.lock" "$admin" reference "${phases[@]}" --full-builds "$root" --task "$task"; then
