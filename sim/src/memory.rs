@@ -18,7 +18,8 @@ const HEAP_UP_TO_BYTES: i32 = 32 << 20;
 /// Freed memory at the top of a heap is returned to the kernel only beyond this much.
 const KEEP_FREED_BYTES: i32 = 256 << 20;
 
-/// Sets the allocator as described above. Call first thing in `main`: the settings hold for every thread.
+/// Sets the allocator as described above. Call in `main` before any simulator is loaded (after logging starts, so
+/// a refusal is logged): the settings hold for every thread.
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
