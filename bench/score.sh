@@ -11,6 +11,9 @@
 #     (--library-code), which is the loop a researcher runs and the goal's reference, and with dsrl_sim's
 #     speed-ups (sim/python/dsrl_sim/speedups.py), which the workers run, so the table shows what the service's
 #     own layout gains apart from the faster simulator code.
+#   - the same submission on a second server whose every step goes through the server and a policy process
+#     (`leaderboard.act_in_workers_max_multiply_adds = 0`, the layout before the policy acted in the workers), with the same seed
+#     secret: its episodes must equal the first server's, every one, or the script fails;
 #   - the machine's ceiling for any two-process layout: two of the first loop at once, one per core (a host whose
 #     cores slow each other, as hyperthreads or a busy host do, shows it below 2x).
 # The checkpoint is BC-All trained by dsrl-train on the committed BallCircle starter (2000 steps; its quality does
@@ -30,25 +33,38 @@ export PYO3_PYTHON="${PYO3_PYTHON:-$(command -v "${PYTHON:-python3}")}"
 bin=$(realpath "${CARGO_TARGET_DIR:-target}/release")
 work=$(mktemp -d "${TMPDIR:-/tmp}/dsrl-score-bench.XXXXXX")
 server_pid=
-cleanup() { [ -n "$server_pid" ] && kill "$server_pid" 2>/dev/null; rm -rf "$work"; }
+relay_pid=
+cleanup() {
+  [ -n "$server_pid" ] && kill "$server_pid" 2>/dev/null
+  [ -n "$relay_pid" ] && kill "$relay_pid" 2>/dev/null
+  rm -rf "$work"
+}
 trap cleanup EXIT
 mkdir -p bench/out
 task=OfflineBallCircle-v0
 "$bin/dsrl-train" bc --task $task --mode all --dataset "$(ls data/starter/$task/*.parquet)" --steps 2000 \
   --out "$work/policy" >&2
 
-# The server on a free loopback port, with its own data folder and two workers.
-start_server "$work" env DSRL__SIMULATORS__LOCAL_WORKERS=2 DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000 \
-  "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/server" --starter-datasets "$work/none"
-export DSRL_SERVER=$url
-for _ in $(seq 600); do
-  [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(json.load(sys.stdin)["healthy_workers"])')" = 2 ] && break
-  sleep 0.2
-done
-# The checkpoint names the dataset version it was trained on, which the server must host: the committed starter.
-DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin ingest --task $task \
-  "$(ls data/starter/$task/*.parquet)" >&2
-export DSRL_TOKEN=$(DSRL_ADMIN_TOKEN=$(cat "$work/server/admin-token") "$bin/dsrl-client" admin create-user bench)
+# Two servers on free loopback ports, each with its own data folder and two workers, and one seed secret (the held
+# seeds derive from it, so both play the same episodes): the relayed one (every step through the server) first.
+export DSRL__LEADERBOARD__SEED_SECRET=bench-score-$(date +%s)
+serve() {
+  start_server "$work/$1" env DSRL__SIMULATORS__LOCAL_WORKERS=2 DSRL__LEADERBOARD__SUBMISSIONS_PER_DAY=1000 "${@:2}" \
+    "$bin/dsrl-server" --listen 127.0.0.1:0 --data-dir "$work/$1/data" --starter-datasets "$work/none"
+  for _ in $(seq 600); do
+    [ "$(curl -s "$url/v1/simulators" | python3 -c 'import json,sys; print(json.load(sys.stdin)["healthy_workers"])')" = 2 ] && break
+    sleep 0.2
+  done
+  # The checkpoint names the dataset version it was trained on, which the server must host: the committed starter.
+  DSRL_ADMIN_TOKEN=$(cat "$work/$1/data/admin-token") "$bin/dsrl-client" --server "$url" admin ingest --task $task \
+    "$(ls data/starter/$task/*.parquet)" >&2
+  token=$(DSRL_ADMIN_TOKEN=$(cat "$work/$1/data/admin-token") "$bin/dsrl-client" --server "$url" admin create-user bench)
+}
+mkdir -p "$work/relayed" "$work/main"
+serve relayed DSRL__LEADERBOARD__ACT_IN_WORKERS_MAX_MULTIPLY_ADDS=0
+relay_pid=$server_pid relay_url=$url relay_token=$token
+serve main
+export DSRL_SERVER=$url DSRL_TOKEN=$token
 
 # Where the time goes, per round: CPU seconds of each simulator worker, of the server itself and of the policy
 # processes it ran and reaped (its children's time; the workers, also its children, live on and are not in it), the
@@ -68,7 +84,7 @@ for pid in sys.argv[1:]:
 # "cpu" line, in ticks summed over the cores), so a run on a host busy with other machines says so.
 steal_ticks() { awk '/^cpu /{print $9; exit}' /proc/stat; }
 steal_before=$(steal_ticks) rounds_started=$(date +%s.%N)
-python_s=() fast_python_s=() dsrl_s=() pair_s=() breakdown=()
+python_s=() fast_python_s=() dsrl_s=() relayed_s=() pair_s=() breakdown=()
 for round in $(seq "$rounds"); do
   # A new network each round (max_action differs in the last digit), so the dedupe does not answer from the
   # first result; the play is the same.
@@ -76,7 +92,7 @@ for round in $(seq "$rounds"); do
   cp "$work/policy/bc-all/policy.safetensors" "$dir/"
   python3 -c "import json,sys; c=json.load(open('$work/policy/bc-all/policy.json')); c['architecture']['max_action']=1.0-$round*1e-9; json.dump(c, open('$dir/policy.json','w'))"
   before=$(cpu_snapshot)
-  log_lines=$(wc -l < "$work/server.log")
+  log_lines=$(wc -l < "$work/main/server.log")
   start=$(date +%s.%N)
   # `--wait` holds one request open until the server sees the submission end (its evaluator wakes the request),
   # so timing takes next to no CPU from the two cores it measures; polling the full view did not: starting a curl
@@ -86,16 +102,34 @@ for round in $(seq "$rounds"); do
   after=$(cpu_snapshot)
   id=$(python3 -c 'import json,sys; s=json.load(open(sys.argv[1])); print(s["id"]) if s["state"] == "finished" else sys.exit("submission %s %s" % (s["id"], s["state"]))' "$dir/submission.json")
   dsrl_s+=("$(python3 -c "print($end - $start)")")
-  evaluated=$(sed -n "s/.*evaluation finished id=$id .*seconds=\([0-9.]*\).*/\1/p" "$work/server.log")
+  evaluated=$(sed -n "s/.*evaluation finished id=$id .*seconds=\([0-9.]*\).*/\1/p" "$work/main/server.log")
   # The workers' CPU seconds building this job's environments: each session's, from the workers' log lines (in
   # the server's log) written since the submission.
-  built=$(tail -n +"$((log_lines + 1))" "$work/server.log" | python3 -c '
+  built=$(tail -n +"$((log_lines + 1))" "$work/main/server.log" | python3 -c '
 import re, sys
 text = re.sub(r"\x1b\[[0-9;]*m", "", sys.stdin.read())
 found = re.findall(r"session opened.*build_cpu_seconds=([0-9.e-]+)", text)
 if not found:
     sys.exit("no session opened with build_cpu_seconds in the server log: a worker older than the script?")
 print(sum(float(s) for s in found))')
+  # The same checkpoint on the relayed server, which must play the same episodes.
+  start=$(date +%s.%N)
+  DSRL_SERVER=$relay_url DSRL_TOKEN=$relay_token "$bin/dsrl-client" --json submit "$dir" --task $task \
+    --name "bench-$round" --wait > "$dir/relayed.json"
+  end=$(date +%s.%N)
+  relayed_s+=("$(python3 -c "print($end - $start)")")
+  rid=$(python3 -c 'import json,sys; s=json.load(open(sys.argv[1])); print(s["id"]) if s["state"] == "finished" else sys.exit("relayed submission %s %s" % (s["id"], s["state"]))' "$dir/relayed.json")
+  curl -s "$url/v1/submissions/$id" > "$dir/episodes.json"
+  curl -s "$relay_url/v1/submissions/$rid" > "$dir/relayed-episodes.json"
+  python3 - "$dir/episodes.json" "$dir/relayed-episodes.json" <<'PY'
+import json, sys
+keys = ("cost_threshold", "episode", "reward_return", "cost_return", "length")
+a, b = (json.load(open(p)) for p in sys.argv[1:])
+ea, eb = ([tuple(e[k] for k in keys) for e in s["episodes"]] for s in (a, b))
+if ea != eb:
+    diff = next(i for i, (x, y) in enumerate(zip(ea, eb)) if x != y) if len(ea) == len(eb) else "count"
+    sys.exit("acting in the workers and through the server played different episodes (first difference: %s)" % diff)
+PY
   # The loops' CPU seconds: each process's, as the parent sees them once it has exited.
   loop() {
     python3 -c '
@@ -143,9 +177,11 @@ rounded() { printf '%.2f ' "$@"; }
   echo "| sequential in-process Python loop (OSRL-style, 1 env), the simulators' own code | $steps_py | $(median "${python_s[@]}") | $(rounded "${python_s[@]}")|"
   echo "| the same loop with dsrl_sim's speed-ups | $steps_py_fast | $(median "${fast_python_s[@]}") | $(rounded "${fast_python_s[@]}")|"
   echo "| dsrl-server: submit → finished (2 workers, ${DSRL__LEADERBOARD__ENVS_PER_SESSION:-5} envs per threshold) | $steps | $(median "${dsrl_s[@]}") | $(rounded "${dsrl_s[@]}")|"
+  echo "| the same, every step through the server and a policy process (act_in_workers_max_multiply_adds 0; the same episodes) | $steps | $(median "${relayed_s[@]}") | $(rounded "${relayed_s[@]}")|"
   echo "| two of the first loop at once, one per core (each its own $steps_py env-steps) | $((2 * steps_py)) | $(median "${pair_s[@]}") | $(rounded "${pair_s[@]}")|"
   echo
   python3 -c "p, f, d = $(median "${python_s[@]}"), $(median "${fast_python_s[@]}"), $(median "${dsrl_s[@]}"); print('Goal (scoring at 1.8x the sequential loop or faster): %s, %.2fx the speed of the loop on the simulators\' own code; %.2fx the loop with the same speed-ups (medians).' % ('met' if p / d >= 1.8 else '**not met**', p / d, f / d))"
+  python3 -c "p, r = $(median "${python_s[@]}"), $(median "${relayed_s[@]}"); print('Every step through the server instead: %.2fx the loop on the simulators\' own code (medians); its episodes equal the first server\'s in every round.' % (p / r))"
   python3 -c "
 hz, cores = $(getconf CLK_TCK), $(nproc)
 stolen = ($steal_after - $steal_before) / hz / (($rounds_ended - $rounds_started) * cores)

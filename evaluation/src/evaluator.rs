@@ -11,6 +11,7 @@ use dsrl_suite::catalog::Task;
 use serde::{Deserialize, Serialize};
 
 use crate::EvaluationError;
+use crate::in_workers::play_group_in_workers;
 use crate::inference::{Player, PolicySource};
 use dsrl_simulators::{PooledSession, Reply, SimulatorPool, StepResult, split_in_two};
 
@@ -119,18 +120,38 @@ pub async fn play_episodes_counted(
     sessions: usize,
     progress: &std::sync::atomic::AtomicU32,
 ) -> Result<Vec<EpisodeScore>, EvaluationError> {
-    let groups = seeds.chunks(session_run(seeds.len(), sessions)).map(|group| {
-        play_group(
-            pool,
-            task,
-            policy,
-            cost_threshold,
-            group,
-            envs_per_session.max(1),
-            progress,
-            None,
-        )
-    });
+    let groups = seeds
+        .chunks(session_run(seeds.len(), sessions))
+        .map(|group| async move {
+            match policy {
+                // A submitted checkpoint acts inside the workers: the same episodes, without a round trip per step.
+                PolicySource::Isolated(isolated) if isolated.act_in_workers => {
+                    play_group_in_workers(
+                        pool,
+                        task,
+                        isolated,
+                        cost_threshold,
+                        group,
+                        envs_per_session.max(1),
+                        progress,
+                    )
+                    .await
+                }
+                PolicySource::Isolated(_) | PolicySource::Local(_) => {
+                    play_group(
+                        pool,
+                        task,
+                        policy,
+                        cost_threshold,
+                        group,
+                        envs_per_session.max(1),
+                        progress,
+                        None,
+                    )
+                    .await
+                }
+            }
+        });
     let results = futures::future::try_join_all(groups).await?;
     Ok(results.into_iter().flatten().collect())
 }

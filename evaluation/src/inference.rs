@@ -1,9 +1,11 @@
 //! Where a submitted policy computes its actions while it is scored. A submission is weights plus a declared
 //! architecture, checked before it is queued; still, a network that is legal but expensive (a CDT with a long
-//! context) could take the CPU or the memory of the API process. So the leaderboard plays submissions in a child
-//! process (`dsrl-server play-policy`, hidden) under an address-space limit and at a lower scheduling priority: the
-//! worst a policy can do is fail its own evaluation. `dsrl-admin evaluate` and tests that embed the server act in
-//! process.
+//! context) could take the CPU or the memory of the API process. So the leaderboard plays such submissions in a
+//! child process (`dsrl-server play-policy`, hidden) under an address-space limit and at a lower scheduling
+//! priority: the worst a policy can do is fail its own evaluation. A cheap network (its declared cost per action at
+//! most `leaderboard.act_in_workers_max_multiply_adds`) is scored acting inside the simulator workers instead
+//! (`crate::in_workers`: the same episodes without a round trip per step); replays always play here, in a child.
+//! `dsrl-admin evaluate` and tests that embed the server act in process.
 //!
 //! The child speaks a small binary protocol on its standard input and output. Each request is
 //! `[op: u8][length: u32 LE][payload]`, each answer `[status: u8][length: u32 LE][payload]` (status 0: the
@@ -45,6 +47,9 @@ pub struct IsolatedPolicy {
     pub memory_limit_bytes: u64,
     /// Every request must be answered within this; a process that does not is stopped and the evaluation fails.
     pub request_timeout: std::time::Duration,
+    /// Score it acting inside the simulator workers (`crate::in_workers`) rather than in a child process; replays
+    /// always play it in a child process.
+    pub act_in_workers: bool,
     pub config: Bytes,
     pub weights: Bytes,
 }

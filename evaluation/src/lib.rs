@@ -8,6 +8,7 @@
 //! - `seeds` and `protocol`: the held episode seeds and the protocol version results are scored under.
 
 pub mod evaluator;
+mod in_workers;
 pub mod inference;
 pub mod protocol;
 pub mod seeds;

@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use dsrl_policy::Policy;
-use dsrl_policy::checkpoint;
+use dsrl_policy::checkpoint::{self, Conditioning};
 
 use dsrl_evaluation::inference::{IsolatedPolicy, PolicySource};
 
@@ -248,6 +248,16 @@ impl PreparedPolicy {
     }
 }
 
+/// Whether a checkpoint's forward pass is cheap enough to act inside the simulator workers: its declared cost per
+/// environment at most `max_multiply_adds` (a config that does not parse acts nowhere: loading it fails the job).
+fn acts_in_workers(config: &[u8], max_multiply_adds: u64) -> bool {
+    max_multiply_adds > 0
+        && checkpoint::parse_config(config).is_ok_and(|c| {
+            let input_dim = c.obs_dim + usize::from(matches!(c.conditioning, Conditioning::TargetCost));
+            c.architecture.step_cost(input_dim, c.act_dim).multiply_adds <= max_multiply_adds
+        })
+}
+
 /// A stored checkpoint's bytes made ready to play, as this process plays submitted policies (the evaluators and
 /// the replays alike).
 pub(crate) fn prepare_policy(
@@ -260,6 +270,7 @@ pub(crate) fn prepare_policy(
             program: program.clone(),
             memory_limit_bytes: leaderboard.config.policy_memory_limit_bytes,
             request_timeout: Duration::from_secs(leaderboard.config.policy_request_seconds.max(1)),
+            act_in_workers: acts_in_workers(&config, leaderboard.config.act_in_workers_max_multiply_adds),
             config,
             weights,
         })),

@@ -423,7 +423,21 @@ impl Policy {
 
     /// A rollout scoring the policy at `cost_threshold` in `envs` environment slots.
     pub fn rollout(&self, cost_threshold: f64, envs: usize) -> Result<Rollout<'_>> {
-        let start = match (&self.conditioning, &self.network) {
+        let start = self.episode_start(cost_threshold)?;
+        Ok(Rollout::new(Held::Borrowed(self), cost_threshold, start, envs))
+    }
+
+    /// [`Policy::rollout`] for a holder that keeps the rollout between calls without the policy (a simulator
+    /// session playing it, `dsrl-sim-worker`): the rollout shares the policy.
+    pub fn shared_rollout(self: std::sync::Arc<Self>, cost_threshold: f64, envs: usize) -> Result<Rollout<'static>> {
+        let start = self.episode_start(cost_threshold)?;
+        Ok(Rollout::new(Held::Shared(self), cost_threshold, start, envs))
+    }
+
+    /// What every episode's CDT context starts from: the scaled target `(R̂_0, Ĉ_0)` declared for `cost_threshold`
+    /// (zeros for other policies).
+    fn episode_start(&self, cost_threshold: f64) -> Result<(f32, f32)> {
+        Ok(match (&self.conditioning, &self.network) {
             (
                 Conditioning::ReturnsToGo { targets },
                 Network::Cdt {
@@ -446,12 +460,6 @@ impl Policy {
                 )
             }
             _ => (0.0, 0.0),
-        };
-        Ok(Rollout {
-            policy: self,
-            cost_threshold: cost_threshold as f32,
-            start,
-            episodes: (0..envs).map(|_| EpisodeState::new(Noise::seeded(0), start)).collect(),
         })
     }
 }
@@ -479,16 +487,43 @@ impl EpisodeState {
     }
 }
 
+/// The policy a [`Rollout`] plays: borrowed from its caller, or shared with it.
+#[derive(Clone)]
+enum Held<'p> {
+    Borrowed(&'p Policy),
+    Shared(std::sync::Arc<Policy>),
+}
+
+impl std::ops::Deref for Held<'_> {
+    type Target = Policy;
+
+    fn deref(&self) -> &Policy {
+        match self {
+            Held::Borrowed(policy) => policy,
+            Held::Shared(policy) => policy,
+        }
+    }
+}
+
 /// A policy playing episodes in a fixed number of environment slots at one cost threshold.
 pub struct Rollout<'p> {
-    policy: &'p Policy,
+    policy: Held<'p>,
     cost_threshold: f32,
     /// The CDT's scaled `(R̂_0, Ĉ_0)`.
     start: (f32, f32),
     episodes: Vec<EpisodeState>,
 }
 
-impl Rollout<'_> {
+impl<'p> Rollout<'p> {
+    fn new(policy: Held<'p>, cost_threshold: f64, start: (f32, f32), envs: usize) -> Rollout<'p> {
+        Rollout {
+            policy,
+            cost_threshold: cost_threshold as f32,
+            start,
+            episodes: (0..envs).map(|_| EpisodeState::new(Noise::seeded(0), start)).collect(),
+        }
+    }
+
     /// Starts a new episode in slot `env`; `seed` (the episode's seed) seeds the policy's own random draws.
     pub fn start_episode(&mut self, env: usize, seed: u64) -> Result<()> {
         let slot = self
@@ -521,7 +556,9 @@ impl Rollout<'_> {
     /// Actions for the environments `envs` (strictly increasing slots) given their observations (row-major),
     /// row-major `[envs, act_dim]`.
     pub fn act(&mut self, envs: &[u32], observations: &[f32]) -> Result<Vec<f32>> {
-        let policy = self.policy;
+        // A handle of its own (a reference, or one more count of a shared policy): the slots below borrow `self`.
+        let held = self.policy.clone();
+        let policy: &Policy = &held;
         let n = envs.len();
         if observations.len() != n * policy.obs_dim {
             return Err(format_error(format!(

@@ -62,6 +62,13 @@ pub struct LeaderboardConfig {
     /// fault). One that answers nothing within four times this on the clock while using less (starved by other work,
     /// or stopped) is stopped too, and its job goes back to the queue.
     pub policy_request_seconds: u64,
+    /// A submitted policy whose forward pass costs at most this many multiply-adds per environment (its declared
+    /// sizes, `Architecture::step_cost`) is scored acting inside the simulator workers (the simulator proto's `Act`
+    /// and `Play`): the same episodes as acting in a policy process, with the server in the loop once an episode
+    /// instead of once a step. A costlier one acts in a policy process, where its memory is capped and its CPU comes
+    /// second to the simulators'; it gains little in the workers, where the forward pass is most of a step. 0: every
+    /// policy acts in a policy process (replays always do).
+    pub act_in_workers_max_multiply_adds: u64,
     /// The most multiply-adds a submission's scoring may take in all (its network's cost per action × the task's
     /// horizon × episodes per threshold × thresholds), checked before it is queued: a job's worst case is minutes.
     pub max_job_multiply_adds: u64,
@@ -87,6 +94,8 @@ impl Default for LeaderboardConfig {
             deadline_factor: 4.0,
             min_deadline_seconds: 600,
             policy_request_seconds: 30,
+            // OSRL's MLP actors take well under a million; its CDT about 25 million.
+            act_in_workers_max_multiply_adds: 10_000_000,
             // OSRL's CDT on a 1000-step task takes 1.5e12 (about 4 minutes on one core); FISOR at its published
             // settings (16 candidates × 5 denoising steps) up to 8.5e12 on MetaDrive (dsrl-leaderboard's
             // `the_default_budget_admits_fisor_at_its_published_settings_on_every_task`).

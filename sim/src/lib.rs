@@ -5,6 +5,7 @@
 //!
 //! `run(listener, config, shutdown)` is the whole worker; `dsrl-sim-worker` wraps it with flags.
 
+pub mod acting;
 pub mod error;
 pub mod memory;
 pub mod python;

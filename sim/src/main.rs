@@ -44,8 +44,18 @@ struct Args {
 // One runtime thread: it only moves gRPC messages, while the simulators run on their own Python thread
 // (python.rs). A multi-threaded runtime adds cross-thread wake-ups to every step answer and, on a machine whose
 // cores the evaluator, its policy processes and the other workers share, costs CPU (BENCHMARKS.md, scoring).
-#[tokio::main(flavor = "current_thread")]
-async fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<()> {
+    // A session's policy (`Act`) runs candle's kernels on the Python thread that steps the simulators, one thread,
+    // as the server's policy processes do.
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { dsrl_policy::pin_candle_threads() };
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?
+        .block_on(serve())
+}
+
+async fn serve() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".parse().expect("filter")),

@@ -2,7 +2,7 @@
 
 use std::collections::HashMap;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
 use dsrl_proto::simulator::v1 as pb;
@@ -16,6 +16,7 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::acting::Acting;
 use crate::error::SimError;
 use crate::python::{BatchShape, Controller, PyBatch, PythonHost, PythonThread};
 use crate::session::{Limits, SessionState, check_open};
@@ -234,6 +235,7 @@ async fn run_session(
     let reservation = inner.reserve(open.num_envs)?;
     let auto_reset = open.auto_reset == AutoReset::SameStep as i32;
     let k = seeds.len();
+    let opening_seeds = seeds.clone();
     let host = inner.host.clone();
     let id = sim_id.clone();
     let (batch, shape, observations, build_cpu_seconds) = inner
@@ -262,6 +264,7 @@ async fn run_session(
     let spec = inner.spec(&sim_id, &shape);
     let (obs_dim, act_dim) = (shape.obs_dim as usize, shape.act_dim as usize);
     let state = SessionState::new(obs_dim, act_dim, k, auto_reset);
+    let opened_with = (opening_seeds, observations.clone());
     let observations = tensor(DType::Float32, &[k, obs_dim], observations, 4, "observations")?;
     tracing::info!(task = %sim_id, envs = k, auto_reset, build_cpu_seconds, "session opened");
     let opened = Opened {
@@ -281,10 +284,18 @@ async fn run_session(
         obs_dim,
         act_dim,
         auto_reset,
+        controlled: driven.is_some(),
     };
-    let shared = Arc::new(Mutex::new(Jobs { state, failed: false }));
+    let shared = Arc::new(Mutex::new(Jobs {
+        state,
+        failed: false,
+        opened_with: Some(opened_with),
+        acting: None,
+    }));
     let (pending, mut answers) = mpsc::channel::<(u64, Answer)>(64);
     let (stop, mut stopped) = tokio::sync::oneshot::channel::<()>();
+    // Set when the client leaves: a `Play` (many steps in one job) looks at it between steps.
+    let client_gone = Arc::new(AtomicBool::new(false));
     let replies = outbox.clone();
     let forwarder = tokio::spawn(async move {
         while let Some((id, answer)) = answers.recv().await {
@@ -310,8 +321,11 @@ async fn run_session(
         let request = tokio::select! {
             message = inbound.message() => match message {
                 Ok(Some(request)) => request,
-                // End of stream or a broken connection: the client is gone.
-                Ok(None) | Err(_) => break,
+                // End of stream or a broken connection: the client is gone, and a play in progress stops.
+                Ok(None) | Err(_) => {
+                    client_gone.store(true, Ordering::Relaxed);
+                    break;
+                }
             },
             _ = &mut stopped => break,
         };
@@ -338,13 +352,13 @@ async fn run_session(
                     )),
                     _ => Ok(None),
                 };
-                let (shared, batch) = (shared.clone(), batch.clone());
+                let (shared, batch, gone) = (shared.clone(), batch.clone(), client_gone.clone());
                 inner.python.spawn(move || {
                     let mut jobs = shared.lock().expect("session state");
                     if jobs.failed {
                         return;
                     }
-                    let result = switch.and_then(|switch| respond(kind, &mut jobs.state, &batch, shape, switch));
+                    let result = switch.and_then(|switch| respond(kind, &mut jobs, &batch, shape, switch, &gone));
                     jobs.failed = result.is_err();
                     let _ = answer.send(result);
                 });
@@ -408,6 +422,11 @@ fn take_short_step_answer() -> bool {
 struct Jobs {
     state: SessionState,
     failed: bool,
+    /// The seeds and observations the environments were opened with, kept until the first request: a policy
+    /// (`Act`) can take over only from there.
+    opened_with: Option<(Vec<u64>, Vec<u8>)>,
+    /// The policy playing this session's environments, after an `Act`.
+    acting: Option<Acting>,
 }
 
 #[derive(Clone, Copy)]
@@ -415,26 +434,67 @@ struct Shape {
     obs_dim: usize,
     act_dim: usize,
     auto_reset: bool,
+    /// Opened with a built-in driver.
+    controlled: bool,
 }
 
-/// Checks and answers one reset, step, drive or render (on the Python thread).
+/// Checks and answers one reset, step, drive, render, act or play (on the Python thread).
 fn respond(
     kind: session_request::Kind,
-    state: &mut SessionState,
+    jobs: &mut Jobs,
     batch: &PyBatch,
     shape: Shape,
     switch: Option<Controller>,
+    client_gone: &AtomicBool,
 ) -> Result<session_response::Kind, SimError> {
     let Shape {
         obs_dim,
         act_dim,
         auto_reset,
+        controlled,
     } = shape;
+    let opened_with = jobs.opened_with.take();
+    let state = &mut jobs.state;
+    if jobs.acting.is_some() && matches!(kind, session_request::Kind::Step(_) | session_request::Kind::Drive(_)) {
+        return Err(SimError::FailedPrecondition(
+            "this session's policy chooses the actions (Act): play its environments with Play".into(),
+        ));
+    }
     match kind {
+        session_request::Kind::Act(act) => {
+            if auto_reset || controlled {
+                return Err(SimError::FailedPrecondition(
+                    "a policy acts only in a session opened with AUTO_RESET_NONE and without a controller".into(),
+                ));
+            }
+            let Some((seeds, observations)) = opened_with else {
+                return Err(SimError::FailedPrecondition(
+                    "Act must be the first request after Open (a session takes one policy, from its first episodes)"
+                        .into(),
+                ));
+            };
+            jobs.acting = Some(Acting::load(&act, state, &seeds, &observations)?);
+            Ok(session_response::Kind::Act(pb::Acting {}))
+        }
+        session_request::Kind::Play(play) => {
+            let acting = jobs
+                .acting
+                .as_mut()
+                .ok_or_else(|| SimError::FailedPrecondition("play needs a policy: send Act right after Open".into()))?;
+            Ok(session_response::Kind::Play(acting.play(
+                &play,
+                state,
+                batch,
+                client_gone,
+            )?))
+        }
         session_request::Kind::Reset(reset) => {
             let (envs, seeds) = state.check_reset(&reset)?;
             let observations = batch.reset(&envs, &seeds, switch)?;
             state.after_reset(&envs);
+            if let Some(acting) = jobs.acting.as_mut() {
+                acting.after_reset(&envs, &seeds, &observations)?;
+            }
             let observations = tensor(DType::Float32, &[envs.len(), obs_dim], observations, 4, "observations")?;
             Ok(session_response::Kind::Reset(Observations {
                 envs,
@@ -542,7 +602,7 @@ fn respond(
             }))
         }
         _ => Err(SimError::InvalidArgument(
-            "not a reset, a step, a drive or a render".into(),
+            "not a reset, a step, a drive, a render, an act or a play".into(),
         )),
     }
 }

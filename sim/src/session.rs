@@ -1,7 +1,7 @@
 //! The rules of one session, checked in Rust before anything reaches Python: which environments a request names,
 //! the actions' dtype, shape and values, and which environments have finished their episode.
 
-use dsrl_proto::simulator::v1::{DType, Drive, Open, Render, Reset, Step};
+use dsrl_proto::simulator::v1::{DType, Drive, Open, Play, Render, Reset, Step};
 
 use crate::error::SimError;
 
@@ -169,6 +169,18 @@ impl SessionState {
         if let Some(env) = self.first_finished(&envs) {
             return Err(SimError::FailedPrecondition(format!(
                 "env {env} has finished its episode: reset it before driving it"
+            )));
+        }
+        Ok(envs)
+    }
+
+    /// Checks a play: the environments, and that none of them has finished. Whether the session has a policy is
+    /// checked by the caller.
+    pub fn check_play(&self, play: &Play) -> Result<Vec<u32>, SimError> {
+        let envs = self.envs(&play.envs)?;
+        if let Some(env) = self.first_finished(&envs) {
+            return Err(SimError::FailedPrecondition(format!(
+                "env {env} has finished its episode: reset it before playing it"
             )));
         }
         Ok(envs)

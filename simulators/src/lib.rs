@@ -17,4 +17,4 @@ pub use error::SimulatorError;
 pub use pool::{SimulatorPool, WorkerStatus};
 pub use pooled::{PooledSession, split_in_two};
 pub use python_package::{label_with_workers_python, mark_modified};
-pub use session::{DrivenRest, RenderedFrames, Reply, SimulatorSession, StepResult};
+pub use session::{DrivenRest, Played, PlayedEpisode, RenderedFrames, Reply, SimulatorSession, StepResult};

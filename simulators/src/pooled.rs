@@ -149,6 +149,28 @@ impl PooledSession {
         Ok(())
     }
 
+    /// Queues an `Act` (see `SimulatorSession::send_act`): the session's policy plays its environments from here on.
+    pub async fn send_act(
+        &mut self,
+        config: &[u8],
+        weights: &[u8],
+        cost_threshold: f64,
+        act_cpu_seconds: f64,
+    ) -> Result<(), SimulatorError> {
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
+        let call = self.session.send_act(config, weights, cost_threshold, act_cpu_seconds);
+        deadline(&worker, timeout, "act", call).await?;
+        Ok(())
+    }
+
+    /// Queues a `Play` of the named environments: the session's policy steps them inside the worker until one of
+    /// their episodes ends. Its answer's deadline, like a drive's, holds for all the steps.
+    pub async fn send_play(&mut self, envs: &[u32]) -> Result<(), SimulatorError> {
+        let (timeout, worker) = (self.timeout(), self.worker.clone());
+        deadline(&worker, timeout, "play", self.session.send_play(envs)).await?;
+        Ok(())
+    }
+
     /// The answer to the oldest request sent with [`Self::send_step`], [`Self::send_reset`] or
     /// [`Self::send_render`].
     pub async fn receive(&mut self) -> Result<Reply, SimulatorError> {

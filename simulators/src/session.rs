@@ -45,11 +45,33 @@ pub struct DrivenRest {
 /// A decoded response to one pipelined request.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Reply {
-    Reset { envs: Vec<u32>, observations: Vec<f32> },
+    Reset {
+        envs: Vec<u32>,
+        observations: Vec<f32>,
+    },
     Step(StepResult),
     Drive(Vec<DrivenRest>),
     Render(RenderedFrames),
+    /// The session took the policy of an `Act`.
+    Acting,
+    Played(Played),
     Closed,
+}
+
+/// What one `Play` did: the steps its environments took, and the episodes that ended at the last of them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Played {
+    pub steps: u32,
+    pub ended: Vec<PlayedEpisode>,
+}
+
+/// An episode a session's policy played to its end: its environment and returns, summed in the worker.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlayedEpisode {
+    pub env: u32,
+    pub reward_return: f64,
+    pub cost_return: f64,
+    pub length: u32,
 }
 
 /// The images a `Render` asked for: `frames` is `[n * height * width * 3]` RGB bytes, one image per environment in
@@ -79,6 +101,8 @@ enum Asked {
     Reset(Vec<u32>),
     Drive(Vec<u32>),
     Render { envs: Vec<u32>, width: u32, height: u32 },
+    Act,
+    Play(Vec<u32>),
     Close,
     Raw,
 }
@@ -156,6 +180,8 @@ impl SimulatorSession {
                 width: render.width,
                 height: render.height,
             },
+            session_request::Kind::Act(_) => Asked::Act,
+            session_request::Kind::Play(play) => Asked::Play(self.resolve(&play.envs)),
             session_request::Kind::Close(_) => Asked::Close,
             _ => Asked::Raw,
         };
@@ -224,6 +250,31 @@ impl SimulatorSession {
             height,
         }))
         .await
+    }
+
+    /// Queues an `Act`: the session's policy from here on (`config` and `weights` as a checkpoint stores them),
+    /// at `cost_threshold`, each forward pass held to `act_cpu_seconds` of the worker's CPU time.
+    pub async fn send_act(
+        &mut self,
+        config: &[u8],
+        weights: &[u8],
+        cost_threshold: f64,
+        act_cpu_seconds: f64,
+    ) -> Result<u64, Status> {
+        self.send(session_request::Kind::Act(pb::Act {
+            config: config.to_vec(),
+            weights: weights.to_vec(),
+            cost_threshold,
+            act_cpu_seconds,
+        }))
+        .await
+    }
+
+    /// Queues a `Play` of the named environments (empty: all): the session's policy steps them until an episode
+    /// of theirs ends.
+    pub async fn send_play(&mut self, envs: &[u32]) -> Result<u64, Status> {
+        self.send(session_request::Kind::Play(pb::Play { envs: envs.to_vec() }))
+            .await
     }
 
     /// Sends a raw request (tests use it to send what a typed call never would).
@@ -323,7 +374,35 @@ impl SimulatorSession {
                 }
                 Ok(())
             }
-            (Asked::Close, Reply::Closed) | (Asked::Raw, _) => Ok(()),
+            (Asked::Play(envs), Reply::Played(played)) => {
+                // The ended episodes are among those played, in their order, each with finite returns, a cost
+                // return of at least 0 and a length that covers the steps played.
+                let mut rest = envs.iter();
+                for e in &played.ended {
+                    if !rest.any(|&env| env == e.env) {
+                        return Err(bad_answer(format!(
+                            "a play of environments {envs:?} ended an episode of environment {} (or out of order)",
+                            e.env
+                        )));
+                    }
+                    finite("played returns", [e.reward_return, e.cost_return])?;
+                    if e.cost_return < 0.0 || e.length < played.steps {
+                        return Err(bad_answer(format!(
+                            "environment {} ended an episode of {} steps with cost return {} after {} steps played",
+                            e.env, e.length, e.cost_return, played.steps
+                        )));
+                    }
+                }
+                if played.steps == 0 || played.ended.is_empty() {
+                    return Err(bad_answer(format!(
+                        "a play answered after {} steps with {} ended episodes",
+                        played.steps,
+                        played.ended.len()
+                    )));
+                }
+                Ok(())
+            }
+            (Asked::Act, Reply::Acting) | (Asked::Close, Reply::Closed) | (Asked::Raw, _) => Ok(()),
             (asked, reply) => Err(bad_answer(format!(
                 "a {} request was answered with a {} reply",
                 match asked {
@@ -331,6 +410,8 @@ impl SimulatorSession {
                     Asked::Reset(_) => "reset",
                     Asked::Drive(_) => "drive",
                     Asked::Render { .. } => "render",
+                    Asked::Act => "act",
+                    Asked::Play(_) => "play",
                     Asked::Close => "close",
                     Asked::Raw => "raw",
                 },
@@ -339,6 +420,8 @@ impl SimulatorSession {
                     Reply::Reset { .. } => "reset",
                     Reply::Drive(_) => "drive",
                     Reply::Render(_) => "render",
+                    Reply::Acting => "acting",
+                    Reply::Played(_) => "played",
                     Reply::Closed => "closed",
                 }
             ))),
@@ -405,6 +488,20 @@ impl SimulatorSession {
                     frames: frames.data,
                 }))
             }
+            Some(session_response::Kind::Act(_)) => Ok(Reply::Acting),
+            Some(session_response::Kind::Play(played)) => Ok(Reply::Played(Played {
+                steps: played.steps,
+                ended: played
+                    .ended
+                    .into_iter()
+                    .map(|e| PlayedEpisode {
+                        env: e.env,
+                        reward_return: e.reward_return,
+                        cost_return: e.cost_return,
+                        length: e.length,
+                    })
+                    .collect(),
+            })),
             Some(session_response::Kind::Closed(_)) => Ok(Reply::Closed),
             _ => Err(Status::internal("unexpected response in a simulator session")),
         }

@@ -30,6 +30,7 @@ mod s3;
 mod services;
 mod simulators;
 mod starter;
+mod worker_acting;
 mod workspace;
 mod writes;
 

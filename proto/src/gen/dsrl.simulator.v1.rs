@@ -48,7 +48,7 @@ pub struct SessionRequest {
     /// Echoed in the response.
     #[prost(uint64, tag = "1")]
     pub id: u64,
-    #[prost(oneof = "session_request::Kind", tags = "2, 3, 4, 5, 6, 7")]
+    #[prost(oneof = "session_request::Kind", tags = "2, 3, 4, 5, 6, 7, 8, 9")]
     pub kind: ::core::option::Option<session_request::Kind>,
 }
 /// Nested message and enum types in `SessionRequest`.
@@ -68,6 +68,10 @@ pub mod session_request {
         Drive(super::Drive),
         #[prost(message, tag = "7")]
         Render(super::Render),
+        #[prost(message, tag = "8")]
+        Act(super::Act),
+        #[prost(message, tag = "9")]
+        Play(super::Play),
     }
 }
 #[allow(clippy::all)]
@@ -172,6 +176,41 @@ pub struct Render {
     #[prost(uint32, tag = "3")]
     pub height: u32,
 }
+/// A policy for the session to act with (`Play`): a checkpoint as the leaderboard stores it, checked in the worker as
+/// the server checks it. The policy's rollout starts an episode in every environment with the seed it was last reset
+/// with (the `Open` seeds, at first) and each later `Reset` starts another. Only in a session without auto-reset and
+/// without a controller, and only once.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct Act {
+    /// `policy.json`, at most 64 KiB.
+    #[prost(bytes = "vec", tag = "1")]
+    pub config: ::prost::alloc::vec::Vec<u8>,
+    /// `policy.safetensors`, within the checkpoint format's weight limit.
+    #[prost(bytes = "vec", tag = "2")]
+    pub weights: ::prost::alloc::vec::Vec<u8>,
+    /// The threshold a conditioned policy reads (others ignore it).
+    #[prost(double, tag = "3")]
+    pub cost_threshold: f64,
+    /// The CPU time one forward pass of the policy may take on the worker's thread, in seconds (a `Play` that runs
+    /// over fails with INVALID_ARGUMENT: the checkpoint's doing).
+    #[prost(double, tag = "4")]
+    pub act_cpu_seconds: f64,
+}
+/// After `Act`: the session's policy plays the named environments inside the worker, a step at a time with its
+/// deterministic actions, until a step ends at least one of their episodes, and one answer says how many steps that
+/// took and which episodes ended. Each step is the step a client would have sent with the same actions (the policy
+/// acts on the environments' last observations, as a batch in the order named, and hears each step's rewards and
+/// costs), so an episode is the one stepping would have played. A client that needs the steps between its requests
+/// (seeds to hand out when episodes end) plays one episode end at a time and the simulator never waits for the
+/// client in between.
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct Play {
+    /// Environments to play (empty: all), none finished.
+    #[prost(uint32, repeated, tag = "1")]
+    pub envs: ::prost::alloc::vec::Vec<u32>,
+}
 #[allow(clippy::all)]
 #[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]
 pub struct Close {}
@@ -180,7 +219,7 @@ pub struct Close {}
 pub struct SessionResponse {
     #[prost(uint64, tag = "1")]
     pub id: u64,
-    #[prost(oneof = "session_response::Kind", tags = "2, 3, 4, 5, 6, 7")]
+    #[prost(oneof = "session_response::Kind", tags = "2, 3, 4, 5, 6, 7, 8, 9")]
     pub kind: ::core::option::Option<session_response::Kind>,
 }
 /// Nested message and enum types in `SessionResponse`.
@@ -200,6 +239,10 @@ pub mod session_response {
         Drive(super::Driven),
         #[prost(message, tag = "7")]
         Render(super::Frames),
+        #[prost(message, tag = "8")]
+        Act(super::Acting),
+        #[prost(message, tag = "9")]
+        Play(super::Played),
     }
 }
 #[allow(clippy::all)]
@@ -275,6 +318,33 @@ pub struct DrivenEpisode {
     pub terminated: bool,
     #[prost(bool, tag = "7")]
     pub truncated: bool,
+}
+#[allow(clippy::all)]
+#[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct Acting {}
+#[allow(clippy::all)]
+#[derive(Clone, PartialEq, ::prost::Message)]
+pub struct Played {
+    /// How many steps the named environments took (each step steps all of those still playing).
+    #[prost(uint32, tag = "1")]
+    pub steps: u32,
+    /// The episodes that ended at the last step, in the order of the request's environments: each environment's whole
+    /// episode, from its last reset, as the worker summed it.
+    #[prost(message, repeated, tag = "2")]
+    pub ended: ::prost::alloc::vec::Vec<PlayedEpisode>,
+}
+#[allow(clippy::all)]
+#[derive(Clone, Copy, PartialEq, ::prost::Message)]
+pub struct PlayedEpisode {
+    #[prost(uint32, tag = "1")]
+    pub env: u32,
+    /// Sums in FLOAT64 of each step's reward and cost rounded to FLOAT32 (the datasets' type), in step order.
+    #[prost(double, tag = "2")]
+    pub reward_return: f64,
+    #[prost(double, tag = "3")]
+    pub cost_return: f64,
+    #[prost(uint32, tag = "4")]
+    pub length: u32,
 }
 #[allow(clippy::all)]
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
