@@ -369,6 +369,8 @@ fn the_reference_command_stops_at_a_scoring_failed_for_the_checkpoints_sake() {
     let (env, token) = scoring_server(&[
         ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
         ("DSRL__LEADERBOARD__POLICY_MEMORY_LIMIT_BYTES", "50000000"),
+        // The limit holds in the policy process: the BC network would otherwise act in the workers.
+        ("DSRL__LEADERBOARD__ACT_IN_WORKERS_MAX_MULTIPLY_ADDS", "0"),
     ]);
     let output = reference(
         &env,

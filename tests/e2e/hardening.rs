@@ -122,8 +122,10 @@ fn evaluations_are_bounded_in_memory_and_time() {
         &[
             ("DSRL__SIMULATORS__LOCAL_WORKERS", "1"),
             ("DSRL__SIMULATORS__WORKER_BINARY", &binary),
-            // Too little for the policy process to load its weights.
+            // Too little for the policy process to load its weights; the policy acts there, not in the workers
+            // (where the checks bound a cheap network's memory, and no address-space limit applies).
             ("DSRL__LEADERBOARD__POLICY_MEMORY_LIMIT_BYTES", "50000000"),
+            ("DSRL__LEADERBOARD__ACT_IN_WORKERS_MAX_MULTIPLY_ADDS", "0"),
         ],
     );
     let alice = create_user(&env, "alice");

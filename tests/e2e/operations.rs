@@ -158,7 +158,14 @@ fn a_policy_process_starved_or_killed_from_outside_gives_its_job_back() {
     let models = tempfile::tempdir().unwrap();
     train_bc(models.path(), "all", 0);
     train_bc(models.path(), "safe", 1);
-    let env = ops_env("1", &[("DSRL__LEADERBOARD__POLICY_REQUEST_SECONDS", "3")]);
+    // The BC networks act in policy processes (they would otherwise act in the workers), which this stops and kills.
+    let env = ops_env(
+        "1",
+        &[
+            ("DSRL__LEADERBOARD__POLICY_REQUEST_SECONDS", "3"),
+            ("DSRL__LEADERBOARD__ACT_IN_WORKERS_MAX_MULTIPLY_ADDS", "0"),
+        ],
+    );
     let alice = create_user(&env, "alice");
     let stopped = submit(&env, &alice, &models.path().join("bc-all"), "BC-All")
         .ok()

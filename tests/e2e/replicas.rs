@@ -341,6 +341,9 @@ fn a_submission_survives_its_evaluator_killed_mid_job() {
         ("DSRL__SIMULATORS__WORKER_BINARY", worker.as_str()),
         ("DSRL__LEADERBOARD__LEASE_SECONDS", "2"),
         ("DSRL__LEADERBOARD__EPISODES_PER_THRESHOLD", "10"),
+        // The evaluator that holds the job is found by its `play-policy` children: the policy acts there, not in
+        // the workers (the same episodes either way).
+        ("DSRL__LEADERBOARD__ACT_IN_WORKERS_MAX_MULTIPLY_ADDS", "0"),
     ];
 
     // The reference: the same policy scored without interruption on the embedded default.
