@@ -194,18 +194,8 @@ async fn play_group(
         rollout.start_episode(env, seed).await?;
     }
     // Each group's environments (global numbers 0..k) and, in its session, environment `i` is `i - first[g]`.
-    let groups = split_in_two(k);
+    let (groups, mut sessions) = open_groups(pool, task, seeds, k).await?;
     let first: Vec<u32> = groups.iter().map(|g| g[0]).collect();
-    let opens = groups.iter().map(|g| {
-        pool.open(Open {
-            task: task.id.to_string(),
-            num_envs: g.len() as u32,
-            seeds: g.iter().map(|&i| seeds[i as usize]).collect(),
-            auto_reset: AutoReset::None as i32,
-            controller: None,
-        })
-    });
-    let mut sessions = futures::future::try_join_all(opens).await?;
     let first_observations = sessions
         .iter()
         .flat_map(|s| s.initial_observations().iter().copied())
@@ -293,6 +283,28 @@ async fn play_group(
         session.close().await?;
     }
     Ok(episodes.scores)
+}
+
+/// The first `k` of `seeds` as two groups of environments (global numbers `0..k`, see [`split_in_two`]), each in a
+/// session of its own opened with its environments' seeds, all opened at once.
+pub(crate) async fn open_groups(
+    pool: &SimulatorPool,
+    task: &Task,
+    seeds: &[u64],
+    k: usize,
+) -> Result<(Vec<Vec<u32>>, Vec<PooledSession>), EvaluationError> {
+    let groups = split_in_two(k);
+    let opens = groups.iter().map(|g| {
+        pool.open(Open {
+            task: task.id.to_string(),
+            num_envs: g.len() as u32,
+            seeds: g.iter().map(|&i| seeds[i as usize]).collect(),
+            auto_reset: AutoReset::None as i32,
+            controller: None,
+        })
+    });
+    let sessions = futures::future::try_join_all(opens).await?;
+    Ok((groups, sessions))
 }
 
 /// The episodes of one [`play_group`] as they stand between replies: the returns so far, the episode (index into

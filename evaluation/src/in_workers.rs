@@ -16,12 +16,11 @@
 //! checkpoint's declared sizes bound what it may hold (`check_step_cost`, the format's weight limit), where the
 //! policy process also has an address-space limit.
 
-use dsrl_proto::simulator::v1::{AutoReset, Open};
-use dsrl_simulators::{PlayedEpisode, PooledSession, Reply, SimulatorPool, split_in_two};
+use dsrl_simulators::{PlayedEpisode, PooledSession, Reply, SimulatorPool};
 use dsrl_suite::catalog::Task;
 
 use crate::EvaluationError;
-use crate::evaluator::EpisodeScore;
+use crate::evaluator::{EpisodeScore, open_groups};
 use crate::inference::IsolatedPolicy;
 
 /// One group's place in the order of requests.
@@ -65,17 +64,7 @@ pub(crate) async fn play_group_in_workers(
     progress: &std::sync::atomic::AtomicU32,
 ) -> Result<Vec<EpisodeScore>, EvaluationError> {
     let k = seeds.len().min(envs);
-    let layout = split_in_two(k);
-    let opens = layout.iter().map(|g| {
-        pool.open(Open {
-            task: task.id.to_string(),
-            num_envs: g.len() as u32,
-            seeds: g.iter().map(|&i| seeds[i as usize]).collect(),
-            auto_reset: AutoReset::None as i32,
-            controller: None,
-        })
-    });
-    let mut sessions = futures::future::try_join_all(opens).await?;
+    let (layout, mut sessions) = open_groups(pool, task, seeds, k).await?;
     let act_cpu_seconds = policy.request_timeout.as_secs_f64();
     for session in &mut sessions {
         session

@@ -36,7 +36,8 @@ struct Args {
     /// Task catalog CSV (default: the catalog built into the binary, data/tasks.csv).
     #[arg(long)]
     tasks: Option<PathBuf>,
-    /// Tests only: `short-step-answers=N` makes the next N step answers leave out a row.
+    /// Tests only: `short-step-answers=N` makes the next N step answers leave out a row (play answers: their ended
+    /// episodes).
     #[arg(long, hide = true)]
     inject_fault: Option<String>,
 }

@@ -404,8 +404,8 @@ fn switch_driver(
 type Answer = tokio::sync::oneshot::Receiver<Result<session_response::Kind, SimError>>;
 
 /// A test-only fault (`dsrl-sim-worker --inject-fault short-step-answers=N`, hidden): the next N step answers of this
-/// process leave out their last reward, as a faulty worker might, so the tests can check that the evaluators refuse
-/// such an answer instead of indexing past it.
+/// process leave out their last reward (a play's answer, its ended episodes), as a faulty worker might, so the tests
+/// can check that the evaluators refuse such an answer instead of indexing past it.
 static SHORT_STEP_ANSWERS: AtomicU32 = AtomicU32::new(0);
 
 pub fn inject_short_step_answers(n: u32) {
@@ -481,12 +481,11 @@ fn respond(
                 .acting
                 .as_mut()
                 .ok_or_else(|| SimError::FailedPrecondition("play needs a policy: send Act right after Open".into()))?;
-            Ok(session_response::Kind::Play(acting.play(
-                &play,
-                state,
-                batch,
-                client_gone,
-            )?))
+            let mut played = acting.play(&play, state, batch, client_gone)?;
+            if take_short_step_answer() {
+                played.ended.clear();
+            }
+            Ok(session_response::Kind::Play(played))
         }
         session_request::Kind::Reset(reset) => {
             let (envs, seeds) = state.check_reset(&reset)?;

@@ -114,7 +114,8 @@ fn a_panicking_evaluator_is_restarted_its_job_ends_with_the_reason_and_the_next_
 fn a_worker_answering_out_of_protocol_fails_the_job_as_infrastructure_and_it_may_be_submitted_again() {
     let models = tempfile::tempdir().unwrap();
     train_bc(models.path(), "all", 0);
-    // A real worker with a test-only fault: its first step answer leaves out a row.
+    // A real worker with a test-only fault: its first answer to a step (or to a play, where the policy acts in the
+    // worker) leaves out a row.
     let mut worker = std::process::Command::new(dsrl_e2e::bin("dsrl-sim-worker"))
         .args(["--listen", "127.0.0.1:0", "--inject-fault", "short-step-answers=1"])
         .stdout(std::process::Stdio::piped())
