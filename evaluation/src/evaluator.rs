@@ -24,6 +24,21 @@ pub struct EpisodeScore {
     pub length: u32,
 }
 
+impl EpisodeScore {
+    /// Each of `seeds` as an episode not played yet: no steps, no returns.
+    pub(crate) fn unplayed(seeds: &[u64]) -> Vec<EpisodeScore> {
+        seeds
+            .iter()
+            .map(|&seed| EpisodeScore {
+                seed,
+                reward_return: 0.0,
+                cost_return: 0.0,
+                length: 0,
+            })
+            .collect()
+    }
+}
+
 /// Checks a policy's declared task and dimensions against the catalog's task; the message says what differs.
 pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), EvaluationError> {
     if config.task != task.id.as_str() {
@@ -48,10 +63,8 @@ pub fn check_policy(task: &Task, config: &PolicyConfig) -> Result<(), Evaluation
     }
     // What one action may cost, from the declared sizes (a long CDT context once passed every other check and ate
     // the server's memory while it was scored).
-    let input_dim = config.obs_dim + usize::from(matches!(config.conditioning, Conditioning::TargetCost));
     config
-        .architecture
-        .check_step_cost(input_dim, config.act_dim)
+        .check_step_cost()
         .map_err(|e| EvaluationError::InvalidArgument(e.to_string()))?;
     if let Conditioning::ReturnsToGo { targets } = &config.conditioning {
         let covered: Vec<f64> = targets.iter().map(|t| t.cost_threshold).collect();
@@ -334,15 +347,7 @@ impl<'s> Episodes<'s> {
     fn new(seeds: &'s [u64], envs: usize, obs_dim: usize, obs: Vec<f32>) -> Episodes<'s> {
         Episodes {
             seeds,
-            scores: seeds
-                .iter()
-                .map(|&seed| EpisodeScore {
-                    seed,
-                    reward_return: 0.0,
-                    cost_return: 0.0,
-                    length: 0,
-                })
-                .collect(),
+            scores: EpisodeScore::unplayed(seeds),
             playing: (0..envs).collect(),
             next: envs,
             obs,

@@ -77,15 +77,7 @@ pub(crate) async fn play_group_in_workers(
             _ => return Err(out_of_order(session)),
         }
     }
-    let mut scores: Vec<EpisodeScore> = seeds
-        .iter()
-        .map(|&seed| EpisodeScore {
-            seed,
-            reward_return: 0.0,
-            cost_return: 0.0,
-            length: 0,
-        })
-        .collect();
+    let mut scores = EpisodeScore::unplayed(seeds);
     // The episode (index into the seeds) each environment plays, and the next seed to hand out.
     let mut playing: Vec<usize> = (0..k).collect();
     let mut next = k;
@@ -119,8 +111,9 @@ pub(crate) async fn play_group_in_workers(
         let mut restarted = Vec::new();
         for episode in ended {
             let i = episode.env + group.first;
-            scores[playing[i as usize]] = EpisodeScore {
-                seed: scores[playing[i as usize]].seed,
+            let e = playing[i as usize];
+            scores[e] = EpisodeScore {
+                seed: seeds[e],
                 reward_return: episode.reward_return,
                 cost_return: episode.cost_return,
                 length: episode.length,

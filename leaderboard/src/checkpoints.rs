@@ -112,8 +112,7 @@ impl JobBudget {
     /// Refuses a checkpoint whose scoring would take more than the budget: its cost per action × the task's horizon
     /// × the episodes it plays (per threshold; each threshold for a checkpoint scored at all of them).
     fn check(&self, task: &Task, config: &PolicyConfig, thresholds: usize) -> Result<(), ApiError> {
-        let input_dim = config.obs_dim + usize::from(matches!(config.conditioning, Conditioning::TargetCost));
-        let per_action = config.architecture.step_cost(input_dim, config.act_dim).multiply_adds;
+        let per_action = config.step_cost().multiply_adds;
         let actions = u64::from(task.max_episode_steps) * u64::from(self.episodes_per_threshold) * thresholds as u64;
         let total = per_action.saturating_mul(actions);
         if total > self.max_multiply_adds {

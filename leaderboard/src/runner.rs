@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use dsrl_policy::Policy;
-use dsrl_policy::checkpoint::{self, Conditioning};
+use dsrl_policy::checkpoint;
 
 use dsrl_evaluation::inference::{IsolatedPolicy, PolicySource};
 
@@ -252,10 +252,7 @@ impl PreparedPolicy {
 /// environment at most `max_multiply_adds` (a config that does not parse acts nowhere: loading it fails the job).
 fn acts_in_workers(config: &[u8], max_multiply_adds: u64) -> bool {
     max_multiply_adds > 0
-        && checkpoint::parse_config(config).is_ok_and(|c| {
-            let input_dim = c.obs_dim + usize::from(matches!(c.conditioning, Conditioning::TargetCost));
-            c.architecture.step_cost(input_dim, c.act_dim).multiply_adds <= max_multiply_adds
-        })
+        && checkpoint::parse_config(config).is_ok_and(|c| c.step_cost().multiply_adds <= max_multiply_adds)
 }
 
 /// A stored checkpoint's bytes made ready to play, as this process plays submitted policies (the evaluators and

@@ -52,6 +52,24 @@ pub struct PolicyConfig {
     pub training: Option<serde_json::Value>,
 }
 
+impl PolicyConfig {
+    /// What the network reads per environment: the observation, and the cost threshold after it under `target_cost`
+    /// conditioning.
+    pub fn input_dim(&self) -> usize {
+        self.obs_dim + usize::from(matches!(self.conditioning, Conditioning::TargetCost))
+    }
+
+    /// What one action costs by the declared sizes ([`Architecture::step_cost`] at this input and action size).
+    pub fn step_cost(&self) -> StepCost {
+        self.architecture.step_cost(self.input_dim(), self.act_dim)
+    }
+
+    /// [`Architecture::check_step_cost`] at this input and action size.
+    pub fn check_step_cost(&self) -> Result<()> {
+        self.architecture.check_step_cost(self.input_dim(), self.act_dim)
+    }
+}
+
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Conditioning {

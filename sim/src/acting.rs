@@ -18,7 +18,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use dsrl_policy::acting::{Policy, Rollout};
-use dsrl_policy::checkpoint::{self, Conditioning};
+use dsrl_policy::checkpoint;
 use dsrl_proto::simulator::v1::{Act, Play, Played, PlayedEpisode};
 
 use crate::error::SimError;
@@ -56,11 +56,7 @@ impl Acting {
                 config.obs_dim, config.act_dim, state.obs_dim, state.act_dim
             )));
         }
-        let input_dim = config.obs_dim + usize::from(matches!(config.conditioning, Conditioning::TargetCost));
-        config
-            .architecture
-            .check_step_cost(input_dim, config.act_dim)
-            .map_err(|e| refused("the policy", e))?;
+        config.check_step_cost().map_err(|e| refused("the policy", e))?;
         if !(act.act_cpu_seconds.is_finite() && act.act_cpu_seconds > 0.0) {
             return Err(SimError::InvalidArgument(format!(
                 "act_cpu_seconds must be a positive number of seconds, not {}",
