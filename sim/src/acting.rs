@@ -135,11 +135,12 @@ impl Acting {
                 .map_err(|e| refused("evaluating the policy", e))?;
             let used = thread_cpu_time().saturating_sub(started);
             if used > self.act_cpu {
+                // Debug-formatted durations pick their unit (s, ms, µs), so a limit far under a millisecond reads
+                // as what it is rather than as "0.000 s".
                 return Err(SimError::InvalidArgument(format!(
-                    "the policy took {:.3} s of CPU time for one forward pass of {} environments; the limit is {:.3} s",
-                    used.as_secs_f64(),
+                    "the policy took {used:?} of CPU time for one forward pass of {} environments; the limit is {:?}",
                     envs.len(),
-                    self.act_cpu.as_secs_f64()
+                    self.act_cpu
                 )));
             }
             let actions: Vec<u8> = actions.iter().flat_map(|a| a.to_le_bytes()).collect();

@@ -115,9 +115,16 @@ fn a_worker_answering_out_of_protocol_fails_the_job_as_infrastructure_and_it_may
     let models = tempfile::tempdir().unwrap();
     train_bc(models.path(), "all", 0);
     // A real worker with a test-only fault: its first answer to a step (or to a play, where the policy acts in the
-    // worker) leaves out a row.
+    // worker) leaves out a row. `--exit-with-stdin`: dropping `worker` (a failed assertion too) closes its stdin, and
+    // the worker exits rather than outliving the test.
     let mut worker = std::process::Command::new(dsrl_e2e::bin("dsrl-sim-worker"))
-        .args(["--listen", "127.0.0.1:0", "--inject-fault", "short-step-answers=1"])
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--exit-with-stdin",
+            "--inject-fault",
+            "short-step-answers=1",
+        ])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
         .stdin(std::process::Stdio::piped())
