@@ -271,6 +271,71 @@ fn agreement_section(
             if met { "met" } else { "not met" }
         );
     }
+    s.push_str(&unsafe_where_the_paper_is_safe(current, cells));
+    s
+}
+
+/// How the episodes fall in the cells where ours is unsafe and the paper's safe. A mean over episodes (what the
+/// paper reports and the verdict reads) can be over the threshold while most episodes are within it: a few episodes
+/// in which the policy leaves the safe region and does not come back cost many times the threshold each. Telling
+/// those cells from the ones where most episodes are over says which disagreements a policy's rare failures make.
+fn unsafe_where_the_paper_is_safe(current: &[&ReferenceEntry], cells: &[Agreement]) -> String {
+    let mut tail = Vec::new();
+    let mut most_over = Vec::new();
+    for cell in cells.iter().filter(|c| !c.safe && c.paper_safe) {
+        let mut costs: Vec<f64> = current
+            .iter()
+            .filter(|e| e.task == cell.task && e.method == cell.method)
+            .flat_map(|e| &e.episodes)
+            .map(|e| dsrl_suite::score::normalized_cost(e.cost_return, e.cost_threshold))
+            .collect();
+        if costs.is_empty() {
+            continue;
+        }
+        costs.sort_by(f64::total_cmp);
+        let n = costs.len();
+        let median = (costs[(n - 1) / 2] + costs[n / 2]) / 2.0;
+        let over = costs.iter().filter(|&&c| c > 1.0).count();
+        let label = format!(
+            "{} {} ({} of {n} episodes over, the costliest at {:.1}× it)",
+            short(&cell.task),
+            cell.method,
+            over,
+            costs[n - 1]
+        );
+        if median <= 1.0 {
+            tail.push(label);
+        } else {
+            most_over.push(format!("{} {}", short(&cell.task), cell.method));
+        }
+    }
+    if tail.is_empty() && most_over.is_empty() {
+        return String::new();
+    }
+    let mut s = format!(
+        "\n**Where ours is unsafe and the paper's safe** ({} cells), by episode (each episode's cost over its \
+         threshold, all seeds): ",
+        tail.len() + most_over.len()
+    );
+    if tail.is_empty() {
+        s.push_str("in none is the median episode within its threshold");
+    } else {
+        let _ = write!(
+            s,
+            "in {} the median episode is within its threshold, so a minority of episodes decides the verdict: {}",
+            tail.len(),
+            tail.join("; ")
+        );
+    }
+    if !most_over.is_empty() {
+        let _ = write!(
+            s,
+            ". In {} most episodes are over it: {}",
+            most_over.len(),
+            most_over.join(", ")
+        );
+    }
+    s.push_str(".\n");
     s
 }
 
@@ -803,6 +868,36 @@ mod tests {
             seeds_section(&catalog, &paper, &all[3..4]),
             "No (task, method) has more than one training seed yet.\n"
         );
+    }
+
+    #[test]
+    fn unsafe_cells_the_paper_calls_safe_are_told_apart_by_their_median_episode() {
+        let catalog = Catalog::embedded().unwrap();
+        let paper = PaperResults::embedded(&catalog).unwrap();
+        let task = catalog.get("OfflinePointCircle1Gymnasium-v0").unwrap();
+        // The paper's BC-Safe, CDT and CPQ are safe on PointCircle1 (thresholds 20, 40, 80; two episodes each).
+        for method in ["BC-Safe", "CDT", "CPQ"] {
+            assert!(paper.get(task.id.as_str(), method).unwrap().safe, "{method}");
+        }
+        // BC-Safe: one episode of six at 400 (20× the threshold of 20), the rest 0: mean 3.33, unsafe; median 0.
+        let mut bc_safe = dsrl_scoring::reference::synthetic_entry(task, "BC-Safe", 0, 40.0, 0.0);
+        bc_safe.episodes[0].cost_return = 400.0;
+        // CDT: every episode at 100 (5×, 2.5×, 1.25×): every one over.
+        let cdt = dsrl_scoring::reference::synthetic_entry(task, "CDT", 0, 40.0, 100.0);
+        // CPQ: safe, as the paper's: not listed.
+        let cpq = dsrl_scoring::reference::synthetic_entry(task, "CPQ", 0, 40.0, 0.0);
+        let entries = vec![bc_safe, cdt, cpq];
+        let (current, cells) = current_and_cells(&catalog, &paper, &entries, "p1.x");
+        assert_eq!(cells.len(), 3);
+        assert_eq!(
+            unsafe_where_the_paper_is_safe(&current, &cells),
+            "\n**Where ours is unsafe and the paper's safe** (2 cells), by episode (each episode's cost over its \
+             threshold, all seeds): in 1 the median episode is within its threshold, so a minority of episodes \
+             decides the verdict: PointCircle1 BC-Safe (1 of 6 episodes over, the costliest at 20.0× it). In 1 most \
+             episodes are over it: PointCircle1 CDT.\n"
+        );
+        // Nothing to say where no cell is unsafe against a safe row.
+        assert_eq!(unsafe_where_the_paper_is_safe(&current[2..], &cells[2..]), "");
     }
 
     #[test]
