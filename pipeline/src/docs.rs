@@ -20,7 +20,7 @@ use std::fmt::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use dsrl_scoring::leaderboard::entry_interval;
+use dsrl_scoring::leaderboard::{entry_interval, quantile};
 use dsrl_scoring::paper::PaperResults;
 use dsrl_scoring::reference::{
     Agreement, FIDELITY_GOAL, ReferenceEntry, agreement, mean_over_seeds, read_results, scored_entries, summarize,
@@ -276,9 +276,9 @@ fn agreement_section(
 }
 
 /// How the episodes fall in the cells where ours is unsafe and the paper's safe. A mean over episodes (what the
-/// paper reports and the verdict reads) can be over the threshold while most episodes are within it: a few episodes
-/// in which the policy leaves the safe region and does not come back cost many times the threshold each. Telling
-/// those cells from the ones where most episodes are over says which disagreements a policy's rare failures make.
+/// paper reports and the verdict reads) can be over the threshold while most episodes are within it: a minority of
+/// episodes, each running up several times the threshold, decides it. Telling those cells from the ones where most
+/// episodes are over says which disagreements come from a policy's failures rather than its typical episode.
 fn unsafe_where_the_paper_is_safe(current: &[&ReferenceEntry], cells: &[Agreement]) -> String {
     let mut tail = Vec::new();
     let mut most_over = Vec::new();
@@ -294,7 +294,7 @@ fn unsafe_where_the_paper_is_safe(current: &[&ReferenceEntry], cells: &[Agreemen
         }
         costs.sort_by(f64::total_cmp);
         let n = costs.len();
-        let median = (costs[(n - 1) / 2] + costs[n / 2]) / 2.0;
+        let median = quantile(&costs, 0.5);
         let over = costs.iter().filter(|&&c| c > 1.0).count();
         let label = format!(
             "{} {} ({} of {n} episodes over, the costliest at {:.1}× it)",

@@ -253,8 +253,8 @@ fn percentile_interval(estimate: f64, mut draws: Vec<f64>, confidence: f64, resa
     }
 }
 
-/// The `q` quantile of sorted `draws` with linear interpolation (NumPy's default).
-fn quantile(draws: &[f64], q: f64) -> f64 {
+/// The `q` quantile of sorted `draws` with linear interpolation (NumPy's default); `q = 0.5` is the median.
+pub fn quantile(draws: &[f64], q: f64) -> f64 {
     let pos = q * (draws.len() - 1) as f64;
     let (i, frac) = (pos.floor() as usize, pos - pos.floor());
     let next = draws[(i + 1).min(draws.len() - 1)];
