@@ -248,17 +248,33 @@ fn family_section(html: &mut String, family: &FamilyTable) {
     }
 }
 
-/// A family's entries on the normalized cost–reward plane (ranked ones labelled by rank, partial ones by "–").
+/// A family's entries on the normalized cost–reward plane: ranked ones keyed by their rank, partial ones by a
+/// letter, their coverage in the legend.
 pub fn family_svg(family: &FamilyTable) -> Result<String, String> {
-    let points: Vec<EntryPoint> = family
+    let ranked = family
         .entries
         .iter()
-        .chain(&family.partial)
-        .map(|e| EntryPoint {
+        .map(|e| (e.rank.map_or_else(|| "–".to_owned(), |r| r.to_string()), e, None));
+    let partial = family.partial.iter().enumerate().map(|(i, e)| {
+        (
+            letter_key(i),
+            e,
+            Some(format!(", {} of {} tasks", e.tasks, family.tasks)),
+        )
+    });
+    let points: Vec<EntryPoint> = ranked
+        .chain(partial)
+        .map(|(key, e, coverage)| EntryPoint {
+            key,
             label: format!(
-                "{} {}",
-                e.rank.map_or_else(|| "–".to_owned(), |r| r.to_string()),
-                e.name
+                "{}{}{}",
+                e.name,
+                if e.reference {
+                    String::new()
+                } else {
+                    format!(" ({})", e.user)
+                },
+                coverage.unwrap_or_default()
             ),
             normalized_cost: e.normalized_cost.estimate,
             normalized_reward: e.normalized_reward.estimate,
@@ -271,10 +287,25 @@ pub fn family_svg(family: &FamilyTable) -> Result<String, String> {
     entries_svg(&format!("{} (IQM over tasks)", family.family), &points)
 }
 
+/// The key of the `i`-th unranked point of a picture: a, b, …, z, then aa, ab, …
+fn letter_key(i: usize) -> String {
+    let letter = |n: usize| char::from(b'a' + (n % 26) as u8);
+    if i < 26 {
+        letter(i).to_string()
+    } else {
+        format!("{}{}", letter(i / 26 - 1), letter(i))
+    }
+}
+
 /// A task's entries and the paper's rows on the normalized cost–reward plane, with the entries' intervals.
 pub fn task_svg(table: &TaskTable) -> Result<String, String> {
     let entries = table.entries.iter().map(|e| EntryPoint {
-        label: format!("{} {}", e.rank, e.name),
+        key: e.rank.to_string(),
+        label: if e.reference.is_some() {
+            e.name.clone()
+        } else {
+            format!("{} ({})", e.name, e.user)
+        },
         normalized_cost: e.normalized_cost,
         normalized_reward: e.normalized_reward,
         safe: e.safe,
@@ -293,8 +324,10 @@ pub fn task_svg(table: &TaskTable) -> Result<String, String> {
                 .iter()
                 .map(|p| ("published", &p.method, p.normalized_cost, p.normalized_reward, p.safe)),
         )
+        .enumerate()
         .map(
-            |(source, method, normalized_cost, normalized_reward, safe)| EntryPoint {
+            |(i, (source, method, normalized_cost, normalized_reward, safe))| EntryPoint {
+                key: letter_key(i),
                 label: format!("{source} {method}"),
                 normalized_cost,
                 normalized_reward,

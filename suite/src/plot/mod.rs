@@ -1,8 +1,16 @@
 //! The cost–reward return scatter of a dataset, like the DSRL paper's figures: one point per trajectory, the
 //! task's benchmark cost thresholds as dashed vertical lines. For a filtered dataset, the points removed by the
 //! filter stay visible in gray and relabelled outliers are drawn in red, as in DSRL's own filter plot.
+//!
+//! The leaderboard's picture of entries on the normalized cost–reward plane is in `entries`, the placement of its
+//! point keys in `keys`.
+
+mod entries;
+mod keys;
 
 use plotters::prelude::*;
+
+pub use entries::{EntryPoint, entries_svg};
 
 use crate::catalog::Task;
 use crate::episode::Fate;
@@ -89,118 +97,6 @@ pub fn cost_reward_svg(task: &Task, title: &str, subtitle: Option<&str>, points:
             .border_style(BLACK)
             .draw()
             .map_err(|e| e.to_string())?;
-        root.present().map_err(|e| e.to_string())?;
-    }
-    Ok(svg)
-}
-
-/// One leaderboard entry on the normalized cost–reward plane.
-#[derive(Debug, Clone)]
-pub struct EntryPoint {
-    /// Drawn beside the marker (the entry's rank).
-    pub label: String,
-    pub normalized_cost: f64,
-    pub normalized_reward: f64,
-    pub safe: bool,
-    /// The 95% intervals, drawn as whiskers; `None` for a point without one (the paper's rows).
-    pub reward_interval: Option<(f64, f64)>,
-    pub cost_interval: Option<(f64, f64)>,
-    /// One of the paper's rows: a hollow square, not a filled circle.
-    pub paper: bool,
-}
-
-/// The entries of a leaderboard table on the normalized cost–reward plane, safe ones in blue, unsafe in red, with
-/// their intervals as whiskers, the paper's rows as hollow squares, and the safety boundary (normalized cost 1)
-/// dashed.
-pub fn entries_svg(title: &str, entries: &[EntryPoint]) -> Result<String, String> {
-    let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
-    // Every value the picture shows, whiskers included, sets the axes.
-    let costs = entries.iter().flat_map(|e| {
-        [
-            Some(e.normalized_cost),
-            e.cost_interval.map(|i| i.0),
-            e.cost_interval.map(|i| i.1),
-        ]
-        .into_iter()
-        .flatten()
-    });
-    let rewards = || {
-        entries.iter().flat_map(|e| {
-            [
-                Some(e.normalized_reward),
-                e.reward_interval.map(|i| i.0),
-                e.reward_interval.map(|i| i.1),
-            ]
-            .into_iter()
-            .flatten()
-        })
-    };
-    let xmax = costs.map(finite).fold(2.0f64, f64::max) * 1.1;
-    let ymin = rewards().map(finite).fold(0.0f64, f64::min) - 0.05;
-    let ymax = rewards().map(finite).fold(1.0f64, f64::max) + 0.05;
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (560, 400)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 16))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(52)
-            .build_cartesian_2d(0f64..xmax, ymin..ymax)
-            .map_err(|e| e.to_string())?;
-        chart
-            .configure_mesh()
-            .x_desc("normalized cost")
-            .y_desc("normalized reward")
-            .draw()
-            .map_err(|e| e.to_string())?;
-        let boundary = DashedLineSeries::new([(1.0, ymin), (1.0, ymax)], 6, 4, BLACK.stroke_width(1));
-        chart.draw_series(boundary).map_err(|e| e.to_string())?;
-        for e in entries {
-            let color = if e.safe {
-                RGBColor(30, 144, 255)
-            } else {
-                RGBColor(220, 60, 40)
-            };
-            let xy = (finite(e.normalized_cost), finite(e.normalized_reward));
-            if let Some((low, high)) = e.cost_interval {
-                chart
-                    .draw_series(LineSeries::new(
-                        [(finite(low), xy.1), (finite(high), xy.1)],
-                        color.stroke_width(1),
-                    ))
-                    .map_err(|e| e.to_string())?;
-            }
-            if let Some((low, high)) = e.reward_interval {
-                chart
-                    .draw_series(LineSeries::new(
-                        [(xy.0, finite(low)), (xy.0, finite(high))],
-                        color.stroke_width(1),
-                    ))
-                    .map_err(|e| e.to_string())?;
-            }
-            if e.paper {
-                let (dx, dy) = (xmax * 0.008, (ymax - ymin) * 0.011);
-                chart
-                    .draw_series([Rectangle::new(
-                        [(xy.0 - dx, xy.1 - dy), (xy.0 + dx, xy.1 + dy)],
-                        color.stroke_width(2),
-                    )])
-                    .map_err(|e| e.to_string())?;
-            } else {
-                chart
-                    .draw_series([Circle::new(xy, 5, color.filled())])
-                    .map_err(|e| e.to_string())?;
-            }
-            chart
-                .draw_series([Text::new(
-                    e.label.clone(),
-                    (xy.0 + xmax * 0.015, xy.1),
-                    ("sans-serif", 12).into_font(),
-                )])
-                .map_err(|e| e.to_string())?;
-        }
         root.present().map_err(|e| e.to_string())?;
     }
     Ok(svg)
