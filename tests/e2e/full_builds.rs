@@ -1,6 +1,6 @@
 //! `dsrl-admin build` end to end on real simulator workers, with a tiny plan (`fixtures/full_builds.toml`):
 //! BallRun's build, killed after a save, resumes to the version id committed in `fixtures/full/` (so a change that
-//! alters what builds produce fails here); uploaded to a server that holds the committed starter, it becomes
+//! alters what builds produce fails here), and so does one on three workers rather than one; uploaded to a server that holds the committed starter, it becomes
 //! `latest`, tagged `full`, with the starter still reachable under `starter` and each said to be what it is; a build
 //! whose committed identity differs fails and names the first episode that differs.
 
@@ -27,11 +27,12 @@ fn committed_records() -> PathBuf {
     fixtures().join("full")
 }
 
-/// `dsrl-admin build TASK` with the tiny plan, its records in `records` and its state under `root`.
-fn build(root: &Path, records: &Path, extra: &[&str]) -> Command {
+/// `dsrl-admin build TASK` with the tiny plan on `workers` simulator workers, its records in `records` and its state
+/// under `root`.
+fn build(root: &Path, records: &Path, workers: u32, extra: &[&str]) -> Command {
     let mut cmd = Command::new(dsrl_e2e::bin("dsrl-admin"));
     cmd.current_dir(dsrl_e2e::repo_root())
-        .args(["build", "--json", "--workers", "1", "--plan"])
+        .args(["build", "--json", "--workers", &workers.to_string(), "--plan"])
         .arg(fixtures().join("full_builds.toml"))
         .arg("--records")
         .arg(records)
@@ -57,7 +58,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     let root = dir.path().join("root");
     let state = root.join(TASK);
     crate::kill_once_saved(
-        build(&root, &committed_records(), &[]),
+        build(&root, &committed_records(), 1, &[]),
         &state.join("expert/ckpt-000002/state.json"),
         &state.join("record"),
     );
@@ -65,6 +66,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     let outcomes = crate::admin_json(build(
         &root,
         &committed_records(),
+        1,
         &["--server", &env.server.url, "--token", &token],
     ));
     let outcome = &outcomes[0];
@@ -109,7 +111,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     fields[2] = "12345.5".into();
     lines[3] = fields.join(",");
     std::fs::write(changed.join(format!("{TASK}.episodes.csv")), lines.join("\n") + "\n").unwrap();
-    let out = build(&root, &changed, &[]).output().unwrap();
+    let out = build(&root, &changed, 1, &[]).output().unwrap();
     assert!(
         !out.status.success(),
         "a build that differs from its committed identity passed"
@@ -125,10 +127,11 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
     assert!(String::from_utf8_lossy(&out.stderr).contains("differ from their committed identity"));
 
     // The build's child killed mid-way (a worker or the machine failing under it): the parent starts it again, it
-    // resumes from its last save and ends at the same identity, and the outcome says what happened.
+    // resumes from its last save and ends at the same identity, and the outcome says what happened. This build runs
+    // on three workers: the environments' sessions differ from the first build's, the data do not.
     let root = dir.path().join("retried");
     let state = root.join(TASK);
-    let parent = build(&root, &committed_records(), &[])
+    let parent = build(&root, &committed_records(), 3, &[])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -176,7 +179,7 @@ fn a_killed_full_build_resumes_to_its_committed_identity_uploads_as_latest_and_a
         "cpu_seconds_per_unit": 120.0, "unit": "steps", "planned": 300, "core_hours": 10.0, "cpu": "a trial's CPU",
     });
     for (run, check) in [(1, "no committed record"), (2, "matches")] {
-        let outcomes = crate::admin_json(build(&root, &records, &["--record"]));
+        let outcomes = crate::admin_json(build(&root, &records, 1, &["--record"]));
         assert_eq!(outcomes[0]["check"], check, "run {run}: {:#}", outcomes[0]);
         assert_eq!(read_estimate(), expected, "run {run}");
         assert!(!gap_path.exists(), "a recorded build keeps no gap record");

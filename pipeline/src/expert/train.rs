@@ -359,13 +359,45 @@ fn layout(envs: usize, sessions: usize) -> Vec<(usize, u32)> {
     (0..envs).map(|j| (j / per, (j % per) as u32)).collect()
 }
 
+/// The sessions whose layout fixes the acting blocks (below): two, the number of workers every committed full build
+/// ran with, so that their version ids hold.
+const ACTING_LAYOUT_SESSIONS: usize = 2;
+
+/// The acting blocks of `envs` environments: the contiguous runs of environments the policy acts on in one batch,
+/// each session's first half and the rest in a layout over `ACTING_LAYOUT_SESSIONS` sessions, whatever the sessions
+/// the run really has. A batch's number of rows picks gemm's kernels and so how a row's products round (an action
+/// computed in a batch of 5 rows can differ in its last bit from the same computed in a batch of 3), so batches that
+/// followed the sessions made the data depend on `--workers`; fixed blocks do not.
+fn acting_blocks(envs: usize) -> Vec<Vec<usize>> {
+    let canonical = layout(envs, ACTING_LAYOUT_SESSIONS);
+    let mut blocks = Vec::new();
+    for s in 0..ACTING_LAYOUT_SESSIONS {
+        let members: Vec<usize> = (0..envs).filter(|&j| canonical[j].0 == s).collect();
+        for half in dsrl_simulators::split_in_two(members.len()) {
+            blocks.push(half.iter().map(|&i| members[i as usize]).collect());
+        }
+    }
+    blocks
+}
+
+/// One step request in flight: a block's environments that live in one session, with what the policy sent them.
+struct Request {
+    block: usize,
+    session: usize,
+    envs: Vec<usize>,
+    actions: Vec<f32>,
+    log_probs: Vec<f32>,
+}
+
 /// Plays one episode in every environment from the observations `obs` (`[envs, obs_dim]`, global order).
 ///
-/// The environments form groups whose steps are pipelined: while a worker steps one group, the policy acts on
-/// another's last observations, so the simulators do not wait for the round trip or for acting (BENCHMARKS.md).
-/// Answers are handled in the order the requests were sent and the groups are contiguous runs of environments
-/// visited round-robin, so each round the policy draws its noise for the playing environments in
-/// environment order, whatever the number of sessions: the run does not depend on `--workers`.
+/// The policy acts on fixed blocks of environments (`acting_blocks`), each block's step going to the sessions its
+/// environments live in. The blocks' steps are pipelined: while a worker steps one block, the policy acts on
+/// another's last observations, so the simulators do not wait for the round trip or for acting (BENCHMARKS.md). A
+/// block acts again once every session has answered its last step; answers are handled in the order the requests
+/// were sent, so the blocks act round-robin in block order and the policy draws its noise for the playing
+/// environments in environment order. Neither the batches nor the noise depend on the sessions: the run does not
+/// depend on `--workers`.
 async fn play(
     sessions: &mut [PooledSession],
     layout: &[(usize, u32)],
@@ -388,24 +420,22 @@ async fn play(
             ..Trace::default()
         })
         .collect();
-    // Groups of global environment numbers, two per session (the session's first half and the rest).
-    let mut groups: Vec<(usize, Vec<usize>)> = Vec::new();
-    for s in 0..sessions.len() {
-        let members: Vec<usize> = (0..total).filter(|&j| layout[j].0 == s).collect();
-        for half in dsrl_simulators::split_in_two(members.len()) {
-            groups.push((s, half.iter().map(|&i| members[i as usize]).collect()));
-        }
-    }
+    // Each block's playing environments; the answers not yet in for its last step; those still playing after it.
+    let mut blocks = acting_blocks(total);
+    let mut unanswered = vec![0usize; blocks.len()];
+    let mut still: Vec<Vec<usize>> = vec![Vec::new(); blocks.len()];
     let mut acting_seconds = 0.0;
     let mut busy = Busy::new(sessions.len());
-    // The policy's actions for the group's playing environments, sent as its next step; returns them for the trace.
+    // The policy's actions for the block's playing environments, sent as their next step to the sessions they live
+    // in (a block's environments are contiguous, and so are those of each session).
     let act = async |sessions: &mut [PooledSession],
-                     (session, envs): &(usize, Vec<usize>),
+                     block: usize,
+                     envs: &[usize],
                      obs: &[f32],
                      noise: &mut Noise,
                      acting_seconds: &mut f64,
                      busy: &mut Busy|
-           -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
+           -> anyhow::Result<Vec<Request>> {
         let batch: Vec<f32> = envs
             .iter()
             .flat_map(|&j| obs[j * obs_dim..(j + 1) * obs_dim].iter().copied())
@@ -413,28 +443,49 @@ async fn play(
         let started = Instant::now();
         let (actions, log_probs) = learner.act(&batch, envs.len(), noise)?;
         *acting_seconds += started.elapsed().as_secs_f64();
-        let local: Vec<u32> = envs.iter().map(|&j| layout[j].1).collect();
-        sessions[*session].send_step(&local, &actions).await?;
-        busy.sent(*session);
-        Ok((actions, log_probs))
+        let mut requests = Vec::new();
+        let mut from = 0;
+        while from < envs.len() {
+            let session = layout[envs[from]].0;
+            let to = from + envs[from..].iter().take_while(|&&j| layout[j].0 == session).count();
+            let local: Vec<u32> = envs[from..to].iter().map(|&j| layout[j].1).collect();
+            let sent = &actions[from * act_dim..to * act_dim];
+            sessions[session].send_step(&local, sent).await?;
+            busy.sent(session);
+            requests.push(Request {
+                block,
+                session,
+                envs: envs[from..to].to_vec(),
+                actions: sent.to_vec(),
+                log_probs: log_probs[from..to].to_vec(),
+            });
+            from = to;
+        }
+        Ok(requests)
     };
-    // Requests in flight, oldest first: (group, the actions and log-probabilities sent).
+    // Requests in flight, oldest first.
     let mut in_flight = std::collections::VecDeque::new();
     let started = Instant::now();
-    for (g, group) in groups.iter().enumerate() {
-        let sent = act(sessions, group, &obs, noise, &mut acting_seconds, &mut busy).await?;
-        in_flight.push_back((g, sent));
+    for (b, envs) in blocks.iter().enumerate() {
+        let requests = act(sessions, b, envs, &obs, noise, &mut acting_seconds, &mut busy).await?;
+        unanswered[b] = requests.len();
+        in_flight.extend(requests);
     }
-    while let Some((g, (actions, log_probs))) = in_flight.pop_front() {
-        let (session, envs) = &groups[g];
-        let Reply::Step(step) = sessions[*session].receive().await? else {
+    while let Some(request) = in_flight.pop_front() {
+        let Request {
+            block,
+            session,
+            envs,
+            actions,
+            log_probs,
+        } = request;
+        let Reply::Step(step) = sessions[session].receive().await? else {
             anyhow::bail!(
                 "simulator worker {} answered a step out of order",
-                sessions[*session].worker()
+                sessions[session].worker()
             );
         };
-        busy.answered(*session);
-        let mut still = Vec::with_capacity(envs.len());
+        busy.answered(session);
         for (k, &j) in envs.iter().enumerate() {
             let next = &step.observations[k * obs_dim..(k + 1) * obs_dim];
             let trace = &mut traces[j];
@@ -446,13 +497,27 @@ async fn play(
             trace.log_probs.push(log_probs[k]);
             obs[j * obs_dim..(j + 1) * obs_dim].copy_from_slice(next);
             if !(step.terminated[k] || step.truncated[k]) {
-                still.push(j);
+                still[block].push(j);
             }
         }
-        groups[g].1 = still;
-        if !groups[g].1.is_empty() {
-            let sent = act(sessions, &groups[g], &obs, noise, &mut acting_seconds, &mut busy).await?;
-            in_flight.push_back((g, sent));
+        unanswered[block] -= 1;
+        if unanswered[block] == 0 {
+            // Every part of the block's step is in (in session order, so `still` is in environment order).
+            blocks[block] = std::mem::take(&mut still[block]);
+            if !blocks[block].is_empty() {
+                let requests = act(
+                    sessions,
+                    block,
+                    &blocks[block],
+                    &obs,
+                    noise,
+                    &mut acting_seconds,
+                    &mut busy,
+                )
+                .await?;
+                unanswered[block] = requests.len();
+                in_flight.extend(requests);
+            }
         }
     }
     // Acting overlaps the simulators: what is left of the wall time is waiting for them.
@@ -512,7 +577,7 @@ pub struct Training<'a> {
     /// Environment steps to train for.
     pub budget: u64,
     /// The environments are spread over up to this many sessions (one per worker); the result is the same for any
-    /// number.
+    /// number (the policy acts on fixed blocks of environments, `acting_blocks`).
     pub sessions: usize,
     /// The recipe's warm start, read by the caller; used only where the run starts (no save in `root`).
     pub warm_start: Option<WarmStartWeights>,
@@ -801,5 +866,21 @@ mod tests {
         assert_eq!(ten.iter().filter(|(s, _)| *s == 3).count(), 1);
         assert_eq!(ten[9], (3, 0));
         assert_eq!(super::layout(2, 16), vec![(0, 0), (1, 0)]);
+    }
+
+    #[test]
+    fn acting_blocks_are_the_halves_of_two_sessions_whatever_the_sessions() {
+        // Ten environments: sessions of 5 in the two-session layout, each split into 3 and 2.
+        assert_eq!(
+            super::acting_blocks(10),
+            vec![vec![0, 1, 2], vec![3, 4], vec![5, 6, 7], vec![8, 9]]
+        );
+        assert_eq!(super::acting_blocks(4), vec![vec![0], vec![1], vec![2], vec![3]]);
+        assert_eq!(super::acting_blocks(1), vec![vec![0]]);
+        // Every environment in exactly one block, in order.
+        for envs in 1..40 {
+            let flat: Vec<usize> = super::acting_blocks(envs).concat();
+            assert_eq!(flat, (0..envs).collect::<Vec<_>>());
+        }
     }
 }
