@@ -369,15 +369,14 @@ const ACTING_LAYOUT_SESSIONS: usize = 2;
 /// computed in a batch of 5 rows can differ in its last bit from the same computed in a batch of 3), so batches that
 /// followed the sessions made the data depend on `--workers`; fixed blocks do not.
 fn acting_blocks(envs: usize) -> Vec<Vec<usize>> {
-    let canonical = layout(envs, ACTING_LAYOUT_SESSIONS);
-    let mut blocks = Vec::new();
-    for s in 0..ACTING_LAYOUT_SESSIONS {
-        let members: Vec<usize> = (0..envs).filter(|&j| canonical[j].0 == s).collect();
-        for half in dsrl_simulators::split_in_two(members.len()) {
-            blocks.push(half.iter().map(|&i| members[i as usize]).collect());
-        }
-    }
-    blocks
+    session_members(&layout(envs, ACTING_LAYOUT_SESSIONS))
+        .iter()
+        .flat_map(|members| {
+            dsrl_simulators::split_in_two(members.len())
+                .into_iter()
+                .map(|half| half.iter().map(|&i| members[i as usize] as usize).collect())
+        })
+        .collect()
 }
 
 /// One step request in flight: a block's environments that live in one session, with what the policy sent them.
