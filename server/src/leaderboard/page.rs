@@ -267,13 +267,8 @@ pub fn family_svg(family: &FamilyTable) -> Result<String, String> {
         .map(|(key, e, coverage)| EntryPoint {
             key,
             label: format!(
-                "{}{}{}",
-                e.name,
-                if e.reference {
-                    String::new()
-                } else {
-                    format!(" ({})", e.user)
-                },
+                "{}{}",
+                legend_name(&e.name, &e.user, e.reference),
                 coverage.unwrap_or_default()
             ),
             normalized_cost: e.normalized_cost.estimate,
@@ -285,6 +280,16 @@ pub fn family_svg(family: &FamilyTable) -> Result<String, String> {
         })
         .collect();
     entries_svg(&format!("{} (IQM over tasks)", family.family), &points)
+}
+
+/// A point's name in a picture's legend: a reference entry's name alone (its user is the reference account), any
+/// other's with its user, since two users may give an entry the same name.
+fn legend_name(name: &str, user: &str, reference: bool) -> String {
+    if reference {
+        name.to_owned()
+    } else {
+        format!("{name} ({user})")
+    }
 }
 
 /// The key of the `i`-th unranked point of a picture: a, b, …, z, then aa, ab, …
@@ -301,11 +306,7 @@ fn letter_key(i: usize) -> String {
 pub fn task_svg(table: &TaskTable) -> Result<String, String> {
     let entries = table.entries.iter().map(|e| EntryPoint {
         key: e.rank.to_string(),
-        label: if e.reference.is_some() {
-            e.name.clone()
-        } else {
-            format!("{} ({})", e.name, e.user)
-        },
+        label: legend_name(&e.name, &e.user, e.reference.is_some()),
         normalized_cost: e.normalized_cost,
         normalized_reward: e.normalized_reward,
         safe: e.safe,
